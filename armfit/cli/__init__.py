@@ -1,0 +1,1 @@
+"""armfit's command line: a Click group with one module per subcommand."""

@@ -1,0 +1,85 @@
+"""The ``armfit`` command group: global options, error handling, subcommand registry.
+
+Data and ``--json`` go to stdout; progress, messages and errors go to stderr. A user's
+mistake (any :class:`armfit.errors.ArmfitError`) is one line on stderr and its exit code;
+the traceback is shown only with ``-v``.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import click
+
+from armfit import __version__
+from armfit.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, ArmfitError
+
+log = logging.getLogger("armfit")
+
+
+class ArmfitGroup(click.Group):
+    """A group that turns domain errors into one stderr line and a documented exit code."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except ArmfitError as exc:
+            _report(ctx, exc)
+            ctx.exit(exc.exit_code)
+        except KeyboardInterrupt:
+            click.echo("armfit: interrupted", err=True)
+            ctx.exit(EXIT_INTERRUPTED)
+        except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
+            raise
+        except Exception as exc:  # a bug: say so in one line, traceback with -v
+            _report(ctx, exc, internal=True)
+            ctx.exit(EXIT_INTERNAL)
+
+
+def _report(ctx: click.Context, exc: BaseException, internal: bool = False) -> None:
+    verbose = (ctx.obj or {}).get("verbosity", 0) > 0
+    if verbose:
+        import traceback
+        traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
+    msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    if internal:
+        msg = f"internal error ({type(exc).__name__}): {msg}" + (
+            "" if verbose else " (run with -v for the traceback)")
+    click.echo(f"armfit: error: {msg}", err=True)
+
+
+@click.group(cls=ArmfitGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="armfit")
+@click.option("-v", "--verbose", "verbose", count=True,
+              help="More messages on stderr (repeat for debug); tracebacks on errors.")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr.")
+@click.pass_context
+def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
+    """armfit — human arm and hand dynamics and variability models from stylus
+    haptic-device trials (the method of Fu & Çavuşoğlu, ICRA 2010).
+
+    Exit codes: 0 success, 1 internal error, 2 usage error, 3 fit did not converge,
+    65 bad input data, 66 input not found, 73 output exists or cannot be written,
+    130 interrupted.
+    """
+    verbosity = -1 if quiet else verbose
+    ctx.ensure_object(dict)
+    ctx.obj["verbosity"] = verbosity
+    level = {-1: logging.ERROR, 0: logging.INFO}.get(verbosity, logging.DEBUG)
+    logging.basicConfig(level=level, format="armfit: %(message)s", stream=sys.stderr,
+                        force=True)
+    log.setLevel(level)
+
+
+def _register() -> None:
+    # One line per subcommand module; each module defines a click command named `command`.
+    from armfit.cli import ingest
+    cli.add_command(ingest.command)
+
+
+_register()
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    cli(prog_name="armfit")

@@ -1,0 +1,89 @@
+"""Options shared by several subcommands, defined once."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+import click
+
+T = TypeVar("T")
+
+output_option = click.option(
+    "-o", "--output", "output", required=True, type=click.Path(dir_okay=True),
+    help="Output path (written atomically).")
+overwrite_option = click.option(
+    "--overwrite", is_flag=True, help="Replace an existing output.")
+json_option = click.option(
+    "--json", "as_json", is_flag=True, help="Print a machine-readable summary on stdout.")
+skip_bad_option = click.option(
+    "--skip-bad", is_flag=True,
+    help="Go on past bad trials, listing each with its reason (default: stop at the first).")
+manifest_option = click.option(
+    "--manifest", type=click.Path(exists=True, dir_okay=False),
+    help="CSV with columns file,subject,axis,grip_N[,run]; paths relative to it.")
+jobs_option = click.option(
+    "-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
+    help="Worker processes.")
+effect_option = click.option(
+    "--effect", "effects", multiple=True, metavar="NAME",
+    help="Add a physical effect to the model (repeatable; see `armfit effects`).")
+
+
+def verbosity() -> int:
+    """The group's -v/-q level: -1 quiet, 0 normal, >0 verbose."""
+    ctx = click.get_current_context(silent=True)
+    while ctx is not None:
+        if ctx.obj and "verbosity" in ctx.obj:
+            return ctx.obj["verbosity"]
+        ctx = ctx.parent
+    return 0
+
+
+def message(text: str) -> None:
+    """A progress or status message on stderr (silenced by -q)."""
+    if verbosity() >= 0:
+        click.echo(text, err=True)
+
+
+def emit_json(obj: Any) -> None:
+    """Write ``obj`` as JSON on stdout."""
+    click.echo(json.dumps(obj, indent=2, sort_keys=False, default=_json_default))
+
+
+def _json_default(o):
+    import numpy as np
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+@contextmanager
+def progress(total: int, description: str) -> Iterator[Any]:
+    """A rich progress bar on stderr when stderr is a terminal (and not -q); else silent.
+
+    Yields an ``advance()`` callable.
+    """
+    if verbosity() < 0 or not sys.stderr.isatty():
+        yield lambda n=1: None
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+    with Progress("[progress.description]{task.description}", BarColumn(),
+                  MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task(description, total=total)
+        yield lambda n=1: bar.advance(task, n)
+
+
+def iterate(items: Iterable[T], total: int, description: str) -> Iterator[T]:
+    """Iterate with a progress bar (see :func:`progress`)."""
+    with progress(total, description) as advance:
+        for item in items:
+            yield item
+            advance()

@@ -1,0 +1,85 @@
+"""Domain exceptions and the exit codes the command line maps them to.
+
+Every exception a user can cause subclasses :class:`ArmfitError` (itself a ValueError).
+The CLI prints ``str(exc)`` as one line on stderr and exits with ``exc.exit_code``.
+
+Exit codes (documented in the README):
+
+==== =========================================================
+0    success
+1    internal error (a bug: please report it with ``-v`` output)
+2    usage error: bad option, bad combination of options
+3    a fit did not converge (no numbers are printed or written)
+65   bad input data (file content breaks the data contract)
+66   input not found, or nothing to read
+73   output cannot be written (exists without --overwrite, or is also an input)
+130  interrupted
+==== =========================================================
+"""
+
+from __future__ import annotations
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1
+EXIT_USAGE = 2
+EXIT_NOT_CONVERGED = 3
+EXIT_DATAERR = 65
+EXIT_NOINPUT = 66
+EXIT_CANTCREAT = 73
+EXIT_INTERRUPTED = 130
+
+
+class ArmfitError(ValueError):
+    """Base class of every error a user's input or options can cause."""
+
+    exit_code = EXIT_INTERNAL
+
+
+class UsageError(ArmfitError):
+    """Options that do not fit together or are out of range."""
+
+    exit_code = EXIT_USAGE
+
+
+class BadInputError(ArmfitError):
+    """Input data that breaks the data contract.
+
+    The message names the file, the column and the row (1-based data row, header not
+    counted) where they apply, then what was expected and what to do.
+    """
+
+    exit_code = EXIT_DATAERR
+
+    def __init__(self, message: str, *, file: str | None = None, column: str | None = None,
+                 row: int | None = None, reason: str | None = None):
+        self.file = file
+        self.column = column
+        self.row = row
+        self.reason = reason or message
+        where = []
+        if file is not None:
+            where.append(str(file))
+        if column is not None:
+            where.append(f"column '{column}'")
+        if row is not None:
+            where.append(f"row {row}")
+        prefix = ": ".join([", ".join(where)]) + ": " if where else ""
+        super().__init__(prefix + message)
+
+
+class NoInputError(ArmfitError):
+    """An input path does not exist, or a search found nothing to read."""
+
+    exit_code = EXIT_NOINPUT
+
+
+class OutputError(ArmfitError):
+    """An output exists (and --overwrite was not given), or would overwrite an input."""
+
+    exit_code = EXIT_CANTCREAT
+
+
+class ConvergenceError(ArmfitError):
+    """An optimiser did not converge; no result is reported."""
+
+    exit_code = EXIT_NOT_CONVERGED

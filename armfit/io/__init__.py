@@ -1,0 +1,1 @@
+"""File formats: the raw-trial contract, the canonical dataset and armfit's artifacts."""

@@ -1,0 +1,225 @@
+"""The 5-parameter arm model, the device, and their closed loop (Fu & Çavuşoğlu 2010).
+
+Conventions: frequencies ``f_hz`` in Hz, the Laplace variable ``s = j 2π f`` in rad/s,
+responses position/force in m/N, impedances force/position in N/m. Every function is
+vectorised over frequency and broadcasts over parameter arrays.
+
+Free-body diagram (paper Fig. 3): the hand point x is joined to the arm mass Ma by a
+spring k1 and damper b1 in parallel; Ma is joined to ground by k2 and b2 in parallel.
+With C1 = k1 + b1 s and C2 = k2 + b2 s::
+
+    H_ARM(s) = (Ma s² + C1 + C2) / (C1 (Ma s² + C2))            eq. 3
+    H_dev(s) = Mp s²                                           eq. 2 (impedance, N/m)
+    H_CL(s)  = H_ARM / (1 + H_ARM · Mp s²)                      eq. 4
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from armfit.errors import UsageError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from armfit.models.effects import Effect
+
+#: Device (PHANToM Premium 1.5a) mass per axis in kg — paper eq. 2.
+DEVICE_MASS_KG: dict[str, float] = {"x": 0.09, "y": 0.095, "z": 0.091}
+
+#: Names of the five arm parameters, in the paper's order (Tables I and II).
+PARAM_NAMES: tuple[str, ...] = ("Ma", "k1", "k2", "b1", "b2")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One model parameter: name, SI unit, physical bounds and a typical value.
+
+    ``log`` parameters are positive and are searched on a log scale by the fitter.
+    """
+
+    name: str
+    unit: str
+    lower: float
+    upper: float
+    typical: float
+    description: str = ""
+    log: bool = True
+
+    def __post_init__(self) -> None:
+        if not (self.lower < self.typical < self.upper):
+            raise ValueError(f"{self.name}: typical {self.typical} outside "
+                             f"[{self.lower}, {self.upper}]")
+        if self.log and self.lower <= 0:
+            raise ValueError(f"{self.name}: log parameter needs lower > 0")
+
+
+#: The five arm parameters with physical bounds wide enough for every row of
+#: Tables I, II and IV (Ma up to 17.5 kg in Lawrence's model, b up to 175 N·s/m).
+BASE_PARAMS: tuple[Param, ...] = (
+    Param("Ma", "kg", 0.01, 30.0, 0.3, "arm mass"),
+    Param("k1", "N/m", 1.0, 3.0e4, 100.0, "hand (grip) stiffness, hand point to arm mass"),
+    Param("k2", "N/m", 1.0, 3.0e4, 500.0, "arm stiffness, arm mass to ground"),
+    Param("b1", "N*s/m", 0.05, 1000.0, 7.0, "hand (grip) damping"),
+    Param("b2", "N*s/m", 0.05, 1000.0, 5.0, "arm damping"),
+)
+
+
+def laplace(f_hz: np.ndarray | float) -> np.ndarray:
+    """Return s = j·2π·f (rad/s) for frequencies in Hz."""
+    return 2j * np.pi * np.asarray(f_hz, dtype=float)
+
+
+def z_arm(f_hz, Ma, k1, k2, b1, b2) -> np.ndarray:
+    """Arm impedance F/X = 1/H_ARM in N/m — inverse of Fu & Çavuşoğlu 2010, eq. 3.
+
+    Z_ARM = C1 (Ma s² + C2) / (Ma s² + C1 + C2), C1 = k1 + b1 s, C2 = k2 + b2 s.
+    """
+    s = laplace(f_hz)
+    c1 = k1 + b1 * s
+    c2 = k2 + b2 * s
+    ms2 = Ma * s * s
+    return c1 * (ms2 + c2) / (ms2 + c1 + c2)
+
+
+def h_arm(f_hz, Ma, k1, k2, b1, b2) -> np.ndarray:
+    """Arm dynamics H_ARM = Xa/Fa in m/N — Fu & Çavuşoğlu 2010, eq. 3."""
+    return 1.0 / z_arm(f_hz, Ma, k1, k2, b1, b2)
+
+
+def h_device(f_hz, mp) -> np.ndarray:
+    """Device impedance H_PHANToM = Fp/Xp = Mp s² in N/m (mp in kg) — eq. 2."""
+    s = laplace(f_hz)
+    return mp * s * s
+
+
+def h_cl(f_hz, Ma, k1, k2, b1, b2, mp) -> np.ndarray:
+    """Measured-dynamics model H_CL = X/F in m/N — Fu & Çavuşoğlu 2010, eq. 4.
+
+    H_CL = H_ARM / (1 + H_ARM · Mp s²) = 1 / (Z_ARM + Mp s²).
+    """
+    return 1.0 / (z_arm(f_hz, Ma, k1, k2, b1, b2) + h_device(f_hz, mp))
+
+
+def arm_tf(Ma, k1, k2, b1, b2) -> tuple[np.ndarray, np.ndarray]:
+    """Polynomial coefficients (highest power first, s in rad/s) of H_ARM — eq. 3.
+
+    num = [Ma, b1+b2, k1+k2]; den = [b1 Ma, b1 b2 + k1 Ma, b2 k1 + b1 k2, k1 k2].
+    """
+    num = np.array([Ma, b1 + b2, k1 + k2], dtype=float)
+    den = np.array([b1 * Ma, b1 * b2 + k1 * Ma, b2 * k1 + b1 * k2, k1 * k2], dtype=float)
+    return num, den
+
+
+def cl_tf(Ma, k1, k2, b1, b2, mp) -> tuple[np.ndarray, np.ndarray]:
+    """Polynomial coefficients (s in rad/s) of the fourth-order H_CL — eq. 4.
+
+    H_CL = num / (den + num · Mp s²) with num, den those of H_ARM.
+    """
+    num, den = arm_tf(Ma, k1, k2, b1, b2)
+    den_cl = np.polyadd(den, np.polymul(num, [mp, 0.0, 0.0]))
+    return num, den_cl
+
+
+def _as_values(names: Sequence[str], theta) -> dict[str, float]:
+    if isinstance(theta, Mapping):
+        missing = [n for n in names if n not in theta]
+        if missing:
+            raise UsageError(f"missing model parameters: {', '.join(missing)}")
+        return {n: theta[n] for n in names}
+    arr = np.asarray(theta, dtype=float)
+    if arr.shape[0] != len(names):
+        raise UsageError(f"expected {len(names)} parameters ({', '.join(names)}), "
+                         f"got {arr.shape[0]}")
+    return dict(zip(names, arr, strict=True))
+
+
+@dataclass(frozen=True)
+class ClosedLoopModel:
+    """The closed loop of eq. 4 for one axis, with optional effects plugged in.
+
+    Effects act at one of three places (see :mod:`armfit.models.effects`):
+    ``arm`` adds an impedance to Z_ARM, ``device`` adds an impedance to the device's
+    Mp s², ``output`` multiplies X/F. The fitter, the tables and the CLI only see
+    :attr:`params` and :meth:`response`; they never learn effect names.
+
+    Parameter names: the five base names, then ``<effect>.<param>`` for each effect.
+    """
+
+    mp: float
+    effects: tuple[Effect, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        names = [e.name for e in self.effects]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise UsageError(f"effect given twice: {', '.join(dup)}")
+        if not self.mp > 0:
+            raise UsageError(f"device mass must be > 0 kg, got {self.mp}")
+
+    @classmethod
+    def for_axis(cls, axis: str, effects: Sequence[Effect] = (), mp: float | None = None
+                 ) -> ClosedLoopModel:
+        """The model of ``axis`` ('x', 'y', 'z') with the paper's Mp unless ``mp`` is given."""
+        if axis not in DEVICE_MASS_KG:
+            raise UsageError(f"axis must be x, y or z, got {axis!r}")
+        return cls(mp=DEVICE_MASS_KG[axis] if mp is None else float(mp), effects=tuple(effects))
+
+    def with_effect(self, effect: Effect) -> ClosedLoopModel:
+        """A new model with ``effect`` added (refused if already present)."""
+        return ClosedLoopModel(mp=self.mp, effects=self.effects + (effect,))
+
+    @property
+    def params(self) -> tuple[Param, ...]:
+        """All parameters, base first, effect parameters qualified as ``effect.param``."""
+        out = list(BASE_PARAMS)
+        for e in self.effects:
+            for p in e.params:
+                out.append(Param(f"{e.name}.{p.name}", p.unit, p.lower, p.upper, p.typical,
+                                 p.description, p.log))
+        return tuple(out)
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+    def _split(self, theta) -> tuple[dict[str, float], list[dict[str, float]]]:
+        values = _as_values(self.param_names, theta)
+        base = {n: values[n] for n in PARAM_NAMES}
+        eff = [{p.name: values[f"{e.name}.{p.name}"] for p in e.params} for e in self.effects]
+        return base, eff
+
+    def arm_response(self, f_hz, theta) -> np.ndarray:
+        """H_ARM (m/N) with arm-stage effects included (device and output excluded)."""
+        base, eff = self._split(theta)
+        s = laplace(f_hz)
+        z = z_arm(f_hz, **base)
+        for e, v in zip(self.effects, eff, strict=True):
+            if e.stage == "arm":
+                z = z + e.term(s, v, self.mp)
+        return 1.0 / z
+
+    def response(self, f_hz, theta) -> np.ndarray:
+        """Measured dynamics X/F (m/N): eq. 4 with every effect applied."""
+        base, eff = self._split(theta)
+        s = laplace(f_hz)
+        z = z_arm(f_hz, **base) + h_device(f_hz, self.mp)
+        factor = np.ones_like(s)
+        for e, v in zip(self.effects, eff, strict=True):
+            if e.stage in ("arm", "device"):
+                z = z + e.term(s, v, self.mp)
+            else:
+                factor = factor * e.term(s, v, self.mp)
+        return factor / z
+
+    def derived_arm_response(self, f_hz, theta, mp_assumed: float | None = None) -> np.ndarray:
+        """What the derived-arm estimate Xa/Fa, Fa = F − Mp ẍ, converges to (m/N).
+
+        With H the measured X/F of :meth:`response`, Xa/Fa = H / (1 − Mp_assumed s² H)
+        (NOTES.md, variability model). Without effects this equals H_ARM exactly.
+        """
+        h = self.response(f_hz, theta)
+        mp = self.mp if mp_assumed is None else mp_assumed
+        return h / (1.0 - h_device(f_hz, mp) * h)

@@ -1,0 +1,45 @@
+"""Literature arm models of the paper's Table IV (Fu & Çavuşoğlu 2010, Fig. 7).
+
+Five-parameter models use H_ARM (eq. 3); three-parameter ones (Kosuge, Lawrence, Tsuji)
+are X/F = 1/(m s² + b s + k) with m = Ma, k = k1, b = b1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+
+import numpy as np
+import pandas as pd
+
+from armfit.models.arm import h_arm, laplace
+
+
+@dataclass(frozen=True)
+class LiteratureModel:
+    name: str
+    Ma: float
+    k1: float
+    b1: float
+    k2: float | None
+    b2: float | None
+
+    def response(self, f_hz) -> np.ndarray:
+        """X/F in m/N at ``f_hz`` (Hz)."""
+        if self.k2 is None or self.b2 is None:
+            s = laplace(f_hz)
+            return 1.0 / (self.Ma * s * s + self.b1 * s + self.k1)
+        return h_arm(f_hz, self.Ma, self.k1, self.k2, self.b1, self.b2)
+
+
+def literature_models() -> list[LiteratureModel]:
+    """The rows of Table IV as models."""
+    with resources.files("armfit.data").joinpath("table4_literature.csv").open() as fh:
+        df = pd.read_csv(fh)
+    out = []
+    for r in df.itertuples(index=False):
+        k2 = None if pd.isna(r.k2_N_per_m) else float(r.k2_N_per_m)
+        b2 = None if pd.isna(r.b2_Ns_per_m) else float(r.b2_Ns_per_m)
+        out.append(LiteratureModel(r.model, float(r.Ma_kg), float(r.k1_N_per_m),
+                                   float(r.b1_Ns_per_m), k2, b2))
+    return out
