@@ -73,9 +73,8 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
 
 
 def _register() -> None:
-    # One line per subcommand module; each module defines a click command named `command`.
-    from armfit.cli import ingest
-    cli.add_command(ingest.command)
+    # Each subcommand module defines its click command(s); add them here.
+    pass
 
 
 _register()
