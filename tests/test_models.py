@@ -1,0 +1,180 @@
+"""Tests of armfit.models: the arm, device and closed-loop models and the effect library.
+
+Expected values are analytic limits of the paper's equations (Fu & Çavuşoğlu 2010, eqs.
+2–4) or closed forms of each effect; parameters are rows of the paper's Table I.
+"""
+
+import numpy as np
+import pytest
+
+from armfit.data import paper_table
+from armfit.errors import UsageError
+from armfit.models.arm import (
+    DEVICE_MASS_KG,
+    ClosedLoopModel,
+    arm_tf,
+    cl_tf,
+    h_arm,
+    h_cl,
+    z_arm,
+)
+from armfit.models.effects import EFFECTS, get_effect, parse_effect_spec
+from armfit.models.literature import literature_models
+
+# Table I, X axis, 1 N grip.
+X1 = dict(Ma=0.1925, k1=85.48, k2=704.2, b1=7.410, b2=2.477)
+F = np.logspace(-2, np.log10(30), 200)
+
+
+def test_arm_dc_is_series_springs():
+    # At s = 0, eq. 3 reduces to (k1 + k2) / (k1 k2): the two springs in series.
+    expected = (X1["k1"] + X1["k2"]) / (X1["k1"] * X1["k2"])
+    assert h_arm(0.0, **X1).real == pytest.approx(expected, rel=1e-12)
+
+
+def test_arm_high_frequency_is_hand_damper():
+    # Relative degree 1 (NOTES.md): H_ARM -> 1/(b1 s) as s -> inf.
+    f = 1e6
+    s = 2j * np.pi * f
+    assert h_arm(f, **X1) * (X1["b1"] * s) == pytest.approx(1.0, rel=1e-4)
+
+
+def test_closed_loop_high_frequency_is_device_plus_hand_mass_line():
+    # Relative degree 2: H_CL -> 1/(Mp s²) as s -> inf (40 dB/dec).
+    f = 1e6
+    s = 2j * np.pi * f
+    assert h_cl(f, **X1, mp=0.09) * (0.09 * s * s) == pytest.approx(1.0, rel=1e-3)
+
+
+def test_polynomials_match_the_rational_forms_of_eqs_3_and_4():
+    # eq. 3 written out as a ratio of polynomials (NOTES.md) against the C1/C2 form.
+    s = 2j * np.pi * F
+    num, den = arm_tf(**X1)
+    np.testing.assert_allclose(np.polyval(num, s) / np.polyval(den, s), h_arm(F, **X1),
+                               rtol=1e-12)
+    num, den = cl_tf(**X1, mp=0.09)
+    assert len(den) == 5  # H_CL is fourth order (NOTES.md)
+    np.testing.assert_allclose(np.polyval(num, s) / np.polyval(den, s),
+                               h_cl(F, **X1, mp=0.09), rtol=1e-12)
+
+
+def test_closed_loop_is_eq4_feedback_form():
+    # eq. 4: H_CL = H_ARM / (1 + H_ARM Mp s²).
+    s = 2j * np.pi * F
+    ha = h_arm(F, **X1)
+    np.testing.assert_allclose(h_cl(F, **X1, mp=0.09), ha / (1 + ha * 0.09 * s * s), rtol=1e-12)
+
+
+@pytest.mark.parametrize("row", range(9))
+def test_every_table1_row_gives_a_stable_closed_loop(row):
+    # Physical parameters (all positive) give a passive, hence stable, closed loop:
+    # every root of the fourth-order denominator in the open left half plane.
+    r = paper_table("grip").iloc[row]
+    p = dict(Ma=r.Ma_kg, k1=r.k1_N_per_m, k2=r.k2_N_per_m, b1=r.b1_Ns_per_m, b2=r.b2_Ns_per_m)
+    _, den = cl_tf(**p, mp=DEVICE_MASS_KG[r.axis])
+    assert np.all(np.roots(den).real < 0)
+
+
+def test_model_without_effects_is_h_cl_and_derived_is_h_arm():
+    m = ClosedLoopModel.for_axis("x")
+    np.testing.assert_allclose(m.response(F, X1), h_cl(F, **X1, mp=0.09), rtol=1e-12)
+    # Xa/Fa = H/(1 − Mp s² H) inverts eq. 4 exactly when no effect is present.
+    np.testing.assert_allclose(m.derived_arm_response(F, X1), h_arm(F, **X1), rtol=1e-10)
+    np.testing.assert_allclose(m.arm_response(F, list(X1.values())), h_arm(F, **X1),
+                               rtol=1e-12)
+
+
+def _with(name, **values):
+    m = ClosedLoopModel.for_axis("x", [get_effect(name)])
+    theta = dict(X1, **{f"{name}.{k}": v for k, v in values.items()})
+    return m.response(F, theta)
+
+
+def test_delay_is_pure_phase_lag():
+    # e^{-sτ}: unit magnitude, phase −360° f τ.
+    h = _with("delay", delay_s=0.01) / h_cl(F, **X1, mp=0.09)
+    np.testing.assert_allclose(np.abs(h), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(np.exp(1j * np.angle(h)), np.exp(-2j * np.pi * F * 0.01),
+                               atol=1e-12)
+
+
+def test_lowpass_is_minus_3db_and_45deg_at_the_corner():
+    # 1/(1 + s/ωc) at ω = ωc: magnitude 1/√2, phase −45°.
+    m = ClosedLoopModel.for_axis("x", [get_effect("lowpass")])
+    th = dict(X1, **{"lowpass.cutoff_hz": 20.0})
+    r = m.response(20.0, th) / h_cl(20.0, **X1, mp=0.09)
+    assert abs(r) == pytest.approx(2 ** -0.5, rel=1e-12)
+    assert np.degrees(np.angle(r)) == pytest.approx(-45.0, abs=1e-9)
+
+
+def test_device_mass_and_damping_change_the_device_impedance():
+    # device-mass: H_CL with Mp replaced; device-damping: 1/(Z_ARM + Mp s² + B s).
+    np.testing.assert_allclose(_with("device-mass", mass_kg=0.15), h_cl(F, **X1, mp=0.15),
+                               rtol=1e-12)
+    s = 2j * np.pi * F
+    np.testing.assert_allclose(_with("device-damping", damping_Ns_per_m=3.0),
+                               1 / (z_arm(F, **X1) + 0.09 * s * s + 3.0 * s), rtol=1e-12)
+
+
+def test_resonance_limits():
+    # (1 − w) + w ωn²/(s² + 2ζωn s + ωn²): 1 at DC, (1 − w) + w/(2jζ) at ωn.
+    m = ClosedLoopModel.for_axis("x", [get_effect("resonance")])
+    th = dict(X1, **{"resonance.freq_hz": 40.0, "resonance.zeta": 0.05,
+                     "resonance.weight": 0.3})
+    dc = m.response(1e-6, th) / h_cl(1e-6, **X1, mp=0.09)
+    assert dc == pytest.approx(1.0, abs=1e-9)
+    at = m.response(40.0, th) / h_cl(40.0, **X1, mp=0.09)
+    assert at == pytest.approx(0.7 + 0.3 / (2j * 0.05), rel=1e-12)
+
+
+def test_reflex_adds_delayed_stiffness_to_the_arm():
+    # At DC the reflex gain g adds to the series stiffness k1 k2/(k1 + k2).
+    g = 150.0
+    m = ClosedLoopModel.for_axis("x", [get_effect("reflex")])
+    th = dict(X1, **{"reflex.gain_N_per_m": g, "reflex.delay_s": 0.04})
+    kser = X1["k1"] * X1["k2"] / (X1["k1"] + X1["k2"])
+    assert m.response(0.0, th).real == pytest.approx(1 / (kser + g), rel=1e-12)
+    # an arm-stage effect is part of H_ARM, so the derived arm response recovers it
+    np.testing.assert_allclose(m.derived_arm_response(F, th), m.arm_response(F, th),
+                               rtol=1e-10)
+
+
+def test_model_parameter_names_are_qualified_and_clashes_refused():
+    m = ClosedLoopModel.for_axis("z", [EFFECTS["reflex"], EFFECTS["delay"]])
+    assert m.param_names == ("Ma", "k1", "k2", "b1", "b2", "reflex.gain_N_per_m",
+                             "reflex.delay_s", "delay.delay_s")
+    assert m.mp == DEVICE_MASS_KG["z"]
+    with pytest.raises(UsageError, match="effect given twice: delay"):
+        m.with_effect(EFFECTS["delay"])
+    with pytest.raises(UsageError, match="axis must be x, y or z"):
+        ClosedLoopModel.for_axis("w")
+
+
+def test_parse_effect_spec_forms_and_errors():
+    e, v = parse_effect_spec("delay=0.012")
+    assert e.name == "delay" and v == {"delay_s": 0.012}
+    e, v = parse_effect_spec("reflex=delay_s:0.05,gain_N_per_m:300")
+    assert v == {"gain_N_per_m": 300.0, "delay_s": 0.05}
+    e, v = parse_effect_spec("resonance=45,0.1,0.4")
+    assert v == {"freq_hz": 45.0, "zeta": 0.1, "weight": 0.4}
+    with pytest.raises(UsageError, match="unknown effect 'spring'"):
+        parse_effect_spec("spring=3")
+    with pytest.raises(UsageError, match="takes 3 value"):
+        parse_effect_spec("resonance=45")
+    with pytest.raises(UsageError, match="outside the physical range"):
+        parse_effect_spec("delay=2")
+    with pytest.raises(UsageError, match="is not a number"):
+        parse_effect_spec("delay=abc")
+    with pytest.raises(UsageError, match="has no parameter 'tau'"):
+        parse_effect_spec("delay=tau:0.01")
+
+
+def test_literature_models():
+    models = {m.name: m for m in literature_models()}
+    assert len(models) == 7  # Table IV rows
+    # three-parameter model 1/(m s² + b s + k): DC compliance 1/k (Kosuge: k = 243 N/m)
+    assert models["Kosuge"].response(0.0).real == pytest.approx(1 / 243, rel=1e-12)
+    # five-parameter models follow eq. 3 (Speich X row)
+    sx = models["Speich X"]
+    np.testing.assert_allclose(sx.response(F), h_arm(F, 0.85, 122, 330, 12.9, 12.9),
+                               rtol=1e-12)
