@@ -178,3 +178,17 @@ def test_literature_models():
     sx = models["Speich X"]
     np.testing.assert_allclose(sx.response(F), h_arm(F, 0.85, 122, 330, 12.9, 12.9),
                                rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(EFFECTS))
+def test_every_effect_vanishes_at_its_null_point(name):
+    # Nested fits start at the null point: there the model must equal eq. 4 without the
+    # effect, to 1e-3 relative (lowpass at 100 kHz: |1/(1 + j f/1e5)| − 1 ≈ 3e-4 at 30 Hz).
+    m = ClosedLoopModel.for_axis("y", [EFFECTS[name]])
+    theta = m.null_theta(X1)
+    np.testing.assert_allclose(m.response(F, theta), h_cl(F, **X1, mp=0.095), rtol=1e-3)
+    starts = m.start_points(X1)
+    assert starts[0] == theta
+    for st in starts:  # every start lies within the physical bounds
+        for p in m.params:
+            assert p.lower <= st[p.name] <= p.upper

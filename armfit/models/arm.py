@@ -185,6 +185,23 @@ class ClosedLoopModel:
     def param_names(self) -> tuple[str, ...]:
         return tuple(p.name for p in self.params)
 
+    def null_theta(self, base: Mapping[str, float]) -> dict[str, float]:
+        """Base parameters plus every effect at its null values: the base model's response."""
+        theta = {n: float(base[n]) for n in PARAM_NAMES}
+        for e in self.effects:
+            theta.update({f"{e.name}.{k}": v for k, v in e.null(self.mp).items()})
+        return theta
+
+    def start_points(self, base: Mapping[str, float]) -> list[dict[str, float]]:
+        """Starting points for a nested fit from a base fit: all effects at null first,
+        then each effect's own starting points with the others at null."""
+        null = self.null_theta(base)
+        pts = [null]
+        for e in self.effects:
+            for st in e.start_points(self.mp)[1:]:
+                pts.append({**null, **{f"{e.name}.{k}": v for k, v in st.items()}})
+        return pts
+
     def _split(self, theta) -> tuple[dict[str, float], list[dict[str, float]]]:
         values = _as_values(self.param_names, theta)
         base = {n: values[n] for n in PARAM_NAMES}

@@ -40,9 +40,28 @@ class Effect:
     summary: str
     suspect_when: str
     _term: TermFn
+    #: Values at which the effect (nearly) vanishes; ``None`` means "the device mass"
+    #: (for an effect that replaces Mp). Nested fits start here, so adding the effect
+    #: never makes a fit worse.
+    null_values: tuple[float | None, ...] = ()
+    #: Further starting points (tuples in parameter order) for a global search.
+    starts: tuple[tuple[float, ...], ...] = ()
 
     def term(self, s: np.ndarray, values: Mapping[str, float], mp: float) -> np.ndarray:
         return self._term(s, values, mp)
+
+    def null(self, mp: float) -> dict[str, float]:
+        """The parameter values at which this effect leaves the model (nearly) unchanged."""
+        return {p.name: (mp if v is None else v)
+                for p, v in zip(self.params, self.null_values, strict=True)}
+
+    def start_points(self, mp: float) -> list[dict[str, float]]:
+        """The null point, then the effect's further starting points, clipped to bounds."""
+        pts = [self.null(mp)]
+        for st in self.starts:
+            pts.append({p.name: float(np.clip(v, p.lower, p.upper))
+                        for p, v in zip(self.params, st, strict=True)})
+        return pts
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -78,23 +97,23 @@ def _reflex(s, v, mp):
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect(
         "delay", "output",
-        (Param("delay_s", "s", 1e-4, 0.1, 0.01, "latency between force and position"),),
+        (Param("delay_s", "s", 0.0, 0.1, 0.01, "latency between force and position", log=False),),
         "Transport, servo or sensor latency: X/F is multiplied by exp(-s*delay_s).",
         "phase lags more and more with frequency (linearly in Hz) while the magnitude fits",
-        _delay),
+        _delay, null_values=(0.0,), starts=((0.004,), (0.015,), (0.04,))),
     Effect(
         "lowpass", "output",
-        (Param("cutoff_hz", "Hz", 1.0, 2000.0, 60.0, "corner frequency"),),
+        (Param("cutoff_hz", "Hz", 1.0, 1.0e5, 60.0, "corner frequency"),),
         "First-order sensor or amplifier lag: X/F is multiplied by 1/(1 + s/(2*pi*cutoff_hz)).",
         "magnitude droops and phase lags at high frequency, up to 90 deg past the corner",
-        _lowpass),
+        _lowpass, null_values=(1.0e5,), starts=((8.0,), (25.0,), (80.0,))),
     Effect(
         "device-damping", "device",
-        (Param("damping_Ns_per_m", "N*s/m", 1e-3, 100.0, 2.0, "viscous friction"),),
+        (Param("damping_Ns_per_m", "N*s/m", 1e-4, 100.0, 2.0, "viscous friction"),),
         "Viscous friction in the device: its impedance becomes Mp*s^2 + B*s.",
         "magnitude too low and phase lag too small in the mid band, as if the hand "
         "damping grew",
-        _device_damping),
+        _device_damping, null_values=(1e-4,), starts=((1.0,), (5.0,))),
     Effect(
         "device-mass", "device",
         (Param("mass_kg", "kg", 0.005, 3.0, 0.1, "actual moving mass of the device"),),
@@ -102,27 +121,29 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
         "gimbal): its impedance becomes mass_kg*s^2.",
         "magnitude off by a constant in dB above ~15 Hz, where the -40 dB/dec mass line "
         "dominates",
-        _device_mass),
+        _device_mass, null_values=(None,), starts=((0.05,), (0.2,))),
     Effect(
         "resonance", "output",
         (Param("freq_hz", "Hz", 2.0, 300.0, 40.0, "natural frequency of the mode"),
          Param("zeta", "1", 0.005, 1.0, 0.1, "damping ratio of the mode"),
-         Param("weight", "1", 1e-3, 1.0, 0.3, "share of the motion through the mode")),
+         Param("weight", "1", 1e-5, 1.0, 0.3, "share of the motion through the mode")),
         "An extra lightly damped mode (link, cable or tissue compliance) in the path to the "
         "measured point: X/F is multiplied by (1 - weight) + weight*wn^2/(s^2 + "
         "2*zeta*wn*s + wn^2), wn = 2*pi*freq_hz.",
         "magnitude rises above the model towards a peak (or a peak-notch pair) with a "
         "phase swing; above 30 Hz only the rise shows (the paper's Z axis)",
-        _resonance),
+        _resonance, null_values=(60.0, 0.3, 1e-5),
+        starts=((10.0, 0.1, 0.2), (20.0, 0.1, 0.2), (40.0, 0.1, 0.2), (80.0, 0.1, 0.3))),
     Effect(
         "reflex", "arm",
-        (Param("gain_N_per_m", "N/m", 1.0, 5000.0, 200.0, "reflex stiffness"),
+        (Param("gain_N_per_m", "N/m", 1e-2, 5000.0, 200.0, "reflex stiffness"),
          Param("delay_s", "s", 0.005, 0.2, 0.04, "reflex loop delay")),
         "Delayed position feedback of the stretch reflex inside the arm: the arm impedance "
         "gains gain_N_per_m*exp(-s*delay_s).",
         "a ripple in magnitude and phase whose spacing in Hz is 1/delay_s, strongest in "
         "the 1-10 Hz band where the arm is compliant",
-        _reflex),
+        _reflex, null_values=(1e-2, 0.04),
+        starts=((100.0, 0.02), (100.0, 0.04), (100.0, 0.07), (100.0, 0.12))),
 )}
 
 
