@@ -1,15 +1,69 @@
 """The raw-trial contract: file names, columns, validation; and the canonical dataset.
 
-(Types below are the interface the rest of armfit uses; reading and writing follow.)
+Raw trials are one file per trial (CSV, CSV.gz or Parquet) named
+``sub-<label>_axis-<x|y|z>_grip-<g>N[_run-<k>].<ext>`` or listed in a manifest CSV.
+:func:`discover` finds them, :func:`read_trial` reads and validates one, and
+:func:`open_trials` streams a whole batch with the cross-trial checks (duplicates,
+sampling rate). :func:`write_dataset` writes the canonical dataset: one Parquet file,
+one row group per trial, per-trial metadata as JSON in the file's key-value metadata.
+
+Units: time s, force N, position m (``pos_<a>_mm`` columns are divided by 1000),
+sampling rate Hz. Rows in messages are 1-based data rows (the header is not counted).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import csv
+import gzip
+import io
+import json
+import math
+import os
+import re
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
 
 import numpy as np
 
+from armfit.errors import BadInputError, NoInputError
+
 AXES: tuple[str, ...] = ("x", "y", "z")
+
+#: File extensions of raw trials, longest first (".csv.gz" before ".csv").
+TRIAL_EXTENSIONS: tuple[str, ...] = (".csv.gz", ".csv", ".parquet")
+
+#: Sample columns of the canonical dataset besides ``trial`` (float64, SI units).
+DATASET_COLUMNS: tuple[str, ...] = (
+    "force_x_N", "force_y_N", "force_z_N", "pos_x_m", "pos_y_m", "pos_z_m", "grip_N")
+
+#: Parquet key-value metadata keys of the canonical dataset.
+DATASET_FORMAT_KEY = "armfit.format"
+DATASET_TRIALS_KEY = "armfit.trials"
+DATASET_FORMAT_VERSION = "1"
+
+#: Allowed sampling jitter: each interval may differ from the median interval by this
+#: fraction of the period.
+JITTER_TOLERANCE = 0.01
+#: Two sampling rates are the same when they differ by at most this relative amount.
+RATE_TOLERANCE = 1e-4
+
+#: Parquet writer settings of the canonical dataset, measured with
+#: benchmarks/bench_ingest.py (81 trials x 100 s): none, lz4, snappy and zstd all ingest
+#: in 1.2-3 s, within the run-to-run noise; lz4 keeps absent (all-NaN) axes nearly free
+#: on disk. Dictionary encoding of all columns doubled the time and the size (random
+#: samples have no repeats), so only ``trial`` uses it. float64 is kept.
+_PARQUET_WRITE = dict(compression="lz4", use_dictionary=["trial"], write_statistics=False)
+
+_STEM = re.compile(r"sub-(?P<subject>[^_]*)_axis-(?P<axis>[^_]*)_grip-(?P<grip>[^_]*)"
+                   r"(?:_run-(?P<run>[^_]*))?")
+_GRIP = re.compile(r"(\d+(?:\.\d+)?)N")
+_LABEL = re.compile(r"[A-Za-z0-9]+")
+_NAME_HELP = "sub-<label>_axis-<x|y|z>_grip-<g>N[_run-<k>].<csv|csv.gz|parquet>"
+
+Warn = Callable[[str], None]
 
 
 @dataclass(frozen=True)
@@ -66,3 +120,815 @@ class Trial:
     def x(self) -> np.ndarray:
         """Position on the stimulated axis (m)."""
         return self.pos[:, self.meta.axis_index]
+
+    @property
+    def time_s(self) -> np.ndarray:
+        """Sample times (s): ``t0_s + k / fs``, k = 0 … n−1."""
+        return self.meta.t0_s + np.arange(self.meta.n_samples) / self.meta.fs
+
+
+@dataclass(frozen=True)
+class TrialSource:
+    """Where one trial comes from and who it is.
+
+    path: a raw trial file, or a canonical dataset file when ``index`` (its row group,
+    0-based) is set; subject, axis, grip_N (N), run: the trial's identity, from the file
+    name, a manifest, or the dataset's metadata.
+    """
+
+    path: str
+    subject: str
+    axis: str
+    grip_N: float
+    run: int | None = None
+    index: int | None = None
+
+    @property
+    def key(self) -> tuple[str, str, float, int | None]:
+        return (self.subject, self.axis, self.grip_N, self.run)
+
+    @property
+    def label(self) -> str:
+        """How messages name this trial: the file, plus the trial number in a dataset."""
+        return self.path if self.index is None else f"{self.path} (trial {self.index})"
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """A trial left out by ``--skip-bad``: its file and why."""
+
+    file: str
+    reason: str
+
+
+# ---------------------------------------------------------------------------
+# Discovery
+# ---------------------------------------------------------------------------
+
+def _trial_ext(name: str) -> str | None:
+    low = name.lower()
+    for ext in TRIAL_EXTENSIONS:
+        if low.endswith(ext):
+            return ext
+    return None
+
+
+def parse_name(path: str | os.PathLike) -> tuple[str, str, float, int | None] | None:
+    """Identity (subject, axis, grip_N, run) from a BIDS-style trial file name.
+
+    Returns None when the name does not have the ``sub-…_axis-…_grip-…`` structure or a
+    trial extension. Raises BadInputError when it has the structure but a part is wrong
+    (e.g. an axis other than x/y/z).
+    """
+    name = Path(path).name
+    ext = _trial_ext(name)
+    if ext is None:
+        return None
+    m = _STEM.fullmatch(name[: -len(ext)])
+    if m is None:
+        return None
+    subject, axis, grip, run = m.group("subject", "axis", "grip", "run")
+    file = str(path)
+    if not _LABEL.fullmatch(subject):
+        raise BadInputError(f"subject label '{subject}' in the file name is not alphanumeric; "
+                            f"expected {_NAME_HELP}", file=file)
+    if axis not in AXES:
+        raise BadInputError(f"axis '{axis}' in the file name is not x, y or z; "
+                            f"expected {_NAME_HELP}", file=file)
+    g = _GRIP.fullmatch(grip)
+    if g is None:
+        raise BadInputError(f"grip '{grip}' in the file name is not a number of newtons "
+                            f"such as 2N or 1.5N; expected {_NAME_HELP}", file=file)
+    if run is not None and not run.isdigit():
+        raise BadInputError(f"run '{run}' in the file name is not a whole number; "
+                            f"expected {_NAME_HELP}", file=file)
+    return subject, axis, float(g.group(1)), (int(run) if run is not None else None)
+
+
+def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, int | None]]:
+    """Read a manifest CSV (``file,subject,axis,grip_N[,run]``; files relative to it).
+
+    Returns {resolved file path: (subject, axis, grip_N, run)}. Raises BadInputError
+    naming the manifest, column and row of a bad entry.
+    """
+    mpath = Path(path)
+    file = str(path)
+    try:
+        text = mpath.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise BadInputError(f"cannot read the manifest: {exc}", file=file) from None
+    reader = csv.DictReader(io.StringIO(text))
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    for col in ("file", "subject", "axis", "grip_N"):
+        if col not in header:
+            raise BadInputError("missing required manifest column; expected columns "
+                                "file,subject,axis,grip_N[,run]", file=file, column=col)
+    reader.fieldnames = header
+    entries: dict[Path, tuple[str, str, float, int | None]] = {}
+    rows: dict[Path, int] = {}
+    for row_no, row in enumerate(reader, start=1):
+        vals = {k: (v or "").strip() for k, v in row.items() if k is not None}
+        if not vals.get("file"):
+            raise BadInputError("empty file path", file=file, column="file", row=row_no)
+        subject = vals["subject"]
+        if not _LABEL.fullmatch(subject):
+            raise BadInputError(f"subject label '{subject}' is not alphanumeric",
+                                file=file, column="subject", row=row_no)
+        axis = vals["axis"]
+        if axis not in AXES:
+            raise BadInputError(f"axis '{axis}' is not x, y or z", file=file,
+                                column="axis", row=row_no)
+        try:
+            grip = float(vals["grip_N"])
+            if not math.isfinite(grip) or grip < 0:
+                raise ValueError
+        except ValueError:
+            raise BadInputError(f"grip '{vals['grip_N']}' is not a non-negative number of "
+                                "newtons", file=file, column="grip_N", row=row_no) from None
+        run_txt = vals.get("run", "")
+        if run_txt and not run_txt.isdigit():
+            raise BadInputError(f"run '{run_txt}' is not a whole number", file=file,
+                                column="run", row=row_no)
+        target = (mpath.parent / vals["file"]).resolve()
+        if target in entries:
+            raise BadInputError(f"file '{vals['file']}' is listed twice (also row "
+                                f"{rows[target]})", file=file, column="file", row=row_no)
+        entries[target] = (subject, axis, grip, int(run_txt) if run_txt else None)
+        rows[target] = row_no
+    return entries
+
+
+def _walk(folder: Path) -> Iterator[Path]:
+    """Files under ``folder``, recursively, in sorted (deterministic) order."""
+    for root, dirs, files in os.walk(folder):
+        dirs.sort()
+        for name in sorted(files):
+            yield Path(root) / name
+
+
+def _discover(inputs: Sequence[str | os.PathLike], manifest: str | os.PathLike | None,
+              bad: list[Skipped] | None) -> tuple[list[TrialSource], list[Path]]:
+    """:func:`discover`; with ``bad`` a list, bad names are appended to it, not raised."""
+    entries = read_manifest(manifest) if manifest is not None else {}
+    sources: list[TrialSource] = []
+    ignored: list[Path] = []
+    seen: set[Path] = set()
+
+    def fail(exc: BadInputError) -> None:
+        if bad is None:
+            raise exc
+        bad.append(Skipped(exc.file or "", _reason(exc)))
+
+    def add(path: Path, explicit: bool) -> None:
+        res = path.resolve()
+        if res in seen:
+            return
+        seen.add(res)
+        if res in entries:
+            if _trial_ext(path.name) is None:
+                fail(BadInputError("unsupported file type; expected .csv, .csv.gz or "
+                                   ".parquet", file=str(path)))
+                return
+            sources.append(TrialSource(str(path), *entries[res]))
+            return
+        if explicit and is_dataset(path):
+            sources.extend(dataset_sources(path))
+            return
+        try:
+            ident = parse_name(path)
+        except BadInputError as exc:
+            fail(exc)
+            return
+        if ident is None:
+            if explicit:
+                extra = (", and it is not an armfit dataset"
+                         if _trial_ext(path.name) == ".parquet" else "")
+                fail(BadInputError(f"file name matches no pattern ({_NAME_HELP}) and has no "
+                                   f"--manifest entry{extra}", file=str(path)))
+            else:
+                ignored.append(path)
+            return
+        sources.append(TrialSource(str(path), *ident))
+
+    if not inputs and manifest is not None:
+        for row_no, target in enumerate(entries, start=1):
+            if not target.is_file():
+                raise NoInputError(f"{manifest}: column 'file', row {row_no}: {target}: "
+                                   "no such file")
+            add(target, explicit=True)
+        return sources, ignored
+    for inp in inputs:
+        p = Path(inp)
+        if p.is_dir():
+            for f in _walk(p):
+                add(f, explicit=False)
+        elif p.is_file():
+            add(p, explicit=True)
+        else:
+            raise NoInputError(f"{p}: no such file or folder")
+    return sources, ignored
+
+
+def discover(inputs: Sequence[str | os.PathLike], *,
+             manifest: str | os.PathLike | None = None,
+             ) -> tuple[list[TrialSource], list[Path]]:
+    """Find the trials in ``inputs`` (raw files, folders, canonical dataset files).
+
+    Folders are searched recursively in sorted order; their files whose names are not
+    trial names (and not in the manifest) are returned as ignored. A file named
+    explicitly must be a trial name, a manifest entry, or a canonical dataset. With a
+    manifest and no inputs, the manifest's files are the inputs. The manifest's identity
+    wins over the file name. Returns (sources, ignored files).
+    """
+    return _discover(inputs, manifest, None)
+
+
+# ---------------------------------------------------------------------------
+# Reading raw files
+# ---------------------------------------------------------------------------
+
+def _reason(exc: BadInputError) -> str:
+    """The error message without its leading file name."""
+    text = str(exc)
+    if exc.file and text.startswith(exc.file):
+        text = text[len(exc.file):].lstrip(",: ")
+    return text
+
+
+def _csv_header(path: Path) -> list[str]:
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    with opener(path, "rt", encoding="utf-8-sig", newline="") as fh:
+        line = fh.readline()
+    if not line.strip():
+        raise BadInputError("unreadable file: it is empty (a header row is required)",
+                            file=str(path))
+    return [c.strip() for c in next(csv.reader([line]))]
+
+
+def _first_short_row(path: Path, width: int) -> int | None:
+    """The 1-based data row of the first CSV line with a different field count."""
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rt", encoding="utf-8-sig", newline="") as fh:
+            for row_no, fields in enumerate(csv.reader(fh)):
+                if row_no and len(fields) != width:
+                    return row_no
+    except (OSError, EOFError, UnicodeDecodeError, csv.Error):
+        return None
+    return None
+
+
+def _first_non_numeric(values: Sequence[object]) -> tuple[int, str] | None:
+    """(1-based row, text) of the first value that is neither blank nor a number."""
+    for i, v in enumerate(values):
+        if v is None:
+            continue
+        if isinstance(v, (int, float)):
+            continue
+        s = str(v).strip()
+        if not s:
+            continue
+        try:
+            float(s)
+        except ValueError:
+            return i + 1, s
+    return None
+
+
+def _read_table(path: Path, names: list[str]) -> dict[str, np.ndarray]:
+    """Read the columns ``names`` of a raw trial file as float64 arrays."""
+    import pyarrow as pa
+
+    file = str(path)
+    if _trial_ext(path.name) == ".parquet":
+        import pyarrow.parquet as pq
+        try:
+            table = pq.read_table(path, columns=names)
+        except (pa.ArrowException, OSError) as exc:
+            raise BadInputError(f"unreadable or truncated Parquet file: {_first_line(exc)}",
+                                file=file) from None
+        out = {}
+        for name in names:
+            col = table.column(name)
+            if pa.types.is_floating(col.type) or pa.types.is_integer(col.type):
+                out[name] = col.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+                continue
+            values = col.to_pylist()
+            bad = _first_non_numeric(values) if pa.types.is_string(col.type) \
+                or pa.types.is_large_string(col.type) else (1, str(values[0]) if values else "")
+            if bad is None:  # numbers stored as text
+                out[name] = np.array([np.nan if v is None or not str(v).strip() else float(v)
+                                      for v in values], dtype=np.float64)
+                continue
+            raise BadInputError(f"non-numeric value '{bad[1]}' (column type {col.type}); "
+                                "expected a number", file=file, column=name, row=bad[0])
+        return out
+
+    import pyarrow.csv as pcsv
+    convert = pcsv.ConvertOptions(include_columns=names,
+                                  column_types={n: pa.float64() for n in names})
+    try:
+        table = pcsv.read_csv(path, convert_options=convert)
+    except pa.ArrowInvalid as exc:
+        msg = _first_line(exc)
+        m = re.search(r"CSV column #(\d+)", msg)
+        if m and "conversion error" in msg:
+            header = _csv_header(path)
+            col = header[int(m.group(1))]
+            raw = pcsv.read_csv(path, convert_options=pcsv.ConvertOptions(
+                include_columns=[col], column_types={col: pa.string()}))
+            bad = _first_non_numeric(raw.column(col).to_pylist())
+            row, text = bad if bad else (None, "?")
+            raise BadInputError(f"non-numeric value '{text}'; expected a number",
+                                file=file, column=col, row=row) from None
+        row = _first_short_row(path, len(_csv_header(path))) if "columns" in msg else None
+        raise BadInputError(f"unreadable or truncated CSV file: {msg}", file=file,
+                            row=row) from None
+    except (pa.ArrowException, OSError, EOFError) as exc:
+        raise BadInputError(f"unreadable or truncated file: {_first_line(exc)}",
+                            file=file) from None
+    return {name: table.column(name).to_numpy() for name in names}
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _column_names(path: Path) -> list[str]:
+    file = str(path)
+    if _trial_ext(path.name) == ".parquet":
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+        try:
+            return list(pq.read_schema(path).names)
+        except (pa.ArrowException, OSError) as exc:
+            raise BadInputError(f"unreadable or truncated Parquet file: {_first_line(exc)}",
+                                file=file) from None
+    try:
+        return _csv_header(path)
+    except (OSError, EOFError, UnicodeDecodeError, csv.Error) as exc:
+        raise BadInputError(f"unreadable or truncated file: {_first_line(exc)}",
+                            file=file) from None
+
+
+def _select_columns(names: list[str], axis: str, file: str) -> dict[str, str]:
+    """Map canonical names (force_x_N, pos_x_m, grip_N, time_s) to the file's columns."""
+    have = set(names)
+    if "time_s" not in have:
+        raise BadInputError("missing required column; expected sample times in s",
+                            file=file, column="time_s")
+    if f"force_{axis}_N" not in have:
+        raise BadInputError(f"missing required column; expected the force on the "
+                            f"stimulated axis {axis} in N", file=file, column=f"force_{axis}_N")
+    if f"pos_{axis}_m" not in have and f"pos_{axis}_mm" not in have:
+        raise BadInputError(f"missing required column (or pos_{axis}_mm); expected the "
+                            f"position on the stimulated axis {axis}", file=file,
+                            column=f"pos_{axis}_m")
+    pick = {"time_s": "time_s"}
+    for a in AXES:
+        if f"force_{a}_N" in have:
+            pick[f"force_{a}_N"] = f"force_{a}_N"
+        if f"pos_{a}_m" in have:
+            pick[f"pos_{a}_m"] = f"pos_{a}_m"
+        elif f"pos_{a}_mm" in have:
+            pick[f"pos_{a}_m"] = f"pos_{a}_mm"
+    if "grip_N" in have:
+        pick["grip_N"] = "grip_N"
+    return pick
+
+
+def _nice_rate(fs: float) -> float:
+    """Round a measured rate to whole Hz when within RATE_TOLERANCE, else 6 digits."""
+    r = round(fs)
+    if r > 0 and abs(fs - r) <= RATE_TOLERANCE * fs:
+        return float(r)
+    return float(f"{fs:.6g}")
+
+
+def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
+    """Validate sample times (s) and return the sampling rate (Hz).
+
+    Times must be finite, strictly increasing and uniform: every interval within
+    JITTER_TOLERANCE (1 %) of the median interval. The rate is 1 / mean interval
+    ((t_last − t_first) / (n − 1)), rounded to whole Hz when within 0.01 %. Raises
+    BadInputError naming the 1-based row of the first offending sample.
+    """
+    t = np.asarray(time_s, dtype=np.float64)
+    if t.size == 0:
+        raise BadInputError("no data rows after the header", file=file)
+    if t.size < 2:
+        raise BadInputError("too short: 1 sample; a trial needs many samples", file=file)
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise BadInputError(f"non-finite time {t[bad[0]]}; expected a number",
+                            file=file, column="time_s", row=int(bad[0]) + 1)
+    dt = np.diff(t)
+    back = np.flatnonzero(dt <= 0)
+    if back.size:
+        i = int(back[0])
+        raise BadInputError(f"non-monotonic time: {t[i + 1]!r} s follows {t[i]!r} s; "
+                            "sample times must increase", file=file, column="time_s",
+                            row=i + 2)
+    period = float(np.median(dt))
+    off = np.flatnonzero(np.abs(dt - period) > JITTER_TOLERANCE * period)
+    if off.size:
+        i = int(off[0])
+        raise BadInputError(f"non-uniform time: interval {dt[i]:.6g} s vs period "
+                            f"{period:.6g} s (jitter over 1 % of the period; dropped or "
+                            "repeated samples?)", file=file, column="time_s", row=i + 2)
+    return _nice_rate((t.size - 1) / (t[-1] - t[0]))
+
+
+def read_trial(source: TrialSource, *, f_min_hz: float = 0.1, force_limit_N: float = 8.5,
+               warn: Warn | None = None) -> Trial:
+    """Read and validate one trial (a raw file, or one row group of a dataset).
+
+    Checks, in order: readable file; required columns (``time_s``, the stimulated axis's
+    force and position); numeric values; finite time, force and position; increasing,
+    uniform time; duration ≥ 2 / ``f_min_hz`` (two periods of the lowest frequency);
+    non-constant force on the stimulated axis. |force| above ``force_limit_N`` (N) on any
+    axis is reported through ``warn`` (saturation), not raised. Positions in mm are
+    converted to m. Raises BadInputError naming file, column and row.
+    """
+    if source.index is not None:
+        trial = _read_dataset_trial(source)
+    else:
+        path = Path(source.path)
+        file = source.path
+        pick = _select_columns(_column_names(path), source.axis, file)
+        cols = _read_table(path, list(dict.fromkeys(pick.values())))
+        t = cols[pick["time_s"]]
+        n = t.size
+        force = np.full((n, 3), np.nan)
+        pos = np.full((n, 3), np.nan)
+        for j, a in enumerate(AXES):
+            for arr, canon, scale in ((force, f"force_{a}_N", None),
+                                      (pos, f"pos_{a}_m", 1000.0)):
+                if canon not in pick:
+                    continue
+                name = pick[canon]
+                v = cols[name]
+                badv = np.flatnonzero(~np.isfinite(v))
+                if badv.size:
+                    k = int(badv[0])
+                    what = "blank" if np.isnan(v[k]) else repr(float(v[k]))
+                    raise BadInputError(f"{what} value; force and position must be finite "
+                                        "numbers", file=file, column=name, row=k + 1)
+                arr[:, j] = v / scale if name.endswith("_mm") else v
+        grip = cols["grip_N"] if "grip_N" in pick else None
+        fs = sampling_rate(t, file=file)
+        meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
+                         fs, int(n), float(t[0]), file)
+        trial = Trial(meta, force, pos, grip)
+    _check_trial(trial, source.label, f_min_hz=f_min_hz, force_limit_N=force_limit_N,
+                 warn=warn)
+    return trial
+
+
+def _check_trial(trial: Trial, file: str, *, f_min_hz: float, force_limit_N: float,
+                 warn: Warn | None) -> None:
+    """Length and excitation checks; saturation warning."""
+    meta = trial.meta
+    if f_min_hz > 0 and meta.duration_s < 2.0 / f_min_hz:
+        raise BadInputError(f"too short: {meta.duration_s:.6g} s; reaching the lowest "
+                            f"frequency {f_min_hz:g} Hz needs at least "
+                            f"{2.0 / f_min_hz:.6g} s (two periods); lower --f-min or "
+                            "drop the trial", file=file)
+    f = trial.f
+    col = f"force_{meta.axis}_N"
+    if f.size and f.max() == f.min():
+        level = "zero" if f[0] == 0 else f"constant ({f[0]:g} N)"
+        raise BadInputError(f"force on the stimulated axis is {level} throughout: no "
+                            "excitation", file=file, column=col)
+    if warn is None:
+        return
+    for j, a in enumerate(AXES):
+        v = trial.force[:, j]
+        over = np.abs(v) > force_limit_N
+        if over.any():
+            k = int(np.argmax(over))
+            warn(f"{file}, column 'force_{a}_N', row {k + 1}: |force| exceeds the device "
+                 f"limit {force_limit_N:g} N in {int(over.sum())} sample(s) (peak "
+                 f"{np.nanmax(np.abs(v)):.3g} N); saturation distorts the estimate")
+
+
+# ---------------------------------------------------------------------------
+# The canonical dataset
+# ---------------------------------------------------------------------------
+
+def _dataset_schema():
+    import pyarrow as pa
+    return pa.schema([("trial", pa.int32())]
+                     + [(c, pa.float64()) for c in DATASET_COLUMNS])
+
+
+def is_dataset(path: str | os.PathLike) -> bool:
+    """True if ``path`` is a canonical dataset written by :func:`write_dataset`."""
+    p = Path(path)
+    if not p.is_file() or _trial_ext(p.name) != ".parquet":
+        return False
+    try:
+        return DATASET_TRIALS_KEY.encode() in (_dataset_kv(p) or {})
+    except Exception:  # not Parquet, or unreadable: then it is not a dataset
+        return False
+
+
+def _dataset_kv(path: Path) -> dict[bytes, bytes] | None:
+    import pyarrow.parquet as pq
+    return pq.read_metadata(path).metadata
+
+
+def dataset_metadata(path: str | os.PathLike) -> list[dict]:
+    """The per-trial metadata records of a canonical dataset (one per row group)."""
+    import pyarrow as pa
+    p = Path(path)
+    try:
+        kv = _dataset_kv(p) or {}
+    except (pa.ArrowException, OSError) as exc:
+        raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
+                            file=str(p)) from None
+    if DATASET_TRIALS_KEY.encode() not in kv:
+        raise BadInputError(f"not an armfit dataset (no '{DATASET_TRIALS_KEY}' metadata)",
+                            file=str(p))
+    version = kv.get(DATASET_FORMAT_KEY.encode(), b"").decode()
+    if version != DATASET_FORMAT_VERSION:
+        raise BadInputError(f"dataset format version '{version}' is not supported (expected "
+                            f"{DATASET_FORMAT_VERSION})", file=str(p))
+    return json.loads(kv[DATASET_TRIALS_KEY.encode()])
+
+
+def dataset_sources(path: str | os.PathLike) -> list[TrialSource]:
+    """One TrialSource per trial (row group) of a canonical dataset."""
+    return [TrialSource(str(path), r["subject"], r["axis"], float(r["grip_N"]), r["run"],
+                        index=int(r["trial"])) for r in dataset_metadata(path)]
+
+
+def _read_dataset_trial(source: TrialSource) -> Trial:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    idx = int(source.index)  # type: ignore[arg-type]
+    records = dataset_metadata(source.path)
+    if not 0 <= idx < len(records):
+        raise BadInputError(f"no trial {idx} (the dataset holds {len(records)})",
+                            file=source.path)
+    rec = records[idx]
+    try:
+        table = pq.ParquetFile(source.path).read_row_group(idx, columns=list(DATASET_COLUMNS))
+    except (pa.ArrowException, OSError) as exc:
+        raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
+                            file=source.label) from None
+    cols = [table.column(c).to_numpy() for c in DATASET_COLUMNS]
+    force = np.column_stack(cols[0:3])
+    pos = np.column_stack(cols[3:6])
+    grip = cols[6] if "grip_N" in rec.get("columns", ()) else None
+    meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
+                     float(rec["fs"]), int(rec["n_samples"]), float(rec["t0_s"]),
+                     str(rec["source"]))
+    if table.num_rows != meta.n_samples:
+        raise BadInputError(f"row group has {table.num_rows} rows, metadata says "
+                            f"{meta.n_samples}", file=source.label)
+    return Trial(meta, force, pos, grip)
+
+
+def _record(index: int, trial: Trial) -> dict:
+    m = trial.meta
+    present = [c for j, c in enumerate(DATASET_COLUMNS[:3])
+               if not np.isnan(trial.force[:, j]).all()]
+    present += [c for j, c in enumerate(DATASET_COLUMNS[3:6])
+                if not np.isnan(trial.pos[:, j]).all()]
+    if trial.grip is not None:
+        present.append("grip_N")
+    return {"trial": index, "subject": m.subject, "axis": m.axis, "grip_N": m.grip_N,
+            "run": m.run, "fs": m.fs, "n_samples": m.n_samples, "duration_s": m.duration_s,
+            "t0_s": m.t0_s, "source": m.source, "columns": present}
+
+
+def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
+                  overwrite: bool = False) -> list[TrialMeta]:
+    """Write trials to one canonical Parquet dataset, streaming and atomically.
+
+    One row group per trial: ``trial`` (int32) and the float64 columns of
+    DATASET_COLUMNS (SI units, NaN where absent). Per-trial metadata (identity, fs,
+    n_samples, duration_s, t0_s, source, columns present) is JSON under the key-value
+    metadata key ``armfit.trials``; ``armfit.format`` holds the format version. Only one
+    trial is held in memory at a time. Raises NoInputError if ``trials`` is empty (no
+    file is left). Returns the metadata of the trials written.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from armfit.io.atomic import atomic_path
+
+    schema = _dataset_schema()
+    metas: list[TrialMeta] = []
+    records: list[dict] = []
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        writer = pq.ParquetWriter(tmp, schema, **_PARQUET_WRITE)
+        try:
+            for i, trial in enumerate(trials):
+                n = trial.meta.n_samples
+                grip = trial.grip if trial.grip is not None else np.full(n, np.nan)
+                arrays = [pa.array(np.full(n, i, dtype=np.int32))]
+                arrays += [pa.array(np.ascontiguousarray(trial.force[:, j])) for j in range(3)]
+                arrays += [pa.array(np.ascontiguousarray(trial.pos[:, j])) for j in range(3)]
+                arrays.append(pa.array(np.asarray(grip, dtype=np.float64)))
+                writer.write_table(pa.Table.from_arrays(arrays, schema=schema),
+                                   row_group_size=max(n, 1))
+                metas.append(trial.meta)
+                records.append(_record(i, trial))
+            if not metas:
+                raise NoInputError(f"{path}: no trials to write")
+            writer.add_key_value_metadata({DATASET_FORMAT_KEY: DATASET_FORMAT_VERSION,
+                                           DATASET_TRIALS_KEY: json.dumps(records)})
+        finally:
+            writer.close()
+    return metas
+
+
+# ---------------------------------------------------------------------------
+# Streaming a batch
+# ---------------------------------------------------------------------------
+
+@dataclass
+class TrialStream:
+    """Trials of a batch, read one at a time as it is iterated.
+
+    ``sources`` are the trials to read, ``ignored`` the files found but not trials,
+    ``skipped`` the trials left out (with ``skip_bad``), filled while iterating.
+    Iterating checks that every trial has the reference sampling rate (the first good
+    trial's, or with ``resample`` the most common one, to which the others are
+    resampled with scipy.signal.resample_poly).
+    """
+
+    sources: list[TrialSource]
+    ignored: list[Path]
+    skipped: list[Skipped] = field(default_factory=list)
+    skip_bad: bool = False
+    resample: bool = False
+    f_min_hz: float = 0.1
+    force_limit_N: float = 8.5
+    warn: Warn | None = None
+
+    def __len__(self) -> int:
+        return len(self.sources)
+
+    def __iter__(self) -> Iterator[Trial]:
+        ref_fs: float | None = self._common_rate() if self.resample else None
+        ref_file = "the most common rate"
+        for src in self.sources:
+            try:
+                trial = read_trial(src, f_min_hz=self.f_min_hz,
+                                   force_limit_N=self.force_limit_N, warn=self.warn)
+                fs = trial.meta.fs
+                if ref_fs is None:
+                    ref_fs, ref_file = fs, src.label
+                elif abs(fs - ref_fs) > RATE_TOLERANCE * ref_fs:
+                    if not self.resample:
+                        raise BadInputError(
+                            f"sampling rate {fs:g} Hz differs from {ref_fs:g} Hz of "
+                            f"{ref_file}; pass --resample to resample to a common rate",
+                            file=src.label, column="time_s")
+                    trial = resample_trial(trial, ref_fs)
+                    if self.warn is not None:
+                        self.warn(f"{src.label}: resampled from {fs:g} Hz to {ref_fs:g} Hz")
+            except BadInputError as exc:
+                if not self.skip_bad:
+                    raise
+                self.skipped.append(Skipped(src.label, _reason(exc)))
+                continue
+            yield trial
+
+    def _common_rate(self) -> float | None:
+        """The most common sampling rate among the sources (ties: the first seen)."""
+        rates: Counter[float] = Counter()
+        for src in self.sources:
+            try:
+                if src.index is not None:
+                    rates[float(dataset_metadata(src.path)[src.index]["fs"])] += 1
+                else:
+                    t = _read_table(Path(src.path), ["time_s"])["time_s"]
+                    rates[sampling_rate(t, file=src.path)] += 1
+            except (BadInputError, KeyError, IndexError):
+                continue  # reported when the trial itself is read
+        return rates.most_common(1)[0][0] if rates else None
+
+
+def resample_trial(trial: Trial, fs: float) -> Trial:
+    """Resample a trial to ``fs`` (Hz) with scipy.signal.resample_poly (force, position).
+
+    The up/down ratio is fs_new / fs_old as a fraction with denominator ≤ 1000. Grip
+    (a slow, sample-and-hold signal, possibly NaN between samples) takes the last
+    sample at or before each new time.
+    """
+    from scipy.signal import resample_poly
+
+    ratio = Fraction(fs / trial.meta.fs).limit_denominator(1000)
+    up, down = ratio.numerator, ratio.denominator
+    force = resample_poly(trial.force, up, down, axis=0)
+    pos = resample_poly(trial.pos, up, down, axis=0)
+    n = force.shape[0]
+    grip = None
+    if trial.grip is not None:
+        idx = np.minimum((np.arange(n) * down) // up, trial.meta.n_samples - 1)
+        grip = trial.grip[idx]
+    m = trial.meta
+    meta = TrialMeta(m.subject, m.axis, m.grip_N, m.run, float(fs), int(n), m.t0_s, m.source)
+    return Trial(meta, force, pos, grip)
+
+
+def open_trials(inputs: Sequence[str | os.PathLike], *,
+                manifest: str | os.PathLike | None = None, skip_bad: bool = False,
+                resample: bool = False, f_min_hz: float = 0.1, force_limit_N: float = 8.5,
+                warn: Warn | None = None) -> TrialStream:
+    """Discover the trials in ``inputs`` and return a stream that reads them one by one.
+
+    Duplicate trials (same subject, axis, grip, run) are refused naming both files; with
+    ``skip_bad`` the later one, and files with bad names, go to ``skipped``. Raises
+    NoInputError when nothing is found.
+    """
+    bad: list[Skipped] | None = [] if skip_bad else None
+    sources, ignored = _discover(inputs, manifest, bad)
+    skipped = list(bad or [])
+    first: dict[tuple, TrialSource] = {}
+    kept: list[TrialSource] = []
+    for src in sources:
+        other = first.get(src.key)
+        if other is None:
+            first[src.key] = src
+            kept.append(src)
+            continue
+        run = "-" if src.run is None else src.run
+        exc = BadInputError(f"duplicate trial (subject {src.subject}, axis {src.axis}, grip "
+                            f"{src.grip_N:g} N, run {run}): also in {other.label}",
+                            file=src.label)
+        if not skip_bad:
+            raise exc
+        skipped.append(Skipped(src.label, _reason(exc)))
+    if not kept and not skipped:
+        where = ", ".join(str(p) for p in inputs) or str(manifest)
+        raise NoInputError(f"{where}: no trial files found (expected names like "
+                           f"{_NAME_HELP}, or a --manifest)")
+    return TrialStream(kept, ignored, skipped, skip_bad=skip_bad, resample=resample,
+                       f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn)
+
+
+# ---------------------------------------------------------------------------
+# Ingest: raw trials in, canonical dataset out
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class IngestResult:
+    """What :func:`ingest` wrote: the output, the trials' metadata, what it left out."""
+
+    output: str
+    trials: tuple[TrialMeta, ...]
+    skipped: tuple[Skipped, ...]
+    ignored: tuple[str, ...]
+
+
+def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
+           manifest: str | os.PathLike | None = None, skip_bad: bool = False,
+           resample: bool = False, f_min_hz: float = 0.1, force_limit_N: float = 8.5,
+           overwrite: bool = False, warn: Warn | None = None,
+           advance: Callable[[], object] | None = None,
+           on_open: Callable[[TrialStream], object] | None = None) -> IngestResult:
+    """Read and validate raw trials and write them as one canonical dataset (Parquet).
+
+    The output is refused (OutputError) if it exists without ``overwrite`` or is also
+    an input. Trials stream from :func:`open_trials` into :func:`write_dataset`; the
+    first bad trial stops the run (BadInputError, nothing written) unless ``skip_bad``.
+    ``advance`` is called after each trial, ``on_open`` once with the stream (e.g. to
+    size a progress bar or list ignored files).
+    """
+    from armfit.io.atomic import check_output
+
+    out = Path(output)
+    if _trial_ext(out.name) != ".parquet":
+        from armfit.errors import UsageError
+        raise UsageError(f"{out}: the dataset is a Parquet file; give an output ending "
+                         "in .parquet")
+    check_output(out, overwrite=overwrite,
+                 inputs=[*inputs, *([manifest] if manifest is not None else [])])
+    stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, resample=resample,
+                         f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn)
+    if on_open is not None:
+        on_open(stream)
+
+    def counted() -> Iterator[Trial]:
+        for trial in stream:
+            yield trial
+            if advance is not None:
+                advance()
+
+    try:
+        metas = write_dataset(counted(), out, overwrite=overwrite)
+    except NoInputError:
+        if not stream.skipped:
+            raise
+        first = stream.skipped[0]
+        raise BadInputError(f"every trial was bad ({len(stream.skipped)} skipped, the first "
+                            f"{first.file}: {first.reason}); nothing written",
+                            file=str(out)) from None
+    return IngestResult(str(out), tuple(metas), tuple(stream.skipped),
+                        tuple(str(p) for p in stream.ignored))

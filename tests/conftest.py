@@ -1,0 +1,92 @@
+"""Shared test fixtures: synthetic contract-conforming trial files and a CLI runner."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+AXES = ("x", "y", "z")
+
+
+def trial_columns(axis: str = "y", *, fs: float = 100.0, duration_s: float = 25.0,
+                  seed: int = 0, t0_s: float = 0.0, pos_unit: str = "m",
+                  all_axes: bool = True, grip: bool = True) -> dict[str, np.ndarray]:
+    """Columns of a synthetic trial that meets the raw-trial contract.
+
+    Gaussian force (N, |F| < 5) on ``axis`` (and small cross-axis forces when
+    ``all_axes``), a random-walk position (m, or mm with ``pos_unit="mm"``), uniform time
+    ``t0_s + k / fs`` and a grip signal held between 65 Hz sensor samples.
+    """
+    rng = np.random.default_rng(seed)
+    n = int(round(duration_s * fs))
+    cols: dict[str, np.ndarray] = {"time_s": t0_s + np.arange(n) / fs}
+    scale = 1000.0 if pos_unit == "mm" else 1.0
+    for a in AXES:
+        if a != axis and not all_axes:
+            continue
+        amp = 1.5 if a == axis else 0.1
+        cols[f"force_{a}_N"] = np.clip(amp * rng.standard_normal(n), -4.9, 4.9)
+        cols[f"pos_{a}_{pos_unit}"] = scale * 1e-3 * np.cumsum(rng.standard_normal(n))
+    if grip:
+        held = np.floor(np.arange(n) / fs * 65.0)
+        cols["grip_N"] = 2.0 + 0.1 * np.sin(held)
+    return cols
+
+
+def write_columns(path: Path, cols: dict[str, object]) -> Path:
+    """Write columns to ``path`` as CSV, CSV.gz or Parquet (by the extension).
+
+    Numeric columns keep their exact float64 values (pyarrow writes CSV numbers in
+    shortest round-trip form). A column given as a list of strings is written as text,
+    to make non-numeric cells.
+    """
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+    import pyarrow.parquet as pq
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    table = pa.table({k: (pa.array(v) if isinstance(v, list) else pa.array(np.asarray(v)))
+                      for k, v in cols.items()})
+    name = path.name.lower()
+    if name.endswith(".parquet"):
+        pq.write_table(table, path)
+    elif name.endswith(".csv.gz"):
+        with pa.CompressedOutputStream(str(path), "gzip") as out:
+            pcsv.write_csv(table, out, pcsv.WriteOptions(quoting_style="none"))
+    else:
+        pcsv.write_csv(table, path, pcsv.WriteOptions(quoting_style="none"))
+    return path
+
+
+@pytest.fixture(scope="session")
+def write_trial() -> Callable[..., Path]:
+    """``write_trial(path, cols=None, **trial_columns_kwargs)`` writes a trial file.
+
+    With ``cols`` None, the columns come from :func:`trial_columns` (the axis is taken
+    from the file name when it has ``axis-<a>``). Returns the path.
+    """
+    def _write(path, cols: dict | None = None, **kwargs) -> Path:
+        path = Path(path)
+        if cols is None:
+            if "axis" not in kwargs and "_axis-" in path.name:
+                kwargs["axis"] = path.name.split("_axis-")[1][0]
+            cols = trial_columns(**kwargs)
+        return write_columns(path, cols)
+    return _write
+
+
+@pytest.fixture(scope="session")
+def make_columns() -> Callable[..., dict[str, np.ndarray]]:
+    """The :func:`trial_columns` maker, for tests that alter columns before writing."""
+    return trial_columns
+
+
+@pytest.fixture
+def runner() -> CliRunner:
+    """A click CliRunner; stderr is kept apart from stdout (``result.stderr``)."""
+    return CliRunner()
