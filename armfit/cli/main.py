@@ -74,6 +74,23 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
 
 def _register() -> None:
     # Each subcommand module defines its click command(s); add them here.
+    from armfit.cli import ingest
+    cli.add_command(ingest.command)
+    from armfit.cli import plot
+    cli.add_command(plot.command)
+    from armfit.cli import fit
+    cli.add_command(fit.fit_grip)
+    cli.add_command(fit.fit_nominal)
+    from armfit.cli import simulate
+    cli.add_command(simulate.command)
+    from armfit.cli import estimate
+    cli.add_command(estimate.command)
+    from armfit.cli import diagnose
+    cli.add_command(diagnose.effects_command)
+    cli.add_command(diagnose.compare_command)
+    cli.add_command(diagnose.diagnose_command)
+    from armfit.cli import fit_uncertainty
+    cli.add_command(fit_uncertainty.command)
     pass
 
 

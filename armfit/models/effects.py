@@ -125,7 +125,7 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect(
         "resonance", "output",
         (Param("freq_hz", "Hz", 2.0, 300.0, 40.0, "natural frequency of the mode"),
-         Param("zeta", "1", 0.005, 1.0, 0.1, "damping ratio of the mode"),
+         Param("zeta", "1", 0.02, 0.5, 0.1, "damping ratio of the mode"),
          Param("weight", "1", 1e-5, 1.0, 0.3, "share of the motion through the mode")),
         "An extra lightly damped mode (link, cable or tissue compliance) in the path to the "
         "measured point: X/F is multiplied by (1 - weight) + weight*wn^2/(s^2 + "

@@ -1,0 +1,220 @@
+"""``armfit effects``, ``armfit compare`` and ``armfit diagnose``: where the model fails and
+which physical effect is missing."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+
+import click
+
+from armfit.cli.options import emit_json, json_option, message, overwrite_option
+from armfit.errors import UsageError
+from armfit.models.effects import EFFECTS, get_effect
+
+band_option = click.option(
+    "--band", metavar="LO:HI",
+    help="Frequency band in Hz (default: the whole grid of the spectra file).")
+
+
+def _band(text: str | None) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise UsageError(f"--band {text!r}: expected LO:HI in Hz, e.g. 0.1:30") from None
+    if not 0 < lo < hi:
+        raise UsageError(f"--band {text!r}: need 0 < LO < HI")
+    return lo, hi
+
+
+def _effects(names) -> list:
+    return [get_effect(n) for n in names]
+
+
+def _console():
+    from rich.console import Console
+    return Console(soft_wrap=False, width=120)
+
+
+@click.command("effects")
+@json_option
+def effects_command(as_json):
+    """List the physical effects the 5-parameter model lacks, with their parameters,
+    physical ranges and when to suspect each, e.g. ``armfit effects``."""
+    rows = [{"effect": e.name, "acts_on": e.stage, "summary": e.summary,
+             "suspect_when": e.suspect_when,
+             "params": [{"name": p.name, "unit": p.unit, "lower": p.lower, "upper": p.upper,
+                         "description": p.description} for p in e.params]}
+            for e in EFFECTS.values()]
+    if as_json:
+        emit_json({"effects": rows})
+        return
+    from rich.markup import escape
+    from rich.table import Table
+    t = Table(title="armfit effect library", show_lines=True)
+    for c in ("effect", "parameters", "what it is", "suspect it when"):
+        t.add_column(c, overflow="fold")
+    for r in rows:
+        params = "\n".join(escape(f"{p['name']} [{p['unit']}] {p['lower']:g}…{p['upper']:g}")
+                           for p in r["params"])
+        t.add_row(r["effect"], params, r["summary"], r["suspect_when"])
+    _console().print(t)
+
+
+def _band_json(b) -> dict:
+    return {"lo_hz": b.lo_hz, "hi_hz": b.hi_hz, "rms_db": b.rms_db, "rms_deg": b.rms_deg,
+            "rms_norm": b.rms_norm, "n_points": b.n_points}
+
+
+@click.command("compare")
+@click.argument("spectra", type=click.Path(dir_okay=False))
+@click.option("--model", "model_path", required=True, type=click.Path(dir_okay=False),
+              help="Params CSV from fit-grip or fit-nominal.")
+@click.option("--level", type=click.Choice(["mean", "median", "trial"]), default=None,
+              help="Measurements to compare with (default: mean for grip fits, median for "
+                   "nominal fits).")
+@click.option("--effect", "effect_names", multiple=True, metavar="NAME",
+              help="Add this effect, refit, and show the error before and after (repeatable).")
+@band_option
+@json_option
+def compare_command(spectra, model_path, level, effect_names, band, as_json):
+    """Compare a fitted model with the measurements: RMS magnitude (dB), phase (deg) and
+    noise-normalised error overall and per band, and where the model fails, in words.
+
+    Example: ``armfit compare spectra.parquet --model nominal_params.csv --effect delay``
+    """
+    from armfit.diagnose import compare
+    from armfit.io.artifacts import read_params, read_spectra
+    params = read_params(model_path)
+    if level is None:
+        level = "mean" if "grip_N" in params.columns else "median"
+    df = read_spectra(spectra)
+    rows = compare(df, params, level=level, band=_band(band), effects=_effects(effect_names))
+    if not rows:
+        raise UsageError(f"{spectra}: holds no {level}-level measured responses for the "
+                         f"axes of {model_path}")
+    if as_json:
+        emit_json({"level": level, "rows": [{
+            "axis": r.axis, "grip_N": r.grip_N, "model": r.model, "params": r.params,
+            "n_trials": r.n_trials, "overall": _band_json(r.overall),
+            "bands": [_band_json(b) for b in r.bands],
+            "failing": [asdict(fb) for fb in r.failing]} for r in rows]})
+        return
+    from rich.table import Table
+    t = Table(title=f"model vs measurements ({level}); cells: RMS dB / deg / × noise")
+    for c in ("axis", "grip N", "model", "overall"):
+        t.add_column(c)
+    band_names = [f"{b.lo_hz:g}–{b.hi_hz:g} Hz" for b in rows[0].bands]
+    for name in band_names:
+        t.add_column(name)
+
+    def cell(b):
+        return f"{b.rms_db:.2f} / {b.rms_deg:.1f} / {b.rms_norm:.1f}" if b.n_points else "–"
+
+    for r in rows:
+        t.add_row(r.axis, "" if r.grip_N is None else f"{r.grip_N:g}", r.model,
+                  cell(r.overall), *[cell(b) for b in r.bands])
+    con = _console()
+    con.print(t)
+    for r in rows:
+        head = f"{r.axis}" + ("" if r.grip_N is None else f" {r.grip_N:g} N") + f" {r.model}"
+        if r.params:
+            head += " (" + ", ".join(f"{k}={v:.4g}" for k, v in r.params.items()) + ")"
+        if not r.failing:
+            con.print(f"{head}: fits within the noise everywhere", highlight=False)
+        for fb in r.failing:
+            con.print(f"{head}: fails {fb.lo_hz:.3g}–{fb.hi_hz:.3g} Hz: {fb.description}",
+                      highlight=False)
+
+
+def diagnosis_json(results) -> dict:
+    """The JSON document of ``armfit diagnose`` (schema in the README)."""
+    axes = {}
+    for d in results:
+        axes[d.axis] = {
+            "missing_effect": d.missing_effect,
+            "tied_with": list(d.tied_with),
+            "verdict": d.verdict,
+            "band_hz": list(d.band),
+            "n_trials": d.n_trials,
+            "base_error": _band_json(d.base_error),
+            "failing_bands": [asdict(fb) for fb in d.failing],
+            "cross_coupling_db": d.coupling,
+            "candidates": [{
+                "effect": c.effect, "params": c.params, "params_lo": c.params_lo,
+                "params_hi": c.params_hi,
+                "rms_db_before": c.rms_db_before, "rms_db_after": c.rms_db_after,
+                "rms_deg_before": c.rms_deg_before, "rms_deg_after": c.rms_deg_after,
+                "rms_norm_before": c.rms_norm_before, "rms_norm_after": c.rms_norm_after,
+                "failing_before": [_band_json(b) for b in c.failing_before],
+                "failing_after": [_band_json(b) for b in c.failing_after],
+                "lr": c.lr, "score": c.score, "significant": c.significant,
+            } for c in d.candidates]}
+    return {"axes": axes}
+
+
+@click.command("diagnose")
+@click.argument("spectra", type=click.Path(dir_okay=False))
+@click.option("--model", "model_path", required=True, type=click.Path(dir_okay=False),
+              help="Params CSV from fit-grip (preferred: per-grip starts) or fit-nominal.")
+@band_option
+@click.option("--effect", "effect_names", multiple=True, metavar="NAME",
+              help="Only these candidates (repeatable; default: the whole effect library).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False),
+              help="Also write the JSON document to this file (atomically).")
+@click.option("-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
+              help="Worker processes (one axis each).")
+@overwrite_option
+@json_option
+def diagnose_command(spectra, model_path, band, effect_names, output, jobs, overwrite,
+                     as_json):
+    """Name the physical effect the 5-parameter model is missing, per axis.
+
+    Fits the base model and base + each candidate effect to every trial (arm parameters
+    per trial, effect parameters shared), ranks candidates by ΔBIC on noise-normalised
+    residuals, and says which one is significant. Example:
+    ``armfit diagnose spectra.parquet --model grip_params.csv``
+    """
+    from armfit.diagnose import diagnose
+    from armfit.io.artifacts import read_params, read_spectra
+    from armfit.io.atomic import check_output, write_text_atomic
+    if output:
+        check_output(output, overwrite=overwrite, inputs=[spectra, model_path])
+    params = read_params(model_path)
+    df = read_spectra(spectra)
+    results = diagnose(df, params, band=_band(band),
+                       effects=_effects(effect_names) if effect_names else None, jobs=jobs)
+    if not results:
+        raise UsageError(f"{spectra}: holds no trial-level measured responses for the axes "
+                         f"of {model_path}")
+    doc = diagnosis_json(results)
+    if output:
+        write_text_atomic(output, json.dumps(doc, indent=2) + "\n", overwrite=overwrite)
+    if as_json:
+        emit_json(doc)
+        return
+    from rich.table import Table
+    con = _console()
+    for d in results:
+        t = Table(title=f"axis {d.axis}: {d.n_trials} trials, "
+                        f"{d.band[0]:.3g}–{d.band[1]:.3g} Hz")
+        for c in ("effect", "parameters", "RMS dB before→after", "RMS deg before→after",
+                  "× noise before→after", "ΔBIC", "significant"):
+            t.add_column(c)
+        for c in d.candidates:
+            t.add_row(c.effect, ", ".join(f"{k}={v:.4g}" for k, v in c.params.items()),
+                      f"{c.rms_db_before:.2f}→{c.rms_db_after:.2f}",
+                      f"{c.rms_deg_before:.1f}→{c.rms_deg_after:.1f}",
+                      f"{c.rms_norm_before:.2f}→{c.rms_norm_after:.2f}",
+                      f"{c.score:.1f}", "yes" if c.significant else "no")
+        con.print(t)
+        for fb in d.failing:
+            con.print(f"  fails {fb.lo_hz:.3g}–{fb.hi_hz:.3g} Hz: {fb.description}",
+                      highlight=False)
+        if d.coupling:
+            con.print("  cross-axis motion (off-axis / on-axis, median): " + ", ".join(
+                f"{k} {v:+.1f} dB" for k, v in d.coupling.items()), highlight=False)
+        con.print(f"  verdict: {d.verdict}", highlight=False)
+    message("diagnosis done")

@@ -1,0 +1,190 @@
+"""``armfit fit-uncertainty``: W_max and the uncertainty weight Wu of Table III (eqs. 6–7).
+
+Checks every output first, reads the spectra and nominal-parameters files (and any
+weights given to evaluate), calls :func:`armfit.uncertainty.fit_uncertainty`, then writes
+the Wu CSV, its summary and W_max points beside it, and optionally a LaTeX table, each
+atomically. With ``--cost paper`` a fit that does not converge writes nothing (exit 3).
+"""
+
+from __future__ import annotations
+
+import math
+from contextlib import ExitStack
+from importlib import resources
+from pathlib import Path
+
+import click
+
+from armfit.errors import ConvergenceError, UsageError
+from armfit.io.artifacts import (
+    read_params,
+    read_spectra,
+    read_wu,
+    write_wu,
+    write_wu_table,
+    wu_latex,
+    wu_sidecar_paths,
+)
+from armfit.io.atomic import check_output, write_text_atomic
+from armfit.uncertainty import MAX_PAIRS, fit_uncertainty, points_table, summary_table
+
+from .options import emit_json, json_option, message, output_option, overwrite_option
+
+
+def _parse_band(value: str | None) -> tuple[float, float] | None:
+    if value is None:
+        return None
+    lo, sep, hi = value.partition(":")
+    try:
+        band = (float(lo), float(hi))
+    except ValueError:
+        band = None
+    if not sep or band is None or not (0 < band[0] < band[1] and math.isfinite(band[1])):
+        raise UsageError(f"--band {value!r}: expected LO:HI in Hz with 0 < LO < HI, "
+                         "e.g. 0.01:30")
+    return band
+
+
+def _parse_octaves(value: str | None) -> float | None:
+    if value is None:
+        return None
+    num, sep, den = value.partition("/")
+    try:
+        width = float(num) / float(den) if sep else float(num)
+    except (ValueError, ZeroDivisionError):
+        width = float("nan")
+    if not (math.isfinite(width) and 0 < width <= 2):
+        raise UsageError(f"--smooth {value!r}: expected a window width in octaves, "
+                         "0 < width <= 2, e.g. 1/3 or 0.1")
+    return width
+
+
+def _check_path(value: str) -> tuple[str, Path, ExitStack | None]:
+    """(label, path) of a --check-weights value; "paper" is the shipped Table III."""
+    p = Path(value)
+    if value == "paper" and not p.exists():
+        ref = resources.files("armfit.data").joinpath("table3_uncertainty_weights.csv")
+        stack = ExitStack()
+        return "paper", stack.enter_context(resources.as_file(ref)), stack
+    return p.name, p, None
+
+
+def _pairs(reps) -> list[list[float]]:
+    return [[float(r.real), float(abs(r.imag))] for r in reps]
+
+
+def _clean(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+@click.command("fit-uncertainty")
+@click.argument("spectra", type=click.Path(dir_okay=False))
+@click.option("--nominal", required=True, type=click.Path(dir_okay=False),
+              help="Nominal parameters CSV written by `armfit fit-nominal` (H_ARM per axis).")
+@output_option
+@click.option("--cost", type=click.Choice(["envelope", "paper"]), default="envelope",
+              show_default=True,
+              help="envelope: |Wu| >= W_max on and between grid points, as tight as "
+                   "possible; paper: dB least squares against W_max (no guarantee).")
+@click.option("--order", type=click.IntRange(0, MAX_PAIRS), default=None, metavar="N",
+              help=f"Zero pairs = pole pairs of Wu, 0..{MAX_PAIRS} [default: the smallest "
+                   "order within 0.1 dB of the best].")
+@click.option("--band", default=None, metavar="LO:HI",
+              help="Band in Hz [default: 0.01:30 as the paper, limited to the spectra].")
+@click.option("--smooth", default=None, metavar="OCT",
+              help="Smooth each trial's relative error over a window OCT octaves wide "
+                   "(e.g. 1/3) before taking W_max; raw W_max is still reported.")
+@click.option("--method", default=None, metavar="NAME",
+              help="Estimator of the derived spectra when SPECTRA holds several.")
+@click.option("--check-weights", "check_weights", default=None, metavar="FILE",
+              help="Also evaluate this Wu CSV against the data ('paper': Table III).")
+@click.option("--latex", type=click.Path(dir_okay=False), default=None,
+              help="Also write a Table III-style LaTeX table of the fitted weights.")
+@json_option
+@overwrite_option
+def command(spectra: str, nominal: str, output: str, cost: str, order: int | None,
+            band: str | None, smooth: str | None, method: str | None,
+            check_weights: str | None, latex: str | None, as_json: bool,
+            overwrite: bool) -> None:
+    """Fit the multiplicative uncertainty weight Wu per axis (Table III).
+
+    SPECTRA is the Parquet file of `armfit estimate`; its trial rows of kind "derived"
+    (Xa/Fa) are compared with the nominal H_ARM of --nominal: W_max(w) = max over trials
+    |H/H_ARM - 1| (eq. 6). Wu(s) = K prod(s - z)/prod(s - p) (eq. 7, s in rad/s) is
+    stable and minimum phase. Writes OUTPUT (axis,kind,index,real,imag as Table III),
+    OUTPUT_summary.csv (coverage and tightness per axis) and OUTPUT_wmax.csv (W_max and
+    |Wu| in dB per frequency).
+    """
+    band_hz = _parse_band(band)
+    smooth_oct = _parse_octaves(smooth)
+    summary_path, points_path = wu_sidecar_paths(output)
+    inputs = [spectra, nominal] + ([check_weights] if check_weights else [])
+    outputs = [output, summary_path, points_path] + ([latex] if latex else [])
+    if len({Path(p).resolve() for p in outputs}) < len(outputs):
+        raise UsageError("--latex must differ from the output and its _summary/_wmax files")
+    for path in outputs:
+        check_output(path, overwrite=overwrite, inputs=inputs)
+
+    table = read_spectra(spectra)
+    params = read_params(nominal)
+    given = {}
+    if check_weights:
+        label, path, stack = _check_path(check_weights)
+        try:
+            given[label] = read_wu(path)
+        finally:
+            if stack is not None:
+                stack.close()
+
+    results = fit_uncertainty(table, params, cost=cost, n_pairs=order, band=band_hz,
+                              smooth_oct=smooth_oct, method=method, given=given)
+    bad = [r.axis for r in results if not r.result.converged]
+    if bad and cost == "paper":
+        raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "
+                               f"{', '.join(bad)}; nothing written (try --order)")
+    for r in results:
+        res = r.result
+        fitted = r.checks[("fitted", "wmax")]
+        message(f"Wu {r.axis}: {res.order} pair(s), coverage {fitted.coverage_pct:.1f} % "
+                f"(between points {fitted.coverage_between_pct:.1f} %), tightness median "
+                f"{fitted.tightness_median_db:.2f} dB, max {fitted.tightness_max_db:.2f} dB "
+                f"over {r.band_hz[0]:g}-{r.band_hz[1]:g} Hz, {r.n_trials} trials"
+                + ("" if res.converged else
+                   "; the shape optimiser stopped early (the envelope still holds)"))
+        for (label, tname), c in r.checks.items():
+            if label != "fitted" and tname == "wmax":
+                message(f"  {label} {r.axis}: coverage {c.coverage_pct:.1f} %, tightness "
+                        f"median {c.tightness_median_db:.2f} dB, max "
+                        f"{c.tightness_max_db:.2f} dB")
+    missing = [f"{label} has no {ax} weight" for label, ws in given.items()
+               for ax in (r.axis for r in results) if ax not in ws]
+    for text in missing:
+        message(f"note: {text}")
+
+    weights = {r.axis: r.result.weight for r in results}
+    summary = summary_table(results, smooth_oct=smooth_oct)
+    write_wu(weights, output, overwrite=overwrite)
+    write_wu_table(summary, summary_path, overwrite=overwrite)
+    write_wu_table(points_table(results), points_path, overwrite=overwrite)
+    if latex:
+        write_text_atomic(latex, wu_latex(weights), overwrite=overwrite)
+    message(f"wrote {output}, {summary_path.name}, {points_path.name}"
+            + (f", {latex}" if latex else ""))
+
+    if as_json:
+        emit_json({
+            "command": "fit-uncertainty", "spectra": spectra, "nominal": nominal,
+            "output": output, "summary": str(summary_path), "points": str(points_path),
+            "latex": latex, "cost": cost, "smooth_oct": smooth_oct,
+            "axes": [{
+                "axis": r.axis, "n_trials": r.n_trials, "band_hz": list(r.band_hz),
+                "order": r.result.order, "converged": r.result.converged,
+                "gain": r.result.gain, "zeros": _pairs(r.result.zeros),
+                "poles": _pairs(r.result.poles),
+                "orders_tried": {str(k): v for k, v in r.result.orders_tried.items()},
+            } for r in results],
+            "summary_rows": [{k: _clean(v) for k, v in row.items()}
+                             for row in summary.to_dict("records")],
+        })

@@ -1,0 +1,190 @@
+"""``armfit plot KIND``: Bode, residual, uncertainty and literature figures.
+
+Each subcommand checks the output (extension, --overwrite) before reading anything, reads
+its inputs, calls one function of :mod:`armfit.figures` and writes the figure atomically.
+"""
+
+from __future__ import annotations
+
+import click
+import numpy as np
+
+from armfit import figures
+from armfit.data import paper_table
+from armfit.errors import BadInputError, UsageError
+from armfit.io.artifacts import read_params, read_spectra, read_wu
+from armfit.io.atomic import check_output
+from armfit.models.arm import DEVICE_MASS_KG
+
+from .options import message, output_option, overwrite_option
+
+AXIS_CHOICE = click.Choice(["x", "y", "z"])
+
+
+# ---------------------------------------------------------------------------
+# Steps shared by the subcommands
+# ---------------------------------------------------------------------------
+
+def _with_file(exc: BadInputError, path: str) -> BadInputError:
+    """``exc`` (raised on data already read) re-raised naming the file it came from."""
+    if exc.file is not None:
+        return exc
+    return BadInputError(exc.reason, file=path, column=exc.column, row=exc.row)
+
+
+def _prepare(output: str, overwrite: bool, inputs) -> None:
+    figures.figure_format(output)
+    check_output(output, overwrite=overwrite, inputs=[i for i in inputs if i])
+
+
+def _save(fig, output: str, overwrite: bool) -> None:
+    out = figures.save_figure(fig, output, overwrite=overwrite)
+    message(f"wrote {out}")
+
+
+def _parse_band(text: str, axes) -> list[tuple[str, float, float]]:
+    parts = text.split(":")
+    if len(parts) == 3 and parts[0] in ("x", "y", "z"):
+        targets, lo, hi = [parts[0]], parts[1], parts[2]
+    elif len(parts) == 2:
+        targets, lo, hi = list(axes), parts[0], parts[1]
+    else:
+        raise UsageError(f"--band {text!r}: give LO:HI or AXIS:LO:HI in Hz, e.g. 10:30")
+    try:
+        lo_f, hi_f = float(lo), float(hi)
+    except ValueError:
+        raise UsageError(f"--band {text!r}: LO and HI must be numbers (Hz)") from None
+    if not 0 < lo_f < hi_f:
+        raise UsageError(f"--band {text!r}: need 0 < LO < HI")
+    return [(a, lo_f, hi_f) for a in targets]
+
+
+# ---------------------------------------------------------------------------
+# Commands
+# ---------------------------------------------------------------------------
+
+@click.group("plot")
+def command() -> None:
+    """Draw a figure: bode, residual, uncertainty or literature.
+
+    The format follows the -o extension: .png (300 dpi), .svg or .pdf. Files carry no
+    timestamps: the same input gives byte-identical files.
+    """
+
+
+@command.command("bode")
+@click.argument("spectra", metavar="SPECTRA")
+@click.option("--model", "model_path", metavar="CSV",
+              help="Fitted parameters (fit-grip or fit-nominal output) to overlay.")
+@click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
+@click.option("--band", type=click.Choice(["se", "quartiles"]), default="se",
+              show_default=True, help="Error band around each grip's mean.")
+@click.option("--no-trials", is_flag=True, help="Leave out the single-trial responses.")
+@output_option
+@overwrite_option
+def bode(spectra, model_path, axis, band, no_trials, output, overwrite):
+    """Measured dynamics X/F per axis with the model fits (the paper's Fig. 5)."""
+    _prepare(output, overwrite, [spectra, model_path])
+    df = read_spectra(spectra)
+    params = read_params(model_path) if model_path else None
+    try:
+        fig = figures.bode_figure(df, params, axis=axis, band=band, trials=not no_trials)
+    except BadInputError as exc:
+        raise _with_file(exc, spectra) from None
+    _save(fig, output, overwrite)
+
+
+@command.command("residual")
+@click.argument("spectra", metavar="SPECTRA")
+@click.option("--model", "model_path", required=True, metavar="CSV",
+              help="Fitted parameters: grip fits are compared with each grip's mean, "
+                   "nominal fits with each axis's median.")
+@click.option("--model2", "model2_path", metavar="CSV",
+              help="A second parameters file (e.g. the model with an effect), dashed.")
+@click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
+@click.option("--band", "bands", multiple=True, metavar="[AXIS:]LO:HI",
+              help="Failing band to shade, Hz (repeatable). Default: runs of at least 3 "
+                   "adjacent bins where the first model's |residual| > 2.")
+@output_option
+@overwrite_option
+def residual(spectra, model_path, model2_path, axis, bands, output, overwrite):
+    """Normalised residual (measurement - model)/SE with the noise and failing bands."""
+    _prepare(output, overwrite, [spectra, model_path, model2_path])
+    df = read_spectra(spectra)
+    params = read_params(model_path)
+    params2 = read_params(model2_path) if model2_path else None
+    axes = [axis] if axis else [a for a in figures.AXES if (params["axis"] == a).any()
+                                and (df["axis"] == a).any()]
+    shaded: dict[str, list[tuple[float, float]]] = {a: [] for a in axes}
+    try:
+        if bands:
+            for text in bands:
+                for a, lo, hi in _parse_band(text, axes):
+                    shaded.setdefault(a, []).append((lo, hi))
+        else:
+            for a in axes:
+                res = figures.normalised_residuals(df, params, a)
+                shaded[a] = figures.significant_bands(
+                    res.freq_hz, np.vstack([res.z_db, res.z_deg]))
+        fig = figures.residual_figure(df, params, params2, axis=axis, bands=shaded)
+    except BadInputError as exc:
+        raise _with_file(exc, spectra) from None
+    _save(fig, output, overwrite)
+
+
+@command.command("uncertainty")
+@click.argument("spectra", metavar="SPECTRA")
+@click.option("--nominal", "nominal_path", required=True, metavar="CSV",
+              help="Nominal fit (fit-nominal output): its H_ARM is the reference.")
+@click.option("--weights", "weights_path", metavar="CSV",
+              help="Uncertainty weights Wu (fit-uncertainty output, or Table III layout: "
+                   "axis,kind,index,real,imag; pairs in rad/s).")
+@click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
+@output_option
+@overwrite_option
+def uncertainty(spectra, nominal_path, weights_path, axis, output, overwrite):
+    """Derived arm dynamics with the nominal H_ARM, W_max and |Wu| (the paper's Fig. 6)."""
+    _prepare(output, overwrite, [spectra, nominal_path, weights_path])
+    df = read_spectra(spectra)
+    nominal = read_params(nominal_path)
+    weights = read_wu(weights_path) if weights_path else None
+    try:
+        fig = figures.uncertainty_figure(df, nominal, weights, axis=axis)
+    except BadInputError as exc:
+        raise _with_file(exc, spectra) from None
+    _save(fig, output, overwrite)
+
+
+@command.command("literature")
+@click.option("--model", "model_path", metavar="CSV",
+              help="Fitted parameters; default: the paper's Table I.")
+@click.option("--axis", type=AXIS_CHOICE, default="x", show_default=True,
+              help="Axis of the row to draw.")
+@click.option("--grip", type=float, default=1.0, show_default=True,
+              help="Grip force (N) of the row to draw, when the file has grip fits.")
+@output_option
+@overwrite_option
+def literature(model_path, axis, grip, output, overwrite):
+    """This study's H_ARM against the literature models of Table IV (the paper's Fig. 7)."""
+    _prepare(output, overwrite, [model_path])
+    if model_path:
+        params, source = read_params(model_path), model_path
+    else:
+        table = paper_table("grip").rename(columns={
+            "Ma_kg": "Ma", "k1_N_per_m": "k1", "k2_N_per_m": "k2", "b1_Ns_per_m": "b1",
+            "b2_Ns_per_m": "b2"})
+        table["mp_kg"] = table["axis"].map(DEVICE_MASS_KG)
+        table["effects"] = ""
+        params, source = table, "Table I of the paper"
+    rows = params[params["axis"] == axis]
+    if "grip_N" in rows.columns and rows["grip_N"].notna().any():
+        rows = rows[np.isclose(rows["grip_N"].to_numpy(float), grip)]
+        if rows.empty:
+            have = ", ".join(f"{g:g}" for g in sorted(params.loc[params["axis"] == axis,
+                                                                 "grip_N"].dropna()))
+            raise UsageError(f"{source}: no {axis} row with grip {grip:g} N "
+                             f"(grips: {have or 'none'}); choose one with --grip")
+    if rows.empty:
+        raise UsageError(f"{source}: no row for axis {axis}; choose one with --axis")
+    fig = figures.literature_figure(rows.iloc[0])
+    _save(fig, output, overwrite)

@@ -1,0 +1,781 @@
+"""Compare the model with the measurements, find where it fails, name the missing effect.
+
+Residuals are "measured relative to model": r_dB = 20 log10|H_meas/H_model| (dB) and
+r_deg = angle(H_meas/H_model) (deg); each divided by the measurement's standard error
+(``se_db``, ``se_deg`` of the spectra file) gives the normalised residual z, which is
+≈ N(0, 1) where the model fits within the noise.
+
+Where the evidence is weighed (diagnosis)
+-----------------------------------------
+The median (or mean) of many subjects is not itself a 5-parameter response, and its
+standard error is dominated by between-subject spread that is smooth in frequency: a
+χ² test on an aggregate raises false alarms or misses effects depending on the spread.
+So the diagnosis weighs the evidence **per trial**: every trial of an axis gets its own
+five arm parameters (Ma, k1, k2, b1, b2 — subjects and grips differ), each judged against
+its own measurement noise (Bendat & Piersol standard errors from coherence), while a
+candidate effect's parameters are **shared** by all trials of the axis (a delay, a sensor
+lag, the device's damping or mass, a structural mode are properties of the apparatus;
+for the reflex this reads as the population's typical reflex). One joint least-squares
+fit per candidate (T·5 + k parameters, block-sparse Jacobian) is warm-started from the base
+fit at the effect's null point (where it vanishes) and at the effect's own starting
+points, so adding an effect never makes the fit worse.
+
+Criterion: the likelihood-ratio statistic with unknown common noise scale,
+D = N_eff · ln(RSS_base / RSS_effect), with N_eff = N (1 − ρ)/(1 + ρ) the number of
+residuals corrected for their lag-1 autocorrelation ρ along frequency (neighbouring grid
+points of the estimator are not fully independent, and a candidate that leaves a
+systematic residual keeps ρ high); ΔBIC = D − k ln N_eff. A candidate is significant when
+ΔBIC > :data:`SIGNIFICANT_BIC` (Kass & Raftery's "very strong" evidence). Two candidates
+whose ΔBIC differ by less than :data:`TIE_BIC` "explain the data about equally well".
+
+Failing bands: per frequency, the mean over trials of the normalised residual of the base
+fit, divided by its standard error across trials (a t statistic); runs of at least
+:data:`MIN_RUN` grid points with |t| > :data:`T_FAIL` are the bands where the model fails.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize, sparse, stats
+
+from armfit.fitting import _Space, log_errors
+from armfit.models.arm import PARAM_NAMES, ClosedLoopModel
+from armfit.models.effects import EFFECTS, Effect
+
+#: Standard error bands of the compare table (Hz).
+BANDS: tuple[tuple[float, float], ...] = ((0.1, 1.0), (1.0, 3.0), (3.0, 10.0), (10.0, 30.0))
+#: ΔBIC above which an effect is reported as significant.
+SIGNIFICANT_BIC = 10.0
+#: ΔBIC difference below which two candidates are reported as explaining the data alike.
+TIE_BIC = 6.0
+#: |t| (or |z| for a single aggregate) above which a grid point fails.
+T_FAIL = 4.0
+#: Minimum number of consecutive failing grid points that make a failing band.
+MIN_RUN = 3
+#: Grid points with the largest improvement left out of the evidence (robustness).
+DROP_POINTS = 2
+#: Floors for standard errors (dB, deg), so a near-noiseless bin cannot dominate.
+SE_FLOOR_DB = 0.01
+SE_FLOOR_DEG = 0.06
+
+
+# ---------------------------------------------------------------------------
+# Residuals and error summaries
+# ---------------------------------------------------------------------------
+
+def residuals(h_meas: np.ndarray, h_model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Measured relative to model: (20 log10|Hm/Hmod| in dB, angle(Hm/Hmod) in deg)."""
+    db, deg = log_errors(h_model, h_meas)
+    return -db, -deg
+
+
+def _floor(se_db, se_deg) -> tuple[np.ndarray, np.ndarray]:
+    sdb = np.asarray(se_db, float)
+    sdeg = np.asarray(se_deg, float)
+    sdb = np.where(np.isfinite(sdb), np.maximum(sdb, SE_FLOOR_DB), np.inf)
+    sdeg = np.where(np.isfinite(sdeg), np.maximum(sdeg, SE_FLOOR_DEG), np.inf)
+    return sdb, sdeg
+
+
+@dataclass(frozen=True)
+class BandError:
+    """Error of a model in one band: RMS magnitude error (dB), RMS phase error (deg), and
+    RMS of the residuals normalised by the measurement's standard error (1 ≈ noise)."""
+
+    lo_hz: float
+    hi_hz: float
+    rms_db: float
+    rms_deg: float
+    rms_norm: float
+    n_points: int
+
+
+def band_error(f_hz, r_db, r_deg, se_db, se_deg, lo: float, hi: float) -> BandError:
+    """RMS errors over ``lo <= f <= hi`` of residual arrays (…, n_freq), pooled."""
+    f = np.asarray(f_hz, float)
+    sel = (f >= lo) & (f <= hi)
+    sdb, sdeg = _floor(se_db, se_deg)
+    rdb = np.asarray(r_db)[..., sel]
+    rdeg = np.asarray(r_deg)[..., sel]
+    if rdb.size == 0:
+        nan = float("nan")
+        return BandError(lo, hi, nan, nan, nan, 0)
+    zdb = rdb / np.broadcast_to(sdb, np.shape(r_db))[..., sel]
+    zdeg = rdeg / np.broadcast_to(sdeg, np.shape(r_deg))[..., sel]
+    return BandError(lo, hi, float(np.sqrt(np.mean(rdb ** 2))),
+                     float(np.sqrt(np.mean(rdeg ** 2))),
+                     float(np.sqrt(np.mean(np.concatenate([zdb.ravel(), zdeg.ravel()]) ** 2))),
+                     int(sel.sum()))
+
+
+@dataclass(frozen=True)
+class FailingBand:
+    """A contiguous band where the residual is statistically significant, in words."""
+
+    lo_hz: float
+    hi_hz: float
+    mean_db: float
+    mean_deg: float
+    description: str
+
+
+def _runs(mask: np.ndarray, min_run: int) -> list[tuple[int, int]]:
+    """(start, stop) index pairs of runs of True at least ``min_run`` long."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    d = np.diff(m.astype(int))
+    starts, stops = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True) if b - a >= min_run]
+
+
+def _trend(f: np.ndarray, r: np.ndarray) -> str:
+    """'more and more' / 'less and less' / '' from the residual's growth across the band."""
+    if r.size < 3:
+        return ""
+    x = np.log10(f)
+    slope = np.polyfit(x, np.abs(r), 1)[0] * (x[-1] - x[0])
+    if abs(slope) < 0.5 * np.max(np.abs(r)):
+        return ""
+    return "more and more with frequency" if slope > 0 else "less and less with frequency"
+
+
+def describe(f_hz, r_db, r_deg, sig_db, sig_deg) -> str:
+    """Words for a band's mean residual: sign and shape of magnitude and phase.
+
+    f_hz, r_db (dB), r_deg (deg): the band's frequencies and mean residuals (measured
+    relative to model); sig_db, sig_deg: per-point significance masks.
+    """
+    f = np.asarray(f_hz, float)
+    parts = []
+    if np.any(sig_db):
+        peak = float(r_db[np.argmax(np.abs(r_db))])
+        where = "above" if np.median(r_db) > 0 else "below"
+        shape = _trend(f, r_db)
+        mixed = np.any(r_db[sig_db] > 0) and np.any(r_db[sig_db] < 0)
+        if mixed:
+            parts.append(f"magnitude swings around the model (peak {peak:+.1f} dB)")
+        else:
+            parts.append(f"measured magnitude {where} the model"
+                         + (f" {shape}" if shape else "") + f" (up to {peak:+.1f} dB)")
+    else:
+        parts.append("magnitude fine")
+    if np.any(sig_deg):
+        peak = float(r_deg[np.argmax(np.abs(r_deg))])
+        word = "lags" if np.median(r_deg) < 0 else "leads"
+        shape = _trend(f, r_deg)
+        mixed = np.any(r_deg[sig_deg] > 0) and np.any(r_deg[sig_deg] < 0)
+        if mixed:
+            parts.insert(0, f"phase swings around the model (peak {peak:+.0f} deg)")
+        else:
+            parts.insert(0, f"phase {word} the model" + (f" {shape}" if shape else "")
+                         + f" (up to {peak:+.0f} deg)")
+    else:
+        parts.append("phase fine")
+    return ", ".join(parts)
+
+
+def failing_bands(f_hz, stat_db, stat_deg, mean_db, mean_deg, *, threshold: float = T_FAIL,
+                  min_run: int = MIN_RUN) -> list[FailingBand]:
+    """Bands where |stat| > threshold for at least ``min_run`` consecutive points.
+
+    stat_*: test statistics per frequency (z or t); mean_*: mean residuals (dB, deg) used
+    for the words. Magnitude and phase failures are merged into one band list.
+    """
+    f = np.asarray(f_hz, float)
+    sig_db = np.abs(stat_db) > threshold
+    sig_deg = np.abs(stat_deg) > threshold
+    out = []
+    for a, b in _runs(sig_db | sig_deg, min_run):
+        sl = slice(a, b)
+        out.append(FailingBand(float(f[a]), float(f[b - 1]), float(np.mean(mean_db[sl])),
+                               float(np.mean(mean_deg[sl])),
+                               describe(f[sl], np.asarray(mean_db)[sl],
+                                        np.asarray(mean_deg)[sl], sig_db[sl], sig_deg[sl])))
+    return out
+
+
+def trial_statistics(z_db: np.ndarray, z_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """t statistic per frequency of normalised residuals (n_trials, n_freq) across trials.
+
+    t = mean / (sd / sqrt(T)); with a single trial (T = 1) the z values themselves.
+    """
+    def t(z):
+        z = np.asarray(z, float)
+        if z.shape[0] < 2:
+            return z[0]
+        sd = np.std(z, axis=0, ddof=1)
+        return np.mean(z, axis=0) / np.maximum(sd, 1e-12) * np.sqrt(z.shape[0])
+    return t(z_db), t(z_deg)
+
+
+# ---------------------------------------------------------------------------
+# Joint fit over the trials of one axis
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class AxisData:
+    """The trial-level measured responses of one axis on a common grid.
+
+    f_hz (n,) Hz; h (T, n) complex X/F in m/N; se_db, se_deg (T, n) standard errors;
+    starts: per trial the base parameters to start from (e.g. the grip fit of its grip).
+    """
+
+    axis: str
+    f_hz: np.ndarray
+    h: np.ndarray
+    se_db: np.ndarray
+    se_deg: np.ndarray
+    starts: tuple[Mapping[str, float], ...]
+    labels: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """Result of one joint fit: per-trial base parameters (T, 5), shared effect
+    parameters with 95 % intervals, residuals (T, n) and the residual sum of squares."""
+
+    model: ClosedLoopModel
+    base: np.ndarray
+    shared: dict[str, float]
+    shared_lo: dict[str, float]
+    shared_hi: dict[str, float]
+    r_db: np.ndarray
+    r_deg: np.ndarray
+    rss: float
+    n_res: int
+    rho: float
+    converged: bool
+
+
+class _Joint:
+    """Residuals of T trials with per-trial base parameters and shared effect parameters."""
+
+    def __init__(self, model: ClosedLoopModel, data: AxisData, sel: np.ndarray):
+        self.model = model
+        self.space = _Space.of(model)
+        self.f = data.f_hz[sel]
+        self.h = data.h[:, sel]
+        sdb, sdeg = _floor(data.se_db[:, sel], data.se_deg[:, sel])
+        self.w_db, self.w_deg = 1.0 / sdb, 1.0 / sdeg
+        self.T = self.h.shape[0]
+        self.nb = len(PARAM_NAMES)
+        self.k = len(self.space.names) - self.nb
+        self.base_idx = np.arange(self.nb)
+        self.eff_idx = np.arange(self.nb, self.nb + self.k)
+
+    def unpack(self, x: np.ndarray) -> np.ndarray:
+        """x (T·5 + k) → z (T, P) in the transformed space."""
+        zb = x[: self.T * self.nb].reshape(self.T, self.nb)
+        ze = np.broadcast_to(x[self.T * self.nb:], (self.T, self.k))
+        return np.concatenate([zb, ze], axis=1)
+
+    def response(self, x: np.ndarray) -> np.ndarray:
+        theta = self.space.to_theta(self.unpack(x))
+        values = {n: theta[:, i:i + 1] for i, n in enumerate(self.space.names)}
+        return self.model.response(self.f, values)
+
+    def split_res(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with np.errstate(all="ignore"):
+            r_db, r_deg = residuals(self.h, self.response(x))
+        return r_db, r_deg
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        r_db, r_deg = self.split_res(x)
+        r = np.concatenate([r_db * self.w_db, r_deg * self.w_deg], axis=1)
+        return np.where(np.isfinite(r), r, 1e6).ravel()
+
+    def sparsity(self) -> sparse.csr_matrix:
+        rows_per = 2 * self.f.size
+        blocks = sparse.kron(sparse.eye(self.T), np.ones((rows_per, self.nb)))
+        shared = np.ones((self.T * rows_per, self.k))
+        return sparse.hstack([blocks, sparse.csr_matrix(shared)]).tocsr()
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.concatenate([np.tile(self.space.zlo[: self.nb], self.T),
+                             self.space.zlo[self.nb:]])
+        hi = np.concatenate([np.tile(self.space.zhi[: self.nb], self.T),
+                             self.space.zhi[self.nb:]])
+        return lo, hi
+
+    def pack(self, base: np.ndarray, shared: Mapping[str, float]) -> np.ndarray:
+        full = np.zeros((self.T, len(self.space.names)))
+        full[:, : self.nb] = base
+        for j, n in enumerate(self.space.names[self.nb:]):
+            full[:, self.nb + j] = shared[n]
+        z = self.space.clip_z(self.space.to_z(full))
+        return np.concatenate([z[:, : self.nb].ravel(), z[0, self.nb:]])
+
+
+def _lag1(r: np.ndarray) -> float:
+    """Mean lag-1 autocorrelation along frequency of residual rows (T, n)."""
+    r = r - r.mean(axis=1, keepdims=True)
+    num = np.sum(r[:, 1:] * r[:, :-1])
+    den = np.sum(r * r)
+    return float(num / den) if den > 0 else 0.0
+
+
+def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
+              base: np.ndarray, starts: Sequence[Mapping[str, float]] = ({},),
+              max_nfev: int = 200) -> JointFit:
+    """Fit ``model`` to every trial of ``data`` at once: arm parameters per trial, effect
+    parameters shared (see the module docstring). ``base`` (T, 5), or a list of such:
+    starting arm parameters (SI units); ``starts``: candidate starting values of the shared
+    effect parameters. Every combination is tried briefly, the best refined.
+    """
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    prob = _Joint(model, data, sel)
+    lo, hi = prob.bounds()
+    jac_sp = prob.sparsity()
+    bases = [base] if isinstance(base, np.ndarray) else list(base)
+    candidates = [prob.pack(b, st) for b in bases for st in starts]
+    if len(candidates) > 1:
+        # short refinement of each start, keep the best
+        scored = []
+        for x0 in candidates:
+            r = optimize.least_squares(prob.fun, x0, bounds=(lo, hi), jac_sparsity=jac_sp,
+                                       method="trf", max_nfev=15, x_scale=1.0,
+                                       tr_solver="lsmr")
+            scored.append((2 * r.cost, r.x))
+        x0 = min(scored, key=lambda t: t[0])[1]
+    else:
+        x0 = candidates[0]
+    res = optimize.least_squares(prob.fun, x0, bounds=(lo, hi), jac_sparsity=jac_sp,
+                                 method="trf", max_nfev=max_nfev, x_scale=1.0,
+                                 tr_solver="lsmr", ftol=1e-8, xtol=1e-8)
+    z = prob.unpack(res.x)
+    theta = prob.space.to_theta(z)
+    r_db, r_deg = prob.split_res(res.x)
+    names = prob.space.names[prob.nb:]
+    shared = {n: float(theta[0, prob.nb + j]) for j, n in enumerate(names)}
+    s_lo, s_hi = _shared_ci(prob, res, names)
+    zres = np.concatenate([r_db * prob.w_db, r_deg * prob.w_deg], axis=1)
+    rho = (_lag1(r_db * prob.w_db) + _lag1(r_deg * prob.w_deg)) / 2
+    return JointFit(model, theta[:, : prob.nb], shared, s_lo, s_hi, r_db, r_deg,
+                    float(np.sum(zres[np.isfinite(zres)] ** 2)), int(zres.size), rho,
+                    bool(res.status > 0))
+
+
+def _shared_ci(prob: _Joint, res, names) -> tuple[dict[str, float], dict[str, float]]:
+    """95 % intervals of the shared parameters from the Jacobian (Schur complement)."""
+    if not names:
+        return {}, {}
+    J = res.jac.toarray() if sparse.issparse(res.jac) else np.asarray(res.jac)
+    m, p = J.shape
+    s2 = 2 * res.cost / max(m - p, 1)
+    JTJ = J.T @ J
+    try:
+        cov = s2 * np.linalg.pinv(JTJ, rcond=1e-12)
+    except np.linalg.LinAlgError:  # pragma: no cover - pinv is SVD based
+        nan = {n: float("nan") for n in names}
+        return nan, nan
+    k = len(names)
+    var = np.diag(cov)[-k:]
+    half = stats.norm.ppf(0.975) * np.sqrt(np.maximum(var, 0))
+    z = res.x[-k:]
+    sp = prob.space
+    zl = np.clip(z - half, sp.zlo[prob.nb:], sp.zhi[prob.nb:])
+    zh = np.clip(z + half, sp.zlo[prob.nb:], sp.zhi[prob.nb:])
+    full_l = np.tile(sp.zlo, 1).astype(float)
+    full_h = full_l.copy()
+    full_l[prob.nb:] = zl
+    full_h[prob.nb:] = zh
+    tl = sp.to_theta(full_l)[prob.nb:]
+    th = sp.to_theta(full_h)[prob.nb:]
+    return ({n: float(v) for n, v in zip(names, tl, strict=True)},
+            {n: float(v) for n, v in zip(names, th, strict=True)})
+
+
+# ---------------------------------------------------------------------------
+# Diagnosis of one axis
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate effect's evidence."""
+
+    effect: str
+    params: dict[str, float]
+    params_lo: dict[str, float]
+    params_hi: dict[str, float]
+    rms_db_before: float
+    rms_db_after: float
+    rms_deg_before: float
+    rms_deg_after: float
+    rms_norm_before: float
+    rms_norm_after: float
+    failing_before: tuple[BandError, ...]
+    failing_after: tuple[BandError, ...]
+    lr: float
+    score: float
+    significant: bool
+
+
+@dataclass(frozen=True)
+class AxisDiagnosis:
+    """Verdict for one axis: the missing effect (or None), candidates best first."""
+
+    axis: str
+    band: tuple[float, float]
+    n_trials: int
+    missing_effect: str | None
+    tied_with: tuple[str, ...]
+    candidates: tuple[Candidate, ...]
+    failing: tuple[FailingBand, ...]
+    base_error: BandError
+    verdict: str
+    coupling: dict[str, float] = field(default_factory=dict)
+
+
+def _point_ss(fit: JointFit, se_db, se_deg) -> np.ndarray:
+    """Sum over trials of squared normalised residuals, per grid point (n,)."""
+    z = np.concatenate([fit.r_db / se_db, fit.r_deg / se_deg], axis=0)
+    return np.sum(np.where(np.isfinite(z), z * z, 0.0), axis=0)
+
+
+def _robust_lr(base: JointFit, fit: JointFit, se_db, se_deg) -> tuple[float, float]:
+    """Likelihood-ratio statistic N_eff ln(RSS_base/RSS_effect), not resting on a few
+    points: the :data:`DROP_POINTS` grid points whose improvement is largest are left out
+    of both sums (an isolated outlier, e.g. at the edge of the excitation band, cannot
+    make an effect significant; a real effect improves many points). Returns (D, N_eff)."""
+    ss0, ss1 = _point_ss(base, se_db, se_deg), _point_ss(fit, se_db, se_deg)
+    keep = np.ones(ss0.size, bool)
+    keep[np.argsort(ss0 - ss1)[::-1][:DROP_POINTS]] = False
+    rho = float(np.clip(fit.rho, 0.0, 0.95))
+    n_res = fit.n_res * keep.sum() / keep.size
+    n_eff = n_res * (1 - rho) / (1 + rho)
+    rss0, rss1 = float(ss0[keep].sum()), float(ss1[keep].sum())
+    lr = n_eff * np.log(rss0 / rss1) if rss1 > 0 and rss0 > rss1 else 0.0
+    return float(lr), float(n_eff)
+
+
+def _errors(f, fit: JointFit, data: AxisData, sel, bands) -> tuple[BandError, ...]:
+    se_db, se_deg = data.se_db[:, sel], data.se_deg[:, sel]
+    return tuple(band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, lo, hi) for lo, hi in bands)
+
+
+def diagnose_axis(data: AxisData, *, band: tuple[float, float],
+                  effects: Sequence[Effect] | None = None) -> AxisDiagnosis:
+    """Fit the base model and each candidate effect to every trial of one axis, rank.
+
+    data: the axis's trial responses with per-trial base starts; band: (lo, hi) Hz;
+    effects: candidates (default: the whole library). See the module docstring for the
+    criterion.
+    """
+    effects = list(EFFECTS.values()) if effects is None else list(effects)
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    f = data.f_hz[sel]
+    base_model = ClosedLoopModel.for_axis(data.axis)
+    start = np.array([[s[n] for n in PARAM_NAMES] for s in data.starts], float)
+    base = joint_fit(base_model, data, band, start)
+
+    se_db, se_deg = _floor(data.se_db[:, sel], data.se_deg[:, sel])
+    t_db, t_deg = trial_statistics(base.r_db / se_db, base.r_deg / se_deg)
+    fails = failing_bands(f, t_db, t_deg, base.r_db.mean(axis=0), base.r_deg.mean(axis=0))
+    fail_ranges = [(fb.lo_hz, fb.hi_hz) for fb in fails]
+    base_err = band_error(f, base.r_db, base.r_deg, se_db, se_deg, band[0], band[1])
+    fail_before = _errors(f, base, data, sel, fail_ranges)
+
+    cands = []
+    for eff in effects:
+        model = base_model.with_effect(eff)
+        starts = [{f"{eff.name}.{k}": v for k, v in st.items()}
+                  for st in eff.start_points(model.mp)]
+        # from the base fit and from the given starts: a strong missing effect can pull
+        # the base fit far from the arm parameters the extended model needs
+        fit = joint_fit(model, data, band, [base.base, start], starts)
+        if fit.rss > base.rss:  # nested: never worse than the base fit
+            fit = JointFit(model, base.base, {f"{eff.name}.{k}": v
+                                              for k, v in eff.null(model.mp).items()},
+                           {}, {}, base.r_db, base.r_deg, base.rss, base.n_res, base.rho,
+                           base.converged)
+        lr, n_eff = _robust_lr(base, fit, se_db, se_deg)
+        k = len(eff.params)
+        score = float(lr - k * np.log(n_eff))
+        err = band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, band[0], band[1])
+        short = {n.split(".", 1)[1]: v for n, v in fit.shared.items()}
+        cands.append(Candidate(
+            effect=eff.name, params=short,
+            params_lo={n.split(".", 1)[1]: v for n, v in fit.shared_lo.items()},
+            params_hi={n.split(".", 1)[1]: v for n, v in fit.shared_hi.items()},
+            rms_db_before=base_err.rms_db, rms_db_after=err.rms_db,
+            rms_deg_before=base_err.rms_deg, rms_deg_after=err.rms_deg,
+            rms_norm_before=base_err.rms_norm, rms_norm_after=err.rms_norm,
+            failing_before=fail_before, failing_after=_errors(f, fit, data, sel, fail_ranges),
+            lr=float(lr), score=score, significant=bool(score > SIGNIFICANT_BIC)))
+    cands.sort(key=lambda c: c.score, reverse=True)
+    best = cands[0] if cands and cands[0].significant else None
+    tied = tuple(c.effect for c in cands[1:]
+                 if best is not None and c.significant and best.score - c.score < TIE_BIC)
+    if best is None:
+        verdict = ("no candidate effect improves the fit beyond the noise: the 5-parameter "
+                   "model explains this axis")
+    else:
+        p = ", ".join(f"{k}={v:.4g}" for k, v in best.params.items())
+        verdict = (f"missing effect: {best.effect} ({p}); error {best.rms_db_before:.2f} dB / "
+                   f"{best.rms_deg_before:.1f} deg -> {best.rms_db_after:.2f} dB / "
+                   f"{best.rms_deg_after:.1f} deg")
+        if tied:
+            verdict += f"; {', '.join(tied)} explain(s) the data about equally well"
+    return AxisDiagnosis(axis=data.axis, band=(float(f[0]), float(f[-1])),
+                         n_trials=int(data.h.shape[0]), missing_effect=None if best is None
+                         else best.effect, tied_with=tied, candidates=tuple(cands),
+                         failing=tuple(fails), base_error=base_err, verdict=verdict)
+
+
+# ---------------------------------------------------------------------------
+# From armfit's files to the arrays above
+# ---------------------------------------------------------------------------
+
+def _rows(spectra, *, level: str, kind: str, axis: str, grip: float | None = None,
+          out_axis: str | None = None):
+    sel = ((spectra["level"] == level) & (spectra["kind"] == kind)
+           & (spectra["axis"] == axis))
+    if out_axis is not None:
+        sel &= spectra["out_axis"] == out_axis
+    if grip is not None:
+        sel &= np.isclose(spectra["grip_N"].to_numpy(float), grip)
+    return spectra[sel]
+
+
+def _trial_matrix(rows) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list]:
+    """(f, H (T, n), se_db, se_deg, keys) from long-format trial rows on one grid."""
+    keys = ["subject", "grip_N", "run"]
+    rows = rows.sort_values(keys + ["freq_hz"], na_position="first")
+    groups = list(rows.groupby(keys, dropna=False, sort=True))
+    f = groups[0][1]["freq_hz"].to_numpy(float)
+    H, sdb, sdeg, labels = [], [], [], []
+    for key, g in groups:
+        if g.shape[0] != f.size or not np.allclose(g["freq_hz"].to_numpy(float), f):
+            raise ValueError("trials are not on one frequency grid")
+        H.append(g["re"].to_numpy(float) + 1j * g["im"].to_numpy(float))
+        sdb.append(g["se_db"].to_numpy(float))
+        sdeg.append(g["se_deg"].to_numpy(float))
+        labels.append(key)
+    return f, np.array(H), np.array(sdb), np.array(sdeg), labels
+
+
+def _param_row(params, axis: str, grip: float | None):
+    rows = params[params["axis"] == axis]
+    if grip is not None and "grip_N" in params.columns:
+        by_grip = rows[np.isclose(rows["grip_N"].to_numpy(float), grip)]
+        if len(by_grip):
+            return by_grip.iloc[0]
+        # nearest grip of the same axis
+        return rows.iloc[int(np.argmin(np.abs(rows["grip_N"].to_numpy(float) - grip)))]
+    return rows.iloc[0] if len(rows) else None
+
+
+def axis_data(spectra, params, axis: str) -> AxisData | None:
+    """Trial-level measured responses of ``axis`` with per-trial starts from ``params``
+    (the row of the trial's grip for grip fits, the axis row for nominal fits).
+    None when the spectra hold no trials of the axis or the params no row for it."""
+    rows = _rows(spectra, level="trial", kind="measured", axis=axis)
+    if rows.empty or not (params["axis"] == axis).any():
+        return None
+    f, H, sdb, sdeg, labels = _trial_matrix(rows)
+    starts = []
+    for _subject, grip, _run in labels:
+        r = _param_row(params, axis, float(grip))
+        starts.append({n: float(r[n]) for n in PARAM_NAMES})
+    import pandas as pd
+    names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if pd.isna(run) else f"_run-{run}")
+                  for s, g, run in labels)
+    return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names)
+
+
+def cross_coupling(spectra, axis: str, band: tuple[float, float]) -> dict[str, float]:
+    """Off-axis motion relative to on-axis motion for force on ``axis``, in dB.
+
+    For each other position axis: the median over trials and over the band of
+    20 log10(|X_other/F| / |X_axis/F|). Absent cross responses give no entry.
+    """
+    out = {}
+    on = _rows(spectra, level="trial", kind="measured", axis=axis)
+    if on.empty:
+        return out
+    f, H_on, *_ = _trial_matrix(on)
+    sel = (f >= band[0]) & (f <= band[1])
+    for other in ("x", "y", "z"):
+        if other == axis:
+            continue
+        rows = _rows(spectra, level="trial", kind="cross", axis=axis, out_axis=other)
+        if rows.empty:
+            continue
+        fc, H_c, *_ = _trial_matrix(rows)
+        if H_c.shape != H_on.shape:
+            continue
+        with np.errstate(all="ignore"):
+            ratio = 20 * np.log10(np.abs(H_c[:, sel]) / np.abs(H_on[:, sel]))
+        out[other] = float(np.nanmedian(ratio))
+    return out
+
+
+def _diagnose_one(args):
+    data, band, effects, coupling = args
+    d = diagnose_axis(data, band=band, effects=effects)
+    return AxisDiagnosis(**{**d.__dict__, "coupling": coupling})
+
+
+def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
+             axes: Sequence[str] = ("x", "y", "z"),
+             effects: Sequence[Effect] | None = None, jobs: int = 1) -> list[AxisDiagnosis]:
+    """Diagnose every axis present in both ``spectra`` (a spectra DataFrame) and
+    ``params`` (a params DataFrame, grip or nominal fits): see :func:`diagnose_axis`.
+    ``band`` defaults to the whole grid of the spectra (the point is to look beyond the
+    paper's fit bands); ``jobs`` > 1 diagnoses axes in parallel processes."""
+    tasks = []
+    for axis in axes:
+        data = axis_data(spectra, params, axis)
+        if data is None:
+            continue
+        b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
+        tasks.append((data, b, effects, cross_coupling(spectra, axis, b)))
+    if jobs > 1 and len(tasks) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(max_workers=min(jobs, len(tasks))) as pool:
+            return list(pool.map(_diagnose_one, tasks))
+    return [_diagnose_one(t) for t in tasks]
+
+
+# ---------------------------------------------------------------------------
+# compare: model against measurements, overall and per band
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Comparison:
+    """Errors of one model against one set of measurements.
+
+    level: "mean" | "median" | "trial"; model: "base" or "base+<effect>[+…]"; overall and
+    per-band errors (:data:`BANDS`); failing: significant bands with words; params: the
+    effect parameters fitted (empty for the base model).
+    """
+
+    axis: str
+    grip_N: float | None
+    level: str
+    model: str
+    overall: BandError
+    bands: tuple[BandError, ...]
+    failing: tuple[FailingBand, ...]
+    params: dict[str, float]
+    n_trials: int
+
+
+def _summary(axis, grip, level, label, f, r_db, r_deg, se_db, se_deg, band, params, n):
+    sdb, sdeg = _floor(se_db, se_deg)
+    r_db2, r_deg2 = np.atleast_2d(r_db), np.atleast_2d(r_deg)
+    z_db, z_deg = r_db2 / np.atleast_2d(sdb), r_deg2 / np.atleast_2d(sdeg)
+    t_db, t_deg = trial_statistics(z_db, z_deg)
+    fails = failing_bands(f, t_db, t_deg, r_db2.mean(axis=0), r_deg2.mean(axis=0))
+    overall = band_error(f, r_db, r_deg, se_db, se_deg, band[0], band[1])
+    bands = tuple(band_error(f, r_db, r_deg, se_db, se_deg, lo, hi) for lo, hi in BANDS
+                  if hi > band[0] and lo < band[1])
+    return Comparison(axis, grip, level, label, overall, bands, tuple(fails), params, n)
+
+
+def _fit_effects_aggregate(base_model, theta, effects, f, h, se_db, se_deg, band):
+    """Nested refit of base + effects on one aggregate, warm-started at the effects'
+    null point and at their starting points; never worse than the base."""
+    from armfit.fitting import fit_response
+    model = base_model
+    for e in effects:
+        model = model.with_effect(e)
+    base = {n: theta[n] for n in PARAM_NAMES}
+    best = None
+    for start in model.start_points(base):
+        fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, band=band, x0=start,
+                           global_search=False, strict=False)
+        if best is None or fit.objective < best.objective:
+            best = fit
+    return model, best.params
+
+
+def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] | None = None,
+            effects: Sequence[Effect] = ()) -> list[Comparison]:
+    """Compare the model(s) of ``params`` (a params DataFrame) with ``spectra``.
+
+    level "mean": each axis × grip mean (the grip's row of grip fits, or the axis row of
+    nominal fits); "median": each axis median (nominal fits); "trial": every trial of an
+    axis, the five arm parameters refitted per trial from the model's values so that
+    between-subject differences do not count as model error (significance by a t test
+    across trials). ``effects``: add these effects and refit (nested, warm-started; shared
+    across trials at level "trial"); both the base and the extended model are reported.
+    ``band`` defaults to the whole grid.
+    """
+    from armfit.errors import UsageError
+    from armfit.io.artifacts import model_from_params
+    if level not in ("mean", "median", "trial"):
+        raise UsageError(f"--level must be mean, median or trial, got {level!r}")
+    grip_model = "grip_N" in params.columns
+    if level == "median" and grip_model:
+        raise UsageError("grip fits are compared at --level mean or trial; the median "
+                         "pools all grips (use nominal fits)")
+    label = "base+" + "+".join(e.name for e in effects) if effects else ""
+    out: list[Comparison] = []
+    for axis in ("x", "y", "z"):
+        if not (params["axis"] == axis).any():
+            continue
+        if level == "trial":
+            data = axis_data(spectra, params, axis)
+            if data is None:
+                continue
+            b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
+            sel = (data.f_hz >= b[0]) & (data.f_hz <= b[1])
+            f = data.f_hz[sel]
+            start = np.array([[s[n] for n in PARAM_NAMES] for s in data.starts], float)
+            base_model = ClosedLoopModel.for_axis(axis, mp=float(
+                params[params["axis"] == axis]["mp_kg"].iloc[0]))
+            fit = joint_fit(base_model, data, b, start)
+            se = (data.se_db[:, sel], data.se_deg[:, sel])
+            out.append(_summary(axis, None, level, "base", f, fit.r_db, fit.r_deg, *se, b, {},
+                                data.h.shape[0]))
+            if effects:
+                model = base_model
+                for e in effects:
+                    model = model.with_effect(e)
+                nt = model.null_theta(dict(zip(PARAM_NAMES, start[0], strict=True)))
+                pts = model.start_points(nt)
+                starts = [{k: v for k, v in p.items() if k not in PARAM_NAMES} for p in pts]
+                fe = joint_fit(model, data, b, [fit.base, start], starts)
+                if fe.rss > fit.rss:
+                    fe = fit
+                out.append(_summary(axis, None, level, label, f, fe.r_db, fe.r_deg, *se, b,
+                                    dict(fe.shared), data.h.shape[0]))
+            continue
+        grips = [None]
+        if level == "mean":
+            rows = _rows(spectra, level="mean", kind="measured", axis=axis)
+            grips = sorted(set(rows["grip_N"].astype(float)))
+        for grip in grips:
+            rows = _rows(spectra, level=level, kind="measured", axis=axis, grip=grip)
+            if rows.empty:
+                continue
+            rows = rows.sort_values("freq_hz")
+            f = rows["freq_hz"].to_numpy(float)
+            h = rows["re"].to_numpy(float) + 1j * rows["im"].to_numpy(float)
+            se_db, se_deg = rows["se_db"].to_numpy(float), rows["se_deg"].to_numpy(float)
+            prow = _param_row(params, axis, grip)
+            model, theta = model_from_params(prow)
+            b = band or (float(f[0]), float(f[-1]))
+            sel = (f >= b[0]) & (f <= b[1])
+            with np.errstate(all="ignore"):
+                r_db, r_deg = residuals(h[sel], model.response(f[sel], theta))
+            n = int(rows["n"].iloc[0]) if "n" in rows else 1
+            out.append(_summary(axis, grip, level, model_label(model), f[sel], r_db, r_deg,
+                                se_db[sel], se_deg[sel], b, {}, n))
+            if effects:
+                model_e, th_e = _fit_effects_aggregate(model, theta, effects, f, h, se_db,
+                                                       se_deg, b)
+                with np.errstate(all="ignore"):
+                    r_db, r_deg = residuals(h[sel], model_e.response(f[sel], th_e))
+                eff_params = {k: v for k, v in th_e.items() if k not in PARAM_NAMES}
+                out.append(_summary(axis, grip, level, model_label(model_e), f[sel], r_db,
+                                    r_deg, se_db[sel], se_deg[sel], b, eff_params, n))
+    return out
+
+
+def model_label(model: ClosedLoopModel) -> str:
+    """"base" or "base+<effect>+…"."""
+    return "+".join(["base", *(e.name for e in model.effects)])

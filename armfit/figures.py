@@ -1,0 +1,645 @@
+"""Publication figures: Bode, residual, uncertainty and literature plots.
+
+Every figure function takes data in the shapes of armfit's own files — the spectra table
+(:data:`armfit.io.artifacts.SPECTRA_COLUMNS`), a fitted-parameters table (one row per axis,
+or per axis × grip) and an uncertainty-weight table (``axis,kind,index,real,imag``) — and
+returns a :class:`matplotlib.figure.Figure`. Nothing here reads files or prints;
+:func:`save_figure` is the only writer.
+
+Figures are drawn on the Agg canvas (headless; pyplot is never used), sized for a journal
+column (3.5 in per panel column, 8 pt text), with one consistent style. Each plotted
+artist carries a ``gid`` naming what it shows (``trial:…``, ``mean:…``, ``fit:…``,
+``nominal:…``, ``wmax:…``, ``wu:…``, ``literature:…``) so that a figure can be inspected.
+
+Conventions: frequencies in Hz on a log axis; magnitudes 20 log10 |H| with H in m/N
+(dB re 1 m/N); phases in degrees.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib as mpl
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from matplotlib.ticker import FuncFormatter
+
+from armfit.errors import BadInputError, UsageError
+from armfit.io.artifacts import model_from_params
+from armfit.io.atomic import atomic_path, check_output
+from armfit.models.arm import ClosedLoopModel
+from armfit.models.literature import LiteratureModel, literature_models
+from armfit.uncertainty import WuWeight, w_max
+
+# fontTools, which subsets fonts for PDF output, logs every table it prunes at INFO.
+logging.getLogger("fontTools").setLevel(logging.WARNING)
+
+#: Output formats by file extension.
+FORMATS: dict[str, str] = {".png": "png", ".svg": "svg", ".pdf": "pdf"}
+
+#: Width of one panel column (in), a journal's single column.
+PANEL_WIDTH_IN = 3.5
+#: Height of one panel row (in).
+PANEL_HEIGHT_IN = 1.8
+#: Raster resolution (dots per inch) of PNG output and of rasterised single-trial lines
+#: inside SVG and PDF.
+DPI = 300
+#: Single-trial lines of a panel are rasterised inside SVG/PDF when they hold more points
+#: than this (e.g. 27 trials on a 3000-point grid); otherwise everything is vector.
+RASTER_POINTS = 20000
+
+AXES: tuple[str, ...] = ("x", "y", "z")
+AXIS_TITLES = {"x": "X axis (left–right)", "y": "Y axis (up–down)", "z": "Z axis (forward–back)"}
+
+MAG_LABEL = "Magnitude (dB re 1 m/N)"
+PHASE_LABEL = "Phase (deg)"
+FREQ_LABEL = "Frequency (Hz)"
+
+#: Colour-blind-safe palette (Okabe & Ito, with wine for their hard-to-see yellow); grips
+#: take the first colours in order.
+PALETTE = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#882255")
+
+#: Residual axes whose |z| exceeds 3× this value are linear for |z| ≤ this value and
+#: logarithmic beyond (symlog), so the noise band stays readable next to residuals of
+#: hundreds.
+RESIDUAL_LINEAR_LIMIT = 10.0
+
+#: rc settings every figure is drawn with.
+STYLE: dict[str, Any] = {
+    "font.family": "DejaVu Sans",
+    "font.size": 8,
+    "axes.titlesize": 8,
+    "axes.labelsize": 8,
+    "xtick.labelsize": 7,
+    "ytick.labelsize": 7,
+    "legend.fontsize": 7,
+    "legend.frameon": False,
+    "axes.linewidth": 0.6,
+    "axes.grid": True,
+    "axes.grid.which": "both",
+    "grid.linewidth": 0.3,
+    "grid.alpha": 0.5,
+    "lines.linewidth": 1.0,
+    "xtick.major.width": 0.6,
+    "ytick.major.width": 0.6,
+    "pdf.fonttype": 42,
+    "svg.fonttype": "path",
+    "svg.hashsalt": "armfit",
+    "path.simplify": True,
+}
+
+_METADATA: dict[str, dict[str, Any]] = {
+    "png": {"Software": "armfit"},
+    "svg": {"Creator": "armfit", "Date": None},
+    "pdf": {"Creator": "armfit", "Producer": "armfit", "CreationDate": None},
+}
+
+
+def _styled(fn: Callable[..., Figure]) -> Callable[..., Figure]:
+    """Draw the figure under :data:`STYLE` (rc values are read when artists are made)."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with mpl.rc_context(STYLE):
+            return fn(*args, **kwargs)
+    return wrapper
+
+
+# ---------------------------------------------------------------------------
+# Output
+# ---------------------------------------------------------------------------
+
+def figure_format(path: str | Path) -> str:
+    """The format ('png', 'svg' or 'pdf') of ``path`` by its extension.
+
+    Raises UsageError (exit 2) for any other extension.
+    """
+    ext = Path(path).suffix.lower()
+    if ext not in FORMATS:
+        raise UsageError(f"{path}: unknown figure extension {ext or '(none)'!r}; "
+                         f"use one of {', '.join(FORMATS)}")
+    return FORMATS[ext]
+
+
+def save_figure(fig: Figure, path: str | Path, *, overwrite: bool = False) -> Path:
+    """Write ``fig`` to ``path`` (PNG, SVG or PDF by extension), atomically.
+
+    Single-trial lines of a panel with more than :data:`RASTER_POINTS` points are
+    rasterised at :data:`DPI` inside SVG/PDF; the rest stays vector. Files are
+    deterministic: the same figure gives byte-identical files (no timestamps; fixed
+    creator; fixed SVG hash salt). Refuses an existing ``path`` unless ``overwrite``
+    (OutputError, exit 73).
+    """
+    fmt = figure_format(path)
+    out = check_output(path, overwrite=overwrite)
+    with mpl.rc_context(STYLE), atomic_path(out, overwrite=overwrite) as tmp:
+        fig.savefig(tmp, format=fmt, metadata=_METADATA[fmt], dpi=DPI)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Models from parameter rows
+# ---------------------------------------------------------------------------
+
+def model_from_row(row: Mapping[str, Any]) -> tuple[ClosedLoopModel, dict[str, float]]:
+    """The closed-loop model and its parameters from one row of a parameters table.
+
+    :func:`armfit.io.artifacts.model_from_params` (axis, ``Ma,k1,k2,b1,b2``, ``effects``,
+    ``<effect>.<param>``, ``mp_kg``), with a missing or empty value reported as a
+    BadInputError naming the column.
+    """
+    try:
+        model, theta = model_from_params(row)
+    except KeyError as exc:
+        raise BadInputError(f"missing value for axis {row.get('axis')}",
+                            column=str(exc.args[0])) from None
+    for name, value in theta.items():
+        if not np.isfinite(value):
+            raise BadInputError(f"axis {row['axis']}: parameter is empty or not finite",
+                                column=name)
+    return model, theta
+
+
+def _model_label(row: Mapping[str, Any]) -> str:
+    names = row.get("effects", "")
+    if names is None or (isinstance(names, float) and math.isnan(names)) or not str(names):
+        return "model"
+    return "model + " + " + ".join(n for n in str(names).split(";") if n)
+
+
+def _db(x) -> np.ndarray:
+    return 20.0 * np.log10(np.abs(x))
+
+
+def _phase_deg(h: np.ndarray) -> np.ndarray:
+    """Phase in degrees, unwrapped along frequency, starting in (−180, 180]."""
+    return np.degrees(np.unwrap(np.angle(h)))
+
+
+def _log_grid(f: np.ndarray, n: int = 400) -> np.ndarray:
+    f = f[f > 0]
+    return np.geomspace(f.min(), f.max(), n)
+
+
+# ---------------------------------------------------------------------------
+# Spectra selection
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Curve:
+    """One response of the spectra table along frequency (Hz), as stored."""
+
+    key: tuple
+    freq_hz: np.ndarray
+    mag_db: np.ndarray
+    phase_deg: np.ndarray
+    h: np.ndarray
+    se_db: np.ndarray
+    se_deg: np.ndarray
+    q_db: tuple[np.ndarray, np.ndarray]
+    q_deg: tuple[np.ndarray, np.ndarray]
+
+
+def _select(spectra: pd.DataFrame, *, level: str, kind: str, axis: str) -> pd.DataFrame:
+    m = ((spectra["level"] == level) & (spectra["kind"] == kind) & (spectra["axis"] == axis)
+         & (spectra["freq_hz"] > 0))
+    if "out_axis" in spectra.columns:
+        m &= spectra["out_axis"].isna() | (spectra["out_axis"] == axis)
+    return spectra[m]
+
+
+def _curves(rows: pd.DataFrame, by: Sequence[str]) -> list[Curve]:
+    out = []
+    for key, g in rows.groupby(list(by), dropna=False, sort=True):
+        g = g.sort_values("freq_hz")
+
+        def col(name: str, g=g) -> np.ndarray:
+            return g[name].to_numpy(dtype=float) if name in g else np.full(len(g), np.nan)
+
+        out.append(Curve(key if isinstance(key, tuple) else (key,), col("freq_hz"),
+                         col("mag_db"), col("phase_deg"), col("re") + 1j * col("im"),
+                         col("se_db"), col("se_deg"), (col("q25_db"), col("q75_db")),
+                         (col("q25_deg"), col("q75_deg"))))
+    return out
+
+
+def _axes_in(spectra: pd.DataFrame, kind: str, axis: str | None) -> list[str]:
+    present = [a for a in AXES if ((spectra["kind"] == kind) & (spectra["axis"] == a)).any()]
+    if axis is not None:
+        if axis not in AXES:
+            raise UsageError(f"axis must be x, y or z, got {axis!r}")
+        if axis not in present:
+            raise BadInputError(f"no {kind} responses for axis {axis}", column="axis")
+        return [axis]
+    if not present:
+        raise BadInputError(f"no {kind} responses", column="kind")
+    return present
+
+
+def _grip_key(g) -> float | None:
+    return None if g is None or (isinstance(g, float) and math.isnan(g)) else float(g)
+
+
+def _grip_text(g: float | None) -> str:
+    return "all grips" if g is None else f"{g:g} N"
+
+
+def _trial_gid(axis: str, grip: float | None, subject, run) -> str:
+    """``trial:<axis>:<grip>N:<subject>[:run<k>]`` (missing parts left out)."""
+    parts = ["trial", axis, _grip_text(grip).replace(" ", "")]
+    if subject is not None and not pd.isna(subject):
+        parts.append(str(subject))
+    if run is not None and not pd.isna(run):
+        parts.append(f"run{int(run)}")
+    return ":".join(parts)
+
+
+def _order(g: float | None) -> float:
+    return 1e9 if g is None else g
+
+
+def _grip_colours(grips: Sequence[float | None]) -> dict[float | None, str]:
+    known = sorted(g for g in set(grips) if g is not None)
+    out: dict[float | None, str] = {g: PALETTE[i % len(PALETTE)] for i, g in enumerate(known)}
+    out[None] = "black"
+    return out
+
+
+def _params_for(params: pd.DataFrame | None, axis: str) -> list[tuple[float | None, Any]]:
+    """(grip or None, row) for each parameter row of ``axis``, by grip."""
+    if params is None:
+        return []
+    rows = params[params["axis"] == axis]
+    out = []
+    for _, r in rows.iterrows():
+        g = _grip_key(r["grip_N"]) if "grip_N" in rows.columns else None
+        out.append((g, r))
+    return sorted(out, key=lambda t: (t[0] is None, t[0] or 0.0))
+
+
+# ---------------------------------------------------------------------------
+# Layout
+# ---------------------------------------------------------------------------
+
+def _grid(nrows: int, ncols: int, *, legend_rows: int = 1) -> tuple[Figure, np.ndarray]:
+    fig = Figure(figsize=(PANEL_WIDTH_IN * ncols, PANEL_HEIGHT_IN * nrows + 0.25 * legend_rows),
+                 layout="constrained")
+    FigureCanvasAgg(fig)
+    axs = np.atleast_2d(fig.subplots(nrows, ncols, sharex="col", squeeze=False))
+    for ax in axs.flat:
+        ax.set_xscale("log")
+    for ax in axs[-1]:
+        ax.set_xlabel(FREQ_LABEL)
+    return fig, axs
+
+
+def _legend(fig: Figure, handles: list, ncol: int | None = None) -> None:
+    if handles:
+        fig.legend(handles=handles, loc="outside lower center",
+                   ncol=ncol or min(len(handles), 4))
+
+
+# ---------------------------------------------------------------------------
+# Fig. 5: Bode plot of measured dynamics with fits
+# ---------------------------------------------------------------------------
+
+@_styled
+def bode_figure(spectra: pd.DataFrame, params: pd.DataFrame | None = None, *,
+                axis: str | None = None, band: str = "se", kind: str = "measured",
+                trials: bool = True) -> Figure:
+    """Bode plot per axis — the paper's Fig. 5.
+
+    Each trial's response (level "trial") thin and light; the mean per grip (level
+    "mean") thick with its error band (``band`` "se": ± se_db / ± se_deg, or
+    "quartiles": q25…q75); one model line per row of ``params`` (H_CL of eq. 4 with the
+    row's effects, :meth:`ClosedLoopModel.response`), coloured by grip. Magnitude in
+    dB re 1 m/N, phase in degrees, against frequency in Hz. ``axis`` None draws every
+    axis present side by side.
+    """
+    if band not in ("se", "quartiles"):
+        raise UsageError(f"band must be 'se' or 'quartiles', got {band!r}")
+    axes = _axes_in(spectra, kind, axis)
+    grips = [_grip_key(g) for g in spectra["grip_N"].unique()]
+    if params is not None and "grip_N" in params.columns:
+        grips += [_grip_key(g) for g in params["grip_N"].unique()]
+    colour = _grip_colours(grips)
+    fig, axs = _grid(2, len(axes), legend_rows=2)
+    band_text = "± SE" if band == "se" else "quartiles"
+    seen: dict[tuple, Any] = {}  # legend entries by (grip order, entry order)
+    for j, ax_name in enumerate(axes):
+        mag, ph = axs[0, j], axs[1, j]
+        mag.set_title(AXIS_TITLES[ax_name])
+        if trials:
+            rows = _select(spectra, level="trial", kind=kind, axis=ax_name)
+            raster = len(rows) > RASTER_POINTS
+            for c in _curves(rows, ("grip_N", "subject", "run")):
+                g = _grip_key(c.key[0])
+                gid = _trial_gid(ax_name, g, c.key[1], c.key[2])
+                for a, y in ((mag, c.mag_db), (ph, c.phase_deg)):
+                    a.plot(c.freq_hz, y, lw=0.4, alpha=0.35, color=colour.get(g, "grey"),
+                           gid=gid, label="_trial", rasterized=raster)
+                seen.setdefault((math.inf, 0), Line2D([], [], lw=0.4, color="grey",
+                                                 label="single trials"))
+        for c in _curves(_select(spectra, level="mean", kind=kind, axis=ax_name), ("grip_N",)):
+            g = _grip_key(c.key[0])
+            col = colour.get(g, "black")
+            lo_hi = ((c.mag_db - c.se_db, c.mag_db + c.se_db),
+                     (c.phase_deg - c.se_deg, c.phase_deg + c.se_deg)) if band == "se" \
+                else (c.q_db, c.q_deg)
+            for a, y, (lo, hi) in ((mag, c.mag_db, lo_hi[0]), (ph, c.phase_deg, lo_hi[1])):
+                a.fill_between(c.freq_hz, lo, hi, color=col, alpha=0.25, lw=0,
+                               gid=f"band:{ax_name}:{_grip_text(g)}".replace(" ", ""))
+                a.plot(c.freq_hz, y, lw=1.6, color=col, label=f"{_grip_text(g)} mean",
+                       gid=f"mean:{ax_name}:{_grip_text(g)}".replace(" ", ""))
+            seen.setdefault((_order(g), 0), Line2D([], [], lw=1.6, color=col,
+                                               label=f"{_grip_text(g)}: mean {band_text}"))
+        f_all = _select(spectra, level="trial", kind=kind, axis=ax_name)["freq_hz"]
+        f_all = pd.concat([f_all, _select(spectra, level="mean", kind=kind,
+                                          axis=ax_name)["freq_hz"]]).to_numpy(float)
+        if f_all.size == 0:
+            f_all = spectra.loc[spectra["freq_hz"] > 0, "freq_hz"].to_numpy(float)
+        f = _log_grid(f_all)
+        for g, row in _params_for(params, ax_name):
+            model, theta = model_from_row(row)
+            h = model.response(f, theta)
+            col = colour.get(g, "black")
+            label = f"{_grip_text(g)}: {_model_label(row)}" if g is not None \
+                else _model_label(row)
+            for a, y in ((mag, _db(h)), (ph, _phase_deg(h))):
+                a.plot(f, y, lw=1.0, ls="--", color=col, label=label,
+                       gid=f"fit:{ax_name}:{_grip_text(g)}".replace(" ", ""))
+            seen.setdefault((_order(g), 1, label), Line2D([], [], lw=1.0, ls="--", color=col,
+                                                     label=label))
+    axs[0, 0].set_ylabel(MAG_LABEL)
+    axs[1, 0].set_ylabel(PHASE_LABEL)
+    # One legend column per grip (mean above fit), single trials last.
+    _legend(fig, [seen[k] for k in sorted(seen)], ncol=len({k[0] for k in seen}))
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# Residual figure
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Residuals:
+    """Normalised residuals (measurement − model)/SE of one axis, per grip.
+
+    ``z_db[i]`` is (mag_db − 20 log10|H_model|)/se_db and ``z_deg[i]`` is the phase
+    difference, wrapped to (−180, 180], over se_deg, for grip ``grips[i]`` (None: the
+    median over all grips), at ``freq_hz``. Dimensionless; |z| ≤ 2 is the noise band.
+    """
+
+    axis: str
+    freq_hz: np.ndarray
+    grips: tuple[float | None, ...]
+    z_db: np.ndarray
+    z_deg: np.ndarray
+
+
+def normalised_residuals(spectra: pd.DataFrame, params: pd.DataFrame, axis: str, *,
+                         kind: str = "measured") -> Residuals:
+    """Residuals of the model rows of ``axis`` against the matching aggregate rows.
+
+    A parameters table with ``grip_N`` (grip fits, Table I) is compared with the level
+    "mean" rows of each grip; one without it (nominal fit, Table II) with the level
+    "median" rows of the axis. The model is H_CL of eq. 4 (with the row's effects).
+    """
+    pairs = _params_for(params, axis)
+    if not pairs:
+        raise BadInputError(f"no model row for axis {axis}", column="axis")
+    grips, zdb, zdeg, freq = [], [], [], None
+    for g, row in pairs:
+        level = "median" if g is None else "mean"
+        rows = _select(spectra, level=level, kind=kind, axis=axis)
+        if g is not None:
+            rows = rows[np.isclose(rows["grip_N"].to_numpy(float), g)]
+        curves = _curves(rows, ("axis",))
+        if not curves:
+            what = f"level '{level}'" + ("" if g is None else f", grip {g:g} N")
+            raise BadInputError(f"no {kind} rows of {what} for axis {axis}", column="level")
+        c = curves[0]
+        if freq is not None and (c.freq_hz.shape != freq.shape
+                                 or not np.allclose(c.freq_hz, freq)):
+            raise BadInputError(f"axis {axis}: aggregates are on different frequency grids",
+                                column="freq_hz")
+        freq = c.freq_hz
+        model, theta = model_from_row(row)
+        h = model.response(c.freq_hz, theta)
+        dphi = (c.phase_deg - np.degrees(np.angle(h)) + 180.0) % 360.0 - 180.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zdb.append((c.mag_db - _db(h)) / c.se_db)
+            zdeg.append(dphi / c.se_deg)
+        grips.append(g)
+    return Residuals(axis, freq, tuple(grips), np.vstack(zdb), np.vstack(zdeg))
+
+
+def significant_bands(freq_hz: np.ndarray, z: np.ndarray, *, threshold: float = 2.0,
+                      min_bins: int = 3) -> list[tuple[float, float]]:
+    """Frequency bands (Hz) where |z| > ``threshold`` over ≥ ``min_bins`` adjacent bins.
+
+    ``z`` is (n_freq,) or (n_curves, n_freq); a bin counts when any curve exceeds the
+    threshold. Each band runs from its first to its last exceeding bin.
+    """
+    z = np.atleast_2d(np.asarray(z, dtype=float))
+    over = np.any(np.abs(np.nan_to_num(z, nan=0.0)) > threshold, axis=0).astype(int)
+    edges = np.diff(np.concatenate(([0], over, [0])))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
+    f = np.asarray(freq_hz, dtype=float)
+    return [(float(f[a]), float(f[b])) for a, b in zip(starts, stops, strict=True)
+            if b - a + 1 >= min_bins]
+
+
+def _residual_scale(ax) -> None:
+    """Symlog y (linear within ±RESIDUAL_LINEAR_LIMIT) once residuals reach 3× that."""
+    ys = [np.abs(ln.get_ydata()) for ln in ax.get_lines() if len(ln.get_ydata()) > 1]
+    top = max((float(np.nanmax(y)) for y in ys if np.isfinite(y).any()), default=0.0)
+    if top > 3 * RESIDUAL_LINEAR_LIMIT:
+        ax.set_yscale("symlog", linthresh=RESIDUAL_LINEAR_LIMIT)
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+
+
+@_styled
+def residual_figure(spectra: pd.DataFrame, params: pd.DataFrame,
+                    params2: pd.DataFrame | None = None, *, axis: str | None = None,
+                    bands: Mapping[str, Sequence[tuple[float, float]]] | None = None,
+                    kind: str = "measured") -> Figure:
+    """Normalised residuals (measurement − model)/SE against frequency, per axis.
+
+    Top row magnitude (of 20 log10|H|), bottom row phase; one solid line per grip for
+    ``params``, dashed for ``params2`` (e.g. the same model with an effect). The noise
+    band |z| ≤ 2 is shaded grey; ``bands`` ({axis: [(lo_hz, hi_hz), ...]}) are shaded
+    red as failing bands. See :func:`normalised_residuals` for which rows are compared.
+    """
+    axes = [a for a in _axes_in(spectra, kind, axis)
+            if axis is not None or (params["axis"] == a).any()]
+    if not axes:
+        raise BadInputError("the model has no row for any axis in the spectra", column="axis")
+    grips = [_grip_key(g) for g in params["grip_N"]] if "grip_N" in params.columns else []
+    colour = _grip_colours(grips + [None])
+    fig, axs = _grid(2, len(axes), legend_rows=2)
+    handles: dict[str, Any] = {}
+    for j, ax_name in enumerate(axes):
+        top, bot = axs[0, j], axs[1, j]
+        top.set_title(AXIS_TITLES[ax_name])
+        for a in (top, bot):
+            a.axhspan(-2.0, 2.0, color="0.85", lw=0, zorder=0, gid=f"noise:{ax_name}")
+            a.axhline(0.0, color="0.4", lw=0.5, zorder=1)
+        handles["noise"] = Patch(color="0.85", label="noise band |z| ≤ 2")
+        for lo, hi in (bands or {}).get(ax_name, ()):
+            for a in (top, bot):
+                a.axvspan(lo, hi, color="#D55E00", alpha=0.15, lw=0, zorder=0,
+                          gid=f"failing:{ax_name}:{lo:g}-{hi:g}")
+            handles["failing"] = Patch(color="#D55E00", alpha=0.15, label="failing band")
+        for which, table, ls in (("model", params, "-"), ("model2", params2, "--")):
+            if table is None:
+                continue
+            res = normalised_residuals(spectra, table, ax_name, kind=kind)
+            names = {g: _model_label(r) for g, r in _params_for(table, ax_name)}
+            for i, g in enumerate(res.grips):
+                z = np.concatenate([res.z_db[i], res.z_deg[i]])
+                rms = float(np.sqrt(np.nanmean(z[np.isfinite(z)] ** 2)))
+                label = (f"{_grip_text(g)}: " if g is not None else "") + \
+                    f"{names[g]} (rms z {rms:.1f})"
+                gid = f"{which}:{ax_name}:{_grip_text(g)}".replace(" ", "")
+                col = colour[g]
+                lw = 0.9 if ls == "-" else 1.1
+                top.plot(res.freq_hz, res.z_db[i], ls=ls, lw=lw, color=col, gid=gid, label=label)
+                bot.plot(res.freq_hz, res.z_deg[i], ls=ls, lw=lw, color=col, gid=gid,
+                         label=label)
+        top.legend(loc="best", fontsize=6)
+        for a in (top, bot):
+            _residual_scale(a)
+    axs[0, 0].set_ylabel("Magnitude residual / SE (–)")
+    axs[1, 0].set_ylabel("Phase residual / SE (–)")
+    _legend(fig, list(handles.values()), ncol=2)
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# Fig. 6: derived arm dynamics, nominal model, W_max and |Wu|
+# ---------------------------------------------------------------------------
+
+@_styled
+def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
+                       weights: Mapping[str, WuWeight] | None = None, *,
+                       axis: str | None = None) -> Figure:
+    """Derived arm dynamics with the nominal H_ARM, and W_max with |Wu| — paper Fig. 6.
+
+    Rows: magnitude and phase of every trial's derived arm dynamics Xa/Fa (kind
+    "derived", level "trial"; thin) with the nominal H_ARM (eq. 3 with arm-stage effects,
+    :meth:`ClosedLoopModel.arm_response` of the ``nominal`` row of the axis; black
+    dash-dot), then W_max = max over trials |H/H̄ − 1| in dB (eq. 6; dots) with |Wu(jω)|
+    in dB (eq. 7, ``weights`` {axis: WuWeight} as :func:`armfit.io.artifacts.read_wu`
+    returns; line).
+    """
+    axes = _axes_in(spectra, "derived", axis)
+    fig, axs = _grid(3, len(axes), legend_rows=1)
+    handles: dict[str, Any] = {}
+    for j, ax_name in enumerate(axes):
+        mag, ph, wax = axs[:, j]
+        mag.set_title(AXIS_TITLES[ax_name])
+        rows = _select(spectra, level="trial", kind="derived", axis=ax_name)
+        raster = len(rows) > RASTER_POINTS
+        curves = _curves(rows, ("grip_N", "subject", "run"))
+        if not curves:
+            raise BadInputError(f"no derived trial rows for axis {ax_name}", column="level")
+        f = curves[0].freq_hz
+        for c in curves:
+            gid = _trial_gid(ax_name, _grip_key(c.key[0]), c.key[1], c.key[2])
+            mag.plot(c.freq_hz, c.mag_db, lw=0.4, color="#0072B2", alpha=0.4,
+                     gid=gid, rasterized=raster)
+            ph.plot(c.freq_hz, c.phase_deg, lw=0.4, color="#0072B2", alpha=0.4,
+                    gid=gid, rasterized=raster)
+        handles["trials"] = Line2D([], [], lw=0.4, color="#0072B2",
+                                   label="derived arm dynamics (trials)")
+        pairs = _params_for(nominal, ax_name)
+        if not pairs:
+            raise BadInputError(f"no nominal model row for axis {ax_name}", column="axis")
+        model, theta = model_from_row(pairs[0][1])
+        fd = _log_grid(f)
+        h_nom_dense = model.arm_response(fd, theta)
+        mag.plot(fd, _db(h_nom_dense), color="black", ls="-.", lw=1.3,
+                 gid=f"nominal:{ax_name}")
+        ph.plot(fd, _phase_deg(h_nom_dense), color="black", ls="-.", lw=1.3,
+                gid=f"nominal:{ax_name}")
+        handles["nominal"] = Line2D([], [], color="black", ls="-.", lw=1.3,
+                                    label="nominal H_ARM")
+        same_grid = all(c.freq_hz.shape == f.shape and np.allclose(c.freq_hz, f)
+                        for c in curves)
+        if not same_grid:
+            raise BadInputError(f"axis {ax_name}: trials are on different frequency grids",
+                                column="freq_hz")
+        wm = w_max(np.vstack([c.h for c in curves]), model.arm_response(f, theta))
+        wax.plot(f, _db(wm), ls="none", marker=".", ms=2.0, color="0.25",
+                 gid=f"wmax:{ax_name}")
+        handles["wmax"] = Line2D([], [], ls="none", marker=".", color="0.25",
+                                 label="W_max (max over trials)")
+        if weights is not None and ax_name in weights:
+            wax.plot(fd, _db(weights[ax_name].response(fd)), color="#D55E00", lw=1.3,
+                     gid=f"wu:{ax_name}")
+            handles["wu"] = Line2D([], [], color="#D55E00", lw=1.3, label="|Wu|")
+    axs[0, 0].set_ylabel(MAG_LABEL)
+    axs[1, 0].set_ylabel(PHASE_LABEL)
+    axs[2, 0].set_ylabel("Uncertainty (dB)")
+    _legend(fig, list(handles.values()))
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# Fig. 7: this model against the literature
+# ---------------------------------------------------------------------------
+
+@_styled
+def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
+                      models: Sequence[LiteratureModel] | None = None,
+                      f_hz: np.ndarray | None = None) -> Figure:
+    """H_ARM of one parameters row against the literature models of Table IV — Fig. 7.
+
+    The row's H_ARM (eq. 3, :meth:`ClosedLoopModel.arm_response`) is the black dashed
+    line; each literature model (:func:`armfit.models.literature.literature_models`) a
+    solid colour line. Magnitude in dB re 1 m/N and phase in degrees over ``f_hz``
+    (default 0.1–30 Hz, the band of the fits).
+    """
+    f = np.geomspace(0.1, 30.0, 400) if f_hz is None else np.asarray(f_hz, dtype=float)
+    lit = literature_models() if models is None else list(models)
+    model, theta = model_from_row(row)
+    if label is None:
+        grip = row.get("grip_N")
+        grip = None if grip is None or not np.isfinite(float(grip)) else float(grip)
+        label = f"this study: {str(row['axis']).upper()} axis" + \
+            ("" if grip is None else f", {grip:g} N grip")
+    fig, axs = _grid(2, 1, legend_rows=3)
+    mag, ph = axs[:, 0]
+    for i, m in enumerate(lit):
+        h = m.response(f)
+        col = PALETTE[i % len(PALETTE)]
+        ls = "-" if i < len(PALETTE) else ":"
+        gid = f"literature:{m.name.replace(' ', '-')}"
+        mag.plot(f, _db(h), color=col, ls=ls, lw=1.0, label=m.name, gid=gid)
+        ph.plot(f, _phase_deg(h), color=col, ls=ls, lw=1.0, label=m.name, gid=gid)
+    h = model.arm_response(f, theta)
+    mag.plot(f, _db(h), color="black", ls="--", lw=1.5, label=label, gid="arm-model")
+    ph.plot(f, _phase_deg(h), color="black", ls="--", lw=1.5, label=label, gid="arm-model")
+    mag.set_ylabel(MAG_LABEL)
+    ph.set_ylabel(PHASE_LABEL)
+    mag.set_title("Arm dynamics H_ARM = Xa/Fa")
+    handles, _ = mag.get_legend_handles_labels()
+    _legend(fig, handles, ncol=2)
+    return fig
+
+
+__all__ = [
+    "FORMATS", "Residuals", "bode_figure", "figure_format",
+    "literature_figure", "model_from_row", "normalised_residuals", "residual_figure",
+    "save_figure", "significant_bands", "uncertainty_figure",
+]

@@ -1,0 +1,701 @@
+"""Fits of the measured-dynamics model H_CL (Fu & Çavuşoğlu 2010, eqs. 4–5) to responses.
+
+Costs (residuals r_n; the fitter minimises Σ r_n²):
+
+``"paper"``    eq. 5 with Wt(n) = 1 (the paper's weight is not specified):
+               r_n = 20 log10|H_CL(jω_n)| − 20 log10|H_exp(jω_n)| in dB, magnitude only.
+``"complex"``  the complex log error, magnitude and phase, each divided by the
+               measurement's standard error: r = [ΔdB_n / se_db_n, Δdeg_n / se_deg_n],
+               Δdeg_n = angle(H_CL / H_exp) in degrees. Without standard errors the weights
+               are 1 dB and :data:`UNIT_SE_DEG` degrees, which makes the cost |ln(H_CL/H_exp)|²
+               up to a constant (1 neper = 20/ln 10 dB ↔ 1 rad = 180/π deg).
+
+Parameters are searched as log(θ) (θ > 0) inside the physical bounds of
+:attr:`armfit.models.arm.ClosedLoopModel.params` with ``scipy.optimize.least_squares``.
+The global search needs no user starting values and no seed: (1) an analytic initial guess
+(Levy's linear fit of the arm impedance Z_ARM = 1/H − Mp s², exact for noise-free data);
+(2) the typical values of ClosedLoopModel.params and any warm start; (3) a fixed,
+unscrambled Sobol set of 512 points over the log-bounds, screened in one vectorised
+evaluation. The starts of (1)–(2) and the 3 best screened ones are refined on a log-spaced
+subset of the band, both with the cost's weights and with unit weights (a smoother
+landscape); the two best distinct end points (by the full weighted cost) are polished on
+every bin of the band and the better kept. Jacobians are central differences evaluated in
+one vectorised batch. No random numbers are drawn: the answer is the same on every run.
+
+The "complex" cost's standard errors: invalid ones take the median of the valid ones, and
+the variance is pooled over 9 neighbouring bins (standard errors estimated from a few
+trials are themselves noisy; a bin with a chance 10× too small se would dominate).
+
+Confidence intervals (95 %) come from the Jacobian at the optimum in log-parameter space,
+cov = s² (JᵀJ)⁻¹ with s² = Σ r² / (m − p) (the residual variance: weights are treated as
+relative, as ``scipy.optimize.curve_fit(absolute_sigma=False)``) times (1 + ρ)/(1 − ρ),
+ρ the lag-1 autocorrelation of the residuals along frequency (neighbouring bins are not
+independent); half-width h = t₀.₉₇₅(m − p)·√diag(cov), transformed back: lo = θ·exp(−h),
+hi = θ·exp(+h) (asymmetric in θ, never negative). Parameters declared ``log=False``
+(e.g. a delay that may be 0) are searched, and their intervals formed, on a linear scale
+across their bounds instead.
+:func:`bootstrap_fit` replaces them by percentile intervals from resampled subjects.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy import optimize, stats
+from scipy.ndimage import uniform_filter1d
+from scipy.stats import qmc
+
+from armfit.errors import BadInputError, ConvergenceError, UsageError
+from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, laplace
+from armfit.spectra import aggregate
+
+COSTS: tuple[str, ...] = ("complex", "paper")
+
+#: dB per neper: 20 log10|H| = DB_PER_NEPER · ln|H|.
+DB_PER_NEPER = 20.0 / np.log(10.0)
+#: Unit phase weight (deg) equivalent to 1 dB of magnitude (1 neper ↔ 1 rad).
+UNIT_SE_DEG = np.degrees(1.0) / DB_PER_NEPER
+
+#: Default fit bands (Hz) per axis, as the paper: X and Y 0.1–30 Hz, Z 0.1–10 Hz.
+PAPER_BANDS: dict[str, tuple[float, float]] = {
+    "x": (0.1, 30.0), "y": (0.1, 30.0), "z": (0.1, 10.0)}
+
+_N_SOBOL = 512          # screened candidate starts (2**9, fixed and unscrambled)
+_N_REFINE = 3           # screened candidates refined locally, per weighting
+_N_SUBSET = 160         # log-spaced bins used while refining candidates
+_TOL = 1e-12            # ftol/xtol/gtol of the final polish
+#: Neighbouring bins over which the measurement's variance is pooled (see fit_response).
+SE_POOL_BINS = 9
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """One fit of H_CL: parameters (SI: kg, N/m, N·s/m; effects in their own units), their
+    95 % intervals, and fit statistics.
+
+    ``rms_db``/``rms_deg``: RMS magnitude (dB) and phase (deg) error over the band, whatever
+    the cost; ``rms_norm``: RMS of both errors divided by the measurement's standard errors
+    (≈ 1 when the model fits within the noise; NaN without standard errors); ``band``: the
+    (lo, hi) band in Hz; ``n_points``: bins fitted; ``cost``: "complex" or "paper";
+    ``ci_method``: "jacobian" or "bootstrap-<N>"; ``objective``: the minimised Σ r².
+    """
+
+    model: ClosedLoopModel
+    params: dict[str, float]
+    ci_lo: dict[str, float]
+    ci_hi: dict[str, float]
+    rms_db: float
+    rms_deg: float
+    rms_norm: float
+    band: tuple[float, float]
+    n_points: int
+    cost: str
+    converged: bool
+    message: str
+    nfev: int = 0
+    ci_method: str = "jacobian"
+    objective: float = field(default=float("nan"))
+
+    def row(self) -> dict[str, float | str | bool]:
+        """Parameters, intervals and statistics as one flat dict (interface C names)."""
+        out: dict[str, float | str | bool] = dict(self.params)
+        for n in self.params:
+            out[f"{n}_lo"] = self.ci_lo[n]
+            out[f"{n}_hi"] = self.ci_hi[n]
+        out.update(rms_db=self.rms_db, rms_deg=self.rms_deg, rms_norm=self.rms_norm,
+                   band_lo_hz=self.band[0], band_hi_hz=self.band[1], n_points=self.n_points,
+                   cost=self.cost, converged=self.converged, mp_kg=self.model.mp,
+                   effects=";".join(e.name for e in self.model.effects))
+        return out
+
+
+# ---------------------------------------------------------------------------
+# Parameter transform (log for positive parameters, scaled-linear otherwise)
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _Space:
+    names: tuple[str, ...]
+    log: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+    @classmethod
+    def of(cls, model: ClosedLoopModel) -> _Space:
+        ps = model.params
+        return cls(tuple(p.name for p in ps), np.array([p.log for p in ps]),
+                   np.array([p.lower for p in ps], float), np.array([p.upper for p in ps], float))
+
+    @property
+    def zlo(self) -> np.ndarray:
+        return np.where(self.log, np.log(np.where(self.log, self.lower, 1.0)), 0.0)
+
+    @property
+    def zhi(self) -> np.ndarray:
+        return np.where(self.log, np.log(np.where(self.log, self.upper, 1.0)), 1.0)
+
+    def to_theta(self, z: np.ndarray) -> np.ndarray:
+        z = np.asarray(z, float)
+        lin = self.lower + z * (self.upper - self.lower)
+        return np.where(self.log, np.exp(np.where(self.log, z, 0.0)), lin)
+
+    def to_z(self, theta: np.ndarray) -> np.ndarray:
+        theta = np.clip(np.asarray(theta, float), self.lower, self.upper)
+        lin = (theta - self.lower) / (self.upper - self.lower)
+        return np.where(self.log, np.log(np.where(self.log, theta, 1.0)), lin)
+
+    def clip_z(self, z: np.ndarray) -> np.ndarray:
+        # keep starts strictly inside the bounds (least_squares requires it)
+        span = self.zhi - self.zlo
+        return np.clip(z, self.zlo + 1e-9 * span, self.zhi - 1e-9 * span)
+
+
+# ---------------------------------------------------------------------------
+# Residuals
+# ---------------------------------------------------------------------------
+
+def log_errors(model_h: np.ndarray, data_h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Magnitude error (dB) and phase error (deg, wrapped to ±180) of a model response
+    against data: 20 log10|Hm/Hd| and angle(Hm/Hd) — the terms of eq. 5 and its phase
+    counterpart."""
+    ratio = model_h / data_h
+    return DB_PER_NEPER * np.log(np.abs(ratio)), np.degrees(np.angle(ratio))
+
+
+@dataclass(frozen=True)
+class _Problem:
+    model: ClosedLoopModel
+    space: _Space
+    f: np.ndarray
+    h: np.ndarray
+    w_db: np.ndarray      # 1/se_db
+    w_deg: np.ndarray     # 1/se_deg
+    cost: str
+
+    def theta_dict(self, theta: np.ndarray) -> dict[str, np.ndarray]:
+        return {n: theta[..., i] for i, n in enumerate(self.space.names)}
+
+    def residuals_batch(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)
+                        ) -> np.ndarray:
+        """Residuals for a batch of points z (k, p) → (k, m)."""
+        theta = self.space.to_theta(z)
+        values = {n: v[:, None] for n, v in self.theta_dict(theta).items()}
+        hm = self.model.response(self.f[idx], values)
+        return self._weighted(hm, idx)
+
+    def residuals(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
+        theta = self.space.to_theta(z)
+        hm = self.model.response(self.f[idx], self.theta_dict(theta))
+        return self._weighted(hm, idx)
+
+    def jacobian(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """∂r/∂z by central differences (step 1e-6 in z), all 2p points in one batch."""
+        step = 1e-6
+        e = step * np.eye(z.size)
+        r = self.residuals_batch(np.vstack([z + e, z - e]), idx)
+        return (r[: z.size] - r[z.size:]).T / (2 * step)
+
+    def unweighted(self) -> _Problem:
+        """The same problem with unit weights (1 dB, UNIT_SE_DEG): a smoother landscape
+        for the global search."""
+        return replace(self, w_db=np.ones_like(self.w_db),
+                       w_deg=np.full_like(self.w_deg, 1.0 / UNIT_SE_DEG))
+
+    def _weighted(self, hm: np.ndarray, idx) -> np.ndarray:
+        with np.errstate(all="ignore"):
+            db, deg = log_errors(hm, self.h[idx])
+            if self.cost == "paper":
+                r = db
+            else:
+                r = np.concatenate([db * self.w_db[idx], deg * self.w_deg[idx]], axis=-1)
+        return np.where(np.isfinite(r), r, 1e6)
+
+
+def _standard_errors(se, n: int, fallback: float, pool: int) -> np.ndarray:
+    """Per-bin standard errors (bins sorted by frequency): invalid entries (NaN, ≤ 0) take
+    the median of the valid ones, then the variance is pooled over ``pool`` neighbouring
+    bins (se = √(moving mean of se²)); with no valid entry (or ``se`` None) every bin
+    takes ``fallback``."""
+    if se is None:
+        return np.full(n, fallback)
+    se = np.asarray(se, float)
+    ok = np.isfinite(se) & (se > 0)
+    if not ok.any():
+        return np.full(n, fallback)
+    se = np.where(ok, se, np.median(se[ok]))
+    if pool > 1:
+        se = np.sqrt(uniform_filter1d(se * se, pool, mode="nearest"))
+    return se
+
+
+# ---------------------------------------------------------------------------
+# Starts
+# ---------------------------------------------------------------------------
+
+def analytic_guess(f_hz: np.ndarray, h: np.ndarray, mp: float) -> list[dict[str, float]]:
+    """Candidate arm parameters from a linear (Levy) fit of the arm impedance.
+
+    Z_ARM = 1/H − Mp s² (eq. 4) = N(s)/D(s) with, normalised by Ma (eq. 3),
+    D = s² + (b1+b2)/Ma s + (k1+k2)/Ma and N = b1 (s + k1/b1)(s² + b2/Ma s + k2/Ma).
+    N − Z·D = 0 is linear in the six coefficients; each real root of N taken as −k1/b1
+    gives one candidate (Ma from D's s-coefficient). Rows are weighted by 1/|Z s²| so every
+    frequency counts alike. Returns the physically valid candidates (possibly none);
+    exact for the noise-free response of eq. 4.
+    """
+    s = laplace(f_hz)
+    z = 1.0 / h - mp * s * s
+    a = np.stack([s**3, s**2, s, np.ones_like(s), -z * s, -z], axis=1)
+    b = z * s * s
+    w = 1.0 / np.abs(b)
+    a_ri = np.concatenate([(a * w[:, None]).real, (a * w[:, None]).imag])
+    b_ri = np.concatenate([(b * w).real, (b * w).imag])
+    if not (np.all(np.isfinite(a_ri)) and np.all(np.isfinite(b_ri))):
+        return []
+    coef, *_ = np.linalg.lstsq(a_ri, b_ri, rcond=None)
+    n3, n2, n1, n0, d1, d0 = coef
+    if not n3 > 0:
+        return []
+    roots = np.roots([n3, n2, n1, n0])
+    out = []
+    for i, r in enumerate(roots):
+        if abs(r.imag) > 1e-6 * max(abs(r), 1e-12) or not r.real < 0:
+            continue
+        others = np.delete(roots, i)
+        p1 = float(-(others.sum()).real)   # b2/Ma
+        p0 = float((others.prod()).real)   # k2/Ma
+        b1 = float(n3)
+        k1 = float(-r.real * b1)
+        if not (d1 - p1) > 0:
+            continue
+        ma = b1 / (d1 - p1)
+        cand = {"Ma": ma, "k1": k1, "k2": p0 * ma, "b1": b1, "b2": p1 * ma}
+        if all(v > 0 and np.isfinite(v) for v in cand.values()):
+            out.append(cand)
+    return out
+
+
+def _candidates(prob: _Problem, x0: Mapping[str, float] | None, n_sobol: int) -> np.ndarray:
+    sp = prob.space
+    typical = np.array([p.typical for p in prob.model.params])
+    starts = [sp.to_z(typical)]
+    base_idx = [sp.names.index(n) for n in PARAM_NAMES]
+    for cand in analytic_guess(prob.f, prob.h, prob.model.mp):
+        theta = typical.copy()
+        theta[base_idx] = [cand[n] for n in PARAM_NAMES]
+        starts.append(sp.to_z(theta))
+    if x0 is not None:
+        theta = typical.copy()
+        for n, v in x0.items():
+            if n not in sp.names:
+                raise UsageError(f"starting value for unknown parameter {n!r}; the model has "
+                                 f"{', '.join(sp.names)}")
+            theta[sp.names.index(n)] = v
+        starts.insert(0, sp.to_z(theta))
+    if n_sobol:
+        m = int(np.ceil(np.log2(n_sobol)))
+        u = qmc.Sobol(d=len(sp.names), scramble=False).random_base2(m)[:n_sobol]
+        starts.extend(sp.zlo + u * (sp.zhi - sp.zlo))
+    return sp.clip_z(np.array(starts))
+
+
+def _global_starts(prob: _Problem, starts: np.ndarray, n_fixed: int
+                   ) -> tuple[list[np.ndarray], int]:
+    """The global stage: screen the Sobol starts (``starts[n_fixed:]``) on a log-spaced
+    subset of bins, with the problem's weights and with unit weights; refine the fixed
+    starts and the best screened ones under both weightings; return the two best distinct
+    end points by the full weighted cost (the polish starts from each) and the evaluations
+    used."""
+    sub = _subset(prob.f, _N_SUBSET)
+    bounds = (prob.space.zlo, prob.space.zhi)
+    problems = [prob] if prob.cost == "paper" else [prob.unweighted(), prob]
+    nfev = 0
+    ends = []
+    for p in problems:
+        ss = np.sum(p.residuals_batch(starts[n_fixed:], sub) ** 2, axis=1)
+        picks = list(range(n_fixed)) + [n_fixed + int(i) for i in np.argsort(ss)[:_N_REFINE]]
+        for i in picks:
+            r = optimize.least_squares(p.residuals, starts[i], jac=p.jacobian, args=(sub,),
+                                       bounds=bounds, method="trf", x_scale=1.0,
+                                       max_nfev=30 * starts.shape[1], ftol=1e-6,
+                                       xtol=1e-6)
+            nfev += r.nfev
+            ends.append(r.x)
+    ends_arr = np.array(ends)
+    full = np.sum(prob.residuals_batch(ends_arr) ** 2, axis=1)
+    order = np.argsort(full)
+    chosen = [ends_arr[order[0]]]
+    for i in order[1:]:
+        if np.max(np.abs(ends_arr[i] - chosen[0])) > 1e-3:
+            chosen.append(ends_arr[i])
+            break
+    return chosen, nfev
+
+
+def _subset(f: np.ndarray, n: int) -> np.ndarray:
+    """Indices of about n bins log-spaced across f (all bins if fewer)."""
+    if f.size <= n:
+        return np.arange(f.size)
+    targets = np.geomspace(f[0], f[-1], n)
+    return np.unique(np.searchsorted(f, targets).clip(0, f.size - 1))
+
+
+# ---------------------------------------------------------------------------
+# The fit
+# ---------------------------------------------------------------------------
+
+def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
+                 cost: str = "complex", band: tuple[float, float] | None = None,
+                 x0: Mapping[str, float] | None = None, global_search: bool = True,
+                 max_nfev: int | None = None, se_pool: int = SE_POOL_BINS,
+                 strict: bool = True) -> FitResult:
+    """Fit ``model`` (H_CL of eq. 4 with its effects) to a measured response.
+
+    f_hz: frequencies (Hz); H: complex response X/F (m/N); se_db, se_deg: standard errors
+    of 20 log10|H| (dB) and of the phase (deg), used by the "complex" cost; band: (lo, hi)
+    Hz, bins outside are ignored (default: all); x0: warm start {name: value} (missing names
+    take the typical value); global_search: False refines from x0 (or the typical values)
+    only; max_nfev: evaluation budget of the final polish (default 200 per parameter);
+    se_pool: standard errors estimated from a few trials are themselves noisy (with 3
+    subjects a bin's se can be 10× too small, and that bin then dominates the fit), so
+    the variance is pooled over ``se_pool`` neighbouring bins (1: use se as given).
+
+    Cost and intervals: see the module docstring (eq. 5 for ``cost="paper"``).
+    Raises ConvergenceError (exit 3) if the optimiser stops before converging and
+    ``strict`` (the default); UsageError for a bad cost, band or starting value.
+    """
+    if cost not in COSTS:
+        raise UsageError(f"cost must be one of {', '.join(COSTS)}, got {cost!r}")
+    f = np.asarray(f_hz, float).ravel()
+    h = np.asarray(H, complex).ravel()
+    if f.shape != h.shape:
+        raise UsageError(f"{f.size} frequencies but {h.size} response values")
+    order = np.argsort(f)
+    f, h = f[order], h[order]
+    lo, hi = (float(f.min()), float(f.max())) if band is None else map(float, band)
+    if not (0 < lo < hi):
+        raise UsageError(f"fit band must satisfy 0 < lo < hi Hz, got {lo}:{hi}")
+    sel = (f >= lo) & (f <= hi) & np.isfinite(h) & (h != 0)
+    space = _Space.of(model)
+    n_par = len(space.names)
+    if sel.sum() <= n_par:
+        raise UsageError(f"fit band {lo:g}-{hi:g} Hz holds {int(sel.sum())} usable bins; "
+                         f"{n_par} parameters need at least {n_par + 1}")
+    sdb = _standard_errors(None if se_db is None else np.asarray(se_db, float).ravel()[order],
+                           f.size, 1.0, se_pool)[sel]
+    sdeg = _standard_errors(None if se_deg is None else
+                            np.asarray(se_deg, float).ravel()[order], f.size, UNIT_SE_DEG,
+                            se_pool)[sel]
+    prob = _Problem(model, space, f[sel], h[sel], 1.0 / sdb, 1.0 / sdeg, cost)
+    m = prob.f.size
+
+    starts = _candidates(prob, x0, _N_SOBOL if global_search else 0)
+    bounds = (space.zlo, space.zhi)
+    nfev = 0
+    if global_search:
+        z_starts, nfev = _global_starts(prob, starts, n_fixed=len(starts) - _N_SOBOL)
+    else:
+        z_starts = starts[:1]
+
+    budget = 200 * n_par if max_nfev is None else int(max_nfev)
+    res = None
+    for z0 in z_starts:
+        r = optimize.least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=bounds,
+                                   method="trf", x_scale=1.0, max_nfev=budget,
+                                   ftol=_TOL, xtol=_TOL, gtol=_TOL)
+        nfev += r.nfev
+        if res is None or (r.status > 0, -r.cost) > (res.status > 0, -res.cost):
+            res = r
+    converged = bool(res.status > 0 and np.all(np.isfinite(res.x)))
+    band_used = (float(prob.f[0]), float(prob.f[-1]))
+    if not converged and strict:
+        raise ConvergenceError(f"fit did not converge in band {band_used[0]:g}-"
+                               f"{band_used[1]:g} Hz after {res.nfev} evaluations "
+                               f"({res.message}); no parameters reported")
+    theta = space.to_theta(res.x)
+    params = {n: float(v) for n, v in zip(space.names, theta, strict=True)}
+    ci_lo, ci_hi = _jacobian_ci(space, res.x, res.jac, res.fun.reshape(-1, m))
+
+    hm = model.response(prob.f, params)
+    with np.errstate(all="ignore"):
+        db, deg = log_errors(hm, prob.h)
+    rms_db = float(np.sqrt(np.mean(db**2)))
+    rms_deg = float(np.sqrt(np.mean(deg**2)))
+    if se_db is None or se_deg is None:
+        rms_norm = float("nan")
+    else:
+        rms_norm = float(np.sqrt(np.mean(np.concatenate([db / sdb, deg / sdeg]) ** 2)))
+    at_bound = [n for n, v, p in zip(space.names, theta, model.params, strict=True)
+                if np.isclose(v, p.lower, rtol=1e-6) or np.isclose(v, p.upper, rtol=1e-6)]
+    msg = res.message + (f"; at physical bound: {', '.join(at_bound)}" if at_bound else "")
+    return FitResult(model=model, params=params, ci_lo=ci_lo, ci_hi=ci_hi, rms_db=rms_db,
+                     rms_deg=rms_deg, rms_norm=rms_norm, band=band_used, n_points=m,
+                     cost=cost, converged=converged, message=msg, nfev=nfev,
+                     objective=float(2 * res.cost))
+
+
+def residual_correlation(blocks: np.ndarray) -> float:
+    """Lag-1 autocorrelation ρ of residuals along frequency, pooled over the rows of
+    ``blocks`` (magnitude, phase): Σ r_i r_(i+1) / Σ r_i², clipped to [0, 0.95]."""
+    num = float(np.sum(blocks[:, 1:] * blocks[:, :-1]))
+    den = float(np.sum(blocks * blocks))
+    return float(np.clip(num / den, 0.0, 0.95)) if den > 0 else 0.0
+
+
+def _jacobian_ci(space: _Space, z: np.ndarray, jac: np.ndarray, blocks: np.ndarray,
+                 level: float = 0.95) -> tuple[dict[str, float], dict[str, float]]:
+    """95 % intervals from J (residuals × log-params): see the module docstring.
+
+    ``blocks``: the residuals at the optimum, one row per block (magnitude, phase). The
+    residual variance is inflated by (1 + ρ)/(1 − ρ), ρ their lag-1 autocorrelation along
+    frequency (:func:`residual_correlation`): neighbouring bins are not independent (the
+    estimator's band averaging, smooth model mismatch), and this is the variance factor of
+    an AR(1) sequence. Directions the data do not determine (singular values below 1e-10
+    of the largest) give the parameters involved NaN intervals.
+    """
+    p = z.size
+    dof = max(blocks.size - p, 1)
+    rho = residual_correlation(blocks)
+    s2 = float(np.sum(blocks * blocks)) / dof * (1 + rho) / (1 - rho)
+    _, sv, vt = np.linalg.svd(np.asarray(jac, float), full_matrices=False)
+    ok = sv > 1e-10 * sv.max() if sv.size and sv.max() > 0 else np.zeros(p, bool)
+    inv = np.where(ok, 1.0 / np.where(ok, sv, 1.0) ** 2, 0.0)
+    var = s2 * np.einsum("ki,k,ki->i", vt, inv, vt)
+    undetermined = np.any(np.abs(vt[~ok]) > 1e-8, axis=0)
+    half = stats.t.ppf(0.5 + level / 2, dof) * np.sqrt(var)
+    lo = space.to_theta(np.clip(z - half, space.zlo, space.zhi))
+    hi = space.to_theta(np.clip(z + half, space.zlo, space.zhi))
+    lo = np.where(undetermined, np.nan, lo)
+    hi = np.where(undetermined, np.nan, hi)
+    return ({n: float(v) for n, v in zip(space.names, lo, strict=True)},
+            {n: float(v) for n, v in zip(space.names, hi, strict=True)})
+
+
+# ---------------------------------------------------------------------------
+# Bootstrap over subjects
+# ---------------------------------------------------------------------------
+
+Aggregator = Callable[[np.ndarray], np.ndarray]
+
+
+def bootstrap_fit(base: FitResult, f_hz, H_trials, subjects: Sequence[str], *,
+                  aggregate: Aggregator, n_boot: int, seed: int | None = 0,
+                  se_db=None, se_deg=None, level: float = 0.95,
+                  max_failed: float = 0.1) -> FitResult:
+    """Percentile intervals by resampling subjects with replacement.
+
+    H_trials: (n_trials, n_freq) complex trial responses (m/N) on the grid f_hz; subjects:
+    the subject of each trial. Each replicate draws as many subjects as there are, with
+    replacement, pools all their trials, aggregates them with ``aggregate`` (the same rule
+    as the fitted aggregate, e.g. ``lambda H: armfit.spectra.aggregate(H, "mean")``),
+    and refits from ``base``'s parameters with ``base``'s cost, band and the given standard
+    errors (held fixed). Returns ``base`` with ``ci_lo``/``ci_hi`` replaced by the
+    (1−level)/2 and (1+level)/2 percentiles and ``ci_method`` "bootstrap-<n_boot>".
+    Replicates that do not converge are dropped; more than ``max_failed`` of them raises
+    ConvergenceError. Deterministic for a given ``seed``.
+    """
+    if n_boot < 2:
+        raise UsageError(f"--bootstrap needs at least 2 replicates, got {n_boot}")
+    H_trials = np.asarray(H_trials, complex)
+    subjects = np.asarray(subjects)
+    if H_trials.ndim != 2 or H_trials.shape[0] != subjects.size:
+        raise UsageError("bootstrap needs one subject label per trial response")
+    labels = np.unique(subjects)
+    members = [np.flatnonzero(subjects == s) for s in labels]
+    rng = np.random.default_rng(seed)
+    names = list(base.params)
+    draws = []
+    failed = 0
+    for _ in range(n_boot):
+        pick = rng.integers(0, labels.size, labels.size)
+        rows = np.concatenate([members[i] for i in pick])
+        hb = aggregate(H_trials[rows])
+        try:
+            fit = fit_response(base.model, f_hz, hb, se_db=se_db, se_deg=se_deg,
+                               cost=base.cost, band=base.band, x0=base.params,
+                               global_search=False)
+        except ConvergenceError:
+            failed += 1
+            continue
+        draws.append([fit.params[n] for n in names])
+    if failed > max_failed * n_boot:
+        raise ConvergenceError(f"bootstrap: {failed} of {n_boot} refits did not converge")
+    arr = np.array(draws)
+    q_lo, q_hi = np.percentile(arr, [50 * (1 - level), 50 * (1 + level)], axis=0)
+    return replace(base, ci_lo=dict(zip(names, map(float, q_lo), strict=True)),
+                   ci_hi=dict(zip(names, map(float, q_hi), strict=True)),
+                   ci_method=f"bootstrap-{n_boot}")
+
+
+# ---------------------------------------------------------------------------
+# A study's fits from a spectra table (Tables I and II)
+# ---------------------------------------------------------------------------
+
+#: What each set of fits uses: aggregate level of the spectra table and its aggregation
+#: rule ("grip": Table I, mean per axis × grip; "nominal": Table II, median per axis).
+STUDY_FITS: dict[str, str] = {"grip": "mean", "nominal": "median"}
+
+
+def parse_bands(spec: str | None) -> dict[str, tuple[float, float]]:
+    """Parse ``x=0.1:30,y=0.1:30,z=0.1:10`` (Hz) into {axis: (lo, hi)}; axes not named keep
+    :data:`PAPER_BANDS`. Raises UsageError on a malformed item."""
+    bands = dict(PAPER_BANDS)
+    if not spec:
+        return bands
+    for item in (x.strip() for x in spec.split(",") if x.strip()):
+        axis, sep, rng = item.partition("=")
+        lo_s, sep2, hi_s = rng.partition(":")
+        axis = axis.strip().lower()
+        try:
+            lo, hi = float(lo_s), float(hi_s)
+        except ValueError:
+            lo = hi = float("nan")
+        if axis not in PAPER_BANDS or not sep or not sep2 or not (0 < lo < hi):
+            raise UsageError(f"--band {item!r}: expected AXIS=LO:HI in Hz with AXIS x, y or z "
+                             "and 0 < LO < HI, e.g. z=0.1:10")
+        bands[axis] = (lo, hi)
+    return bands
+
+
+@dataclass(frozen=True)
+class StudyFit:
+    """The fits of one set ("grip" or "nominal"): one FitResult per (axis, grip_N)
+    (grip_N None for nominal fits), in axis then grip order."""
+
+    which: str
+    keys: tuple[tuple[str, float | None], ...]
+    fits: tuple[FitResult, ...]
+
+    def table(self):
+        """The params table (interface C columns, :func:`armfit.io.artifacts.params_columns`)."""
+        from armfit.io.artifacts import params_frame
+        rows = []
+        for (axis, grip), fit in zip(self.keys, self.fits, strict=True):
+            row = {"axis": axis, **fit.row()}
+            if self.which == "grip":
+                row["grip_N"] = grip
+            rows.append(row)
+        names = self.fits[0].model.param_names if self.fits else PARAM_NAMES
+        return params_frame(rows, names, grip=self.which == "grip")
+
+
+def _responses(df) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    df = df.sort_values("freq_hz")
+    f = df["freq_hz"].to_numpy(float)
+    h = df["re"].to_numpy(float) + 1j * df["im"].to_numpy(float)
+    return f, h, df["se_db"].to_numpy(float), df["se_deg"].to_numpy(float)
+
+
+def fit_study(spectra, *, which: str, cost: str = "complex",
+              bands: Mapping[str, tuple[float, float]] | None = None,
+              effects: Sequence = (), bootstrap: int = 0, seed: int | None = 0,
+              method: str | None = None, max_nfev: int | None = None,
+              source: str | None = None,
+              on_fit: Callable[[str, float | None, FitResult], None] | None = None
+              ) -> StudyFit:
+    """Fit H_CL (eq. 4, plus ``effects``) to every aggregate of a spectra table.
+
+    spectra: DataFrame in the SPECTRA_COLUMNS schema; which: "grip" (kind "measured",
+    level "mean", one fit per axis × grip — Table I) or "nominal" (level "median", one per
+    axis — Table II); bands: {axis: (lo, hi) Hz} (default :data:`PAPER_BANDS`); bootstrap:
+    number of subject resamples (0: Jacobian intervals), aggregated with
+    :func:`armfit.spectra.aggregate`; method: estimator to use when the table holds
+    several; source: file name for messages; on_fit(axis, grip, fit) is called after
+    each fit. Raises BadInputError if the table has no such aggregates, ConvergenceError
+    (exit 3) if any fit fails to converge.
+    """
+    if which not in STUDY_FITS:
+        raise UsageError(f"which must be one of {', '.join(STUDY_FITS)}, got {which!r}")
+    how = STUDY_FITS[which]
+    bands = dict(PAPER_BANDS) if bands is None else dict(bands)
+    df = spectra[spectra["kind"] == "measured"]
+    if "out_axis" in df.columns:
+        df = df[df["out_axis"].isna() | (df["out_axis"] == df["axis"])]
+    agg = df[df["level"] == how]
+    if agg.empty:
+        raise BadInputError(f"no rows with level '{how}' and kind 'measured'; run "
+                            "`armfit estimate` to write the aggregates", file=source,
+                            column="level")
+    methods = sorted(agg["method"].dropna().unique())
+    if method is None and len(methods) > 1:
+        raise UsageError(f"{source or 'spectra'} holds several estimators "
+                         f"({', '.join(methods)}); choose one with --method")
+    if method is not None:
+        if method not in methods:
+            raise UsageError(f"--method {method}: not in {source or 'spectra'} (it has "
+                             f"{', '.join(methods)})")
+        agg = agg[agg["method"] == method]
+        df = df[df["method"] == method]
+    keys: list[tuple[str, float | None]] = []
+    fits: list[FitResult] = []
+    group_cols = ["axis", "grip_N"] if which == "grip" else ["axis"]
+    for key, g in agg.groupby(group_cols, sort=True, dropna=False):
+        axis = str(key[0])
+        grip = float(key[1]) if which == "grip" else None
+        model = ClosedLoopModel.for_axis(axis, effects)
+        f, h, se_db, se_deg = _responses(g)
+        if np.unique(f).size != f.size:
+            raise BadInputError(f"repeated frequencies in the {how} of axis {axis}"
+                                + (f", grip {grip:g} N" if grip is not None else ""),
+                                file=source, column="freq_hz")
+        where = f"axis {axis}" + (f", grip {grip:g} N" if grip is not None else "")
+        try:
+            fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, cost=cost,
+                               band=bands[axis], max_nfev=max_nfev)
+            if bootstrap:
+                trials = df[(df["level"] == "trial") & (df["axis"] == axis)]
+                if grip is not None:
+                    trials = trials[trials["grip_N"] == grip]
+                hs, subjects = _trial_matrix(trials, f, source, where, how)
+                fit = bootstrap_fit(fit, f, hs, subjects,
+                                    aggregate=_aggregator(how), n_boot=bootstrap,
+                                    seed=seed, se_db=se_db, se_deg=se_deg)
+        except ConvergenceError as exc:
+            raise ConvergenceError(f"{where}: {exc}") from None
+        except UsageError as exc:
+            raise UsageError(f"{where}: {exc}") from None
+        keys.append((axis, grip))
+        fits.append(fit)
+        if on_fit is not None:
+            on_fit(axis, grip, fit)
+    return StudyFit(which, tuple(keys), tuple(fits))
+
+
+def _aggregator(how: str) -> Aggregator:
+    return lambda H: aggregate(H, how)
+
+
+def _trial_matrix(trials, f: np.ndarray, source: str | None, where: str, how: str
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(n_trials, n_freq) responses on grid f and the subject of each trial. For the
+    mean, each subject's runs at one grip are first combined into one response (their
+    mean), as `armfit estimate` does before averaging over subjects."""
+    if trials.empty:
+        raise BadInputError(f"{where}: --bootstrap needs the per-trial rows (level 'trial')",
+                            file=source, column="level")
+    hs, subjects = [], []
+    for (subject, grip, _run), g in trials.groupby(
+            [trials["subject"].astype(str), "grip_N", trials["run"].fillna(-1)], sort=True):
+        ft, ht, _, _ = _responses(g)
+        if ft.shape != f.shape or not np.allclose(ft, f, rtol=1e-9):
+            raise BadInputError(f"{where}: trial of subject {subject} is not on the common "
+                                "frequency grid", file=source, column="freq_hz")
+        hs.append(ht)
+        subjects.append((subject, grip))
+    if how == "mean":
+        keys = list(dict.fromkeys(subjects))
+        hs = [aggregate(np.array([h for h, k in zip(hs, subjects, strict=True) if k == key]),
+                        "mean") for key in keys]
+        subjects = keys
+    return np.array(hs), np.array([s for s, _ in subjects])
+
+
+def exact_response(model: ClosedLoopModel, f_hz, params: Mapping[str, float]) -> np.ndarray:
+    """Convenience: the model's X/F (m/N) at ``params`` — eq. 4 (with effects)."""
+    return model.response(np.asarray(f_hz, float), dict(params))
+
+
+__all__ = ["COSTS", "PAPER_BANDS", "STUDY_FITS", "FitResult", "StudyFit", "analytic_guess",
+           "bootstrap_fit", "exact_response", "fit_response", "fit_study", "log_errors",
+           "parse_bands"]

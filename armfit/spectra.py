@@ -1,0 +1,906 @@
+"""Per-trial frequency responses, derived arm dynamics, the common grid, flags, aggregates.
+
+Everything here is a pure function: arrays in, arrays or frozen dataclasses out. Units:
+force in N, position in m, sampling rate ``fs`` in Hz, frequencies in Hz, responses
+position/force in m/N, power spectral densities in unit²/Hz (one-sided, ``scaling=
+"density"`` as in :func:`scipy.signal.welch`).
+
+Estimators (Fu & Çavuşoğlu 2010, section III and NOTES.md):
+
+``chebwin``     the paper's ratio H = FFT(w·x) / FFT(w·F) of the whole record, both
+                signals weighted by a 100 dB Chebyshev window (MATLAB/Octave
+                ``fft`` + ``chebwin`` semantics, symmetric window, no detrending).
+``h1``          Welch's averaged cross-/auto-spectra, H1 = P_fx / P_ff with the
+                definitions of :func:`scipy.signal.csd` / :func:`scipy.signal.welch`
+                (Hann window, 50 % overlap, per-segment mean removal by default).
+``tfestimate``  derived arm dynamics Xa/Fa (eq. 6 input), Fa = F − Mp·ẍ with ẍ the
+                second difference; Welch with 4 Hamming segments, 50 % overlap, segment
+                length floor(2N/5), nfft = max(256, next power of 2) (MATLAB
+                ``tfestimate(Fa, xa, hamming(L), L/2, nfft)`` semantics).
+
+Common grid: log-spaced points (``per_decade`` per decade, ``fmin``…``fmax``); each grid
+point averages the native-bin auto- and cross-spectra that fall in its band
+[f·r^-½, f·r^½), r = 10^(1/per_decade) (Daniell smoothing), then forms H and the
+coherence from the averaged spectra. Where the native bins are coarser than the band,
+the nearest native bins are averaged instead, as many as needed for ``min_avg``
+equivalent independent averages (so the response there is a band average, not an
+interpolation). Standard errors follow Bendat & Piersol (Random Data, 4th ed., eqs.
+9.52 and 9.65): ε = sqrt(1 − γ²) / (|γ| sqrt(2 n_d)), se_db = 20/ln 10 · ε, se_deg =
+ε in degrees, with n_d the equivalent number of independent averages behind the value.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.fft
+from scipy.ndimage import uniform_filter1d
+from scipy.signal import get_window
+from scipy.signal.windows import chebwin
+
+from armfit.errors import BadInputError, UsageError
+from armfit.models.arm import DEVICE_MASS_KG
+
+AXES = ("x", "y", "z")
+METHODS = ("h1", "chebwin")
+DB_PER_NEPER = 20.0 / math.log(10.0)  # 20 log10(e): d(20 log10|H|) = 8.686 d ln|H|
+
+#: Quantile of the sample median's standard error relative to the mean's for normal
+#: data: sqrt(pi/2) (asymptotic efficiency of the median).
+MEDIAN_SE_FACTOR = math.sqrt(math.pi / 2.0)
+
+
+# ---------------------------------------------------------------------------
+# Native-bin spectra
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Spectra:
+    """Auto- and cross-spectra of one trial on the estimator's native bins.
+
+    freq_hz: (nb,) bin frequencies, Hz. p_ff: (nb,) force PSD, N²/Hz. p_fx: (k, nb)
+    cross-spectral densities force → each of k positions, N·m/Hz (scipy ``csd(f, x)``
+    convention, E[conj(F)·X]). p_xx: (k, nb) position PSDs, m²/Hz. n_avg: equivalent
+    number of independent averages per bin (Welch 1967 overlap correction; 1 for a single
+    window). enbw_bins: equivalent noise bandwidth of the window in bins (how many
+    adjacent bins carry one independent value). method: estimator name. first_bin: the
+    lowest bin free of the record's mean (DC leaks into the window's main lobe, so bins
+    below it are never used on the grid).
+    """
+
+    freq_hz: np.ndarray
+    p_ff: np.ndarray
+    p_fx: np.ndarray
+    p_xx: np.ndarray
+    n_avg: float
+    enbw_bins: float
+    method: str
+    first_bin: int = 2
+
+    @property
+    def h(self) -> np.ndarray:
+        """H = P_fx / P_ff, (k, nb) complex, m/N."""
+        return self.p_fx / self.p_ff
+
+    @property
+    def coherence(self) -> np.ndarray:
+        """Magnitude-squared coherence |P_fx|² / (P_ff P_xx), (k, nb)."""
+        return np.abs(self.p_fx) ** 2 / (self.p_ff * self.p_xx)
+
+
+def _as_outputs(pos: np.ndarray) -> np.ndarray:
+    pos = np.asarray(pos, dtype=float)
+    return pos[None, :] if pos.ndim == 1 else pos.T  # (k, n)
+
+
+def _window(window, nperseg: int) -> np.ndarray:
+    if isinstance(window, np.ndarray):
+        if window.shape != (nperseg,):
+            raise UsageError(f"window has {window.shape[0]} points, expected {nperseg=}")
+        return window.astype(float)
+    return _cached_window(window, nperseg, True)  # periodic, as scipy.signal.welch
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_window(name: str, n: int, periodic: bool) -> np.ndarray:
+    """scipy.signal.get_window, cached (trials of a study share segment lengths)."""
+    w = get_window(name, n, fftbins=periodic)
+    w.setflags(write=False)
+    return w
+
+
+def welch_overlap_factor(win: np.ndarray, step: int, n_seg: int) -> float:
+    """Equivalent number of independent averages of ``n_seg`` overlapped segments.
+
+    Welch (1967): Var ∝ [1 + 2 Σ_{j=1}^{K−1} (1 − j/K) ρ_j²] / K with ρ_j the window's
+    correlation at lag j·step, ρ_j = Σ w[n] w[n + j·step] / Σ w². Returns K / [...].
+    """
+    norm = float(np.sum(win * win))
+    total = 1.0
+    for j in range(1, n_seg):
+        lag = j * step
+        if lag >= win.size:
+            break
+        rho = float(np.sum(win[:-lag] * win[lag:])) / norm  # (np.dot would go to BLAS)
+        total += 2.0 * (1.0 - j / n_seg) * rho * rho
+    return n_seg / total
+
+
+def enbw_bins(win: np.ndarray, nfft: int | None = None) -> float:
+    """Equivalent noise bandwidth of a window, in FFT bins of length ``nfft``.
+
+    ENBW = N Σw² / (Σw)² for N = len(win); zero padding to nfft > N widens it by nfft/N.
+    """
+    n = win.size
+    nfft = n if nfft is None else nfft
+    return n * float(np.sum(win * win)) / float(np.sum(win)) ** 2 * nfft / n
+
+
+def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None = None,
+                  window="hann", nfft: int | None = None, detrend: bool = True,
+                  method: str = "h1", first_bin: int | None = None) -> Spectra:
+    """Welch auto- and cross-spectra of force (n,) and positions (n,) or (n, k).
+
+    Same definitions as :func:`scipy.signal.csd` / :func:`scipy.signal.welch` with
+    ``scaling="density"``, one-sided, ``average="mean"``: segments of ``nperseg`` samples
+    every ``nperseg − noverlap`` (default 50 % overlap), mean removed per segment when
+    ``detrend``, windowed, zero-padded to ``nfft``; P_xy = 2·mean(conj(X)·Y)/(fs Σw²)
+    (DC and Nyquist not doubled). Each signal is transformed once (faster than calling
+    scipy three times). Units: N²/Hz, N·m/Hz, m²/Hz. ``first_bin`` defaults to 2·nfft/
+    nperseg (the main-lobe half-width of Hann and Hamming windows).
+    """
+    f = np.asarray(force, dtype=float)
+    y = _as_outputs(pos)
+    n = f.size
+    if nperseg > n:
+        raise UsageError(f"{nperseg=} exceeds the record length {n}")
+    noverlap = nperseg // 2 if noverlap is None else int(noverlap)
+    if not 0 <= noverlap < nperseg:
+        raise UsageError(f"{noverlap=} must be >= 0 and < {nperseg=}")
+    nfft = nperseg if nfft is None else int(nfft)
+    if nfft < nperseg:
+        raise UsageError(f"{nfft=} must be >= {nperseg=}")
+    win = _window(window, nperseg)
+    step = nperseg - noverlap
+    n_seg = (n - noverlap) // step
+    sig = np.vstack([f[None, :], y])  # (1 + k, n)
+    segs = np.lib.stride_tricks.sliding_window_view(sig, nperseg, axis=-1)[:, ::step][:, :n_seg]
+    if detrend:
+        segs = segs - segs.mean(axis=-1, keepdims=True)
+    spec = scipy.fft.rfft(segs * win, n=nfft, axis=-1)  # (1 + k, n_seg, nb)
+    scale = 1.0 / (fs * float(np.sum(win * win)))
+    fspec = spec[0]
+    p_ff = np.mean(fspec.real ** 2 + fspec.imag ** 2, axis=0) * scale
+    p_fx = np.mean(np.conj(fspec)[None] * spec[1:], axis=1) * scale
+    p_xx = np.mean(spec[1:].real ** 2 + spec[1:].imag ** 2, axis=1) * scale
+    onesided = np.full(p_ff.shape, 2.0)
+    onesided[0] = 1.0
+    if nfft % 2 == 0:
+        onesided[-1] = 1.0
+    return Spectra(freq_hz=np.fft.rfftfreq(nfft, 1.0 / fs), p_ff=p_ff * onesided,
+                   p_fx=p_fx * onesided, p_xx=p_xx * onesided,
+                   n_avg=welch_overlap_factor(win, step, n_seg),
+                   enbw_bins=enbw_bins(win, nfft), method=method,
+                   first_bin=(math.ceil(2 * nfft / nperseg) if first_bin is None
+                              else first_bin))
+
+
+def frf_h1(force, pos, fs: float, nperseg: int, noverlap: int | None = None,
+           window="hann") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Welch H1 estimate X/F = P_fx / P_ff and coherence, scipy.signal.csd/welch semantics.
+
+    Returns (freq_hz, H in m/N, coherence), H and coherence (nb,) for 1-D ``pos`` or
+    (k, nb) for (n, k) ``pos``.
+    """
+    sp = welch_spectra(force, pos, fs, nperseg=nperseg, noverlap=noverlap, window=window)
+    h, coh = sp.h, sp.coherence
+    if np.ndim(pos) == 1:
+        h, coh = h[0], coh[0]
+    return sp.freq_hz, h, coh
+
+
+def chebwin_spectra(force, pos, fs: float, *, attenuation_db: float = 100.0,
+                    detrend: bool = True) -> Spectra:
+    """Single-window periodograms of the whole record, 100 dB Chebyshev window.
+
+    The paper's estimator (section III): X = fft(w .* x), F = fft(w .* F) with
+    w = chebwin(N, 100) (symmetric, as MATLAB/Octave), no averaging; P_fx = conj(F)·X
+    etc. scaled as one-sided densities, so P_fx / P_ff = X / F exactly. ``detrend``
+    removes the record's mean first (the posture offset would otherwise fill the wide
+    main lobe); bins inside the main-lobe half-width acosh(10^(A/20))/π are not used.
+    """
+    f = np.asarray(force, dtype=float)
+    y = _as_outputs(pos)
+    win = chebwin(f.size, attenuation_db, sym=True)
+    lobe = math.acosh(10.0 ** (attenuation_db / 20.0)) / math.pi
+    return welch_spectra(f, y.T, fs, nperseg=f.size, noverlap=0, window=win,
+                         detrend=detrend, method="chebwin", first_bin=math.ceil(lobe) + 1)
+
+
+def frf_chebwin(force, pos, fs: float, *, attenuation_db: float = 100.0
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's H_exp(jω) = FFT(w·x)/FFT(w·F), w = chebwin(N, 100), bins 0…fs/2.
+
+    Returns (freq_hz (nb,), H in m/N (nb,) or (k, nb)); bin k is at k·fs/N Hz, the same
+    numbers as Octave's ``fft(w.*x) ./ fft(w.*F)`` for k = 0…floor(N/2).
+    """
+    f = np.asarray(force, dtype=float)
+    win = chebwin(f.size, attenuation_db, sym=True)
+    y = _as_outputs(pos)
+    fx = scipy.fft.rfft(win * f)
+    h = scipy.fft.rfft(win * y, axis=-1) / fx
+    return np.fft.rfftfreq(f.size, 1.0 / fs), (h[0] if np.ndim(pos) == 1 else h)
+
+
+def tfestimate_segment(n: int, segments: int = 4) -> tuple[int, int, int]:
+    """MATLAB ``tfestimate``/``pwelch`` segmentation for ``segments`` 50 %-overlapped
+    segments of an n-sample record: (nperseg = floor(2n/(K+1)), noverlap = floor(L/2),
+    nfft = max(256, 2^ceil(log2 L)))."""
+    nperseg = (2 * n) // (segments + 1)
+    nfft = max(256, 1 << max(0, math.ceil(math.log2(max(nperseg, 1)))))
+    return nperseg, nperseg // 2, nfft
+
+
+def derived_arm_signals(force, pos, fs: float, mp: float) -> tuple[np.ndarray, np.ndarray]:
+    """Arm-side force and position, Fu & Çavuşoğlu 2010, eqs. 1–2 (NOTES.md).
+
+    Fa[n] = F[n] − Mp·ẍ[n], ẍ[n] = (x[n+1] − 2x[n] + x[n−1])·fs² (m/s²); returns
+    (Fa, xa) for n = 1…N−2 (first and last samples dropped), N and m; ``mp`` in kg.
+    """
+    f = np.asarray(force, dtype=float)
+    x = np.asarray(pos, dtype=float)
+    acc = (x[2:] - 2.0 * x[1:-1] + x[:-2]) * (fs * fs)
+    return f[1:-1] - mp * acc, x[1:-1]
+
+
+def derived_spectra(force, pos, fs: float, mp: float, *, segments: int = 4,
+                    detrend: bool = True) -> Spectra:
+    """Derived arm dynamics spectra: Xa/Fa by Welch (MATLAB tfestimate semantics).
+
+    Input Fa (N), output xa (m) from :func:`derived_arm_signals`; ``segments`` Hamming
+    (symmetric, as MATLAB ``hamming``) segments with 50 % overlap, nfft per
+    :func:`tfestimate_segment`. ``detrend`` removes each segment's mean (MATLAB does not;
+    the record's posture offset otherwise leaks into the lowest bins).
+    """
+    fa, xa = derived_arm_signals(force, pos, fs, mp)
+    nperseg, noverlap, nfft = tfestimate_segment(fa.size, segments)
+    win = _cached_window("hamming", nperseg, False)
+    return welch_spectra(fa, xa, fs, nperseg=nperseg, noverlap=noverlap, window=win,
+                         nfft=nfft, detrend=detrend, method="tfestimate")
+
+
+# ---------------------------------------------------------------------------
+# Common grid
+# ---------------------------------------------------------------------------
+
+def log_grid(fmin: float = 0.1, fmax: float = 30.0, per_decade: int = 40) -> np.ndarray:
+    """Log-spaced frequencies (Hz) from fmin to fmax inclusive, ``per_decade`` per decade
+    (rounded so both ends are on the grid)."""
+    if not 0 < fmin < fmax:
+        raise UsageError(f"need 0 < fmin < fmax, got fmin={fmin} Hz, fmax={fmax} Hz")
+    if per_decade < 1:
+        raise UsageError(f"{per_decade=} must be >= 1")
+    n = max(2, int(round(per_decade * math.log10(fmax / fmin))) + 1)
+    return np.geomspace(fmin, fmax, n)
+
+
+@dataclass(frozen=True)
+class GridResponse:
+    """Responses of one trial on the common grid.
+
+    freq_hz: (ng,) Hz. h: (k, ng) complex m/N. coherence: (k, ng). se_db, se_deg: (k, ng)
+    standard errors of 20 log10|H| (dB) and of the phase (deg), Bendat & Piersol.
+    n_avg: (ng,) equivalent number of independent averages behind each value.
+    """
+
+    freq_hz: np.ndarray
+    h: np.ndarray
+    coherence: np.ndarray
+    se_db: np.ndarray
+    se_deg: np.ndarray
+    n_avg: np.ndarray
+
+
+def band_bins(freq_native: np.ndarray, grid: np.ndarray, min_bins: int,
+              max_bins: int | None = None, first_bin: int = 1
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Native-bin index ranges [lo, hi) averaged at each grid point.
+
+    The band of grid point g is [g·r^-½, g·r^½) with r the grid's ratio, clipped to the
+    grid's range [grid[0], grid[-1]] (so no band reaches past fmax, where the stimulus
+    may stop); where it holds fewer than ``min_bins`` bins, the ``min_bins`` bins nearest
+    to g are used instead; where it holds more than ``max_bins``, only the ``max_bins``
+    bins nearest to g (less smoothing bias at sharp resonances). Bins below
+    ``first_bin`` (at least DC) are never used.
+    """
+    nb = freq_native.size
+    ratio = grid[1] / grid[0] if grid.size > 1 else 2.0
+    half = math.sqrt(ratio)
+    first = max(1, first_bin)
+    lo = np.maximum(np.searchsorted(freq_native, np.maximum(grid / half, grid[0]),
+                                    side="left"), first)
+    hi = np.searchsorted(freq_native, np.minimum(grid * half, grid[-1]), side="right")
+    if max_bins is not None:
+        centre = np.searchsorted(freq_native, grid)
+        lo = np.maximum(lo, centre - max_bins // 2)
+        hi = np.minimum(hi, lo + max_bins)
+    short = (hi - lo) < min_bins
+    if np.any(short):
+        m = min(min_bins, nb - first)
+        near = np.clip(np.searchsorted(freq_native, grid[short]), first, nb - 1)
+        # choose the nearer of the two neighbours as centre, then a window of m bins
+        left_closer = (grid[short] - freq_native[near - 1]) < (freq_native[near] - grid[short])
+        centre = np.where(left_closer & (near > first), near - 1, near)
+        start = np.clip(centre - (m - 1) // 2, first, nb - m)
+        lo = lo.copy()
+        hi = hi.copy()
+        lo[short] = start
+        hi[short] = start + m
+    return lo, hi
+
+
+def bendat_piersol_se(coherence: np.ndarray, n_avg) -> tuple[np.ndarray, np.ndarray]:
+    """Standard errors of 20 log10|H| (dB) and phase (deg) of an H1 estimate.
+
+    ε = sqrt(1 − γ²) / (|γ| sqrt(2 n_d)) — Bendat & Piersol, Random Data, eq. 9.52
+    (normalised random error of |H|, also the phase's standard deviation in rad, eq. 9.65).
+    Returns (20/ln10 · ε, 180/π · ε).
+    """
+    coh = np.clip(np.asarray(coherence, dtype=float), 1e-12, 1.0)
+    eps = np.sqrt(1.0 - coh) / (np.sqrt(coh) * np.sqrt(2.0 * np.asarray(n_avg, dtype=float)))
+    return DB_PER_NEPER * eps, np.degrees(eps)
+
+
+def debiased_coherence(coherence, n_avg) -> np.ndarray:
+    """Coherence corrected for its estimation bias with n_d averages.
+
+    An estimate from n_d averages is biased up, E[γ̂²] ≈ γ² + (1 − γ²)/n_d (Carter, Knapp
+    & Nuttall 1973, first order), so γ² ≈ (γ̂² − 1/n_d)/(1 − 1/n_d), floored at 1e-6.
+    Used for the standard errors, where the raw estimate would make them too small.
+    """
+    n = np.maximum(np.asarray(n_avg, dtype=float), 1.0 + 1e-9)
+    return np.clip((np.asarray(coherence, dtype=float) - 1.0 / n) / (1.0 - 1.0 / n), 1e-6, 1.0)
+
+
+def to_grid(sp: Spectra, grid: np.ndarray, *, min_avg: float = 8.0,
+            max_avg: float | None = None) -> GridResponse:
+    """Bring native-bin spectra to the common grid by band-averaging (module docstring).
+
+    Averaged: P_ff, P_fx, P_xx over each grid point's bins; H = <P_fx>/<P_ff>,
+    γ² = |<P_fx>|² / (<P_ff><P_xx>); n_d = n_avg · max(1, bins / ENBW). Where fewer than
+    ceil(min_avg·ENBW/n_avg) bins fall in a band, that many nearest bins are used; no more
+    than ceil(max_avg·ENBW/n_avg) bins are averaged (None: the whole band).
+    """
+    min_bins = max(1, math.ceil(min_avg * sp.enbw_bins / sp.n_avg))
+    max_bins = None if max_avg is None else max(min_bins, math.ceil(
+        max_avg * sp.enbw_bins / sp.n_avg))
+    lo, hi = band_bins(sp.freq_hz, grid, min_bins, max_bins, sp.first_bin)
+    count = (hi - lo).astype(float)
+
+    def band_mean(a: np.ndarray) -> np.ndarray:
+        c = np.concatenate([np.zeros(a.shape[:-1] + (1,), a.dtype), np.cumsum(a, axis=-1)],
+                           axis=-1)
+        return (c[..., hi] - c[..., lo]) / count
+
+    p_ff = band_mean(sp.p_ff)
+    p_fx = band_mean(sp.p_fx)
+    p_xx = band_mean(sp.p_xx)
+    h = p_fx / p_ff
+    with np.errstate(invalid="ignore", divide="ignore"):
+        coh = np.abs(p_fx) ** 2 / (p_ff * p_xx)
+    coh = np.where(np.isfinite(coh), np.clip(coh, 0.0, 1.0), np.nan)
+    n_d = sp.n_avg * np.maximum(1.0, count / sp.enbw_bins)
+    se_db, se_deg = bendat_piersol_se(debiased_coherence(np.nan_to_num(coh, nan=0.0), n_d),
+                                      n_d)
+    # Scatter of the native bins inside each band: also catches leakage and smoothing
+    # errors that the coherence does not see. Used where >= 3 independent bins.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h_bin = sp.p_fx / sp.p_ff
+        db_bin = 20.0 * np.log10(np.abs(h_bin))
+        unit = h_bin / np.abs(h_bin)
+    n_ind = count / sp.enbw_bins
+    var_db = np.maximum(band_mean(db_bin ** 2) - band_mean(db_bin) ** 2, 0.0) \
+        * count / np.maximum(count - 1.0, 1.0)
+    r = np.clip(np.abs(band_mean(unit)), 1e-12, 1.0)
+    sd_rad = np.sqrt(-2.0 * np.log(r))  # circular standard deviation
+    ok = n_ind >= 3.0
+    se_db = np.where(ok, np.maximum(se_db, np.sqrt(var_db / n_ind)), se_db)
+    se_deg = np.where(ok, np.maximum(se_deg, np.degrees(sd_rad / np.sqrt(n_ind))), se_deg)
+    return GridResponse(freq_hz=grid, h=h, coherence=coh, se_db=se_db, se_deg=se_deg,
+                        n_avg=n_d)
+
+
+# ---------------------------------------------------------------------------
+# Flags
+# ---------------------------------------------------------------------------
+
+def saturated(force, limit_N: float) -> bool:
+    """True when |F| reaches the device's force limit (N) anywhere in the record."""
+    return bool(np.nanmax(np.abs(np.asarray(force, dtype=float))) >= limit_N)
+
+
+def drifting(pos, fs: float, fmin: float, factor: float = 3.0) -> bool:
+    """True when slow postural drift dominates the position record.
+
+    The slow part is the moving mean over one period of ``fmin`` (1/fmin s); the record
+    drifts when the slow part's peak-to-peak exceeds ``factor`` × the standard deviation
+    of the remaining (stimulus-driven) motion. Positions in m, fs and fmin in Hz.
+    """
+    x = np.asarray(pos, dtype=float)
+    width = max(1, min(x.size, int(round(fs / fmin))))
+    slow = uniform_filter1d(x, width, mode="nearest")
+    fast = np.std(x - slow)
+    return bool(np.ptp(slow[width // 2: x.size - width // 2 or None]) > factor * fast)
+
+
+# ---------------------------------------------------------------------------
+# One trial
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class EstimateConfig:
+    """Options of ``armfit estimate`` (frequencies in Hz, masses in kg, forces in N).
+
+    method: "h1" or "chebwin" (measured and cross responses). nperseg: H1 segment length
+    in samples (None: see :meth:`h1_nperseg`). overlap: fraction 0…<1.
+    window: H1 window name (scipy.signal.get_window). mp: device mass per axis (kg).
+    coherence_min: below it a grid point is flagged low_coherence. drift_factor: see
+    :func:`drifting`. force_limit_N: saturation threshold.
+    """
+
+    method: str = "h1"
+    fmin: float = 0.1
+    fmax: float = 30.0
+    per_decade: int = 40
+    nperseg: int | None = None
+    overlap: float = 0.5
+    window: str = "hann"
+    min_avg: float = 8.0
+    max_avg: float | None = 32.0
+    derived_segments: int = 4
+    mp: Mapping[str, float] = field(default_factory=lambda: dict(DEVICE_MASS_KG))
+    coherence_min: float = 0.5
+    drift_factor: float = 3.0
+    force_limit_N: float = 8.5
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise UsageError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if not 0 < self.fmin < self.fmax:
+            raise UsageError(f"need 0 < fmin < fmax, got fmin={self.fmin} Hz, "
+                             f"fmax={self.fmax} Hz")
+        if not 0 <= self.overlap < 1:
+            raise UsageError(f"overlap must be in [0, 1), got {self.overlap}")
+        if self.nperseg is not None and self.nperseg < 8:
+            raise UsageError(f"nperseg must be >= 8 samples, got {self.nperseg}")
+        if self.derived_segments < 1:
+            raise UsageError(f"derived segments must be >= 1, got {self.derived_segments}")
+        for ax, m in self.mp.items():
+            if ax not in AXES or not m > 0:
+                raise UsageError(f"device mass must be given as axis x|y|z > 0 kg, "
+                                 f"got {ax}={m}")
+
+    def grid(self) -> np.ndarray:
+        return log_grid(self.fmin, self.fmax, self.per_decade)
+
+    def h1_nperseg(self, fs: float, n_samples: int) -> int:
+        """H1 segment length (samples): ``nperseg`` if given; else the smallest power of 2
+        lasting ≥ 2/fmin (bins ≤ fmin/2 apart), halved while the record holds fewer than 4
+        half-overlapped segments, but not below the power of 2 lasting ≥ 1/fmin."""
+        if self.nperseg is not None:
+            return int(self.nperseg)
+        longest = 1 << math.ceil(math.log2(2.0 * fs / self.fmin))
+        shortest = 1 << math.ceil(math.log2(fs / self.fmin))
+        seg = longest
+        while seg > shortest and (n_samples - seg // 2) // (seg // 2) < 4:
+            seg //= 2
+        return seg
+
+
+@dataclass(frozen=True)
+class Response:
+    """One response of one trial on the grid: ``kind`` measured|cross|derived, the
+    position axis ``out_axis``, the estimator ``method``, values (see GridResponse) and
+    per-point flags (tuple of comma-joined strings, '' where none)."""
+
+    kind: str
+    out_axis: str
+    method: str
+    h: np.ndarray
+    coherence: np.ndarray
+    se_db: np.ndarray
+    se_deg: np.ndarray
+    flags: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class TrialResponses:
+    """Everything ``estimate`` keeps of one trial: identity, grid and responses."""
+
+    subject: str
+    axis: str
+    grip_N: float
+    run: int | None
+    source: str
+    freq_hz: np.ndarray
+    responses: tuple[Response, ...]
+
+
+def check_band(fs: float, n_samples: int, config: EstimateConfig, source: str = "") -> None:
+    """Raise UsageError if fmax is above Nyquist, BadInputError if the record (or the
+    estimator's segment) lasts less than one period of fmin."""
+    if config.fmax > fs / 2:
+        raise UsageError(f"{source + ': ' if source else ''}--fmax {config.fmax:g} Hz is above "
+                         f"the Nyquist frequency {fs / 2:g} Hz (sampling rate {fs:g} Hz)")
+    need = 1.0 / config.fmin
+    if config.method == "h1":
+        seg = config.h1_nperseg(fs, n_samples)
+        if seg > n_samples:
+            raise BadInputError(
+                f"too short for --fmin {config.fmin:g} Hz: {n_samples / fs:g} s, H1 segments "
+                f"need {seg / fs:g} s; raise --fmin or lower --nperseg", file=source or None)
+    if n_samples / fs < need:
+        raise BadInputError(f"too short for --fmin {config.fmin:g} Hz: {n_samples / fs:g} s, "
+                            f"needs at least {need:g} s", file=source or None)
+    seg = tfestimate_segment(n_samples - 2, config.derived_segments)[0]
+    if seg / fs < need:
+        raise BadInputError(
+            f"too short for --fmin {config.fmin:g} Hz: derived-arm segments last "
+            f"{seg / fs:g} s (record {n_samples / fs:g} s), need {need:g} s",
+            file=source or None)
+
+
+def _flag_strings(coh: np.ndarray, threshold: float, trial_flags: Sequence[str]
+                  ) -> tuple[str, ...]:
+    base = ",".join(trial_flags)
+    low = ",".join(["low_coherence", *trial_flags])
+    return tuple(low if c < threshold else base for c in np.nan_to_num(coh, nan=0.0))
+
+
+def estimate_trial(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
+                   config: EstimateConfig, *, source: str = "") -> tuple[Response, ...]:
+    """All responses of one trial on ``config.grid()``.
+
+    force, pos: (n, 3) N and m, columns x, y, z, NaN columns for unrecorded axes;
+    ``axis`` the stimulated axis. Returns the measured response (X/F of the stimulated
+    axis, ``config.method``), cross responses (stimulated force → each other recorded
+    position), and the derived arm dynamics Xa/Fa (tfestimate, Mp of the axis).
+    """
+    check_band(fs, force.shape[0], config, source)
+    i = AXES.index(axis)
+    f = force[:, i]
+    outs = [i] + [j for j in range(3) if j != i and np.all(np.isfinite(pos[:, j]))]
+    y = pos[:, outs]
+    grid = config.grid()
+    if config.method == "h1":
+        nper = config.h1_nperseg(fs, force.shape[0])
+        sp = welch_spectra(f, y, fs, nperseg=nper,
+                           noverlap=min(nper - 1, int(round(config.overlap * nper))),
+                           window=config.window, method="h1")
+    else:
+        sp = chebwin_spectra(f, y, fs)
+    g = to_grid(sp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
+    sat = ["saturation"] if saturated(f, config.force_limit_N) else []
+
+    def trial_flags(j: int) -> list[str]:
+        drift = drifting(pos[:, j], fs, config.fmin, config.drift_factor)
+        return sat + (["drift"] if drift else [])
+
+    stim_flags = trial_flags(i)
+    mp = config.mp.get(axis, DEVICE_MASS_KG[axis])
+    d = to_grid(derived_spectra(f, pos[:, i], fs, mp, segments=config.derived_segments),
+                grid, min_avg=config.min_avg, max_avg=config.max_avg)
+    out = [Response("measured", axis, sp.method, g.h[0], g.coherence[0], g.se_db[0],
+                    g.se_deg[0], _flag_strings(g.coherence[0], config.coherence_min,
+                                               stim_flags)),
+           Response("derived", axis, "tfestimate", d.h[0], d.coherence[0], d.se_db[0],
+                    d.se_deg[0], _flag_strings(d.coherence[0], config.coherence_min,
+                                               stim_flags))]
+    for k, j in enumerate(outs[1:], start=1):
+        out.append(Response("cross", AXES[j], sp.method, g.h[k], g.coherence[k], g.se_db[k],
+                            g.se_deg[k], _flag_strings(g.coherence[k], config.coherence_min,
+                                                       trial_flags(j))))
+    return tuple(out)
+
+
+# ---------------------------------------------------------------------------
+# Aggregation over trials
+# ---------------------------------------------------------------------------
+
+def _log_parts(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """20 log10|H| (dB) and phase (rad), unwrapped along frequency and aligned across
+    trials: each trial is shifted by a multiple of 2π so its first point lies within π of
+    the circular mean of the first points."""
+    H = np.atleast_2d(np.asarray(H, dtype=complex))
+    db = 20.0 * np.log10(np.abs(H))
+    ph = np.unwrap(np.angle(H), axis=-1)
+    ref = np.angle(np.mean(np.exp(1j * ph[:, 0])))
+    ph = ph - 2.0 * np.pi * np.round((ph[:, :1] - ref) / (2.0 * np.pi))
+    return db, ph
+
+
+def aggregate(H: np.ndarray, how: str) -> np.ndarray:
+    """Mean or median of complex responses H (n_trials, n_freq), m/N → (n_freq,).
+
+    Taken on log-magnitude and phase separately: 20 log10|H| (dB) and the phase unwrapped
+    along frequency (each trial aligned to within π of the others at the first
+    frequency) are averaged (``"mean"``) or their medians taken (``"median"``), then
+    recombined as 10^(dB/20)·e^(jφ). This matches the dB cost of eq. 5 and keeps a few
+    outlying trials from pulling the magnitude.
+    """
+    db, ph = _log_parts(H)
+    if how == "mean":
+        m_db, m_ph = db.mean(axis=0), ph.mean(axis=0)
+    elif how == "median":
+        m_db, m_ph = np.median(db, axis=0), np.median(ph, axis=0)
+    else:
+        raise UsageError(f"aggregate how must be 'mean' or 'median', got {how!r}")
+    return 10.0 ** (m_db / 20.0) * np.exp(1j * m_ph)
+
+
+def aggregate_spread(H: np.ndarray, how: str = "mean") -> dict[str, np.ndarray]:
+    """Spread of responses H (n_trials, n_freq) per frequency, on the scale of
+    :func:`aggregate`.
+
+    se_db, se_deg: standard error of the mean of dB and of phase (deg), s/√n with s the
+    sample standard deviation (ddof = 1; NaN for n = 1); for ``how="median"`` multiplied by
+    sqrt(π/2) (large-sample standard error of a median of normal data).
+    q25_db, q75_db, q25_deg, q75_deg: quartiles (numpy's linear interpolation).
+    """
+    db, ph = _log_parts(H)
+    deg = np.degrees(ph)
+    n = db.shape[0]
+    factor = MEDIAN_SE_FACTOR if how == "median" else 1.0
+    if n > 1:
+        se_db = factor * db.std(axis=0, ddof=1) / math.sqrt(n)
+        se_deg = factor * deg.std(axis=0, ddof=1) / math.sqrt(n)
+    else:
+        se_db = np.full(db.shape[1], np.nan)
+        se_deg = np.full(db.shape[1], np.nan)
+    q_db = np.percentile(db, [25, 75], axis=0)
+    q_deg = np.percentile(deg, [25, 75], axis=0)
+    return {"se_db": se_db, "se_deg": se_deg, "q25_db": q_db[0], "q75_db": q_db[1],
+            "q25_deg": q_deg[0], "q75_deg": q_deg[1]}
+
+
+# ---------------------------------------------------------------------------
+# The long table (schema armfit.io.artifacts.SPECTRA_COLUMNS)
+# ---------------------------------------------------------------------------
+
+def _block(level: str, subject, axis: str, grip, run, kind: str, out_axis: str, method: str,
+           freq: np.ndarray, h: np.ndarray, coherence: np.ndarray, se_db: np.ndarray,
+           se_deg: np.ndarray, n: int, flags: Sequence[str], phase_rad: np.ndarray | None = None,
+           spread: Mapping[str, np.ndarray] | None = None) -> dict[str, object]:
+    ng = freq.size
+    phase = np.unwrap(np.angle(h)) if phase_rad is None else phase_rad
+    nan = np.full(ng, np.nan)
+    spread = spread or {}
+    return {
+        "level": level, "subject": subject, "axis": axis, "grip_N": grip, "run": run,
+        "kind": kind, "out_axis": out_axis, "method": method, "freq_hz": freq,
+        "re": h.real, "im": h.imag, "mag_db": 20.0 * np.log10(np.abs(h)),
+        "phase_deg": np.degrees(phase), "coherence": coherence, "se_db": se_db,
+        "se_deg": se_deg, "n": n,
+        "q25_db": spread.get("q25_db", nan), "q75_db": spread.get("q75_db", nan),
+        "q25_deg": spread.get("q25_deg", nan), "q75_deg": spread.get("q75_deg", nan),
+        "flags": list(flags),
+    }
+
+
+def _frame(blocks: list[dict[str, object]]):
+    import pandas as pd
+
+    from armfit.io.artifacts import SPECTRA_COLUMNS
+    if not blocks:
+        return pd.DataFrame({c: [] for c in SPECTRA_COLUMNS})
+    sizes = [b["freq_hz"].size for b in blocks]  # type: ignore[union-attr]
+    cols: dict[str, object] = {}
+    for c in SPECTRA_COLUMNS:
+        vals = [b[c] for b in blocks]
+        if isinstance(vals[0], np.ndarray | list):
+            cols[c] = np.concatenate([np.asarray(v) for v in vals])
+        else:
+            cols[c] = np.repeat(np.array(vals, dtype=object), sizes)
+    df = pd.DataFrame(cols, columns=list(SPECTRA_COLUMNS))
+    for c in ("level", "subject", "axis", "kind", "out_axis", "method", "flags"):
+        df[c] = df[c].astype("string")
+    df["grip_N"] = df["grip_N"].astype(float)
+    df["run"] = pd.array([None if v is None or v != v else int(v) for v in df["run"]],
+                         dtype="Int64")
+    df["n"] = df["n"].astype("int64")
+    return df
+
+
+def _majority_flags(flag_rows: Sequence[Sequence[str]]) -> list[str]:
+    """Per frequency, the flags carried by more than half of the responses."""
+    n = len(flag_rows)
+    out = []
+    for per_freq in zip(*flag_rows, strict=True):
+        counts: dict[str, int] = {}
+        for s in per_freq:
+            for flag in filter(None, s.split(",")):
+                counts[flag] = counts.get(flag, 0) + 1
+        out.append(",".join(f for f in ("low_coherence", "saturation", "drift")
+                            if counts.get(f, 0) * 2 > n))
+    return out
+
+
+def spectra_table(trials: Sequence[TrialResponses]):
+    """The spectra table (pandas DataFrame, columns SPECTRA_COLUMNS) of a study.
+
+    Rows at level ``trial`` for every response of every trial, then the aggregates of
+    each kind (measured, derived, cross) and output axis:
+
+    ``mean``    per axis × grip: each subject's runs are first combined with
+                :func:`aggregate` ("mean"), then the subjects' responses are averaged;
+                n = subjects, spread (se, quartiles) across subjects.
+    ``median``  per axis over all its trials (every subject, grip and run): median of dB
+                and of unwrapped phase; n = trials, se = sqrt(π/2)·s/√n.
+
+    An aggregate's coherence is the mean of its trials' coherences; its flags are those
+    carried by more than half of its trials at that frequency. Where an aggregate rests on
+    a single response its se is that response's own (Bendat & Piersol) se.
+    """
+    blocks: list[dict[str, object]] = []
+    groups: dict[tuple, list[tuple[TrialResponses, Response]]] = {}
+    for tr in trials:
+        for r in tr.responses:
+            blocks.append(_block("trial", tr.subject, tr.axis, tr.grip_N, tr.run, r.kind,
+                                 r.out_axis, r.method, tr.freq_hz, r.h, r.coherence,
+                                 r.se_db, r.se_deg, 1, r.flags))
+            groups.setdefault((tr.axis, r.kind, r.out_axis), []).append((tr, r))
+    for (axis, kind, out_axis), members in sorted(groups.items()):
+        freq = members[0][0].freq_hz
+        method = members[0][1].method
+        by_grip: dict[float, dict[str, list[Response]]] = {}
+        for tr, r in members:
+            by_grip.setdefault(tr.grip_N, {}).setdefault(tr.subject, []).append(r)
+        for grip in sorted(by_grip):
+            subjects = by_grip[grip]
+            per_subject = np.array([aggregate(np.array([r.h for r in rs]), "mean")
+                                    for rs in subjects.values()])
+            rs_all = [r for rs in subjects.values() for r in rs]
+            blocks.append(_aggregate_block("mean", axis, grip, kind, out_axis, method, freq,
+                                           per_subject, rs_all, len(subjects)))
+        rs_all = [r for _, r in members]
+        blocks.append(_aggregate_block("median", axis, np.nan, kind, out_axis, method, freq,
+                                       np.array([r.h for r in rs_all]), rs_all, len(rs_all)))
+    return _frame(blocks)
+
+
+def _aggregate_block(level: str, axis: str, grip: float, kind: str, out_axis: str,
+                     method: str, freq: np.ndarray, H: np.ndarray, members: list[Response],
+                     n: int) -> dict[str, object]:
+    how = level
+    value = aggregate(H, how)
+    spread = aggregate_spread(H, how)
+    _, ph = _log_parts(H)
+    phase = np.median(ph, axis=0) if how == "median" else ph.mean(axis=0)
+    se_db, se_deg = spread["se_db"], spread["se_deg"]
+    if n == 1:
+        se_db = np.mean([r.se_db for r in members], axis=0)
+        se_deg = np.mean([r.se_deg for r in members], axis=0)
+    coh = np.nanmean(np.array([r.coherence for r in members]), axis=0)
+    return _block(level, None, axis, grip, None, kind, out_axis, method, freq, value, coh,
+                  se_db, se_deg, n, _majority_flags([r.flags for r in members]),
+                  phase_rad=phase, spread=spread)
+
+
+# ---------------------------------------------------------------------------
+# A study: read trials (in worker processes if asked), estimate, tabulate
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class StudySpectra:
+    """Result of :func:`estimate_study`: the table, the trials kept, what was left out."""
+
+    table: object  # pandas.DataFrame, columns SPECTRA_COLUMNS
+    trials: tuple[TrialResponses, ...]
+    skipped: tuple[tuple[str, str], ...]  # (file, reason)
+    ignored: tuple[str, ...]
+    fs: float | None
+    warnings: tuple[str, ...]
+
+
+def _estimate_source(source, config: EstimateConfig):
+    """Worker: read one trial and estimate it. Returns ("ok", TrialResponses, fs, warnings)
+    or ("bad", label, message, reason) for a BadInputError."""
+    from armfit.io.trials import _reason, read_trial
+    warnings: list[str] = []
+    try:
+        trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
+                           warn=warnings.append)
+        m = trial.meta
+        responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
+                                   source=source.label)
+    except BadInputError as exc:
+        return ("bad", source.label, str(exc), _reason(exc))
+    tr = TrialResponses(m.subject, m.axis, m.grip_N, m.run, source.label, config.grid(),
+                        responses)
+    return ("ok", tr, m.fs, tuple(warnings))
+
+
+def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: bool = False,
+                   jobs: int = 1, on_open=None, advance=None, warn=None) -> StudySpectra:
+    """Estimate every trial of ``inputs`` (raw files, folders or a canonical dataset).
+
+    Trials are found and checked for duplicates by :func:`armfit.io.trials.open_trials`,
+    read and validated one by one by :func:`armfit.io.trials.read_trial` (in ``jobs``
+    worker processes when > 1; results keep the input order), and must share one sampling
+    rate. Without ``skip_bad`` the first bad trial raises BadInputError; with it, bad
+    trials are listed in ``skipped``. ``warn(msg)`` receives saturation warnings,
+    ``on_open(n)`` is told the number of trials found, ``advance()`` is called once per
+    trial.
+    """
+    from armfit.errors import NoInputError
+    from armfit.io.trials import open_trials
+    stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, f_min_hz=config.fmin,
+                         force_limit_N=config.force_limit_N)
+    skipped = [(s.file, s.reason) for s in stream.skipped]
+    kept: list[TrialResponses] = []
+    warnings: list[str] = []
+    ref: tuple[float, str] | None = None
+
+    def handle(res) -> None:
+        nonlocal ref
+        if res[0] == "bad":
+            _, label, text, reason = res
+            if not skip_bad:
+                raise BadInputError(text)
+            skipped.append((label, reason))
+            return
+        _, tr, fs, warns = res
+        for w in warns:
+            warnings.append(w)
+            if warn is not None:
+                warn(w)
+        if ref is None:
+            ref = (fs, tr.source)
+        elif abs(fs - ref[0]) > 1e-6 * ref[0]:
+            text = (f"{tr.source}, column 'time_s': sampling rate {fs:g} Hz differs from "
+                    f"{ref[0]:g} Hz of {ref[1]}; estimate trials of one rate at a time or "
+                    "resample them with `armfit ingest --resample`")
+            if not skip_bad:
+                raise BadInputError(text)
+            skipped.append((tr.source, text.split(": ", 1)[1]))
+            return
+        kept.append(tr)
+
+    sources = list(stream.sources)
+    if on_open is not None:
+        on_open(len(sources))
+    if jobs > 1 and len(sources) > 1:
+        import concurrent.futures as cf
+        import functools
+        import multiprocessing as mp
+        if "forkserver" in mp.get_all_start_methods():
+            ctx = mp.get_context("forkserver")
+            ctx.set_forkserver_preload(["armfit.spectra", "armfit.io.trials"])
+        else:
+            ctx = mp.get_context("spawn")
+        with cf.ProcessPoolExecutor(max_workers=min(jobs, len(sources)),
+                                    mp_context=ctx) as pool:
+            try:
+                for res in pool.map(functools.partial(_estimate_source, config=config),
+                                    sources, chunksize=2):
+                    handle(res)
+                    if advance is not None:
+                        advance()
+            except BaseException:
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+    else:
+        for src in sources:
+            handle(_estimate_source(src, config))
+            if advance is not None:
+                advance()
+    if not kept:
+        raise NoInputError("no trial could be estimated"
+                           + (f" ({len(skipped)} skipped)" if skipped else ""))
+    return StudySpectra(spectra_table(kept), tuple(kept), tuple(skipped),
+                        tuple(str(p) for p in stream.ignored),
+                        ref[0] if ref else None, tuple(warnings))
