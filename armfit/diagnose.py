@@ -25,12 +25,17 @@ D = N_eff · ln(RSS_base / RSS_effect), with N_eff = N (1 − ρ)/(1 + ρ) the n
 residuals corrected for their lag-1 autocorrelation ρ along frequency (neighbouring grid
 points of the estimator are not fully independent, and a candidate that leaves a
 systematic residual keeps ρ high); ΔBIC = D − k ln N_eff. A candidate is significant when
-ΔBIC > :data:`SIGNIFICANT_BIC` (Kass & Raftery's "very strong" evidence). Two candidates
-whose ΔBIC differ by less than :data:`TIE_BIC` "explain the data about equally well".
+ΔBIC > :data:`SIGNIFICANT_BIC` (Kass & Raftery's "very strong" evidence) **and** it removes
+at least :data:`MIN_REDUCTION` of the residual sum of squares: with many trials even a
+consistent estimator bias of a few hundredths of a dB reaches any ΔBIC, while a physical
+effect worth modelling explains a good part of the misfit. Two candidates whose ΔBIC differ
+by less than :data:`TIE_BIC` (or :data:`TIE_FRACTION` of the best) "explain the data about
+equally well".
 
 Failing bands: per frequency, the mean over trials of the normalised residual of the base
 fit, divided by its standard error across trials (a t statistic); runs of at least
-:data:`MIN_RUN` grid points with |t| > :data:`T_FAIL` are the bands where the model fails.
+:data:`MIN_RUN` grid points with |t| > :data:`T_FAIL` and a mean normalised residual above 1
+(a systematic error larger than one trial's noise) are the bands where the model fails.
 """
 
 from __future__ import annotations
@@ -49,8 +54,14 @@ from armfit.models.effects import EFFECTS, Effect
 BANDS: tuple[tuple[float, float], ...] = ((0.1, 1.0), (1.0, 3.0), (3.0, 10.0), (10.0, 30.0))
 #: ΔBIC above which an effect is reported as significant.
 SIGNIFICANT_BIC = 10.0
-#: ΔBIC difference below which two candidates are reported as explaining the data alike.
+#: Fraction of the residual sum of squares an effect must remove to be reported: with
+#: many trials a consistent estimator bias of a few hundredths of a dB reaches any ΔBIC,
+#: but explains almost nothing.
+MIN_REDUCTION = 0.05
+#: ΔBIC difference below which two candidates are reported as explaining the data alike
+#: (absolute, or as a fraction of the best candidate's ΔBIC, whichever is larger).
 TIE_BIC = 6.0
+TIE_FRACTION = 0.05
 #: |t| (or |z| for a single aggregate) above which a grid point fails.
 T_FAIL = 4.0
 #: Minimum number of consecutive failing grid points that make a failing band.
@@ -60,6 +71,8 @@ DROP_POINTS = 2
 #: Floors for standard errors (dB, deg), so a near-noiseless bin cannot dominate.
 SE_FLOOR_DB = 0.01
 SE_FLOOR_DEG = 0.06
+#: Degrees weighted like 1 dB in unweighted comparisons (1 neper ↔ 1 rad).
+UNIT_DEG = float(np.degrees(1.0) / (20.0 / np.log(10.0)))
 
 
 # ---------------------------------------------------------------------------
@@ -82,8 +95,10 @@ def _floor(se_db, se_deg) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class BandError:
-    """Error of a model in one band: RMS magnitude error (dB), RMS phase error (deg), and
-    RMS of the residuals normalised by the measurement's standard error (1 ≈ noise)."""
+    """Error of a model in one band: RMS magnitude error (dB), RMS phase error (deg), the
+    RMS of the residuals normalised by the measurement's standard error (1 ≈ noise), and
+    ``bias_norm``, the RMS over the band of the trials' mean normalised residual (the
+    systematic part of the error, which a missing effect leaves; noise averages out)."""
 
     lo_hz: float
     hi_hz: float
@@ -91,6 +106,7 @@ class BandError:
     rms_deg: float
     rms_norm: float
     n_points: int
+    bias_norm: float = float("nan")
 
 
 def band_error(f_hz, r_db, r_deg, se_db, se_deg, lo: float, hi: float) -> BandError:
@@ -105,10 +121,12 @@ def band_error(f_hz, r_db, r_deg, se_db, se_deg, lo: float, hi: float) -> BandEr
         return BandError(lo, hi, nan, nan, nan, 0)
     zdb = rdb / np.broadcast_to(sdb, np.shape(r_db))[..., sel]
     zdeg = rdeg / np.broadcast_to(sdeg, np.shape(r_deg))[..., sel]
+    mdb, mdeg = np.atleast_2d(zdb).mean(axis=0), np.atleast_2d(zdeg).mean(axis=0)
     return BandError(lo, hi, float(np.sqrt(np.mean(rdb ** 2))),
                      float(np.sqrt(np.mean(rdeg ** 2))),
                      float(np.sqrt(np.mean(np.concatenate([zdb.ravel(), zdeg.ravel()]) ** 2))),
-                     int(sel.sum()))
+                     int(sel.sum()),
+                     float(np.sqrt(np.mean(np.concatenate([mdb, mdeg]) ** 2))))
 
 
 @dataclass(frozen=True)
@@ -177,15 +195,23 @@ def describe(f_hz, r_db, r_deg, sig_db, sig_deg) -> str:
 
 
 def failing_bands(f_hz, stat_db, stat_deg, mean_db, mean_deg, *, threshold: float = T_FAIL,
-                  min_run: int = MIN_RUN) -> list[FailingBand]:
+                  min_run: int = MIN_RUN, size_db=None, size_deg=None
+                  ) -> list[FailingBand]:
     """Bands where |stat| > threshold for at least ``min_run`` consecutive points.
 
     stat_*: test statistics per frequency (z or t); mean_*: mean residuals (dB, deg) used
-    for the words. Magnitude and phase failures are merged into one band list.
+    for the words; size_*: optional mean normalised residuals, which must also exceed 1
+    (the systematic error is larger than one trial's noise — with many trials a bias far
+    below the noise is "significant" yet not a failure of the model). Magnitude and phase
+    failures are merged into one band list.
     """
     f = np.asarray(f_hz, float)
     sig_db = np.abs(stat_db) > threshold
     sig_deg = np.abs(stat_deg) > threshold
+    if size_db is not None:
+        sig_db &= np.abs(size_db) > 1.0
+    if size_deg is not None:
+        sig_deg &= np.abs(size_deg) > 1.0
     out = []
     for a, b in _runs(sig_db | sig_deg, min_run):
         sl = slice(a, b)
@@ -316,34 +342,98 @@ def _lag1(r: np.ndarray) -> float:
     return float(num / den) if den > 0 else 0.0
 
 
+def levy_starts(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
+                 effect_values: Mapping[str, float], fallback: np.ndarray) -> np.ndarray:
+    """Per-trial arm parameters (T, 5) from the analytic (Levy) guess of
+    :func:`armfit.fitting.analytic_guess`, applied to each trial's response with the
+    effects at ``effect_values`` removed (:meth:`ClosedLoopModel.remove_effects`); the
+    candidate closest to the data in log error, or the ``fallback`` row where none is
+    physical. A start that does not depend on a possibly distorted earlier fit."""
+    from armfit.fitting import analytic_guess
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    f = data.f_hz[sel]
+    out = np.array(fallback, float, copy=True)
+    base_model = ClosedLoopModel(mp=model.mp)
+    bounds = [(p.lower, p.upper) for p in base_model.params]
+    for i in range(data.h.shape[0]):
+        with np.errstate(all="ignore"):
+            hb = model.remove_effects(f, data.h[i, sel], effect_values) if effect_values \
+                else data.h[i, sel]
+            if not np.all(np.isfinite(hb)):
+                continue
+            best = None
+            # the linear fit is sensitive to the noisy lowest frequencies: also try it
+            # above 0.3 Hz and above 1 Hz, judge every candidate on the whole band
+            cands = [c for lo_f in (0.0, 0.3, 1.0) if np.sum(f >= lo_f) > 10
+                     for c in analytic_guess(f[f >= lo_f], hb[f >= lo_f], model.mp)]
+            for cand in cands:
+                row = np.array([np.clip(cand[n], lo, hi)
+                                for n, (lo, hi) in zip(PARAM_NAMES, bounds, strict=True)])
+                r_db, r_deg = residuals(hb, base_model.response(f, row))
+                err = float(np.nanmean(r_db ** 2 + (r_deg / UNIT_DEG) ** 2))
+                if np.isfinite(err) and (best is None or err < best[0]):
+                    best = (err, row)
+        if best is not None:
+            out[i] = best[1]
+    return out
+
+
+def best_rows(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
+              effect_values: Mapping[str, float], candidates: Sequence[np.ndarray]
+              ) -> np.ndarray:
+    """Per trial, the candidate row of arm parameters (each candidate (T, 5) or (5,))
+    whose response, with the effects at ``effect_values``, is closest to the trial's data
+    in normalised squared error. Returns (T, 5)."""
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    f = data.f_hz[sel]
+    sdb, sdeg = _floor(data.se_db[:, sel], data.se_deg[:, sel])
+    T = data.h.shape[0]
+    rows = [np.broadcast_to(np.asarray(c, float), (T, len(PARAM_NAMES))) for c in candidates]
+    errs = []
+    for r in rows:
+        theta = {n: r[:, i:i + 1] for i, n in enumerate(PARAM_NAMES)}
+        theta.update({k: v for k, v in effect_values.items()})
+        if not model.effects:
+            theta = {n: theta[n] for n in PARAM_NAMES}
+        with np.errstate(all="ignore"):
+            r_db, r_deg = residuals(data.h[:, sel], model.response(f, theta))
+            e = np.nansum((r_db / sdb) ** 2 + (r_deg / sdeg) ** 2, axis=1)
+        errs.append(np.where(np.isfinite(e), e, np.inf))
+    pick = np.argmin(np.array(errs), axis=0)
+    return np.array([rows[k][i] for i, k in enumerate(pick)])
+
+
+def _start_rows(model, data, band, effect_values, given: Sequence[np.ndarray]) -> np.ndarray:
+    """Best per-trial start among the given rows, the Levy guess with the effects removed,
+    and the median Levy row over trials (robust to a trial whose own guess failed)."""
+    levy = levy_starts(model, data, band, effect_values, given[0])
+    return best_rows(model, data, band, effect_values,
+                     [*given, levy, np.exp(np.median(np.log(levy), axis=0))])
+
+
 def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
               base: np.ndarray, starts: Sequence[Mapping[str, float]] = ({},),
-              max_nfev: int = 200) -> JointFit:
+              max_nfev: int = 200, pairs: Sequence[tuple[np.ndarray, Mapping]] = ()
+              ) -> JointFit:
     """Fit ``model`` to every trial of ``data`` at once: arm parameters per trial, effect
     parameters shared (see the module docstring). ``base`` (T, 5), or a list of such:
     starting arm parameters (SI units); ``starts``: candidate starting values of the shared
-    effect parameters. Every combination is tried briefly, the best refined.
+    effect parameters; ``pairs``: further (base, start) combinations. Every combination is
+    tried briefly on a subset of trials, the best refined on all.
     """
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
     prob = _Joint(model, data, sel)
-    lo, hi = prob.bounds()
-    jac_sp = prob.sparsity()
     bases = [base] if isinstance(base, np.ndarray) else list(base)
-    candidates = [prob.pack(b, st) for b in bases for st in starts]
-    if len(candidates) > 1:
-        # short refinement of each start, keep the best
-        scored = []
-        for x0 in candidates:
-            r = optimize.least_squares(prob.fun, x0, bounds=(lo, hi), jac_sparsity=jac_sp,
-                                       method="trf", max_nfev=15, x_scale=1.0,
-                                       tr_solver="lsmr")
-            scored.append((2 * r.cost, r.x))
-        x0 = min(scored, key=lambda t: t[0])[1]
+    combos = [(b, st) for b in bases for st in starts] + list(pairs)
+    if len(combos) > 1:
+        x0s = _screen(model, data, sel, combos, prob)
     else:
-        x0 = candidates[0]
-    res = optimize.least_squares(prob.fun, x0, bounds=(lo, hi), jac_sparsity=jac_sp,
-                                 method="trf", max_nfev=max_nfev, x_scale=1.0,
-                                 tr_solver="lsmr", ftol=1e-8, xtol=1e-8)
+        x0s = [prob.pack(*combos[0])]
+    res = None
+    for x0 in x0s:
+        r = _rescue(prob, model, data, sel, _refine(prob, x0, max_nfev), max_nfev)
+        if res is None or r.cost < res.cost:
+            res = r
     z = prob.unpack(res.x)
     theta = prob.space.to_theta(z)
     r_db, r_deg = prob.split_res(res.x)
@@ -355,6 +445,75 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
     return JointFit(model, theta[:, : prob.nb], shared, s_lo, s_hi, r_db, r_deg,
                     float(np.sum(zres[np.isfinite(zres)] ** 2)), int(zres.size), rho,
                     bool(res.status > 0))
+
+
+def _refine(prob: _Joint, x0: np.ndarray, max_nfev: int):
+    lo, hi = prob.bounds()
+    return optimize.least_squares(prob.fun, x0, bounds=(lo, hi), jac_sparsity=prob.sparsity(),
+                                  method="trf", max_nfev=max_nfev, x_scale=1.0,
+                                  tr_solver="lsmr", tr_options={"maxiter": _LSMR_ITER},
+                                  ftol=1e-8, xtol=1e-8)
+
+
+#: A trial whose misfit exceeds this many times the median trial's is refitted globally.
+_OUTLIER = 4.0
+
+
+def _rescue(prob: _Joint, model: ClosedLoopModel, data: AxisData, sel, res, max_nfev: int):
+    """Trials stuck in a poor local minimum of the joint fit (misfit far above the median
+    trial's) get arm parameters from a global single-trial fit
+    (:func:`armfit.fitting.fit_response`), then the joint fit is refined again; the
+    better of the two results is returned."""
+    from armfit.fitting import fit_response
+    per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
+    bad = np.flatnonzero(per > _OUTLIER * max(np.median(per), 2.0 * prob.f.size))
+    if bad.size == 0:
+        return res
+    x0 = res.x.copy()
+    zb = x0[: prob.T * prob.nb].reshape(prob.T, prob.nb)
+    for i in bad:
+        fit = fit_response(model, data.f_hz[sel], data.h[i, sel], se_db=data.se_db[i, sel],
+                           se_deg=data.se_deg[i, sel], strict=False)
+        row = np.array([fit.params[n] for n in PARAM_NAMES])
+        full = np.concatenate([row, prob.space.to_theta(prob.unpack(res.x)[0])[prob.nb:]])
+        zb[i] = prob.space.clip_z(prob.space.to_z(full))[: prob.nb]
+    res2 = _refine(prob, x0, max_nfev)
+    return res2 if res2.cost < res.cost else res
+
+
+#: Trials used (at most) while screening starting points, and their evaluation budget.
+_SCREEN_TRIALS = 9
+_SCREEN_NFEV = 12
+_REFINE_BEST = 2
+#: Inner iterations of the sparse trust-region solver (enough for these block problems).
+_LSMR_ITER = 25
+
+
+def _screen(model, data: AxisData, sel, combos, prob: _Joint) -> np.ndarray:
+    """Short fits of every (base, start) pair on a spread-out subset of the trials;
+    returns the full starting vectors built from the :data:`_REFINE_BEST` best."""
+    T = data.h.shape[0]
+    idx = np.unique(np.linspace(0, T - 1, min(T, _SCREEN_TRIALS)).round().astype(int))
+    sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
+                   tuple(data.starts[i] for i in idx))
+    sprob = _Joint(model, sub, sel)
+    slo, shi = sprob.bounds()
+    ssp = sprob.sparsity()
+    scored = []
+    for b, st in combos:
+        r = optimize.least_squares(sprob.fun, sprob.pack(b[idx], st), bounds=(slo, shi),
+                                   jac_sparsity=ssp, method="trf", x_scale=1.0,
+                                   max_nfev=_SCREEN_NFEV, tr_solver="lsmr",
+                                   tr_options={"maxiter": _LSMR_ITER})
+        scored.append((r.cost, b, st, r.x))
+    scored.sort(key=lambda t: t[0])
+    out = []
+    for _, b, st, xs in scored[:_REFINE_BEST]:
+        x0 = prob.pack(b, st)
+        if prob.k:
+            x0[-prob.k:] = xs[-prob.k:]
+        out.append(x0)
+    return out
 
 
 def _shared_ci(prob: _Joint, res, names) -> tuple[dict[str, float], dict[str, float]]:
@@ -410,6 +569,7 @@ class Candidate:
     lr: float
     score: float
     significant: bool
+    rss_reduction: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -438,7 +598,8 @@ def _robust_lr(base: JointFit, fit: JointFit, se_db, se_deg) -> tuple[float, flo
     """Likelihood-ratio statistic N_eff ln(RSS_base/RSS_effect), not resting on a few
     points: the :data:`DROP_POINTS` grid points whose improvement is largest are left out
     of both sums (an isolated outlier, e.g. at the edge of the excitation band, cannot
-    make an effect significant; a real effect improves many points). Returns (D, N_eff)."""
+    make an effect significant; a real effect improves many points). Returns (D, N_eff,
+    the fraction of the residual sum of squares the effect removes)."""
     ss0, ss1 = _point_ss(base, se_db, se_deg), _point_ss(fit, se_db, se_deg)
     keep = np.ones(ss0.size, bool)
     keep[np.argsort(ss0 - ss1)[::-1][:DROP_POINTS]] = False
@@ -447,7 +608,7 @@ def _robust_lr(base: JointFit, fit: JointFit, se_db, se_deg) -> tuple[float, flo
     n_eff = n_res * (1 - rho) / (1 + rho)
     rss0, rss1 = float(ss0[keep].sum()), float(ss1[keep].sum())
     lr = n_eff * np.log(rss0 / rss1) if rss1 > 0 and rss0 > rss1 else 0.0
-    return float(lr), float(n_eff)
+    return float(lr), float(n_eff), float(max(1.0 - rss1 / rss0, 0.0)) if rss0 > 0 else 0.0
 
 
 def _errors(f, fit: JointFit, data: AxisData, sel, bands) -> tuple[BandError, ...]:
@@ -468,11 +629,14 @@ def diagnose_axis(data: AxisData, *, band: tuple[float, float],
     f = data.f_hz[sel]
     base_model = ClosedLoopModel.for_axis(data.axis)
     start = np.array([[s[n] for n in PARAM_NAMES] for s in data.starts], float)
-    base = joint_fit(base_model, data, band, start)
+    base = joint_fit(base_model, data, band,
+                     [start, _start_rows(base_model, data, band, {}, [start])])
 
     se_db, se_deg = _floor(data.se_db[:, sel], data.se_deg[:, sel])
     t_db, t_deg = trial_statistics(base.r_db / se_db, base.r_deg / se_deg)
-    fails = failing_bands(f, t_db, t_deg, base.r_db.mean(axis=0), base.r_deg.mean(axis=0))
+    fails = failing_bands(f, t_db, t_deg, base.r_db.mean(axis=0), base.r_deg.mean(axis=0),
+                          size_db=(base.r_db / se_db).mean(axis=0),
+                          size_deg=(base.r_deg / se_deg).mean(axis=0))
     fail_ranges = [(fb.lo_hz, fb.hi_hz) for fb in fails]
     base_err = band_error(f, base.r_db, base.r_deg, se_db, se_deg, band[0], band[1])
     fail_before = _errors(f, base, data, sel, fail_ranges)
@@ -484,13 +648,15 @@ def diagnose_axis(data: AxisData, *, band: tuple[float, float],
                   for st in eff.start_points(model.mp)]
         # from the base fit and from the given starts: a strong missing effect can pull
         # the base fit far from the arm parameters the extended model needs
-        fit = joint_fit(model, data, band, [base.base, start], starts)
+        pairs = [(_start_rows(model, data, band, st, [start, base.base]), st)
+                 for st in starts[1:]]
+        fit = joint_fit(model, data, band, [base.base, start], starts, pairs=pairs)
         if fit.rss > base.rss:  # nested: never worse than the base fit
             fit = JointFit(model, base.base, {f"{eff.name}.{k}": v
                                               for k, v in eff.null(model.mp).items()},
                            {}, {}, base.r_db, base.r_deg, base.rss, base.n_res, base.rho,
                            base.converged)
-        lr, n_eff = _robust_lr(base, fit, se_db, se_deg)
+        lr, n_eff, reduction = _robust_lr(base, fit, se_db, se_deg)
         k = len(eff.params)
         score = float(lr - k * np.log(n_eff))
         err = band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, band[0], band[1])
@@ -503,11 +669,13 @@ def diagnose_axis(data: AxisData, *, band: tuple[float, float],
             rms_deg_before=base_err.rms_deg, rms_deg_after=err.rms_deg,
             rms_norm_before=base_err.rms_norm, rms_norm_after=err.rms_norm,
             failing_before=fail_before, failing_after=_errors(f, fit, data, sel, fail_ranges),
-            lr=float(lr), score=score, significant=bool(score > SIGNIFICANT_BIC)))
+            lr=float(lr), score=score, rss_reduction=reduction,
+            significant=bool(score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION)))
     cands.sort(key=lambda c: c.score, reverse=True)
     best = cands[0] if cands and cands[0].significant else None
     tied = tuple(c.effect for c in cands[1:]
-                 if best is not None and c.significant and best.score - c.score < TIE_BIC)
+                 if best is not None and c.significant
+                 and best.score - c.score < max(TIE_BIC, TIE_FRACTION * best.score))
     if best is None:
         verdict = ("no candidate effect improves the fit beyond the noise: the 5-parameter "
                    "model explains this axis")
@@ -668,7 +836,8 @@ def _summary(axis, grip, level, label, f, r_db, r_deg, se_db, se_deg, band, para
     r_db2, r_deg2 = np.atleast_2d(r_db), np.atleast_2d(r_deg)
     z_db, z_deg = r_db2 / np.atleast_2d(sdb), r_deg2 / np.atleast_2d(sdeg)
     t_db, t_deg = trial_statistics(z_db, z_deg)
-    fails = failing_bands(f, t_db, t_deg, r_db2.mean(axis=0), r_deg2.mean(axis=0))
+    fails = failing_bands(f, t_db, t_deg, r_db2.mean(axis=0), r_deg2.mean(axis=0),
+                          size_db=z_db.mean(axis=0), size_deg=z_deg.mean(axis=0))
     overall = band_error(f, r_db, r_deg, se_db, se_deg, band[0], band[1])
     bands = tuple(band_error(f, r_db, r_deg, se_db, se_deg, lo, hi) for lo, hi in BANDS
                   if hi > band[0] and lo < band[1])

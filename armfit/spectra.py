@@ -310,20 +310,22 @@ def band_bins(freq_native: np.ndarray, grid: np.ndarray, min_bins: int,
               ) -> tuple[np.ndarray, np.ndarray]:
     """Native-bin index ranges [lo, hi) averaged at each grid point.
 
-    The band of grid point g is [g·r^-½, g·r^½) with r the grid's ratio, clipped to the
-    grid's range [grid[0], grid[-1]] (so no band reaches past fmax, where the stimulus
-    may stop); where it holds fewer than ``min_bins`` bins, the ``min_bins`` bins nearest
+    The band of grid point g is [g/h, g·h] with h = r^½ (r the grid's ratio), narrowed
+    to h = min(r^½, grid[-1]/g, g/grid[0]) near the ends so that it stays symmetric in
+    log frequency and never reaches past fmax, where the stimulus may stop; where it
+    holds fewer than ``min_bins`` bins, the ``min_bins`` bins nearest
     to g are used instead; where it holds more than ``max_bins``, only the ``max_bins``
     bins nearest to g (less smoothing bias at sharp resonances). Bins below
     ``first_bin`` (at least DC) are never used.
     """
     nb = freq_native.size
     ratio = grid[1] / grid[0] if grid.size > 1 else 2.0
-    half = math.sqrt(ratio)
+    # symmetric in log frequency, narrowed near the ends of the grid so that no band
+    # is one-sided (a one-sided average of a sloping response is biased)
+    half = np.minimum(math.sqrt(ratio), np.minimum(grid[-1] / grid, grid / grid[0]))
     first = max(1, first_bin)
-    lo = np.maximum(np.searchsorted(freq_native, np.maximum(grid / half, grid[0]),
-                                    side="left"), first)
-    hi = np.searchsorted(freq_native, np.minimum(grid * half, grid[-1]), side="right")
+    lo = np.maximum(np.searchsorted(freq_native, grid / half, side="left"), first)
+    hi = np.searchsorted(freq_native, grid * half, side="right")
     if max_bins is not None:
         centre = np.searchsorted(freq_native, grid)
         lo = np.maximum(lo, centre - max_bins // 2)
@@ -612,23 +614,25 @@ def estimate_trial(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
 # ---------------------------------------------------------------------------
 
 def _log_parts(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """20 log10|H| (dB) and phase (rad), unwrapped along frequency and aligned across
-    trials: each trial is shifted by a multiple of 2π so its first point lies within π of
-    the circular mean of the first points."""
+    """20 log10|H| (dB) and phase (rad) of each trial, on one continuous branch: the
+    circular mean of the trials is unwrapped along frequency and each trial's phase is
+    taken within π of it at every frequency (so a 2π slip of one noisy trial cannot shift
+    the aggregate)."""
     H = np.atleast_2d(np.asarray(H, dtype=complex))
     db = 20.0 * np.log10(np.abs(H))
-    ph = np.unwrap(np.angle(H), axis=-1)
-    ref = np.angle(np.mean(np.exp(1j * ph[:, 0])))
-    ph = ph - 2.0 * np.pi * np.round((ph[:, :1] - ref) / (2.0 * np.pi))
-    return db, ph
+    unit = H / np.abs(H)
+    centre = np.angle(np.mean(unit, axis=0))            # circular mean per frequency
+    ref = np.unwrap(centre)                              # continuous along frequency
+    dev = np.angle(unit * np.exp(-1j * centre))          # each trial's offset, in (-π, π]
+    return db, ref[None, :] + dev
 
 
 def aggregate(H: np.ndarray, how: str) -> np.ndarray:
     """Mean or median of complex responses H (n_trials, n_freq), m/N → (n_freq,).
 
-    Taken on log-magnitude and phase separately: 20 log10|H| (dB) and the phase unwrapped
-    along frequency (each trial aligned to within π of the others at the first
-    frequency) are averaged (``"mean"``) or their medians taken (``"median"``), then
+    Taken on log-magnitude and phase separately: 20 log10|H| (dB) and the phase (each
+    trial taken within π of the trials' circular mean, itself unwrapped along frequency)
+    are averaged (``"mean"``) or their medians taken (``"median"``), then
     recombined as 10^(dB/20)·e^(jφ). This matches the dB cost of eq. 5 and keeps a few
     outlying trials from pulling the magnitude.
     """

@@ -157,8 +157,10 @@ def test_band_bins_band_and_nearest():
     assert (lo[0], hi[0]) == (2, 5)
     # 1 Hz: band [0.316, 3.16) -> bins 0.4 .. 3.1 Hz
     assert freq[lo[1]] == pytest.approx(0.4) and freq[hi[1] - 1] == pytest.approx(3.1)
-    # 10 Hz: band [3.16, 31.6) clipped to the grid's top, 10 Hz included
-    assert freq[lo[2]] == pytest.approx(3.2) and freq[hi[2] - 1] == pytest.approx(10.0)
+    # 10 Hz, the grid's top: the band is narrowed to stay symmetric in log f and below
+    # fmax, h = min(sqrt(10), 10/10) = 1, so it holds one bin; the 3 nearest bins (the
+    # last three, 9.8-10.0 Hz) are used instead
+    assert (lo[2], hi[2]) == (98, 101)
     # at most 5 bins, the ones nearest 1 Hz
     lo, hi = S.band_bins(freq, grid, min_bins=3, max_bins=5, first_bin=2)
     assert (lo[1], hi[1]) == (8, 13)

@@ -65,7 +65,7 @@ def effects_command(as_json):
 
 def _band_json(b) -> dict:
     return {"lo_hz": b.lo_hz, "hi_hz": b.hi_hz, "rms_db": b.rms_db, "rms_deg": b.rms_deg,
-            "rms_norm": b.rms_norm, "n_points": b.n_points}
+            "rms_norm": b.rms_norm, "bias_norm": b.bias_norm, "n_points": b.n_points}
 
 
 @click.command("compare")
@@ -150,7 +150,8 @@ def diagnosis_json(results) -> dict:
                 "rms_norm_before": c.rms_norm_before, "rms_norm_after": c.rms_norm_after,
                 "failing_before": [_band_json(b) for b in c.failing_before],
                 "failing_after": [_band_json(b) for b in c.failing_after],
-                "lr": c.lr, "score": c.score, "significant": c.significant,
+                "lr": c.lr, "score": c.score, "rss_reduction": c.rss_reduction,
+                "significant": c.significant,
             } for c in d.candidates]}
     return {"axes": axes}
 

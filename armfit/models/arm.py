@@ -231,6 +231,22 @@ class ClosedLoopModel:
                 factor = factor * e.term(s, v, self.mp)
         return factor / z
 
+    def remove_effects(self, f_hz, H, effect_values: Mapping[str, float]) -> np.ndarray:
+        """The response eq. 4 would have without the effects, given a measured X/F (m/N)
+        and values of the effect parameters (qualified names): the inverse of
+        :meth:`response`, H_base = 1 / (R/H − ΔZ), R the output factors, ΔZ the added
+        impedances."""
+        s = laplace(f_hz)
+        factor = np.ones_like(s)
+        dz = np.zeros_like(s)
+        for e in self.effects:
+            v = {p.name: effect_values[f"{e.name}.{p.name}"] for p in e.params}
+            if e.stage == "output":
+                factor = factor * e.term(s, v, self.mp)
+            else:
+                dz = dz + e.term(s, v, self.mp)
+        return 1.0 / (factor / np.asarray(H) - dz)
+
     def derived_arm_response(self, f_hz, theta, mp_assumed: float | None = None) -> np.ndarray:
         """What the derived-arm estimate Xa/Fa, Fa = F − Mp ẍ, converges to (m/N).
 

@@ -133,7 +133,8 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
         "magnitude rises above the model towards a peak (or a peak-notch pair) with a "
         "phase swing; above 30 Hz only the rise shows (the paper's Z axis)",
         _resonance, null_values=(60.0, 0.3, 1e-5),
-        starts=((10.0, 0.1, 0.2), (20.0, 0.1, 0.2), (40.0, 0.1, 0.2), (80.0, 0.1, 0.3))),
+        starts=((8.0, 0.2, 0.3), (15.0, 0.2, 0.3), (30.0, 0.2, 0.3), (60.0, 0.2, 0.3),
+                (120.0, 0.2, 0.5))),
     Effect(
         "reflex", "arm",
         (Param("gain_N_per_m", "N/m", 1e-2, 5000.0, 200.0, "reflex stiffness"),
