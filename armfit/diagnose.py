@@ -41,7 +41,7 @@ fit, divided by its standard error across trials (a t statistic); runs of at lea
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import optimize, sparse, stats
@@ -566,6 +566,8 @@ class Candidate:
     rms_norm_after: float
     failing_before: tuple[BandError, ...]
     failing_after: tuple[BandError, ...]
+    failing_bias_before: float
+    failing_bias_after: float
     lr: float
     score: float
     significant: bool
@@ -609,6 +611,19 @@ def _robust_lr(base: JointFit, fit: JointFit, se_db, se_deg) -> tuple[float, flo
     rss0, rss1 = float(ss0[keep].sum()), float(ss1[keep].sum())
     lr = n_eff * np.log(rss0 / rss1) if rss1 > 0 and rss0 > rss1 else 0.0
     return float(lr), float(n_eff), float(max(1.0 - rss1 / rss0, 0.0)) if rss0 > 0 else 0.0
+
+
+def _union_bias(f, fit: JointFit, se_db, se_deg, ranges) -> float:
+    """bias_norm (RMS of the trials' mean normalised residual) pooled over the union of
+    ``ranges`` (Hz); NaN when there is none."""
+    mask = np.zeros(f.size, bool)
+    for lo, hi in ranges:
+        mask |= (f >= lo) & (f <= hi)
+    if not mask.any():
+        return float("nan")
+    m = np.concatenate([(fit.r_db / se_db).mean(axis=0)[mask],
+                        (fit.r_deg / se_deg).mean(axis=0)[mask]])
+    return float(np.sqrt(np.mean(m ** 2)))
 
 
 def _errors(f, fit: JointFit, data: AxisData, sel, bands) -> tuple[BandError, ...]:
@@ -669,6 +684,8 @@ def diagnose_axis(data: AxisData, *, band: tuple[float, float],
             rms_deg_before=base_err.rms_deg, rms_deg_after=err.rms_deg,
             rms_norm_before=base_err.rms_norm, rms_norm_after=err.rms_norm,
             failing_before=fail_before, failing_after=_errors(f, fit, data, sel, fail_ranges),
+            failing_bias_before=_union_bias(f, base, se_db, se_deg, fail_ranges),
+            failing_bias_after=_union_bias(f, fit, se_db, se_deg, fail_ranges),
             lr=float(lr), score=score, rss_reduction=reduction,
             significant=bool(score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION)))
     cands.sort(key=lambda c: c.score, reverse=True)
@@ -853,9 +870,12 @@ def _fit_effects_aggregate(base_model, theta, effects, f, h, se_db, se_deg, band
         model = model.with_effect(e)
     base = {n: theta[n] for n in PARAM_NAMES}
     best = None
-    for start in model.start_points(base):
+    starts = model.start_points(base)
+    # local refits from each starting point, and one global search warm-started at the
+    # null point (a strong effect can make the given arm parameters a poor start)
+    for i, start in enumerate([*starts, starts[0]]):
         fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, band=band, x0=start,
-                           global_search=False, strict=False)
+                           global_search=i == len(starts), strict=False)
         if best is None or fit.objective < best.objective:
             best = fit
     return model, best.params
@@ -948,3 +968,42 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
 def model_label(model: ClosedLoopModel) -> str:
     """"base" or "base+<effect>+…"."""
     return "+".join(["base", *(e.name for e in model.effects)])
+
+
+# ---------------------------------------------------------------------------
+# JSON documents
+# ---------------------------------------------------------------------------
+
+def band_to_dict(b: BandError) -> dict:
+    """A :class:`BandError` as a JSON-ready dict."""
+    return {"lo_hz": b.lo_hz, "hi_hz": b.hi_hz, "rms_db": b.rms_db, "rms_deg": b.rms_deg,
+            "rms_norm": b.rms_norm, "bias_norm": b.bias_norm, "n_points": b.n_points}
+
+
+def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
+    """The JSON document of ``armfit diagnose`` (schema in the README)."""
+    axes = {}
+    for d in results:
+        axes[d.axis] = {
+            "missing_effect": d.missing_effect,
+            "tied_with": list(d.tied_with),
+            "verdict": d.verdict,
+            "band_hz": list(d.band),
+            "n_trials": d.n_trials,
+            "base_error": band_to_dict(d.base_error),
+            "failing_bands": [asdict(fb) for fb in d.failing],
+            "cross_coupling_db": d.coupling,
+            "candidates": [{
+                "effect": c.effect, "params": c.params, "params_lo": c.params_lo,
+                "params_hi": c.params_hi,
+                "rms_db_before": c.rms_db_before, "rms_db_after": c.rms_db_after,
+                "rms_deg_before": c.rms_deg_before, "rms_deg_after": c.rms_deg_after,
+                "rms_norm_before": c.rms_norm_before, "rms_norm_after": c.rms_norm_after,
+                "failing_bias_before": c.failing_bias_before,
+                "failing_bias_after": c.failing_bias_after,
+                "failing_before": [band_to_dict(b) for b in c.failing_before],
+                "failing_after": [band_to_dict(b) for b in c.failing_after],
+                "lr": c.lr, "score": c.score, "rss_reduction": c.rss_reduction,
+                "significant": c.significant,
+            } for c in d.candidates]}
+    return {"axes": axes}

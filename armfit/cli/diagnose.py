@@ -63,11 +63,6 @@ def effects_command(as_json):
     _console().print(t)
 
 
-def _band_json(b) -> dict:
-    return {"lo_hz": b.lo_hz, "hi_hz": b.hi_hz, "rms_db": b.rms_db, "rms_deg": b.rms_deg,
-            "rms_norm": b.rms_norm, "bias_norm": b.bias_norm, "n_points": b.n_points}
-
-
 @click.command("compare")
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--model", "model_path", required=True, type=click.Path(dir_okay=False),
@@ -85,6 +80,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 
     Example: ``armfit compare spectra.parquet --model nominal_params.csv --effect delay``
     """
+    from armfit.diagnose import band_to_dict as _band_json
     from armfit.diagnose import compare
     from armfit.io.artifacts import read_params, read_spectra
     params = read_params(model_path)
@@ -129,33 +125,6 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
                       highlight=False)
 
 
-def diagnosis_json(results) -> dict:
-    """The JSON document of ``armfit diagnose`` (schema in the README)."""
-    axes = {}
-    for d in results:
-        axes[d.axis] = {
-            "missing_effect": d.missing_effect,
-            "tied_with": list(d.tied_with),
-            "verdict": d.verdict,
-            "band_hz": list(d.band),
-            "n_trials": d.n_trials,
-            "base_error": _band_json(d.base_error),
-            "failing_bands": [asdict(fb) for fb in d.failing],
-            "cross_coupling_db": d.coupling,
-            "candidates": [{
-                "effect": c.effect, "params": c.params, "params_lo": c.params_lo,
-                "params_hi": c.params_hi,
-                "rms_db_before": c.rms_db_before, "rms_db_after": c.rms_db_after,
-                "rms_deg_before": c.rms_deg_before, "rms_deg_after": c.rms_deg_after,
-                "rms_norm_before": c.rms_norm_before, "rms_norm_after": c.rms_norm_after,
-                "failing_before": [_band_json(b) for b in c.failing_before],
-                "failing_after": [_band_json(b) for b in c.failing_after],
-                "lr": c.lr, "score": c.score, "rss_reduction": c.rss_reduction,
-                "significant": c.significant,
-            } for c in d.candidates]}
-    return {"axes": axes}
-
-
 @click.command("diagnose")
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--model", "model_path", required=True, type=click.Path(dir_okay=False),
@@ -178,7 +147,7 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, over
     residuals, and says which one is significant. Example:
     ``armfit diagnose spectra.parquet --model grip_params.csv``
     """
-    from armfit.diagnose import diagnose
+    from armfit.diagnose import diagnose, diagnosis_to_dict
     from armfit.io.artifacts import read_params, read_spectra
     from armfit.io.atomic import check_output, write_text_atomic
     if output:
@@ -190,7 +159,7 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, over
     if not results:
         raise UsageError(f"{spectra}: holds no trial-level measured responses for the axes "
                          f"of {model_path}")
-    doc = diagnosis_json(results)
+    doc = diagnosis_to_dict(results)
     if output:
         write_text_atomic(output, json.dumps(doc, indent=2) + "\n", overwrite=overwrite)
     if as_json:
