@@ -10,6 +10,8 @@ from typing import Any, TypeVar
 
 import click
 
+from armfit.io.artifacts import json_default
+
 T = TypeVar("T")
 
 output_option = click.option(
@@ -51,16 +53,7 @@ def message(text: str) -> None:
 
 def emit_json(obj: Any) -> None:
     """Write ``obj`` as JSON on stdout."""
-    click.echo(json.dumps(obj, indent=2, sort_keys=False, default=_json_default))
-
-
-def _json_default(o):
-    import numpy as np
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+    click.echo(json.dumps(obj, indent=2, sort_keys=False, default=json_default))
 
 
 @contextmanager

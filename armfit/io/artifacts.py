@@ -54,14 +54,15 @@ def write_spectra(df, path, *, meta: dict, overwrite: bool = False):
         raise ValueError(f"spectra table lacks columns: {', '.join(missing)}")
     table = pa.Table.from_pandas(df[list(SPECTRA_COLUMNS)], preserve_index=False)
     kv = dict(table.schema.metadata or {})
-    kv[SPECTRA_META_KEY] = json.dumps(meta, default=_json_default).encode()
+    kv[SPECTRA_META_KEY] = json.dumps(meta, default=json_default).encode()
     table = table.replace_schema_metadata(kv)
     with atomic_path(path, overwrite=overwrite) as tmp:
         pq.write_table(table, tmp, compression="zstd")
     return path
 
 
-def _json_default(o):
+def json_default(o):
+    """``json.dumps`` default: numpy scalars and arrays as Python numbers and lists."""
     import numpy as np
     if isinstance(o, np.generic):
         return o.item()
