@@ -13,7 +13,8 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/armfit ingest sample_data/study -o out/trials.parquet --overwrite
+	$(BIN)/armfit run sample_data/study -o out/study --overwrite --jobs 2
+	$(BIN)/armfit run sample_data/hidden -o out/hidden --overwrite --jobs 2
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

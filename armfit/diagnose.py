@@ -631,22 +631,43 @@ def _errors(f, fit: JointFit, data: AxisData, sel, bands) -> tuple[BandError, ..
     return tuple(band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, lo, hi) for lo, hi in bands)
 
 
-def diagnose_axis(data: AxisData, *, band: tuple[float, float],
-                  effects: Sequence[Effect] | None = None) -> AxisDiagnosis:
-    """Fit the base model and each candidate effect to every trial of one axis, rank.
+def _start_array(data: AxisData) -> np.ndarray:
+    return np.array([[s[n] for n in PARAM_NAMES] for s in data.starts], float)
 
-    data: the axis's trial responses with per-trial base starts; band: (lo, hi) Hz;
-    effects: candidates (default: the whole library). See the module docstring for the
-    criterion.
-    """
-    effects = list(EFFECTS.values()) if effects is None else list(effects)
-    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
-    f = data.f_hz[sel]
+
+def fit_base(data: AxisData, band: tuple[float, float]) -> JointFit:
+    """The base model (eq. 4) fitted jointly to every trial of one axis."""
     base_model = ClosedLoopModel.for_axis(data.axis)
-    start = np.array([[s[n] for n in PARAM_NAMES] for s in data.starts], float)
-    base = joint_fit(base_model, data, band,
+    start = _start_array(data)
+    return joint_fit(base_model, data, band,
                      [start, _start_rows(base_model, data, band, {}, [start])])
 
+
+def fit_candidate(data: AxisData, band: tuple[float, float], base: JointFit,
+                  effect: Effect) -> JointFit:
+    """Base + ``effect`` fitted jointly (effect shared), never worse than ``base``."""
+    start = _start_array(data)
+    model = ClosedLoopModel.for_axis(data.axis).with_effect(effect)
+    starts = [{f"{effect.name}.{k}": v for k, v in st.items()}
+              for st in effect.start_points(model.mp)]
+    # from the base fit and from the given starts: a strong missing effect can pull
+    # the base fit far from the arm parameters the extended model needs
+    pairs = [(_start_rows(model, data, band, st, [start, base.base]), st)
+             for st in starts[1:]]
+    fit = joint_fit(model, data, band, [base.base, start], starts, pairs=pairs)
+    if fit.rss > base.rss:  # nested: never worse than the base fit
+        fit = JointFit(model, base.base, {f"{effect.name}.{k}": v
+                                          for k, v in effect.null(model.mp).items()},
+                       {}, {}, base.r_db, base.r_deg, base.rss, base.n_res, base.rho,
+                       base.converged)
+    return fit
+
+
+def assess(data: AxisData, band: tuple[float, float], base: JointFit,
+           fits: Sequence[tuple[Effect, JointFit]]) -> AxisDiagnosis:
+    """Failing bands of the base fit, the evidence for each candidate fit, the verdict."""
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    f = data.f_hz[sel]
     se_db, se_deg = _floor(data.se_db[:, sel], data.se_deg[:, sel])
     t_db, t_deg = trial_statistics(base.r_db / se_db, base.r_deg / se_deg)
     fails = failing_bands(f, t_db, t_deg, base.r_db.mean(axis=0), base.r_deg.mean(axis=0),
@@ -657,23 +678,9 @@ def diagnose_axis(data: AxisData, *, band: tuple[float, float],
     fail_before = _errors(f, base, data, sel, fail_ranges)
 
     cands = []
-    for eff in effects:
-        model = base_model.with_effect(eff)
-        starts = [{f"{eff.name}.{k}": v for k, v in st.items()}
-                  for st in eff.start_points(model.mp)]
-        # from the base fit and from the given starts: a strong missing effect can pull
-        # the base fit far from the arm parameters the extended model needs
-        pairs = [(_start_rows(model, data, band, st, [start, base.base]), st)
-                 for st in starts[1:]]
-        fit = joint_fit(model, data, band, [base.base, start], starts, pairs=pairs)
-        if fit.rss > base.rss:  # nested: never worse than the base fit
-            fit = JointFit(model, base.base, {f"{eff.name}.{k}": v
-                                              for k, v in eff.null(model.mp).items()},
-                           {}, {}, base.r_db, base.r_deg, base.rss, base.n_res, base.rho,
-                           base.converged)
+    for eff, fit in fits:
         lr, n_eff, reduction = _robust_lr(base, fit, se_db, se_deg)
-        k = len(eff.params)
-        score = float(lr - k * np.log(n_eff))
+        score = float(lr - len(eff.params) * np.log(n_eff))
         err = band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, band[0], band[1])
         short = {n.split(".", 1)[1]: v for n, v in fit.shared.items()}
         cands.append(Candidate(
@@ -707,6 +714,19 @@ def diagnose_axis(data: AxisData, *, band: tuple[float, float],
                          n_trials=int(data.h.shape[0]), missing_effect=None if best is None
                          else best.effect, tied_with=tied, candidates=tuple(cands),
                          failing=tuple(fails), base_error=base_err, verdict=verdict)
+
+
+def diagnose_axis(data: AxisData, *, band: tuple[float, float],
+                  effects: Sequence[Effect] | None = None) -> AxisDiagnosis:
+    """Fit the base model and each candidate effect to every trial of one axis, rank.
+
+    data: the axis's trial responses with per-trial base starts; band: (lo, hi) Hz;
+    effects: candidates (default: the whole library). See the module docstring for the
+    criterion.
+    """
+    effects = list(EFFECTS.values()) if effects is None else list(effects)
+    base = fit_base(data, band)
+    return assess(data, band, base, [(e, fit_candidate(data, band, base, e)) for e in effects])
 
 
 # ---------------------------------------------------------------------------
@@ -797,10 +817,14 @@ def cross_coupling(spectra, axis: str, band: tuple[float, float]) -> dict[str, f
     return out
 
 
-def _diagnose_one(args):
-    data, band, effects, coupling = args
-    d = diagnose_axis(data, band=band, effects=effects)
-    return AxisDiagnosis(**{**d.__dict__, "coupling": coupling})
+def _base_task(args):
+    data, band = args
+    return fit_base(data, band)
+
+
+def _candidate_task(args):
+    data, band, base, effect = args
+    return fit_candidate(data, band, base, effect)
 
 
 def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
@@ -809,19 +833,42 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
     """Diagnose every axis present in both ``spectra`` (a spectra DataFrame) and
     ``params`` (a params DataFrame, grip or nominal fits): see :func:`diagnose_axis`.
     ``band`` defaults to the whole grid of the spectra (the point is to look beyond the
-    paper's fit bands); ``jobs`` > 1 diagnoses axes in parallel processes."""
+    paper's fit bands); ``jobs`` > 1 runs the base fits (one per axis), then the candidate
+    fits (one per axis and effect) in parallel processes — the results do not depend on
+    ``jobs``."""
+    effects = list(EFFECTS.values()) if effects is None else list(effects)
     tasks = []
     for axis in axes:
         data = axis_data(spectra, params, axis)
         if data is None:
             continue
         b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
-        tasks.append((data, b, effects, cross_coupling(spectra, axis, b)))
-    if jobs > 1 and len(tasks) > 1:
+        tasks.append((data, b))
+    if not tasks:
+        return []
+    pool = None
+    if jobs > 1:
+        import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(max_workers=min(jobs, len(tasks))) as pool:
-            return list(pool.map(_diagnose_one, tasks))
-    return [_diagnose_one(t) for t in tasks]
+        # forkserver: safe when the caller has threads of its own (the run pipeline)
+        method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method))
+    try:
+        run = pool.map if pool is not None else map
+        bases = list(run(_base_task, tasks))
+        cand_tasks = [(data, b, base, e) for (data, b), base in zip(tasks, bases, strict=True)
+                      for e in effects]
+        fits = list(run(_candidate_task, cand_tasks))
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    out = []
+    n = len(effects)
+    for i, ((data, b), base) in enumerate(zip(tasks, bases, strict=True)):
+        d = assess(data, b, base, list(zip(effects, fits[i * n:(i + 1) * n], strict=True)))
+        out.append(AxisDiagnosis(**{**d.__dict__,
+                                    "coupling": cross_coupling(spectra, data.axis, b)}))
+    return out
 
 
 # ---------------------------------------------------------------------------

@@ -91,6 +91,8 @@ def _register() -> None:
     cli.add_command(diagnose.diagnose_command)
     from armfit.cli import fit_uncertainty
     cli.add_command(fit_uncertainty.command)
+    from armfit.cli import run
+    cli.add_command(run.command)
     pass
 
 

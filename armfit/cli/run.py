@@ -1,0 +1,77 @@
+"""``armfit run``: the whole pipeline in one command, into one output folder."""
+
+from __future__ import annotations
+
+import click
+
+from armfit.cli.options import (
+    emit_json,
+    jobs_option,
+    json_option,
+    manifest_option,
+    message,
+    overwrite_option,
+    skip_bad_option,
+)
+from armfit.fitting import COSTS
+from armfit.spectra import METHODS
+
+
+@click.command("run")
+@click.argument("inputs", nargs=-1, type=click.Path(), metavar="INPUT...")
+@click.option("-o", "--output", "outdir", required=True, type=click.Path(), metavar="OUTDIR",
+              help="Folder to write (built beside it, renamed into place at the end).")
+@manifest_option
+@skip_bad_option
+@click.option("--method", type=click.Choice(METHODS), default="h1", show_default=True,
+              help="Measured-dynamics estimator (see `armfit estimate`).")
+@click.option("--cost", type=click.Choice(COSTS), default="complex", show_default=True,
+              help="Arm-fit cost: complex (dB and phase over their standard errors) or "
+                   "paper (eq. 5, dB only).")
+@click.option("--wu-cost", type=click.Choice(["envelope", "paper"]), default="envelope",
+              show_default=True,
+              help="Wu fit: envelope (|Wu| >= W_max guaranteed) or paper (dB least squares).")
+@jobs_option
+@click.option("--no-figures", is_flag=True, help="Skip the figures (faster).")
+@overwrite_option
+@json_option
+def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, jobs, no_figures,
+            overwrite, as_json):
+    """Run every stage on raw trials and write all tables, figures and report.md into
+    OUTDIR, e.g. ``armfit run raw/ -o results``.
+
+    Stages: ingest, estimate, fit-grip, fit-nominal, fit-uncertainty, diagnose, then
+    (if the diagnosis names an effect missing from the model) fit-nominal again with
+    that effect, compare, figures and the report. INPUT are trial files, folders or an
+    `armfit ingest` dataset. Nothing is left behind if a stage fails; an existing OUTDIR
+    is replaced only with --overwrite.
+    """
+    from armfit.pipeline import RunOptions, run_pipeline
+
+    if not inputs and manifest is None:
+        raise click.UsageError("give trial files or folders, a dataset, or --manifest")
+    options = RunOptions(manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
+                         wu_cost=wu_cost, jobs=jobs, figures=not no_figures,
+                         overwrite=overwrite)
+    result = run_pipeline(
+        inputs, outdir, options,
+        on_stage=lambda s: message(f"{s.name}: {s.seconds:.1f} s — {s.summary}"),
+        warn=lambda text: message(f"warning: {text}"))
+    for f, reason in result.skipped:
+        message(f"skipped {f}: {reason}")
+    for axis, verdict in result.verdicts.items():
+        message(f"axis {axis}: {verdict}")
+    message(f"wrote {len(result.files)} files into {result.outdir} in "
+            f"{result.wall_s:.1f} s; see {result.outdir}/report.md")
+    if as_json:
+        emit_json({
+            "outdir": result.outdir,
+            "files": list(result.files),
+            "trials": result.trials,
+            "skipped": [{"file": f, "reason": r} for f, r in result.skipped],
+            "diagnosis": {a: {"missing_effect": result.missing[a], "verdict": v}
+                          for a, v in result.verdicts.items()},
+            "refitted": {e: list(a) for e, a in result.refitted.items()},
+            "timings_s": {s.name: round(s.seconds, 3) for s in result.stages},
+            "total_s": round(result.wall_s, 3),
+        })

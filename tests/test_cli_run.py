@@ -1,0 +1,287 @@
+"""`armfit run`: the whole pipeline on a small simulated study with a known hidden effect.
+
+The study (made once per module with `armfit simulate`): 2 subjects × axes x and z × grips
+1, 2, 3 N, 26 s trials at 1 kHz (the shortest that holds four 10 s derived-dynamics
+segments at 0.1 Hz), seed 3, and a pure output delay of 12 ms on the z axis only. The
+pipeline runs twice in the whole module: once with figures and --json (snapshotted to
+memory), once more with --overwrite --no-figures into the same folder.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+
+from armfit import __version__
+from armfit.cli.main import cli
+from armfit.diagnose import BANDS
+from armfit.io.artifacts import model_from_params, read_params, read_spectra
+
+TRUE_DELAY_S = 0.012  # the simulator's --effect delay=0.012 on z (its known truth)
+
+#: Every file a run of this study must write (delay named on z only -> one refit file).
+TABLES = ("compare.csv", "grip_params.csv", "nominal_params.csv", "nominal_params_delay.csv",
+          "wu.csv", "wu_summary.csv", "wu_wmax.csv")
+EXPECTED = set(TABLES) | {
+    "trials.parquet", "spectra.parquet", "grip_params.tex", "nominal_params.tex", "wu.tex",
+    "diagnosis.json", "report.md", "figures/bode.png", "figures/uncertainty.png",
+    "figures/literature.png", "figures/residual_x.png", "figures/residual_z.png"}
+
+
+def _invoke(*args: str):
+    return CliRunner().invoke(cli, list(args))
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("run")
+    res = _invoke("simulate", "-o", str(root / "study"), "--subjects", "2", "--axes", "xz",
+                  "--duration", "26,26", "--seed", "3", "--effect", f"delay={TRUE_DELAY_S}",
+                  "--effect-axes", "z")
+    assert res.exit_code == 0, res.output
+    return root / "study"
+
+
+@pytest.fixture(scope="module")
+def first(study):
+    """The first run (figures on, --json, 2 jobs): its result and every file's bytes."""
+    out = study.parent / "out"
+    res = _invoke("run", str(study), "-o", str(out), "--jobs", "2", "--json")
+    assert res.exit_code == 0, res.stderr
+    return res, _snapshot(out), out
+
+
+@pytest.fixture(scope="module")
+def second(first, study):
+    """The same study again into the same folder: --overwrite --no-figures, 1 job."""
+    _, _, out = first
+    res = _invoke("run", str(study), "-o", str(out), "--overwrite", "--no-figures")
+    assert res.exit_code == 0, res.stderr
+    return res, _snapshot(out)
+
+
+def test_run_writes_every_expected_file(first):
+    res, files, out = first
+    assert set(files) == EXPECTED
+    doc = json.loads(res.stdout)
+    # the --json summary lists exactly what is on disk
+    assert sorted(doc["files"]) == sorted(files)
+    assert doc["outdir"] == str(out) and doc["trials"] == 12  # 2 subjects x 2 axes x 3 grips
+    for name in EXPECTED:
+        if name.endswith(".png"):
+            assert files[name][:8] == b"\x89PNG\r\n\x1a\n"  # the PNG signature (RFC 2083)
+    # nothing but OUTDIR was left beside it (no temporary folder)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["out", "study", "study.truth.json"]
+
+
+def test_stage_lines_and_json_timings(first):
+    res, _, _ = first
+    stages = ["ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty", "figures",
+              "diagnose", "refit", "compare", "residuals", "report"]
+    lines = [ln for ln in res.stderr.splitlines()
+             if re.match(r"^[a-z-]+: \d+\.\d s — ", ln)]
+    assert [ln.split(":")[0] for ln in lines] == stages
+    doc = json.loads(res.stdout)
+    assert list(doc["timings_s"]) == stages
+    assert all(v >= 0 for v in doc["timings_s"].values()) and doc["total_s"] > 0
+
+
+def test_diagnosis_names_the_simulated_effect_and_refits_it(first):
+    res, files, _ = first
+    doc = json.loads(res.stdout)
+    # simulator's truth: a delay on z only, the paper's model on x
+    assert doc["diagnosis"]["z"]["missing_effect"] == "delay"
+    assert doc["diagnosis"]["x"]["missing_effect"] is None
+    assert doc["refitted"] == {"delay": ["z"]}
+    diag = json.loads(files["diagnosis.json"])
+    assert {a: d["verdict"] for a, d in diag["axes"].items()} == \
+        {a: d["verdict"] for a, d in doc["diagnosis"].items()}
+    refit = pd.read_csv(io.BytesIO(files["nominal_params_delay.csv"]))
+    assert list(refit["axis"]) == ["z"] and refit["effects"].iloc[0] == "delay"
+    # the refit recovers the simulated 12 ms within 10 %: a delay is pi*f*tau*2 rad of
+    # phase, 130 deg at 30 Hz, against a phase noise of a few degrees per grid point
+    assert refit["delay.delay_s"].iloc[0] == pytest.approx(TRUE_DELAY_S, rel=0.10)
+    # fitted over the band the diagnosis used (the whole grid), not the paper's z band
+    assert refit["band_hi_hz"].iloc[0] == pytest.approx(diag["axes"]["z"]["band_hz"][1])
+
+
+def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
+    _, _, out = first
+    comp = pd.read_csv(out / "compare.csv", keep_default_na=False)
+    assert list(comp.columns) == ["axis", "grip", "level", "model", "band", "rms_db",
+                                  "rms_deg", "rms_norm"]
+    bands = ["overall"] + [f"{lo:g}-{hi:g}" for lo, hi in BANDS]
+    keys = list(zip(comp["axis"], comp["model"], comp["band"], strict=True))
+    assert keys == ([("x", "base", b) for b in bands] + [("z", "base", b) for b in bands]
+                    + [("z", "base+delay", b) for b in bands])
+    assert set(comp["level"]) == {"median"} and set(comp["grip"]) == {""}
+    # analytic check of the overall rows: RMS over the grid of 20 log10|H_med / H_CL| (dB)
+    # and of angle(H_med / H_CL) (deg), H_CL of eq. 4 at the row's parameters
+    spectra = read_spectra(out / "spectra.parquet")
+    for axis, model_file in (("x", "nominal_params.csv"), ("z", "nominal_params.csv"),
+                             ("z", "nominal_params_delay.csv")):
+        row = read_params(out / model_file).set_index("axis").loc[axis]
+        model, theta = model_from_params({**row.to_dict(), "axis": axis})
+        med = spectra[(spectra["level"] == "median") & (spectra["kind"] == "measured")
+                      & (spectra["axis"] == axis)].sort_values("freq_hz")
+        h = med["re"].to_numpy() + 1j * med["im"].to_numpy()
+        ratio = h / model.response(med["freq_hz"].to_numpy(), theta)
+        rms_db = np.sqrt(np.mean((20 * np.log10(np.abs(ratio))) ** 2))
+        rms_deg = np.sqrt(np.mean(np.degrees(np.angle(ratio)) ** 2))
+        label = "base" if model_file == "nominal_params.csv" else "base+delay"
+        got = comp[(comp["axis"] == axis) & (comp["model"] == label)
+                   & (comp["band"] == "overall")].iloc[0]
+        # CSV keeps 10 significant digits
+        assert got["rms_db"] == pytest.approx(rms_db, rel=1e-8)
+        assert got["rms_deg"] == pytest.approx(rms_deg, rel=1e-8)
+    z = comp[(comp["axis"] == "z") & (comp["band"] == "overall")].set_index("model")
+    # with the true effect modelled the systematic error goes: at least halved
+    assert z.loc["base+delay", "rms_norm"] < 0.5 * z.loc["base", "rms_norm"]
+
+
+def test_tables_equal_those_of_the_subcommands(first, tmp_path):
+    """The pipeline's tables are byte-identical to fit-grip / fit-nominal /
+    fit-uncertainty run by hand on the spectra it wrote."""
+    _, files, out = first
+    spectra = str(out / "spectra.parquet")
+    for args, written in (
+            (["fit-grip", spectra, "-o", str(tmp_path / "g.csv")], {"g.csv": "grip_params.csv"}),
+            (["fit-nominal", spectra, "-o", str(tmp_path / "n.csv")],
+             {"n.csv": "nominal_params.csv"}),
+            (["fit-uncertainty", spectra, "--nominal", str(out / "nominal_params.csv"), "-o",
+              str(tmp_path / "wu.csv")],
+             {"wu.csv": "wu.csv", "wu_summary.csv": "wu_summary.csv",
+              "wu_wmax.csv": "wu_wmax.csv"}),
+            (["fit-nominal", spectra, "-o", str(tmp_path / "nd.csv"), "--effect", "delay",
+              "--band", "z=0.1:30"], None)):
+        res = _invoke(*args)
+        assert res.exit_code == 0, res.stderr
+        for mine, theirs in (written or {}).items():
+            assert (tmp_path / mine).read_bytes() == files[theirs], theirs
+    # the refit is fit-nominal --effect delay over 0.1-30 Hz, on z
+    hand = read_params(tmp_path / "nd.csv")
+    pipe = read_params(out / "nominal_params_delay.csv")
+    assert hand[hand["axis"] == "z"].reset_index(drop=True).equals(pipe)
+
+
+def test_report_states_every_stage_and_the_diagnosis(first):
+    _, files, _ = first
+    report = files["report.md"].decode()
+    diag = json.loads(files["diagnosis.json"])
+    assert f"armfit {__version__}" in report
+    for stage in ("ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty",
+                  "diagnose", "refit", "compare", "figures"):
+        assert f"**{stage}**" in report
+    for heading in ("Table I", "Table II", "Table III", "## Diagnosis", "### Axis X",
+                    "### Axis Z"):
+        assert heading in report
+    for d in diag["axes"].values():
+        assert f"**Verdict:** {d['verdict']}." in report
+        for fb in d["failing_bands"]:
+            assert fb["description"] in report
+    z = diag["axes"]["z"]
+    best = next(c for c in z["candidates"] if c["effect"] == "delay")
+    assert (f"the error falls from {best['rms_db_before']:.2f} dB / "
+            f"{best['rms_deg_before']:.1f} deg") in report
+    for fig in (f for f in EXPECTED if f.startswith("figures/")):
+        assert f"]({fig})" in report
+    assert "`nominal_params_delay.csv`" in report
+    # deterministic: no timings or dates in the report
+    assert not re.search(r"\d+\.\d+ s\b|\b20\d\d-\d\d-\d\d", report)
+
+
+def test_second_run_gives_identical_tables_and_no_figures(first, second):
+    _, files1, _ = first
+    res, files2 = second
+    for name in (*TABLES, "grip_params.tex", "nominal_params.tex", "wu.tex",
+                 "diagnosis.json", "spectra.parquet", "trials.parquet"):
+        assert files2[name] == files1[name], name
+    # --no-figures: the replaced folder has no figures (it was replaced, not merged)
+    assert set(files2) == EXPECTED - {f for f in EXPECTED if f.startswith("figures/")}
+    report = files2["report.md"].decode()
+    assert "skipped (`--no-figures`)" in report and "](figures/" not in report
+    assert "residuals:" not in res.stderr and "figures:" not in res.stderr
+
+
+def test_existing_outdir_is_refused_without_overwrite(study, tmp_path):
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    res = _invoke("run", str(study), "-o", str(out))
+    assert res.exit_code == 73
+    assert res.stderr.strip() == f"armfit: error: {out}: exists; pass --overwrite to replace it"
+    assert (out / "keep.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results"]
+
+
+def test_outdir_holding_the_input_is_refused_even_with_overwrite(study, tmp_path):
+    res = _invoke("run", str(study), "-o", str(study.parent), "--overwrite")
+    assert res.exit_code == 73
+    assert "holds the input" in res.stderr and "Traceback" not in res.stderr
+    assert study.is_dir() and len(list(study.iterdir())) == 12
+
+
+def test_too_short_trials_exit_65_and_leave_no_outdir(tmp_path):
+    """20 s trials pass ingest (2/0.1 Hz = 20 s) but are too short for the derived
+    dynamics' four 10 s segments: the run fails in the estimate stage, after ingest has
+    written trials.parquet into the temporary folder, and leaves nothing behind."""
+    study = tmp_path / "short"
+    res = _invoke("simulate", "-o", str(study), "--subjects", "1", "--axes", "x",
+                  "--grips", "1", "--duration", "20,20", "--seed", "4")
+    assert res.exit_code == 0, res.output
+    before = sorted(p.name for p in tmp_path.iterdir())
+    res = _invoke("run", str(study), "-o", str(tmp_path / "out"))
+    assert res.exit_code == 65
+    assert res.stderr.startswith("ingest: ")  # the first stage had finished
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"armfit: error: {study / 'sub-01_axis-x_grip-1N.parquet'}: too "
+                           "short")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_bad_cell_exits_65_naming_file_column_row(tmp_path, write_trial, make_columns):
+    cols = make_columns("x", fs=1000.0, duration_s=26.0)
+    force = [repr(float(v)) for v in cols["force_x_N"]]
+    force[4] = "n/a"  # data row 5
+    cols["force_x_N"] = force
+    bad = write_trial(tmp_path / "raw" / "sub-01_axis-x_grip-1N.csv", cols)
+    res = _invoke("run", str(tmp_path / "raw"), "-o", str(tmp_path / "out"))
+    assert res.exit_code == 65
+    msg = res.stderr.strip().splitlines()[-1]
+    assert msg.startswith(f"armfit: error: {bad}, column 'force_x_N', row 5: ")
+    assert not (tmp_path / "out").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]
+
+
+def test_all_trials_bad_with_skip_bad_names_outdir_not_a_temporary(tmp_path, write_trial,
+                                                                     make_columns):
+    cols = make_columns("x", fs=1000.0, duration_s=26.0)
+    cols["force_x_N"] = [repr(float(v)) for v in cols["force_x_N"]]
+    cols["force_x_N"][1] = "abc"  # data row 2
+    bad = write_trial(tmp_path / "raw" / "sub-01_axis-x_grip-1N.csv", cols)
+    out = tmp_path / "out"
+    res = _invoke("run", str(tmp_path / "raw"), "-o", str(out), "--skip-bad")
+    assert res.exit_code == 65
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"armfit: error: {out / 'trials.parquet'}: every trial was bad (1 skipped, the "
+        f"first {bad}: column 'force_x_N', row 2: non-numeric value 'abc'; expected a "
+        "number); nothing written")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]
+
+
+def test_no_input_is_a_usage_error(tmp_path):
+    res = _invoke("run", "-o", str(tmp_path / "out"))
+    assert res.exit_code == 2 and "give trial files" in res.stderr
+    assert not (tmp_path / "out").exists()

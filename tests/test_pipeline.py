@@ -1,0 +1,111 @@
+"""armfit.pipeline: the output-folder checks, compare.csv's layout, and that a stage
+failing after others have written leaves no OUTDIR (or the old one untouched)."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+
+import pytest
+from click.testing import CliRunner
+
+from armfit.cli.main import cli
+from armfit.diagnose import BandError, Comparison
+from armfit.errors import ConvergenceError, OutputError
+from armfit.pipeline import (
+    COMPARE_COLUMNS,
+    RunOptions,
+    _md_table,
+    check_outdir,
+    compare_frame,
+    run_pipeline,
+)
+
+
+def _band(lo, hi, k):
+    return BandError(lo, hi, rms_db=k, rms_deg=10 * k, rms_norm=100 * k, n_points=5)
+
+
+def test_compare_frame_flattens_rows_per_band_base_first():
+    rows = [
+        Comparison("z", None, "median", "base+delay", _band(0.1, 30, 1.0),
+                   (_band(0.1, 1, 2.0), _band(10, 30, 3.0)), (), {"delay.delay_s": 0.01}, 9),
+        Comparison("x", None, "median", "base", _band(0.1, 30, 4.0), (_band(0.1, 1, 5.0),),
+                   (), {}, 9),
+        Comparison("z", None, "median", "base", _band(0.1, 30, 6.0), (), (), {}, 9),
+    ]
+    df = compare_frame(rows)
+    assert tuple(df.columns) == COMPARE_COLUMNS
+    # sorted by axis; within an axis the models keep their first-seen order
+    # (base+delay came first in the input here)
+    got = [tuple(r) for r in df[["axis", "model", "band", "rms_db", "rms_deg",
+                                 "rms_norm"]].itertuples(index=False)]
+    assert got == [("x", "base", "overall", 4.0, 40.0, 400.0),
+                   ("x", "base", "0.1-1", 5.0, 50.0, 500.0),
+                   ("z", "base+delay", "overall", 1.0, 10.0, 100.0),
+                   ("z", "base+delay", "0.1-1", 2.0, 20.0, 200.0),
+                   ("z", "base+delay", "10-30", 3.0, 30.0, 300.0),
+                   ("z", "base", "overall", 6.0, 60.0, 600.0)]
+    assert df["grip"].isna().all() and set(df["level"]) == {"median"}
+
+
+def test_md_table_escapes_pipes():
+    # markdown table syntax: a literal | inside a cell must be written \|
+    assert _md_table(["a", "b"], [["|Wu|", 1]]) == ["| a | b |", "|---|---|",
+                                                   "| \\|Wu\\| | 1 |", ""]
+
+
+def test_check_outdir_refusals(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputError, match=r"file: exists and is not a folder"):
+        check_outdir(tmp_path / "file", [], overwrite=True)
+    (tmp_path / "raw").mkdir()
+    with pytest.raises(OutputError, match=r"holds the input .*raw"):
+        check_outdir(tmp_path, [tmp_path / "raw"], overwrite=True)
+    with pytest.raises(OutputError, match=r"holds the input"):
+        check_outdir(tmp_path / "raw", [tmp_path / "raw"], overwrite=True)
+    with pytest.raises(OutputError, match=r"holds the input .*m\.csv"):
+        check_outdir(tmp_path, [], manifest=tmp_path / "m.csv", overwrite=True)
+    with pytest.raises(OutputError, match=r"exists; pass --overwrite"):
+        check_outdir(tmp_path / "raw", [tmp_path / "other"])
+    assert check_outdir(tmp_path / "new", [tmp_path / "raw"]) == tmp_path / "new"
+
+
+@pytest.fixture(scope="module")
+def tiny_study(tmp_path_factory):
+    """2 subjects, x and y axes, grips 1 and 2 N, 26 s trials (`armfit simulate`, seed 5)."""
+    root = tmp_path_factory.mktemp("tiny")
+    res = CliRunner().invoke(cli, ["simulate", "-o", str(root / "study"), "--subjects", "2",
+                                   "--axes", "xy", "--grips", "1,2", "--duration", "26,26",
+                                   "--seed", "5"])
+    assert res.exit_code == 0, res.output
+    return root / "study"
+
+
+def test_failing_stage_keeps_the_old_outdir_and_leaves_no_temporary(tiny_study, tmp_path,
+                                                                      monkeypatch):
+    """A fit-uncertainty that does not converge (as `--wu-cost paper` may) after four
+    stages have written their files, with the diagnosis already running in worker
+    processes: the error propagates, the workers are stopped, the existing OUTDIR is
+    untouched (even with overwrite) and nothing else is left in its folder."""
+    import armfit.uncertainty
+
+    workers = []
+
+    def no_convergence(*args, **kwargs):
+        workers.append(len(mp.active_children()))
+        raise ConvergenceError("the dB least-squares fit of Wu did not converge for axis x")
+
+    monkeypatch.setattr(armfit.uncertainty, "fit_uncertainty", no_convergence)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("previous results")
+    seen = []
+    with pytest.raises(ConvergenceError, match="did not converge for axis x"):
+        run_pipeline([tiny_study], out, RunOptions(overwrite=True, jobs=2),
+                     on_stage=lambda s: seen.append(s.name))
+    assert seen == ["ingest", "estimate", "fit-grip", "fit-nominal"]
+    assert [p.name for p in out.iterdir()] == ["old.txt"]
+    assert (out / "old.txt").read_text() == "previous results"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+    assert workers == [2]  # one diagnosis worker per axis was running (jobs=2) ...
+    assert mp.active_children() == []  # ... and was stopped
