@@ -23,10 +23,13 @@ point averages the native-bin auto- and cross-spectra that fall in its band
 [f·r^-½, f·r^½), r = 10^(1/per_decade) (Daniell smoothing), then forms H and the
 coherence from the averaged spectra. Where the native bins are coarser than the band,
 the nearest native bins are averaged instead, as many as needed for ``min_avg``
-equivalent independent averages (so the response there is a band average, not an
-interpolation). Standard errors follow Bendat & Piersol (Random Data, 4th ed., eqs.
-9.52 and 9.65): ε = sqrt(1 − γ²) / (|γ| sqrt(2 n_d)), se_db = 20/ln 10 · ε, se_deg =
-ε in degrees, with n_d the equivalent number of independent averages behind the value.
+equivalent independent averages. Bins above fmax (or without force power) are never
+used. The band average belongs to its bins' P_ff-weighted centroid in ln f, so each value
+is moved to its grid frequency along the bins' fitted straight line of ln H in ln f.
+Standard errors follow Bendat & Piersol (Random Data, 4th ed., eqs. 9.52 and 9.65):
+ε = sqrt(1 − γ²) / (|γ| sqrt(2 n_d)), se_db = 20/ln 10 · ε, se_deg = ε in degrees, with
+n_d the equivalent number of independent averages behind the value and γ² the coherence
+about that line; raised where the bins' scatter about the line is larger (:func:`to_grid`).
 """
 
 from __future__ import annotations
@@ -306,38 +309,49 @@ class GridResponse:
 
 
 def band_bins(freq_native: np.ndarray, grid: np.ndarray, min_bins: int,
-              max_bins: int | None = None, first_bin: int = 1
+              max_bins: int | None = None, first_bin: int = 1, last_bin: int | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
     """Native-bin index ranges [lo, hi) averaged at each grid point.
 
     The band of grid point g is [g/h, g·h] with h = r^½ (r the grid's ratio), narrowed
     to h = min(r^½, grid[-1]/g, g/grid[0]) near the ends so that it stays symmetric in
-    log frequency and never reaches past fmax, where the stimulus may stop; where it
+    log frequency (a one-sided average of a sloping response is biased); where it
     holds fewer than ``min_bins`` bins, the ``min_bins`` bins nearest
     to g are used instead; where it holds more than ``max_bins``, only the ``max_bins``
-    bins nearest to g (less smoothing bias at sharp resonances). Bins below
-    ``first_bin`` (at least DC) are never used.
+    bins nearest to g (less smoothing bias at sharp resonances). Only bins
+    ``first_bin`` ≤ i < ``last_bin`` are ever used: ``first_bin`` (at least 1) keeps DC
+    and the record mean's main lobe out; ``last_bin`` defaults to the first bin above the
+    grid's top frequency, where the stimulus may stop (H of such bins is noise), so the
+    top point's nearest bins all lie at or below it.
     """
-    nb = freq_native.size
+    freq_native = np.asarray(freq_native, dtype=float)
+    grid = np.asarray(grid, dtype=float)
     ratio = grid[1] / grid[0] if grid.size > 1 else 2.0
     # symmetric in log frequency, narrowed near the ends of the grid so that no band
     # is one-sided (a one-sided average of a sloping response is biased)
     half = np.minimum(math.sqrt(ratio), np.minimum(grid[-1] / grid, grid / grid[0]))
     first = max(1, first_bin)
-    lo = np.maximum(np.searchsorted(freq_native, grid / half, side="left"), first)
-    hi = np.searchsorted(freq_native, grid * half, side="right")
+    if last_bin is None:
+        last_bin = int(np.searchsorted(freq_native, grid[-1] * (1.0 + 1e-9), side="right"))
+    last = min(freq_native.size, int(last_bin))
+    if last - first < 1:
+        raise UsageError(f"no native bin between {freq_native[min(first, freq_native.size - 1)]:g}"
+                         f" Hz and {grid[-1]:g} Hz")
+    lo = np.clip(np.searchsorted(freq_native, grid / half, side="left"), first, last)
+    hi = np.clip(np.searchsorted(freq_native, grid * half, side="right"), first, last)
     if max_bins is not None:
         centre = np.searchsorted(freq_native, grid)
         lo = np.maximum(lo, centre - max_bins // 2)
         hi = np.minimum(hi, lo + max_bins)
+        hi = np.maximum(hi, lo)
     short = (hi - lo) < min_bins
     if np.any(short):
-        m = min(min_bins, nb - first)
-        near = np.clip(np.searchsorted(freq_native, grid[short]), first, nb - 1)
+        m = min(min_bins, last - first)
+        near = np.clip(np.searchsorted(freq_native, grid[short]), first, last - 1)
         # choose the nearer of the two neighbours as centre, then a window of m bins
         left_closer = (grid[short] - freq_native[near - 1]) < (freq_native[near] - grid[short])
         centre = np.where(left_closer & (near > first), near - 1, near)
-        start = np.clip(centre - (m - 1) // 2, first, nb - m)
+        start = np.clip(centre - (m - 1) // 2, first, last - m)
         lo = lo.copy()
         hi = hi.copy()
         lo[short] = start
@@ -368,19 +382,86 @@ def debiased_coherence(coherence, n_avg) -> np.ndarray:
     return np.clip((np.asarray(coherence, dtype=float) - 1.0 / n) / (1.0 - 1.0 / n), 1e-6, 1.0)
 
 
+#: Force PSD below this fraction of its median over the grid's range counts as no
+#: stimulus (−40 dB): such bins at the ends of the range are not used.
+NEGLIGIBLE_FORCE_POWER = 1e-4
+
+
+def usable_bins(sp: Spectra, grid: np.ndarray) -> tuple[int, int]:
+    """Native-bin index range [first, last) that :func:`to_grid` may use.
+
+    From ``sp.first_bin`` (DC and the mean's main lobe excluded) up to the last bin at or
+    below the grid's top frequency; then trimmed at both ends while the force PSD there is
+    below NEGLIGIBLE_FORCE_POWER × its median over the range (no stimulus: H is noise).
+    """
+    f = sp.freq_hz
+    first = max(1, sp.first_bin)
+    last = int(np.searchsorted(f, grid[-1] * (1.0 + 1e-9), side="right"))
+    if last - first < 1:
+        raise UsageError(f"no frequency bin of the spectra between {f[min(first, f.size - 1)]:g}"
+                         f" Hz and {grid[-1]:g} Hz")
+    p = sp.p_ff[first:last]
+    live = np.flatnonzero(p >= NEGLIGIBLE_FORCE_POWER * np.median(p))
+    if live.size:
+        first, last = first + int(live[0]), first + int(live[-1]) + 1
+    return first, last
+
+
+def _line_fit(y: np.ndarray, u: np.ndarray, valid: np.ndarray
+              ) -> tuple[np.ndarray, ...]:
+    """Least-squares straight line y ≈ ȳ + b·(u − ū) per band.
+
+    y: (k, ng, m) values, u: (ng, m) abscissae, valid: (ng, m) which entries belong to
+    the band. Returns (slope b (k, ng), residual sum of squares (k, ng), S_uu (ng,) =
+    Σ (u − ū)², ȳ (k, ng), ū (ng,)), means over the valid entries; slope 0 where the band
+    has fewer than two distinct abscissae.
+    """
+    w = valid.astype(float)
+    n = np.maximum(w.sum(axis=-1), 1.0)
+    u_bar = (w * u).sum(axis=-1) / n
+    du = (u - u_bar[:, None]) * w
+    y = np.where(valid, y, 0.0)
+    y_bar = y.sum(axis=-1) / n
+    dy = (y - y_bar[..., None]) * w
+    suu = np.sum(du * du, axis=-1)
+    suy = np.sum(dy * du, axis=-1)
+    syy = np.sum(dy * dy, axis=-1)
+    pos = suu > 0
+    slope = np.where(pos, suy / np.where(pos, suu, 1.0), 0.0)
+    return slope, np.maximum(syy - slope * suy, 0.0), suu, y_bar, u_bar
+
+
 def to_grid(sp: Spectra, grid: np.ndarray, *, min_avg: float = 8.0,
             max_avg: float | None = None) -> GridResponse:
     """Bring native-bin spectra to the common grid by band-averaging (module docstring).
 
-    Averaged: P_ff, P_fx, P_xx over each grid point's bins; H = <P_fx>/<P_ff>,
-    γ² = |<P_fx>|² / (<P_ff><P_xx>); n_d = n_avg · max(1, bins / ENBW). Where fewer than
-    ceil(min_avg·ENBW/n_avg) bins fall in a band, that many nearest bins are used; no more
-    than ceil(max_avg·ENBW/n_avg) bins are averaged (None: the whole band).
+    Averaged: P_ff, P_fx, P_xx over each grid point's bins (:func:`band_bins`, within
+    :func:`usable_bins`); H = <P_fx>/<P_ff>, γ² = |<P_fx>|² / (<P_ff><P_xx>);
+    n_d = n_avg · max(1, bins / ENBW). Where fewer than ceil(min_avg·ENBW/n_avg) bins fall
+    in a band, that many nearest bins are used; no more than ceil(max_avg·ENBW/n_avg)
+    bins are averaged (None: the whole band).
+
+    Frequency of the value: <P_fx>/<P_ff> is the P_ff-weighted mean of the bins' H, so it
+    belongs to the weighted centroid ū = Σ P_ff ln f / Σ P_ff of the bins, not to ln g
+    (up to half a native bin away where the bins are coarser than the band, and one-sided
+    at the grid's top). Each value is moved to its grid frequency along the bins' own
+    straight-line trend of ln H in ln f: H(g) = H · exp((b_mag + j b_phase)(ln g − ū)).
+
+    Standard errors: Bendat & Piersol's (eqs. 9.52, 9.65) from the debiased coherence,
+    raised where the native bins' own scatter says the value is less certain (leakage,
+    smoothing errors that the coherence does not see). The scatter is measured about the
+    same straight line in ln f (dB and phase), so the response's own slope across the
+    band (−40 dB/decade above the resonances) does not count as noise:
+    s² = RSS / (bins − 2·ENBW) per bin, se = s / sqrt(n_ind) with n_ind = bins / ENBW
+    independent bins; used where n_ind ≥ 3 (at least one independent residual after the
+    line fit). The move's own uncertainty, (ln g − ū)² · s² · ENBW / S_uu, is added in
+    quadrature (s² from the scatter, or from the coherence where n_ind < 3).
     """
     min_bins = max(1, math.ceil(min_avg * sp.enbw_bins / sp.n_avg))
     max_bins = None if max_avg is None else max(min_bins, math.ceil(
         max_avg * sp.enbw_bins / sp.n_avg))
-    lo, hi = band_bins(sp.freq_hz, grid, min_bins, max_bins, sp.first_bin)
+    first, last = usable_bins(sp, grid)
+    lo, hi = band_bins(sp.freq_hz, grid, min_bins, max_bins, first, last)
     count = (hi - lo).astype(float)
 
     def band_mean(a: np.ndarray) -> np.ndarray:
@@ -396,22 +477,53 @@ def to_grid(sp: Spectra, grid: np.ndarray, *, min_avg: float = 8.0,
         coh = np.abs(p_fx) ** 2 / (p_ff * p_xx)
     coh = np.where(np.isfinite(coh), np.clip(coh, 0.0, 1.0), np.nan)
     n_d = sp.n_avg * np.maximum(1.0, count / sp.enbw_bins)
-    se_db, se_deg = bendat_piersol_se(debiased_coherence(np.nan_to_num(coh, nan=0.0), n_d),
-                                      n_d)
-    # Scatter of the native bins inside each band: also catches leakage and smoothing
-    # errors that the coherence does not see. Used where >= 3 independent bins.
+    # The bins of each band, gathered into a padded (ng, width) block.
+    width = int(count.max())
+    idx = np.minimum(lo[:, None] + np.arange(width)[None, :], last - 1)
+    valid = np.arange(width)[None, :] < count[:, None]
+    u = np.log(sp.freq_hz[idx])
+    w = np.where(valid, sp.p_ff[idx], 0.0)
+    centroid = np.sum(w * u, axis=-1) / np.sum(w, axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        h_bin = sp.p_fx / sp.p_ff
-        db_bin = 20.0 * np.log10(np.abs(h_bin))
-        unit = h_bin / np.abs(h_bin)
+        h_bin = sp.p_fx[:, idx] / sp.p_ff[idx]                  # (k, ng, width)
+        ln_mag = np.log(np.abs(h_bin))
+        # phase relative to the band's value, in (−π, π]: no unwrapping needed
+        dev = np.angle(h_bin * np.conj(h)[..., None])
+    finite = valid & np.all(np.isfinite(ln_mag), axis=0)
+    b_mag, rss_mag, suu, a_mag, u_bar = _line_fit(np.nan_to_num(ln_mag), u, finite)
+    b_ph, rss_ph, _, a_ph, _ = _line_fit(np.nan_to_num(dev), u, finite)
+    # Coherence about the line: output power left after removing the bins' fitted
+    # response ln H_k = (a_mag + j a_ph) + (b_mag + j b_ph)(ln f_k − ū) (phase relative
+    # to H), so that the response's own change across the band does not count as noise
+    # (Bendat & Piersol's γ² of the band average would).
+    trend = (h / np.abs(h))[..., None] * np.exp(
+        (a_mag + 1j * a_ph)[..., None]
+        + (b_mag + 1j * b_ph)[..., None] * (u - u_bar[:, None]))
+    resid = (sp.p_xx[:, idx] - 2.0 * np.real(np.conj(trend) * sp.p_fx[:, idx])
+             + np.abs(trend) ** 2 * sp.p_ff[idx])
+    resid = np.sum(np.where(valid, resid, 0.0), axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        coh_line = 1.0 - resid / (p_xx * count)
+    coh_line = np.where(np.isfinite(coh_line), np.clip(coh_line, 0.0, 1.0), 0.0)
+    se_db, se_deg = bendat_piersol_se(debiased_coherence(coh_line, n_d), n_d)
+    shift = np.log(grid) - centroid                             # (ng,)
+    h = h * np.exp((b_mag + 1j * b_ph) * shift)
     n_ind = count / sp.enbw_bins
-    var_db = np.maximum(band_mean(db_bin ** 2) - band_mean(db_bin) ** 2, 0.0) \
-        * count / np.maximum(count - 1.0, 1.0)
-    r = np.clip(np.abs(band_mean(unit)), 1e-12, 1.0)
-    sd_rad = np.sqrt(-2.0 * np.log(r))  # circular standard deviation
     ok = n_ind >= 3.0
-    se_db = np.where(ok, np.maximum(se_db, np.sqrt(var_db / n_ind)), se_db)
-    se_deg = np.where(ok, np.maximum(se_deg, np.degrees(sd_rad / np.sqrt(n_ind))), se_deg)
+    dof = np.maximum(count - 2.0 * sp.enbw_bins, sp.enbw_bins)
+    root = np.sqrt(n_ind)
+    s_db = DB_PER_NEPER * np.sqrt(rss_mag / dof)               # per-bin scatter, dB
+    s_deg = np.degrees(np.sqrt(rss_ph / dof))                   # per-bin scatter, deg
+    se_db = np.where(ok, np.maximum(se_db, s_db / root), se_db)
+    se_deg = np.where(ok, np.maximum(se_deg, s_deg / root), se_deg)
+    # the move along the fitted slope: var(b) = s² · ENBW / S_uu (correlated bins)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lever = np.where(suu > 0, shift * shift * sp.enbw_bins / np.where(suu > 0, suu, 1.0),
+                         0.0)
+    bin_db = np.where(ok, s_db, se_db * root)
+    bin_deg = np.where(ok, s_deg, se_deg * root)
+    se_db = np.sqrt(se_db ** 2 + lever * bin_db ** 2)
+    se_deg = np.sqrt(se_deg ** 2 + lever * bin_deg ** 2)
     return GridResponse(freq_hz=grid, h=h, coherence=coh, se_db=se_db, se_deg=se_deg,
                         n_avg=n_d)
 

@@ -318,3 +318,101 @@ def test_spectra_table_levels_runs_first():
     trial_rows = df[df["level"] == "trial"]
     assert len(trial_rows) == 6 and trial_rows["run"].iloc[4:].isna().all()
     assert list(trial_rows["run"].iloc[:4]) == [1, 1, 2, 2]
+
+
+# --- band edges and error bars from analytic cases ---------------------------------------
+
+def test_band_bins_never_use_bins_above_the_grid_top():
+    freq = np.arange(0, 201) * 0.1  # native bins 0.1 Hz apart, 0..20 Hz
+    grid = np.array([1.0, 10.0])
+    lo, hi = S.band_bins(freq, grid, min_bins=5, first_bin=2)
+    # top point 10 Hz: its band is narrowed to one bin, so the 5 nearest bins are used,
+    # all at or below 10 Hz (9.6..10.0 Hz), although 10.1 and 10.2 Hz are nearer than 9.6
+    assert (lo[1], hi[1]) == (96, 101)
+    assert freq[hi[1] - 1] == pytest.approx(10.0)
+    # an explicit limit below the top (stimulus band ending at 8 Hz): bins 7.6..8.0 Hz
+    lo, hi = S.band_bins(freq, grid, min_bins=5, first_bin=2, last_bin=81)
+    assert (lo[1], hi[1]) == (76, 81)
+
+
+def _power_law_spectra(freq, slope_mag=-2.0, slope_phase=-0.3, n_avg=10.0):
+    """Noise-free spectra of H = f^slope_mag · exp(j·slope_phase·ln f) with a flat force
+    PSD of 1 N²/Hz: ln|H| and the phase are straight lines in ln f, γ² = 1 exactly."""
+    f = np.where(freq > 0, freq, 1.0)
+    h = f ** slope_mag * np.exp(1j * slope_phase * np.log(f))
+    p_ff = np.ones_like(freq)
+    return S.Spectra(freq_hz=freq, p_ff=p_ff, p_fx=(h * p_ff)[None, :],
+                     p_xx=(np.abs(h) ** 2 * p_ff)[None, :], n_avg=n_avg, enbw_bins=1.5,
+                     method="h1", first_bin=2), h
+
+
+def test_to_grid_sloping_response_without_noise_has_no_scatter():
+    freq = np.arange(0, 16385) * (1000.0 / 32768)  # 0.0305 Hz bins up to 500 Hz
+    sp, _ = _power_law_spectra(freq)
+    grid = S.log_grid(0.1, 30.0, 40)
+    g = S.to_grid(sp, grid, min_avg=8.0, max_avg=32.0)
+    truth = grid ** -2.0 * np.exp(-0.3j * np.log(grid))  # the analytic response
+    # the value is moved from its bins' centroid to the grid frequency along the exact
+    # log-log line; what is left is the second-order (Jensen) term of averaging
+    # exp(s·ln f) over the bins, ½|s|² var(ln f): |s|² = 4.09, and from 2 Hz up the
+    # bins span at most ±0.03 Hz, var(ln f) < 1.5e-4, so < 1e-3 relative
+    up = grid >= 2.0
+    np.testing.assert_allclose(g.h[0, up], truth[up], rtol=1e-3)
+    # no noise and an exactly straight line in ln f: zero scatter and γ² = 1, so zero
+    # standard errors (the slope of −40 dB/decade across a band is not noise)
+    assert np.max(g.se_db) < 1e-6 and np.max(g.se_deg) < 1e-5
+
+
+def test_to_grid_ignores_bins_beyond_fmax_and_without_force():
+    freq = np.arange(0, 4097) * (1000.0 / 8192)  # 0.122 Hz bins
+    sp, h = _power_law_spectra(freq)
+    # above 30 Hz: no force power, and the "response" there is garbage (x 100, noise-like)
+    above = freq > 30.0
+    p_fx = sp.p_fx.copy()
+    p_fx[0, above] *= 100.0 * np.exp(1j * np.arange(above.sum()))
+    p_ff = np.where(above, 1e-12, 1.0)
+    bad = S.Spectra(freq, p_ff, p_fx * p_ff, sp.p_xx * 1e4, 10.0, 1.5, "h1", 2)
+    grid = S.log_grid(1.0, 30.0, 40)
+    g = S.to_grid(bad, grid, min_avg=8.0)
+    # the top point is the power law at 30 Hz (to 1e-3, see above): nothing from above
+    assert g.h[0, -1] == pytest.approx(30.0 ** -2 * np.exp(-0.3j * np.log(30.0)), rel=1e-3)
+    # with fmax above the force band, bins without force power (−120 dB) are not used
+    # either: the first/last usable bins end at the last bin with force, 30.0 Hz (bin 245)
+    first, last = S.usable_bins(bad, S.log_grid(1.0, 40.0, 40))
+    assert (first, last) == (2, 246)
+
+
+@pytest.fixture(scope="module")
+def calibration_trials():
+    """Four independent simulated trials (analytic truth H_CL, Table I rows x and z)."""
+    out = []
+    for k, (axis, grip) in enumerate([("x", 1.0), ("x", 3.0), ("z", 1.0), ("z", 2.0)]):
+        params = table1_row(axis, grip)
+        mp = DEVICE_MASS_KG[axis]
+        force, pos = fft_filtered_trial(params, mp, duration_s=60.0, noise_rel=0.02,
+                                        seed=10 + k)
+        f1 = np.full_like(force, np.nan)
+        p1 = np.full_like(pos, np.nan)
+        i = "xyz".index(axis)
+        f1[:, i], p1[:, i] = force[:, 0], pos[:, 0]
+        out.append((axis, params, mp, f1, p1))
+    return out
+
+
+def test_standard_errors_calibrated_on_simulated_trials(calibration_trials):
+    cfg = S.EstimateConfig()
+    g = cfg.grid()
+    z_db, z_deg = [], []
+    for axis, params, mp, force, pos in calibration_trials:
+        meas = S.estimate_trial(force, pos, FS, axis, cfg)[0]
+        truth = h_cl(g, **params, mp=mp)  # analytic eq. 4
+        z_db.append(20 * np.log10(np.abs(meas.h / truth)) / meas.se_db)
+        z_deg.append(np.degrees(np.angle(meas.h / truth)) / meas.se_deg)
+    z_db, z_deg = np.concatenate(z_db), np.concatenate(z_deg)
+    # 400 points; for honest Gaussian errors 95.4 % lie within 2 se. Bounds 88-99 %: the
+    # binomial sd is 1 % at n = 400 but neighbouring points share bins (correlated), so
+    # a few % either way; too-large error bars (the opposite failure) push it above 99 %
+    for z in (z_db, z_deg):
+        assert 0.88 <= np.mean(np.abs(z) <= 2.0) <= 0.99
+    # unbiased: the mean normalised error is near 0 (|mean z| < 0.3 se)
+    assert abs(np.mean(z_db)) < 0.3 and abs(np.mean(z_deg)) < 0.3
