@@ -245,7 +245,7 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
     from armfit.io.atomic import write_text_atomic
     from armfit.io.trials import ingest
     from armfit.models.effects import get_effect
-    from armfit.spectra import EstimateConfig, estimate_study
+    from armfit.spectra import EstimateConfig, estimate_study, spectra_metadata
     from armfit.tables import caption_for, latex_table
     from armfit.uncertainty import fit_uncertainty, points_table, summary_table
 
@@ -269,7 +269,7 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
                          skip_bad=options.skip_bad, jobs=options.jobs)
     seen = {f for f, _ in skipped}
     skipped += tuple((f, r) for f, r in est.skipped if f not in seen)
-    write_spectra(est.table, path("spectra.parquet"), meta=_spectra_meta(config, est))
+    write_spectra(est.table, path("spectra.parquet"), meta=spectra_metadata(config, est))
     spectra = read_spectra(folder / "spectra.parquet")
     clock.done("estimate", f"{len(est.trials)} trial(s), method {config.method}, "
                f"{len(config.grid())} frequencies {config.fmin:g}-{config.fmax:g} Hz")
@@ -378,28 +378,6 @@ def _median(values) -> float:
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
     return float(np.median(v)) if v.size else float("nan")
-
-
-def _spectra_meta(config, est) -> dict:
-    """The spectra file's metadata, as `armfit estimate` writes it."""
-    return {
-        "armfit_version": __version__,
-        "method": config.method,
-        "derived_method": "tfestimate",
-        "options": {"fmin_hz": config.fmin, "fmax_hz": config.fmax,
-                    "per_decade": config.per_decade, "nperseg": config.nperseg,
-                    "overlap": config.overlap, "window": config.window,
-                    "derived_segments": config.derived_segments,
-                    "coherence_min": config.coherence_min,
-                    "force_limit_N": config.force_limit_N, "min_avg": config.min_avg,
-                    "drift_factor": config.drift_factor},
-        "grid_hz": config.grid().tolist(),
-        "mp_kg": dict(config.mp),
-        "fs_hz": est.fs,
-        "trials": len(est.trials),
-        "skipped": [{"file": f, "reason": r} for f, r in est.skipped],
-        "aggregation": "mean and median of 20log10|H| and of unwrapped phase",
-    }
 
 
 def compare_frame(rows):

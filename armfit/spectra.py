@@ -1020,3 +1020,29 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     return StudySpectra(spectra_table(kept), tuple(kept), tuple(skipped),
                         tuple(str(p) for p in stream.ignored),
                         ref[0] if ref else None, tuple(warnings))
+
+
+def spectra_metadata(config: EstimateConfig, result: StudySpectra) -> dict:
+    """The metadata a spectra file carries (JSON in its Parquet key-value metadata): the
+    armfit version, the estimator and its options, the grid, Mp, the sampling rate and
+    what was skipped."""
+    from armfit import __version__
+    return {
+        "armfit_version": __version__,
+        "method": config.method,
+        "derived_method": "tfestimate",
+        "options": {"fmin_hz": config.fmin, "fmax_hz": config.fmax,
+                    "per_decade": config.per_decade, "nperseg": config.nperseg,
+                    "overlap": config.overlap, "window": config.window,
+                    "derived_segments": config.derived_segments,
+                    "coherence_min": config.coherence_min,
+                    "force_limit_N": config.force_limit_N, "min_avg": config.min_avg,
+                    "drift_factor": config.drift_factor},
+        "grid_hz": config.grid().tolist(),
+        "mp_kg": dict(config.mp),
+        "fs_hz": result.fs,
+        "trials": len(result.trials),
+        "skipped": [{"file": f, "reason": r} for f, r in result.skipped],
+        "aggregation": "mean and median of 20 log10|H| and of the phase (each trial within "
+                       "pi of the trials' circular mean)",
+    }

@@ -6,7 +6,6 @@ import contextlib
 
 import click
 
-from armfit import __version__
 from armfit.cli.options import (
     emit_json,
     jobs_option,
@@ -91,7 +90,7 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
     from armfit.errors import UsageError
     from armfit.io.artifacts import write_spectra
     from armfit.io.atomic import atomic_path, check_output
-    from armfit.spectra import EstimateConfig, estimate_study
+    from armfit.spectra import EstimateConfig, estimate_study, spectra_metadata
 
     if not paths and manifest is None:
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
@@ -113,22 +112,7 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
         result = estimate_study(paths, config, manifest=manifest, skip_bad=skip_bad,
                                 jobs=jobs, on_open=on_open, advance=lambda: bar["advance"](),
                                 warn=lambda text: message(f"warning: {text}"))
-    meta = {
-        "armfit_version": __version__,
-        "method": config.method,
-        "derived_method": "tfestimate",
-        "options": {"fmin_hz": fmin, "fmax_hz": fmax, "per_decade": per_decade,
-                    "nperseg": nperseg, "overlap": overlap, "window": window,
-                    "derived_segments": config.derived_segments,
-                    "coherence_min": coherence_min, "force_limit_N": force_limit,
-                    "min_avg": config.min_avg, "drift_factor": config.drift_factor},
-        "grid_hz": config.grid().tolist(),
-        "mp_kg": dict(config.mp),
-        "fs_hz": result.fs,
-        "trials": len(result.trials),
-        "skipped": [{"file": f, "reason": r} for f, r in result.skipped],
-        "aggregation": "mean and median of 20log10|H| and of unwrapped phase",
-    }
+    meta = spectra_metadata(config, result)
     write_spectra(result.table, output, meta=meta, overwrite=overwrite)
     if csv_path is not None:
         with atomic_path(csv_path, overwrite=overwrite) as tmp:
