@@ -443,22 +443,6 @@ def normalised_residuals(spectra: pd.DataFrame, params: pd.DataFrame, axis: str,
     return Residuals(axis, freq, tuple(grips), np.vstack(zdb), np.vstack(zdeg))
 
 
-def significant_bands(freq_hz: np.ndarray, z: np.ndarray, *, threshold: float = 2.0,
-                      min_bins: int = 3) -> list[tuple[float, float]]:
-    """Frequency bands (Hz) where |z| > ``threshold`` over ≥ ``min_bins`` adjacent bins.
-
-    ``z`` is (n_freq,) or (n_curves, n_freq); a bin counts when any curve exceeds the
-    threshold. Each band runs from its first to its last exceeding bin.
-    """
-    z = np.atleast_2d(np.asarray(z, dtype=float))
-    over = np.any(np.abs(np.nan_to_num(z, nan=0.0)) > threshold, axis=0).astype(int)
-    edges = np.diff(np.concatenate(([0], over, [0])))
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
-    f = np.asarray(freq_hz, dtype=float)
-    return [(float(f[a]), float(f[b])) for a, b in zip(starts, stops, strict=True)
-            if b - a + 1 >= min_bins]
-
-
 def _residual_scale(ax) -> None:
     """Symlog y (linear within ±RESIDUAL_LINEAR_LIMIT) once residuals reach 3× that."""
     ys = [np.abs(ln.get_ydata()) for ln in ax.get_lines() if len(ln.get_ydata()) > 1]
@@ -641,5 +625,5 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
 __all__ = [
     "FORMATS", "Residuals", "bode_figure", "figure_format",
     "literature_figure", "model_from_row", "normalised_residuals", "residual_figure",
-    "save_figure", "significant_bands", "uncertainty_figure",
+    "save_figure", "uncertainty_figure",
 ]

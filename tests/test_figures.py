@@ -245,20 +245,6 @@ def test_bode_errors(spectra, grip_params):
 # residual
 # ---------------------------------------------------------------------------
 
-def test_significant_bands_runs():
-    # Runs of |z| > 2: bins 1-3 (3 bins) kept, bin 5 (1 bin) dropped, bins 7-9 on the
-    # second curve kept; bands run from the first to the last exceeding bin.
-    f = np.arange(11.0) + 1
-    z = np.zeros((2, 11))
-    z[0, 1:4] = 3.0
-    z[0, 5] = -5.0
-    z[1, 7:10] = -2.5
-    assert figures.significant_bands(f, z) == [(2.0, 4.0), (8.0, 10.0)]
-    assert figures.significant_bands(f, z, min_bins=1) == [(2.0, 4.0), (6.0, 6.0),
-                                                           (8.0, 10.0)]
-    assert figures.significant_bands(f, np.full(11, 2.0)) == []  # |z| = 2 is inside
-
-
 def test_normalised_residual_values(spectra):
     # A wrong model (Table I's X 1 N row with k1 doubled) against the 1 N mean:
     # z = (mean mag_db - 20 log10|H_CL|) / se_db, H_CL of eq. 4 evaluated here.

@@ -103,8 +103,8 @@ def bode(spectra, model_path, axis, band, no_trials, output, overwrite):
               help="A second parameters file (e.g. the model with an effect), dashed.")
 @click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
 @click.option("--band", "bands", multiple=True, metavar="[AXIS:]LO:HI",
-              help="Failing band to shade, Hz (repeatable). Default: runs of at least 3 "
-                   "adjacent bins where the first model's |residual| > 2.")
+              help="Failing band to shade, Hz (repeatable). Default: the failing bands "
+                   "`armfit compare` reports for the first model.")
 @output_option
 @overwrite_option
 def residual(spectra, model_path, model2_path, axis, bands, output, overwrite):
@@ -122,10 +122,11 @@ def residual(spectra, model_path, model2_path, axis, bands, output, overwrite):
                 for a, lo, hi in _parse_band(text, axes):
                     shaded.setdefault(a, []).append((lo, hi))
         else:
-            for a in axes:
-                res = figures.normalised_residuals(df, params, a)
-                shaded[a] = figures.significant_bands(
-                    res.freq_hz, np.vstack([res.z_db, res.z_deg]))
+            from armfit.diagnose import compare
+            level = "mean" if "grip_N" in params.columns else "median"
+            for row in compare(df, params, level=level):
+                if row.axis in shaded:
+                    shaded[row.axis] += [(fb.lo_hz, fb.hi_hz) for fb in row.failing]
         fig = figures.residual_figure(df, params, params2, axis=axis, bands=shaded)
     except BadInputError as exc:
         raise _with_file(exc, spectra) from None
