@@ -431,6 +431,48 @@ def _line_fit(y: np.ndarray, u: np.ndarray, valid: np.ndarray
     return slope, np.maximum(syy - slope * suy, 0.0), suu, y_bar, u_bar
 
 
+#: Largest band variance (in units of the grid step², ln f) for which the curvature
+#: correction is applied: full bands have about 1/12; wider fallback bands at the lowest
+#: frequencies would amplify the noise of the second difference.
+_CURVATURE_MAX_VAR = 1.0 / 6.0
+
+
+def _curvature_correction(h: np.ndarray, grid: np.ndarray, var_u: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Second-order correction of a band average for the response's curvature.
+
+    The average of H over a band of variance var_u in u = ln f is H(ū)·(1 + ½(L'' + L'²)
+    var_u) to second order, L = ln H (Taylor expansion of H = e^L); L' and L'' are taken
+    from the grid values themselves by central differences (the grid must be uniform in
+    ln f) and the average divided by that factor. Applied where var_u is at most
+    :data:`_CURVATURE_MAX_VAR` grid steps² (a full band: 1/12). Returns the corrected H
+    and the factor by which the standard errors grow from the noise of the second
+    difference (√6 σ/Δ² · ½ var_u, in quadrature; ≈ 1.005 for a full band).
+    """
+    ng = grid.size
+    ones = np.ones(ng)
+    if ng < 3:
+        return h, ones
+    step = np.diff(np.log(grid))
+    if not np.allclose(step, step.mean(), rtol=1e-6):
+        return h, ones
+    d = float(step.mean())
+    with np.errstate(divide="ignore", invalid="ignore"):
+        L = np.log(np.abs(h)) + 1j * np.unwrap(np.angle(h), axis=-1)
+    L1 = np.empty_like(L)
+    L2 = np.empty_like(L)
+    L1[..., 1:-1] = (L[..., 2:] - L[..., :-2]) / (2.0 * d)
+    L2[..., 1:-1] = (L[..., 2:] - 2.0 * L[..., 1:-1] + L[..., :-2]) / (d * d)
+    for arr in (L1, L2):  # ends: the neighbouring interior value
+        arr[..., 0] = arr[..., 1]
+        arr[..., -1] = arr[..., -2]
+    corr = 0.5 * (L2 + L1 * L1) * var_u
+    use = (var_u <= _CURVATURE_MAX_VAR * d * d) & np.isfinite(corr) & (np.abs(corr) < 0.05)
+    h = h * np.exp(-np.where(use, corr, 0.0))
+    gain = np.where(use, np.sqrt(1.0 + (0.5 * math.sqrt(6.0) * var_u / (d * d)) ** 2), 1.0)
+    return h, gain
+
+
 def to_grid(sp: Spectra, grid: np.ndarray, *, min_avg: float = 8.0,
             max_avg: float | None = None) -> GridResponse:
     """Bring native-bin spectra to the common grid by band-averaging (module docstring).
@@ -455,7 +497,9 @@ def to_grid(sp: Spectra, grid: np.ndarray, *, min_avg: float = 8.0,
     s² = RSS / (bins − 2·ENBW) per bin, se = s / sqrt(n_ind) with n_ind = bins / ENBW
     independent bins; used where n_ind ≥ 3 (at least one independent residual after the
     line fit). The move's own uncertainty, (ln g − ū)² · s² · ENBW / S_uu, is added in
-    quadrature (s² from the scatter, or from the coherence where n_ind < 3).
+    quadrature (s² from the scatter, or from the coherence where n_ind < 3). Finally the
+    average is corrected for the response's curvature across the band
+    (:func:`_curvature_correction`).
     """
     min_bins = max(1, math.ceil(min_avg * sp.enbw_bins / sp.n_avg))
     max_bins = None if max_avg is None else max(min_bins, math.ceil(
@@ -508,6 +552,8 @@ def to_grid(sp: Spectra, grid: np.ndarray, *, min_avg: float = 8.0,
     se_db, se_deg = bendat_piersol_se(debiased_coherence(coh_line, n_d), n_d)
     shift = np.log(grid) - centroid                             # (ng,)
     h = h * np.exp((b_mag + 1j * b_ph) * shift)
+    var_u = np.sum(w * (u - centroid[:, None]) ** 2, axis=-1) / np.sum(w, axis=-1)
+    h, curv_gain = _curvature_correction(h, grid, var_u)
     n_ind = count / sp.enbw_bins
     ok = n_ind >= 3.0
     dof = np.maximum(count - 2.0 * sp.enbw_bins, sp.enbw_bins)
@@ -522,8 +568,8 @@ def to_grid(sp: Spectra, grid: np.ndarray, *, min_avg: float = 8.0,
                          0.0)
     bin_db = np.where(ok, s_db, se_db * root)
     bin_deg = np.where(ok, s_deg, se_deg * root)
-    se_db = np.sqrt(se_db ** 2 + lever * bin_db ** 2)
-    se_deg = np.sqrt(se_deg ** 2 + lever * bin_deg ** 2)
+    se_db = np.sqrt(se_db ** 2 + lever * bin_db ** 2) * curv_gain
+    se_deg = np.sqrt(se_deg ** 2 + lever * bin_deg ** 2) * curv_gain
     return GridResponse(freq_hz=grid, h=h, coherence=coh, se_db=se_db, se_deg=se_deg,
                         n_avg=n_d)
 
