@@ -460,11 +460,11 @@ def _num(v, fmt: str = ".3g") -> str:
 
 
 def _params_rows(df) -> tuple[list[str], list[list[str]]]:
-    from armfit.tables import _unit, param_names, sig4
+    from armfit.tables import param_names, sig4, unit_of
     names = param_names(df)
     grip = "grip_N" in df.columns
     header = ["axis"] + (["grip (N)"] if grip else []) + \
-        [f"{n} ({_unit(n).replace('*', '·')})" for n in names] + \
+        [f"{n} ({unit_of(n).replace('*', '·')})" for n in names] + \
         ["rms dB", "rms deg", "rms × noise"]
     rows = []
     for _, r in df.iterrows():

@@ -43,7 +43,8 @@ def param_names(df: pd.DataFrame) -> list[str]:
     return names
 
 
-def _unit(name: str) -> str:
+def unit_of(name: str) -> str:
+    """SI unit of a parameter: a base parameter's, or an effect parameter's (``effect.param``)."""
     base = {p.name: p.unit for p in BASE_PARAMS}
     if name in base:
         return base[name]
@@ -94,7 +95,7 @@ def _tex(text: str) -> str:
 
 def _header(name: str) -> str:
     label = _LATEX_BASE.get(name, r"\texttt{" + _tex(name) + "}")
-    unit = _unit(name)
+    unit = unit_of(name)
     return f"{label} ({_LATEX_UNIT.get(unit, _tex(unit))})"
 
 
