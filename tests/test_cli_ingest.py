@@ -325,3 +325,4 @@ def test_usage_errors(tmp_path, runner, study):
     assert res.exit_code == 2 and "ending in .parquet" in res.stderr
     res = _ingest(runner, study, "-o", tmp_path / "t.parquet", "--f-min", "0")
     assert res.exit_code == 2
+

@@ -18,7 +18,8 @@ from armfit.errors import OutputError
 
 def check_output(path: str | os.PathLike, *, overwrite: bool,
                  inputs: Iterable[str | os.PathLike] = ()) -> Path:
-    """Refuse an output that exists without ``overwrite`` or that is also an input.
+    """Refuse an output that exists without ``overwrite``, or that is (or, as a folder,
+    contains) one of the ``inputs`` — replacing it would destroy the input.
 
     Returns the output as a Path. Raises OutputError (exit 73).
     """
@@ -26,13 +27,11 @@ def check_output(path: str | os.PathLike, *, overwrite: bool,
     out_res = out.resolve()
     for inp in inputs:
         inp_res = Path(inp).resolve()
-        if out_res == inp_res or (inp_res.is_dir() and inp_res in out_res.parents
-                                  and out.suffix == "" and out_res.is_dir()):
-            raise OutputError(f"{out}: output path is also an input; choose another output")
+        if out_res == inp_res or out_res in inp_res.parents:
+            raise OutputError(f"{out}: output path is also an input (or holds one); choose "
+                              "another output")
     if out.exists() and not overwrite:
         raise OutputError(f"{out}: exists; pass --overwrite to replace it")
-    if out.exists() and out.is_dir() and out.suffix and not overwrite:
-        raise OutputError(f"{out}: is a folder")
     return out
 
 
@@ -55,6 +54,8 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator
         yield tmp
         if not tmp.exists():
             raise RuntimeError(f"atomic write of {dest} produced nothing")
+        if dest.is_dir() and not tmp.is_dir():
+            raise OutputError(f"{dest}: is a folder; give a file name for this output")
         if dest.is_dir() and not dest.is_symlink():
             old = dest.with_name(f".{dest.name}.old")
             shutil.rmtree(old, ignore_errors=True)
