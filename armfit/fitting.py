@@ -537,6 +537,19 @@ def bootstrap_fit(base: FitResult, f_hz, H_trials, subjects: Sequence[str], *,
 STUDY_FITS: dict[str, str] = {"grip": "mean", "nominal": "median"}
 
 
+def parse_band(text: str, *, option: str = "--band") -> tuple[float, float]:
+    """Parse ``LO:HI`` (Hz) into (lo, hi); UsageError unless 0 < LO < HI (finite)."""
+    lo_s, sep, hi_s = text.partition(":")
+    try:
+        lo, hi = float(lo_s), float(hi_s)
+    except ValueError:
+        lo = hi = float("nan")
+    if not sep or not (0 < lo < hi < float("inf")):
+        raise UsageError(f"{option} {text!r}: expected LO:HI in Hz with 0 < LO < HI, "
+                         "e.g. 0.1:30")
+    return lo, hi
+
+
 def parse_bands(spec: str | None) -> dict[str, tuple[float, float]]:
     """Parse ``x=0.1:30,y=0.1:30,z=0.1:10`` (Hz) into {axis: (lo, hi)}; axes not named keep
     :data:`PAPER_BANDS`. Raises UsageError on a malformed item."""
@@ -545,16 +558,14 @@ def parse_bands(spec: str | None) -> dict[str, tuple[float, float]]:
         return bands
     for item in (x.strip() for x in spec.split(",") if x.strip()):
         axis, sep, rng = item.partition("=")
-        lo_s, sep2, hi_s = rng.partition(":")
         axis = axis.strip().lower()
         try:
-            lo, hi = float(lo_s), float(hi_s)
-        except ValueError:
-            lo = hi = float("nan")
-        if axis not in PAPER_BANDS or not sep or not sep2 or not (0 < lo < hi):
+            if axis not in PAPER_BANDS or not sep:
+                raise UsageError(item)
+            bands[axis] = parse_band(rng)
+        except UsageError:
             raise UsageError(f"--band {item!r}: expected AXIS=LO:HI in Hz with AXIS x, y or z "
-                             "and 0 < LO < HI, e.g. z=0.1:10")
-        bands[axis] = (lo, hi)
+                             "and 0 < LO < HI, e.g. z=0.1:10") from None
     return bands
 
 

@@ -93,7 +93,7 @@ def test_compare_table_and_effect(runner, study):
 
 @pytest.mark.parametrize("args,code,text", [
     (["compare", "{s}", "--model", "{d}/missing.csv"], 66, "no such params file"),
-    (["compare", "{s}", "--model", "{d}/grip.csv", "--band", "3:1"], 2, "need 0 < LO < HI"),
+    (["compare", "{s}", "--model", "{d}/grip.csv", "--band", "3:1"], 2, "0 < LO < HI"),
     (["compare", "{s}", "--model", "{d}/grip.csv", "--level", "median"], 2, "grip fits"),
     (["diagnose", "{s}", "--model", "{d}/grip.csv", "--effect", "spring"], 2,
      "unknown effect 'spring'"),

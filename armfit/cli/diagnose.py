@@ -18,15 +18,8 @@ band_option = click.option(
 
 
 def _band(text: str | None) -> tuple[float, float] | None:
-    if text is None:
-        return None
-    try:
-        lo, hi = (float(v) for v in text.split(":"))
-    except ValueError:
-        raise UsageError(f"--band {text!r}: expected LO:HI in Hz, e.g. 0.1:30") from None
-    if not 0 < lo < hi:
-        raise UsageError(f"--band {text!r}: need 0 < LO < HI")
-    return lo, hi
+    from armfit.fitting import parse_band
+    return None if text is None else parse_band(text)
 
 
 def _effects(names) -> list:

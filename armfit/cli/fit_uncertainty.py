@@ -32,17 +32,8 @@ from .options import emit_json, json_option, message, output_option, overwrite_o
 
 
 def _parse_band(value: str | None) -> tuple[float, float] | None:
-    if value is None:
-        return None
-    lo, sep, hi = value.partition(":")
-    try:
-        band = (float(lo), float(hi))
-    except ValueError:
-        band = None
-    if not sep or band is None or not (0 < band[0] < band[1] and math.isfinite(band[1])):
-        raise UsageError(f"--band {value!r}: expected LO:HI in Hz with 0 < LO < HI, "
-                         "e.g. 0.01:30")
-    return band
+    from armfit.fitting import parse_band
+    return None if value is None else parse_band(value)
 
 
 def _parse_octaves(value: str | None) -> float | None:

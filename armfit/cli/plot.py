@@ -43,20 +43,20 @@ def _save(fig, output: str, overwrite: bool) -> None:
 
 
 def _parse_band(text: str, axes) -> list[tuple[str, float, float]]:
-    parts = text.split(":")
-    if len(parts) == 3 and parts[0] in ("x", "y", "z"):
-        targets, lo, hi = [parts[0]], parts[1], parts[2]
-    elif len(parts) == 2:
-        targets, lo, hi = list(axes), parts[0], parts[1]
-    else:
+    from armfit.fitting import parse_band
+    axis, sep, rest = text.partition(":")
+    if axis in ("x", "y", "z") and sep:
+        targets, text_range = [axis], rest
+    elif axis.isalpha() or text.count(":") != 1:
         raise UsageError(f"--band {text!r}: give LO:HI or AXIS:LO:HI in Hz, e.g. 10:30")
+    else:
+        targets, text_range = list(axes), text
     try:
-        lo_f, hi_f = float(lo), float(hi)
-    except ValueError:
-        raise UsageError(f"--band {text!r}: LO and HI must be numbers (Hz)") from None
-    if not 0 < lo_f < hi_f:
-        raise UsageError(f"--band {text!r}: need 0 < LO < HI")
-    return [(a, lo_f, hi_f) for a in targets]
+        lo, hi = parse_band(text_range)
+    except UsageError:
+        raise UsageError(f"--band {text!r}: give LO:HI or AXIS:LO:HI in Hz with "
+                         "0 < LO < HI, e.g. 10:30") from None
+    return [(a, lo, hi) for a in targets]
 
 
 # ---------------------------------------------------------------------------
