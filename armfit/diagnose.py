@@ -816,25 +816,23 @@ def axis_data(spectra, params, axis: str) -> AxisData | None:
     return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names)
 
 
-def cross_coupling(spectra, axis: str, band: tuple[float, float]) -> dict[str, float]:
-    """Off-axis motion relative to on-axis motion for force on ``axis``, in dB.
+def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[str, float]:
+    """Off-axis motion relative to on-axis motion for force on ``data.axis``, in dB.
 
     For each other position axis: the median over trials and over the band of
-    20 log10(|X_other/F| / |X_axis/F|). Absent cross responses give no entry.
+    20 log10(|X_other/F| / |X_axis/F|), the on-axis responses those of ``data``. Absent
+    cross responses give no entry.
     """
     out = {}
-    on = _rows(spectra, level="trial", kind="measured", axis=axis)
-    if on.empty:
-        return out
-    f, H_on, *_ = _trial_matrix(on)
-    sel = (f >= band[0]) & (f <= band[1])
+    axis, H_on = data.axis, data.h
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
     for other in ("x", "y", "z"):
         if other == axis:
             continue
         rows = _rows(spectra, level="trial", kind="cross", axis=axis, out_axis=other)
         if rows.empty:
             continue
-        fc, H_c, *_ = _trial_matrix(rows)
+        _, H_c, *_ = _trial_matrix(rows)
         if H_c.shape != H_on.shape:
             continue
         with np.errstate(all="ignore"):
@@ -893,7 +891,7 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
     for i, ((data, b), base) in enumerate(zip(tasks, bases, strict=True)):
         d = assess(data, b, base, list(zip(effects, fits[i * n:(i + 1) * n], strict=True)))
         out.append(AxisDiagnosis(**{**d.__dict__,
-                                    "coupling": cross_coupling(spectra, data.axis, b)}))
+                                    "coupling": cross_coupling(spectra, data, b)}))
     return out
 
 
