@@ -972,7 +972,6 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
     if level == "median" and grip_model:
         raise UsageError("grip fits are compared at --level mean or trial; the median "
                          "pools all grips (use nominal fits)")
-    label = "base+" + "+".join(e.name for e in effects) if effects else ""
     out: list[Comparison] = []
     for axis in ("x", "y", "z"):
         if not (params["axis"] == axis).any():
@@ -984,25 +983,32 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
             b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
             sel = (data.f_hz >= b[0]) & (data.f_hz <= b[1])
             f = data.f_hz[sel]
-            start = np.array([[s[n] for n in PARAM_NAMES] for s in data.starts], float)
-            base_model = ClosedLoopModel.for_axis(axis, mp=float(
-                params[params["axis"] == axis]["mp_kg"].iloc[0]))
-            fit = joint_fit(base_model, data, b, start)
+            start = _start_array(data)
+            # the params' own model (its effects start at the params' values)
+            base_model, theta0 = model_from_params(_param_row(params, axis, None))
+            shared0 = {k: v for k, v in theta0.items() if k not in PARAM_NAMES}
+            fit = joint_fit(base_model, data, b, start, [shared0])
             se = (data.se_db[:, sel], data.se_deg[:, sel])
-            out.append(_summary(axis, None, level, "base", f, fit.r_db, fit.r_deg, *se, b, {},
-                                data.h.shape[0]))
+            out.append(_summary(axis, None, level, model_label(base_model), f, fit.r_db,
+                                fit.r_deg, *se, b, dict(fit.shared), data.h.shape[0]))
             if effects:
                 model = base_model
                 for e in effects:
                     model = model.with_effect(e)
-                nt = model.null_theta(dict(zip(PARAM_NAMES, start[0], strict=True)))
-                pts = model.start_points(nt)
-                starts = [{k: v for k, v in p.items() if k not in PARAM_NAMES} for p in pts]
+                # nested: the fitted shared values, the new effects at null, then at each of
+                # their starting points
+                null = {k: v for k, v in model.null_theta(theta0).items()
+                        if k not in PARAM_NAMES}
+                starts = [{**null, **fit.shared}]
+                for e in effects:
+                    for st in e.start_points(model.mp)[1:]:
+                        starts.append({**starts[0],
+                                       **{f"{e.name}.{k}": v for k, v in st.items()}})
                 fe = joint_fit(model, data, b, [fit.base, start], starts)
                 if fe.rss > fit.rss:
                     fe = fit
-                out.append(_summary(axis, None, level, label, f, fe.r_db, fe.r_deg, *se, b,
-                                    dict(fe.shared), data.h.shape[0]))
+                out.append(_summary(axis, None, level, model_label(model), f, fe.r_db,
+                                    fe.r_deg, *se, b, dict(fe.shared), data.h.shape[0]))
             continue
         grips = [None]
         if level == "mean":
