@@ -47,7 +47,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy import optimize, sparse, stats
 
-from armfit.fitting import _Space, log_errors
+from armfit.fitting import ParamSpace, log_errors
 from armfit.models.arm import PARAM_NAMES, ClosedLoopModel
 from armfit.models.effects import EFFECTS, Effect
 
@@ -281,7 +281,7 @@ class _Joint:
 
     def __init__(self, model: ClosedLoopModel, data: AxisData, sel: np.ndarray):
         self.model = model
-        self.space = _Space.of(model)
+        self.space = ParamSpace.of(model)
         self.f = data.f_hz[sel]
         self.h = data.h[:, sel]
         sdb, sdeg = _floor(data.se_db[:, sel], data.se_deg[:, sel])

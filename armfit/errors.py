@@ -66,6 +66,14 @@ class BadInputError(ArmfitError):
         prefix = ": ".join([", ".join(where)]) + ": " if where else ""
         super().__init__(prefix + message)
 
+    @property
+    def detail(self) -> str:
+        """The message without its leading file name (column, row and what is wrong)."""
+        text = str(self)
+        if self.file and text.startswith(self.file):
+            text = text[len(self.file):].lstrip(",: ")
+        return text
+
 
 class NoInputError(ArmfitError):
     """An input path does not exist, or a search found nothing to read."""

@@ -116,14 +116,14 @@ class FitResult:
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class _Space:
+class ParamSpace:
     names: tuple[str, ...]
     log: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
 
     @classmethod
-    def of(cls, model: ClosedLoopModel) -> _Space:
+    def of(cls, model: ClosedLoopModel) -> ParamSpace:
         ps = model.params
         return cls(tuple(p.name for p in ps), np.array([p.log for p in ps]),
                    np.array([p.lower for p in ps], float), np.array([p.upper for p in ps], float))
@@ -167,7 +167,7 @@ def log_errors(model_h: np.ndarray, data_h: np.ndarray) -> tuple[np.ndarray, np.
 @dataclass(frozen=True)
 class _Problem:
     model: ClosedLoopModel
-    space: _Space
+    space: ParamSpace
     f: np.ndarray
     h: np.ndarray
     w_db: np.ndarray      # 1/se_db
@@ -377,7 +377,7 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     if not (0 < lo < hi):
         raise UsageError(f"fit band must satisfy 0 < lo < hi Hz, got {lo}:{hi}")
     sel = (f >= lo) & (f <= hi) & np.isfinite(h) & (h != 0)
-    space = _Space.of(model)
+    space = ParamSpace.of(model)
     n_par = len(space.names)
     if sel.sum() <= n_par:
         raise UsageError(f"fit band {lo:g}-{hi:g} Hz holds {int(sel.sum())} usable bins; "
@@ -443,7 +443,7 @@ def residual_correlation(blocks: np.ndarray) -> float:
     return float(np.clip(num / den, 0.0, 0.95)) if den > 0 else 0.0
 
 
-def _jacobian_ci(space: _Space, z: np.ndarray, jac: np.ndarray, blocks: np.ndarray,
+def _jacobian_ci(space: ParamSpace, z: np.ndarray, jac: np.ndarray, blocks: np.ndarray,
                  level: float = 0.95) -> tuple[dict[str, float], dict[str, float]]:
     """95 % intervals from J (residuals × log-params): see the module docstring.
 

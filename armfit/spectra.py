@@ -971,7 +971,7 @@ class StudySpectra:
 def _estimate_source(source, config: EstimateConfig):
     """Worker: read one trial and estimate it. Returns ("ok", TrialResponses, fs, warnings)
     or ("bad", label, message, reason) for a BadInputError."""
-    from armfit.io.trials import _reason, read_trial
+    from armfit.io.trials import read_trial
     warnings: list[str] = []
     try:
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
@@ -980,7 +980,7 @@ def _estimate_source(source, config: EstimateConfig):
         responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
                                    source=source.label)
     except BadInputError as exc:
-        return ("bad", source.label, str(exc), _reason(exc))
+        return ("bad", source.label, str(exc), exc.detail)
     tr = TrialResponses(m.subject, m.axis, m.grip_N, m.run, source.label, config.grid(),
                         responses)
     return ("ok", tr, m.fs, tuple(warnings))

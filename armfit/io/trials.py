@@ -277,7 +277,7 @@ def _discover(inputs: Sequence[str | os.PathLike], manifest: str | os.PathLike |
     def fail(exc: BadInputError) -> None:
         if bad is None:
             raise exc
-        bad.append(Skipped(exc.file or "", _reason(exc)))
+        bad.append(Skipped(exc.file or "", exc.detail))
 
     def add(path: Path, explicit: bool) -> None:
         res = path.resolve()
@@ -346,14 +346,6 @@ def discover(inputs: Sequence[str | os.PathLike], *,
 # ---------------------------------------------------------------------------
 # Reading raw files
 # ---------------------------------------------------------------------------
-
-def _reason(exc: BadInputError) -> str:
-    """The error message without its leading file name."""
-    text = str(exc)
-    if exc.file and text.startswith(exc.file):
-        text = text[len(exc.file):].lstrip(",: ")
-    return text
-
 
 def _csv_header(path: Path) -> list[str]:
     opener = gzip.open if path.name.lower().endswith(".gz") else open
@@ -795,7 +787,7 @@ class TrialStream:
             except BadInputError as exc:
                 if not self.skip_bad:
                     raise
-                self.skipped.append(Skipped(src.label, _reason(exc)))
+                self.skipped.append(Skipped(src.label, exc.detail))
                 continue
             yield trial
 
@@ -864,7 +856,7 @@ def open_trials(inputs: Sequence[str | os.PathLike], *,
                             file=src.label)
         if not skip_bad:
             raise exc
-        skipped.append(Skipped(src.label, _reason(exc)))
+        skipped.append(Skipped(src.label, exc.detail))
     if not kept and not skipped:
         where = ", ".join(str(p) for p in inputs) or str(manifest)
         raise NoInputError(f"{where}: no trial files found (expected names like "
