@@ -47,9 +47,12 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy import optimize, sparse, stats
 
-from armfit.fitting import ParamSpace, log_errors
-from armfit.models.arm import PARAM_NAMES, ClosedLoopModel
-from armfit.models.effects import EFFECTS, Effect
+from armfit.constants import AXES, PARAM_NAMES, UNIT_SE_DEG
+from armfit.errors import UsageError
+from armfit.fitting import ParamSpace, analytic_guess, fit_response, log_errors
+from armfit.models.arm import ClosedLoopModel
+from armfit.models.effects import EFFECTS, Effect, model_from_params
+from armfit.spectra import Spectra
 
 #: Standard error bands of the compare table (Hz).
 BANDS: tuple[tuple[float, float], ...] = ((0.1, 1.0), (1.0, 3.0), (3.0, 10.0), (10.0, 30.0))
@@ -73,7 +76,7 @@ DROP_POINTS = 2
 SE_FLOOR_DB = 0.01
 SE_FLOOR_DEG = 0.06
 #: Degrees weighted like 1 dB in unweighted comparisons (1 neper ↔ 1 rad).
-UNIT_DEG = float(np.degrees(1.0) / (20.0 / np.log(10.0)))
+UNIT_DEG = float(UNIT_SE_DEG)
 
 
 # ---------------------------------------------------------------------------
@@ -376,7 +379,6 @@ def levy_starts(model: ClosedLoopModel, data: AxisData, band: tuple[float, float
     effects at ``effect_values`` removed (:meth:`ClosedLoopModel.remove_effects`); the
     candidate closest to the data in log error, or the ``fallback`` row where none is
     physical. A start that does not depend on a possibly distorted earlier fit."""
-    from armfit.fitting import analytic_guess
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
     f = data.f_hz[sel]
     out = np.array(fallback, float, copy=True)
@@ -491,7 +493,6 @@ def _rescue(prob: _Joint, model: ClosedLoopModel, data: AxisData, sel, res, max_
     trial's) get arm parameters from a global single-trial fit
     (:func:`armfit.fitting.fit_response`), then the joint fit is refined again; the
     better of the two results is returned."""
-    from armfit.fitting import fit_response
     per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
     bad = np.flatnonzero(per > _OUTLIER * max(np.median(per), 2.0 * prob.f.size))
     if bad.size == 0:
@@ -760,31 +761,19 @@ def diagnose_axis(data: AxisData, *, band: tuple[float, float],
 # ---------------------------------------------------------------------------
 
 def _rows(spectra, *, level: str, kind: str, axis: str, grip: float | None = None,
-          out_axis: str | None = None):
-    sel = ((spectra["level"] == level) & (spectra["kind"] == kind)
-           & (spectra["axis"] == axis))
-    if out_axis is not None:
-        sel &= spectra["out_axis"] == out_axis
-    if grip is not None:
-        sel &= np.isclose(spectra["grip_N"].to_numpy(float), grip)
-    return spectra[sel]
+          out_axis: str | None = None) -> Spectra:
+    return Spectra.of(spectra).select(level=level, kind=kind, axis=axis, grip=grip,
+                                      out_axis=out_axis)
 
 
-def _trial_matrix(rows) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list]:
-    """(f, H (T, n), se_db, se_deg, keys) from long-format trial rows on one grid."""
-    keys = ["subject", "grip_N", "run"]
-    rows = rows.sort_values(keys + ["freq_hz"], na_position="first")
-    groups = list(rows.groupby(keys, dropna=False, sort=True))
-    f = groups[0][1]["freq_hz"].to_numpy(float)
-    H, sdb, sdeg, labels = [], [], [], []
-    for key, g in groups:
-        if g.shape[0] != f.size or not np.allclose(g["freq_hz"].to_numpy(float), f):
-            raise ValueError("trials are not on one frequency grid")
-        H.append(g["re"].to_numpy(float) + 1j * g["im"].to_numpy(float))
-        sdb.append(g["se_db"].to_numpy(float))
-        sdeg.append(g["se_deg"].to_numpy(float))
-        labels.append(key)
-    return f, np.array(H), np.array(sdb), np.array(sdeg), labels
+def _trial_matrix(rows: Spectra) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                          list]:
+    """(f, H (T, n), se_db, se_deg, keys) of trial responses on one grid, in subject,
+    grip, run order; keys are (subject, grip_N, run) per trial."""
+    rows = rows.sorted(("subject", "grip_N", "run"))
+    f = rows.common_grid("trials")
+    labels = list(zip(rows.key("subject"), rows.key("grip_N"), rows.key("run"), strict=True))
+    return f, rows.h, rows.se_db, rows.se_deg, labels
 
 
 def _param_row(params, axis: str, grip: float | None):
@@ -803,15 +792,14 @@ def axis_data(spectra, params, axis: str) -> AxisData | None:
     (the row of the trial's grip for grip fits, the axis row for nominal fits).
     None when the spectra hold no trials of the axis or the params no row for it."""
     rows = _rows(spectra, level="trial", kind="measured", axis=axis)
-    if rows.empty or not (params["axis"] == axis).any():
+    if len(rows) == 0 or not (params["axis"] == axis).any():
         return None
     f, H, sdb, sdeg, labels = _trial_matrix(rows)
     starts = []
     for _subject, grip, _run in labels:
         r = _param_row(params, axis, float(grip))
         starts.append({n: float(r[n]) for n in PARAM_NAMES})
-    import pandas as pd
-    names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if pd.isna(run) else f"_run-{run}")
+    names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if run is None else f"_run-{run}")
                   for s, g, run in labels)
     return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names)
 
@@ -826,11 +814,11 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
     out = {}
     axis, H_on = data.axis, data.h
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
-    for other in ("x", "y", "z"):
+    for other in AXES:
         if other == axis:
             continue
         rows = _rows(spectra, level="trial", kind="cross", axis=axis, out_axis=other)
-        if rows.empty:
+        if len(rows) == 0:
             continue
         _, H_c, *_ = _trial_matrix(rows)
         if H_c.shape != H_on.shape:
@@ -852,7 +840,7 @@ def _candidate_task(args):
 
 
 def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
-             axes: Sequence[str] = ("x", "y", "z"),
+             axes: Sequence[str] = AXES,
              effects: Sequence[Effect] | None = None, jobs: int = 1) -> list[AxisDiagnosis]:
     """Diagnose every axis present in both ``spectra`` (a spectra DataFrame) and
     ``params`` (a params DataFrame, grip or nominal fits): see :func:`diagnose_axis`.
@@ -861,6 +849,7 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
     fits (one per axis and effect) in parallel processes — the results do not depend on
     ``jobs``."""
     effects = list(EFFECTS.values()) if effects is None else list(effects)
+    spectra = Spectra.of(spectra)
     tasks = []
     for axis in axes:
         data = axis_data(spectra, params, axis)
@@ -935,7 +924,6 @@ def _summary(axis, grip, level, label, f, r_db, r_deg, se_db, se_deg, band, para
 def _fit_effects_aggregate(base_model, theta, effects, f, h, se_db, se_deg, band):
     """Nested refit of base + effects on one aggregate, warm-started at the effects'
     null point and at their starting points; never worse than the base."""
-    from armfit.fitting import fit_response
     model = base_model
     for e in effects:
         model = model.with_effect(e)
@@ -964,16 +952,16 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
     across trials at level "trial"); both the base and the extended model are reported.
     ``band`` defaults to the whole grid.
     """
-    from armfit.errors import UsageError
-    from armfit.io.artifacts import model_from_params
     if level not in ("mean", "median", "trial"):
-        raise UsageError(f"--level must be mean, median or trial, got {level!r}")
+        raise UsageError(f"{{opt}} must be mean, median or trial, got {level!r}",
+                         option="level=")
+    spectra = Spectra.of(spectra)
     grip_model = "grip_N" in params.columns
     if level == "median" and grip_model:
         raise UsageError("grip fits are compared at --level mean or trial; the median "
                          "pools all grips (use nominal fits)")
     out: list[Comparison] = []
-    for axis in ("x", "y", "z"):
+    for axis in AXES:
         if not (params["axis"] == axis).any():
             continue
         if level == "trial":
@@ -1013,22 +1001,19 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
         grips = [None]
         if level == "mean":
             rows = _rows(spectra, level="mean", kind="measured", axis=axis)
-            grips = sorted(set(rows["grip_N"].astype(float)))
+            grips = sorted(float(g) for g in rows.values_of("grip_N"))
         for grip in grips:
             rows = _rows(spectra, level=level, kind="measured", axis=axis, grip=grip)
-            if rows.empty:
+            if len(rows) == 0:
                 continue
-            rows = rows.sort_values("freq_hz")
-            f = rows["freq_hz"].to_numpy(float)
-            h = rows["re"].to_numpy(float) + 1j * rows["im"].to_numpy(float)
-            se_db, se_deg = rows["se_db"].to_numpy(float), rows["se_deg"].to_numpy(float)
+            f, h, se_db, se_deg = rows.row(0)
             prow = _param_row(params, axis, grip)
             model, theta = model_from_params(prow)
             b = band or (float(f[0]), float(f[-1]))
             sel = (f >= b[0]) & (f <= b[1])
             with np.errstate(all="ignore"):
                 r_db, r_deg = residuals(h[sel], model.response(f[sel], theta))
-            n = int(rows["n"].iloc[0]) if "n" in rows else 1
+            n = int(rows.key("n")[0])
             out.append(_summary(axis, grip, level, model_label(model), f[sel], r_db, r_deg,
                                 se_db[sel], se_deg[sel], b, {}, n))
             if effects:

@@ -12,7 +12,7 @@ Exit codes (documented in the README):
 3    a fit did not converge (no numbers are printed or written)
 65   bad input data (file content breaks the data contract)
 66   input not found, or nothing to read
-73   output cannot be written (exists without --overwrite, or is also an input)
+73   output cannot be written (exists and not to be overwritten, or is also an input)
 130  interrupted
 ==== =========================================================
 """
@@ -30,9 +30,31 @@ EXIT_INTERRUPTED = 130
 
 
 class ArmfitError(ValueError):
-    """Base class of every error a user's input or options can cause."""
+    """Base class of every error a user's input or options can cause.
+
+    A message about an option names it by its Python spelling, e.g. ``overwrite=True``
+    or ``method=``: the text given may hold the placeholder ``{opt}``, filled with
+    ``option`` (the Python spelling). The command line shows the same message with the
+    option's flag instead (:meth:`with_option`), so library messages never name flags.
+    """
 
     exit_code = EXIT_INTERNAL
+
+    def __init__(self, message: str = "", *, option: str | None = None):
+        self.template = message
+        self.option = option
+        super().__init__(message.replace("{opt}", option or "") if option else message)
+
+    @property
+    def option_name(self) -> str | None:
+        """The option's parameter name (``option`` up to any ``=``), or None."""
+        return None if self.option is None else self.option.split("=", 1)[0]
+
+    def with_option(self, spelling: str) -> str:
+        """The message with the option written as ``spelling`` (e.g. a CLI flag)."""
+        if self.option is None:
+            return str(self)
+        return self.template.replace("{opt}", spelling)
 
 
 class UsageError(ArmfitError):
@@ -51,7 +73,8 @@ class BadInputError(ArmfitError):
     exit_code = EXIT_DATAERR
 
     def __init__(self, message: str, *, file: str | None = None, column: str | None = None,
-                 row: int | None = None, reason: str | None = None):
+                 row: int | None = None, reason: str | None = None,
+                 option: str | None = None):
         self.file = file
         self.column = column
         self.row = row
@@ -64,7 +87,7 @@ class BadInputError(ArmfitError):
         if row is not None:
             where.append(f"row {row}")
         prefix = ": ".join([", ".join(where)]) + ": " if where else ""
-        super().__init__(prefix + message)
+        super().__init__(prefix + message, option=option)
 
     @property
     def detail(self) -> str:
@@ -82,7 +105,7 @@ class NoInputError(ArmfitError):
 
 
 class OutputError(ArmfitError):
-    """An output exists (and --overwrite was not given), or would overwrite an input."""
+    """An output exists (and overwriting was not asked for), or would overwrite an input."""
 
     exit_code = EXIT_CANTCREAT
 

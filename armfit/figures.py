@@ -21,7 +21,7 @@ import functools
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,11 +34,13 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import FuncFormatter
 
+from armfit.constants import AXES
 from armfit.errors import BadInputError, UsageError
-from armfit.io.artifacts import model_from_params
 from armfit.io.atomic import atomic_path, check_output
 from armfit.models.arm import ClosedLoopModel
+from armfit.models.effects import model_from_params
 from armfit.models.literature import LiteratureModel, literature_models
+from armfit.spectra import Spectra
 from armfit.uncertainty import WuWeight, w_max
 
 # fontTools, which subsets fonts for PDF output, logs every table it prunes at INFO.
@@ -58,7 +60,6 @@ DPI = 300
 #: than this (e.g. 27 trials on a 3000-point grid); otherwise everything is vector.
 RASTER_POINTS = 20000
 
-AXES: tuple[str, ...] = ("x", "y", "z")
 AXIS_TITLES = {"x": "X axis (left–right)", "y": "Y axis (up–down)", "z": "Z axis (forward–back)"}
 
 MAG_LABEL = "Magnitude (dB re 1 m/N)"
@@ -209,31 +210,43 @@ class Curve:
     q_deg: tuple[np.ndarray, np.ndarray]
 
 
-def _select(spectra: pd.DataFrame, *, level: str, kind: str, axis: str) -> pd.DataFrame:
-    m = ((spectra["level"] == level) & (spectra["kind"] == kind) & (spectra["axis"] == axis)
-         & (spectra["freq_hz"] > 0))
-    if "out_axis" in spectra.columns:
-        m &= spectra["out_axis"].isna() | (spectra["out_axis"] == axis)
-    return spectra[m]
+def _select(spectra: Spectra, *, level: str, kind: str, axis: str) -> Spectra:
+    """The responses of ``axis`` of one level and kind on the axis's own position, at
+    positive frequencies."""
+    rows = spectra.select(level=level, kind=kind, axis=axis, out_axis=axis)
+    return _positive(rows) if (rows.freq_hz <= 0).any() else rows
 
 
-def _curves(rows: pd.DataFrame, by: Sequence[str]) -> list[Curve]:
+def _positive(rows: Spectra) -> Spectra:
+    """``rows`` without frequencies at or below 0 Hz."""
+    keep = rows.freq_hz > 0
+    return replace(rows, freq_hz=rows.freq_hz[keep], h=rows.h[:, keep],
+                   values={k: v[:, keep] for k, v in rows.values.items()},
+                   flags=rows.flags[:, keep], present=rows.present[:, keep])
+
+
+def _points(rows: Spectra) -> int:
+    """Number of (response, frequency) values in ``rows``."""
+    return int(rows.present.sum())
+
+
+def _curves(rows: Spectra, by: Sequence[str]) -> list[Curve]:
+    """One :class:`Curve` per row, ordered by the identity columns ``by``."""
+    rows = rows.sorted(by)
     out = []
-    for key, g in rows.groupby(list(by), dropna=False, sort=True):
-        g = g.sort_values("freq_hz")
-
-        def col(name: str, g=g) -> np.ndarray:
-            return g[name].to_numpy(dtype=float) if name in g else np.full(len(g), np.nan)
-
-        out.append(Curve(key if isinstance(key, tuple) else (key,), col("freq_hz"),
-                         col("mag_db"), col("phase_deg"), col("re") + 1j * col("im"),
-                         col("se_db"), col("se_deg"), (col("q25_db"), col("q75_db")),
-                         (col("q25_deg"), col("q75_deg"))))
+    for i in range(len(rows)):
+        m = rows.present[i]
+        v = rows.values
+        out.append(Curve(tuple(rows.key(c)[i] for c in by), rows.freq_hz[m],
+                         v["mag_db"][i, m], v["phase_deg"][i, m], rows.h[i, m],
+                         v["se_db"][i, m], v["se_deg"][i, m],
+                         (v["q25_db"][i, m], v["q75_db"][i, m]),
+                         (v["q25_deg"][i, m], v["q75_deg"][i, m])))
     return out
 
 
-def _axes_in(spectra: pd.DataFrame, kind: str, axis: str | None) -> list[str]:
-    present = [a for a in AXES if ((spectra["kind"] == kind) & (spectra["axis"] == a)).any()]
+def _axes_in(spectra: Spectra, kind: str, axis: str | None) -> list[str]:
+    present = [a for a in AXES if len(spectra.select(kind=kind, axis=a))]
     if axis is not None:
         if axis not in AXES:
             raise UsageError(f"axis must be x, y or z, got {axis!r}")
@@ -327,8 +340,9 @@ def bode_figure(spectra: pd.DataFrame, params: pd.DataFrame | None = None, *,
     """
     if band not in ("se", "quartiles"):
         raise UsageError(f"band must be 'se' or 'quartiles', got {band!r}")
+    spectra = Spectra.of(spectra)
     axes = _axes_in(spectra, kind, axis)
-    grips = [_grip_key(g) for g in spectra["grip_N"].unique()]
+    grips = [_grip_key(g) for g in dict.fromkeys(spectra.key("grip_N"))]
     if params is not None and "grip_N" in params.columns:
         grips += [_grip_key(g) for g in params["grip_N"].unique()]
     colour = _grip_colours(grips)
@@ -340,7 +354,7 @@ def bode_figure(spectra: pd.DataFrame, params: pd.DataFrame | None = None, *,
         mag.set_title(AXIS_TITLES[ax_name])
         if trials:
             rows = _select(spectra, level="trial", kind=kind, axis=ax_name)
-            raster = len(rows) > RASTER_POINTS
+            raster = _points(rows) > RASTER_POINTS
             for c in _curves(rows, ("grip_N", "subject", "run")):
                 g = _grip_key(c.key[0])
                 gid = _trial_gid(ax_name, g, c.key[1], c.key[2])
@@ -362,11 +376,10 @@ def bode_figure(spectra: pd.DataFrame, params: pd.DataFrame | None = None, *,
                        gid=f"mean:{ax_name}:{_grip_text(g)}".replace(" ", ""))
             seen.setdefault((_order(g), 0), Line2D([], [], lw=1.6, color=col,
                                                label=f"{_grip_text(g)}: mean {band_text}"))
-        f_all = _select(spectra, level="trial", kind=kind, axis=ax_name)["freq_hz"]
-        f_all = pd.concat([f_all, _select(spectra, level="mean", kind=kind,
-                                          axis=ax_name)["freq_hz"]]).to_numpy(float)
+        f_all = np.concatenate([_select(spectra, level=lev, kind=kind, axis=ax_name).freq_hz
+                                for lev in ("trial", "mean")])
         if f_all.size == 0:
-            f_all = spectra.loc[spectra["freq_hz"] > 0, "freq_hz"].to_numpy(float)
+            f_all = spectra.freq_hz[spectra.freq_hz > 0]
         f = _log_grid(f_all)
         for g, row in _params_for(params, ax_name):
             model, theta = model_from_row(row)
@@ -414,6 +427,7 @@ def normalised_residuals(spectra: pd.DataFrame, params: pd.DataFrame, axis: str,
     "mean" rows of each grip; one without it (nominal fit, Table II) with the level
     "median" rows of the axis. The model is H_CL of eq. 4 (with the row's effects).
     """
+    spectra = Spectra.of(spectra)
     pairs = _params_for(params, axis)
     if not pairs:
         raise BadInputError(f"no model row for axis {axis}", column="axis")
@@ -422,7 +436,7 @@ def normalised_residuals(spectra: pd.DataFrame, params: pd.DataFrame, axis: str,
         level = "median" if g is None else "mean"
         rows = _select(spectra, level=level, kind=kind, axis=axis)
         if g is not None:
-            rows = rows[np.isclose(rows["grip_N"].to_numpy(float), g)]
+            rows = rows.select(grip=g)
         curves = _curves(rows, ("axis",))
         if not curves:
             what = f"level '{level}'" + ("" if g is None else f", grip {g:g} N")
@@ -464,6 +478,7 @@ def residual_figure(spectra: pd.DataFrame, params: pd.DataFrame,
     band |z| ≤ 2 is shaded grey; ``bands`` ({axis: [(lo_hz, hi_hz), ...]}) are shaded
     red as failing bands. See :func:`normalised_residuals` for which rows are compared.
     """
+    spectra = Spectra.of(spectra)
     axes = [a for a in _axes_in(spectra, kind, axis)
             if axis is not None or (params["axis"] == a).any()]
     if not axes:
@@ -526,6 +541,7 @@ def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
     in dB (eq. 7, ``weights`` {axis: WuWeight} as :func:`armfit.io.artifacts.read_wu`
     returns; line).
     """
+    spectra = Spectra.of(spectra)
     axes = _axes_in(spectra, "derived", axis)
     fig, axs = _grid(3, len(axes), legend_rows=1)
     handles: dict[str, Any] = {}
@@ -533,7 +549,7 @@ def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
         mag, ph, wax = axs[:, j]
         mag.set_title(AXIS_TITLES[ax_name])
         rows = _select(spectra, level="trial", kind="derived", axis=ax_name)
-        raster = len(rows) > RASTER_POINTS
+        raster = _points(rows) > RASTER_POINTS
         curves = _curves(rows, ("grip_N", "subject", "run"))
         if not curves:
             raise BadInputError(f"no derived trial rows for axis {ax_name}", column="level")

@@ -47,20 +47,13 @@ from scipy import optimize, stats
 from scipy.ndimage import uniform_filter1d
 from scipy.stats import qmc
 
+from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import BadInputError, ConvergenceError, UsageError
-from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, laplace
-from armfit.spectra import aggregate
+from armfit.io.artifacts import params_frame
+from armfit.models.arm import ClosedLoopModel, laplace
+from armfit.spectra import Spectra, aggregate
 
 COSTS: tuple[str, ...] = ("complex", "paper")
-
-#: dB per neper: 20 log10|H| = DB_PER_NEPER · ln|H|.
-DB_PER_NEPER = 20.0 / np.log(10.0)
-#: Unit phase weight (deg) equivalent to 1 dB of magnitude (1 neper ↔ 1 rad).
-UNIT_SE_DEG = np.degrees(1.0) / DB_PER_NEPER
-
-#: Default fit bands (Hz) per axis, as the paper: X and Y 0.1–30 Hz, Z 0.1–10 Hz.
-PAPER_BANDS: dict[str, tuple[float, float]] = {
-    "x": (0.1, 30.0), "y": (0.1, 30.0), "z": (0.1, 10.0)}
 
 _N_SOBOL = 512          # screened candidate starts (2**9, fixed and unscrambled)
 _N_REFINE = 3           # screened candidates refined locally, per weighting
@@ -99,7 +92,7 @@ class FitResult:
     objective: float = field(default=float("nan"))
 
     def row(self) -> dict[str, float | str | bool]:
-        """Parameters, intervals and statistics as one flat dict (interface C names)."""
+        """Parameters, intervals and statistics as one flat dict (the params-file columns)."""
         out: dict[str, float | str | bool] = dict(self.params)
         for n in self.params:
             out[f"{n}_lo"] = self.ci_lo[n]
@@ -496,7 +489,8 @@ def bootstrap_fit(base: FitResult, f_hz, H_trials, subjects: Sequence[str], *,
     ConvergenceError. Deterministic for a given ``seed``.
     """
     if n_boot < 2:
-        raise UsageError(f"--bootstrap needs at least 2 replicates, got {n_boot}")
+        raise UsageError(f"{{opt}} needs at least 2 replicates, got {n_boot}",
+                         option="n_boot=")
     H_trials = np.asarray(H_trials, complex)
     subjects = np.asarray(subjects)
     if H_trials.ndim != 2 or H_trials.shape[0] != subjects.size:
@@ -579,8 +573,7 @@ class StudyFit:
     fits: tuple[FitResult, ...]
 
     def table(self):
-        """The params table (interface C columns, :func:`armfit.io.artifacts.params_columns`)."""
-        from armfit.io.artifacts import params_frame
+        """The params table (columns of :func:`armfit.io.schema.params_columns`)."""
         rows = []
         for (axis, grip), fit in zip(self.keys, self.fits, strict=True):
             row = {"axis": axis, **fit.row()}
@@ -591,13 +584,6 @@ class StudyFit:
         return params_frame(rows, names, grip=self.which == "grip")
 
 
-def _responses(df) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    df = df.sort_values("freq_hz")
-    f = df["freq_hz"].to_numpy(float)
-    h = df["re"].to_numpy(float) + 1j * df["im"].to_numpy(float)
-    return f, h, df["se_db"].to_numpy(float), df["se_deg"].to_numpy(float)
-
-
 def fit_study(spectra, *, which: str, cost: str = "complex",
               bands: Mapping[str, tuple[float, float]] | None = None,
               effects: Sequence = (), bootstrap: int = 0, seed: int | None = 0,
@@ -605,59 +591,94 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
               source: str | None = None,
               on_fit: Callable[[str, float | None, FitResult], None] | None = None
               ) -> StudyFit:
-    """Fit H_CL (eq. 4, plus ``effects``) to every aggregate of a spectra table.
+    """Fit H_CL (eq. 4, plus ``effects``) to every aggregate of a study's spectra.
 
-    spectra: DataFrame in the SPECTRA_COLUMNS schema; which: "grip" (kind "measured",
-    level "mean", one fit per axis × grip — Table I) or "nominal" (level "median", one per
-    axis — Table II); bands: {axis: (lo, hi) Hz} (default :data:`PAPER_BANDS`); bootstrap:
-    number of subject resamples (0: Jacobian intervals), aggregated with
-    :func:`armfit.spectra.aggregate`; method: estimator to use when the table holds
-    several; source: file name for messages; on_fit(axis, grip, fit) is called after
-    each fit. Raises BadInputError if the table has no such aggregates, ConvergenceError
-    (exit 3) if any fit fails to converge.
+    Parameters
+    ----------
+    spectra : armfit.spectra.Spectra or pandas.DataFrame
+        The study's responses (a long table in the spectra-file schema is accepted).
+    which : {'grip', 'nominal'}
+        'grip': kind "measured", level "mean", one fit per axis × grip (Table I);
+        'nominal': level "median", one per axis (Table II).
+    cost : {'complex', 'paper'}
+        See the module docstring (eq. 5 for 'paper').
+    bands : dict, optional
+        {axis: (lo, hi) Hz}; default :data:`PAPER_BANDS`.
+    effects : sequence of Effect
+        Added to every model.
+    bootstrap : int
+        Number of subject resamples (0: Jacobian intervals), aggregated with
+        :func:`armfit.spectra.aggregate`.
+    seed : int or None
+        Seed of the resampling.
+    method : str, optional
+        Estimator to use when the spectra hold several.
+    max_nfev : int, optional
+        Evaluation budget of each final local fit.
+    source : str, optional
+        File name for messages (default: the file the spectra were read from).
+    on_fit : callable, optional
+        ``on_fit(axis, grip, fit)`` after each fit.
+
+    Returns
+    -------
+    StudyFit
+
+    Raises
+    ------
+    BadInputError
+        The spectra have no such aggregates.
+    UsageError
+        Several estimators and no ``method``, or a ``method`` the spectra lack.
+    ConvergenceError
+        A fit did not converge (exit 3).
     """
     if which not in STUDY_FITS:
         raise UsageError(f"which must be one of {', '.join(STUDY_FITS)}, got {which!r}")
     how = STUDY_FITS[which]
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
-    df = spectra[spectra["kind"] == "measured"]
-    if "out_axis" in df.columns:
-        df = df[df["out_axis"].isna() | (df["out_axis"] == df["axis"])]
-    agg = df[df["level"] == how]
-    if agg.empty:
+    sp = Spectra.of(spectra)
+    source = source if source is not None else sp.source
+    measured = sp.select(kind="measured")
+    measured = measured.take(measured.key("out_axis") == measured.key("axis"))
+    agg = measured.select(level=how)
+    if len(agg) == 0:
         raise BadInputError(f"no rows with level '{how}' and kind 'measured'; run "
                             "`armfit estimate` to write the aggregates", file=source,
                             column="level")
-    methods = sorted(agg["method"].dropna().unique())
+    methods = sorted(agg.values_of("method"))
     if method is None and len(methods) > 1:
         raise UsageError(f"{source or 'spectra'} holds several estimators "
-                         f"({', '.join(methods)}); choose one with --method")
+                         f"({', '.join(methods)}); choose one with {{opt}}", option="method=")
     if method is not None:
         if method not in methods:
-            raise UsageError(f"--method {method}: not in {source or 'spectra'} (it has "
-                             f"{', '.join(methods)})")
-        agg = agg[agg["method"] == method]
-        df = df[df["method"] == method]
+            raise UsageError(f"{{opt}}{method}: not in {source or 'spectra'} (it has "
+                             f"{', '.join(methods)})", option="method=")
+        agg = agg.select(method=method)
+        measured = measured.select(method=method)
+    group_cols = ("axis", "grip_N") if which == "grip" else ("axis",)
+    agg = agg.sorted(group_cols)
+    groups: dict[tuple, list[int]] = {}
+    for i in range(len(agg)):
+        key = tuple(agg.key(c)[i] for c in group_cols)
+        groups.setdefault(key, []).append(i)
     keys: list[tuple[str, float | None]] = []
     fits: list[FitResult] = []
-    group_cols = ["axis", "grip_N"] if which == "grip" else ["axis"]
-    for key, g in agg.groupby(group_cols, sort=True, dropna=False):
+    for key, rows in groups.items():
         axis = str(key[0])
         grip = float(key[1]) if which == "grip" else None
         model = ClosedLoopModel.for_axis(axis, effects)
-        f, h, se_db, se_deg = _responses(g)
-        if np.unique(f).size != f.size:
+        if len(rows) > 1:
             raise BadInputError(f"repeated frequencies in the {how} of axis {axis}"
                                 + (f", grip {grip:g} N" if grip is not None else ""),
                                 file=source, column="freq_hz")
+        f, h, se_db, se_deg = agg.row(rows[0])
         where = f"axis {axis}" + (f", grip {grip:g} N" if grip is not None else "")
         try:
             fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, cost=cost,
                                band=bands[axis], max_nfev=max_nfev)
             if bootstrap:
-                trials = df[(df["level"] == "trial") & (df["axis"] == axis)]
-                if grip is not None:
-                    trials = trials[trials["grip_N"] == grip]
+                trials = measured.select(level="trial", axis=axis, grip=grip)
                 hs, subjects = _trial_matrix(trials, f, source, where, how)
                 fit = bootstrap_fit(fit, f, hs, subjects,
                                     aggregate=_aggregator(how), n_boot=bootstrap,
@@ -677,23 +698,25 @@ def _aggregator(how: str) -> Aggregator:
     return lambda H: aggregate(H, how)
 
 
-def _trial_matrix(trials, f: np.ndarray, source: str | None, where: str, how: str
+def _trial_matrix(trials: Spectra, f: np.ndarray, source: str | None, where: str, how: str
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(n_trials, n_freq) responses on grid f and the subject of each trial. For the
     mean, each subject's runs at one grip are first combined into one response (their
     mean), as `armfit estimate` does before averaging over subjects."""
-    if trials.empty:
-        raise BadInputError(f"{where}: --bootstrap needs the per-trial rows (level 'trial')",
+    if len(trials) == 0:
+        raise BadInputError(f"{where}: a bootstrap needs the per-trial rows (level 'trial')",
                             file=source, column="level")
+    subj, grips, runs = (trials.key(c) for c in ("subject", "grip_N", "run"))
+    order = sorted(range(len(trials)), key=lambda i: (
+        str(subj[i]), float(grips[i]), -1 if runs[i] is None else runs[i]))
     hs, subjects = [], []
-    for (subject, grip, _run), g in trials.groupby(
-            [trials["subject"].astype(str), "grip_N", trials["run"].fillna(-1)], sort=True):
-        ft, ht, _, _ = _responses(g)
+    for i in order:
+        ft, ht, _, _ = trials.row(i)
         if ft.shape != f.shape or not np.allclose(ft, f, rtol=1e-9):
-            raise BadInputError(f"{where}: trial of subject {subject} is not on the common "
+            raise BadInputError(f"{where}: trial of subject {subj[i]} is not on the common "
                                 "frequency grid", file=source, column="freq_hz")
         hs.append(ht)
-        subjects.append((subject, grip))
+        subjects.append((str(subj[i]), float(grips[i])))
     if how == "mean":
         keys = list(dict.fromkeys(subjects))
         hs = [aggregate(np.array([h for h, k in zip(hs, subjects, strict=True) if k == key]),

@@ -28,16 +28,33 @@ OUTDIR, and an existing OUTDIR is replaced only with ``overwrite``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from armfit import __version__
+import matplotlib.pyplot as plt
+import numpy as np
+
+from armfit import api
+from armfit import figures as F
+from armfit._version import __version__
+from armfit.api import compare_frame
+from armfit.diagnose import BANDS, compare, diagnose, diagnosis_to_dict
 from armfit.errors import ArmfitError, OutputError
+from armfit.fitting import fit_study
+from armfit.io.artifacts import read_params, write_params
+from armfit.io.atomic import atomic_path, check_output, write_text_atomic
+from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
+from armfit.io.trials import ingest
+from armfit.models.effects import get_effect
+from armfit.spectra import EstimateConfig, Spectra, estimate_study
+from armfit.tables import caption_for, latex_table, param_names, sig4, unit_of
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
@@ -48,8 +65,8 @@ FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.pn
 STAGES = ("ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty", "figures",
           "diagnose", "refit", "compare", "residuals", "report")
 
-#: Columns of compare.csv.
-COMPARE_COLUMNS = ("axis", "grip", "level", "model", "band", "rms_db", "rms_deg", "rms_norm")
+__all__ = ["COMPARE_COLUMNS", "FIGURES", "STAGES", "RunOptions", "RunResult", "Stage",
+           "check_outdir", "compare_frame", "report_markdown", "run", "run_pipeline"]
 
 
 @dataclass(frozen=True)
@@ -116,7 +133,6 @@ def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike],
                  manifest: str | os.PathLike | None = None, overwrite: bool = False) -> Path:
     """Refuse an OUTDIR that exists without ``overwrite``, is a file, or is or holds an
     input (replacing it would delete the input). Raises OutputError (exit 73)."""
-    from armfit.io.atomic import check_output
     out = Path(outdir)
     named = [*inputs, *([manifest] if manifest is not None else [])]
     if out.exists() and not out.is_dir():
@@ -143,7 +159,6 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
     and an existing one untouched; a message naming a file of the temporary folder names
     it as it would have been in ``outdir``.
     """
-    from armfit.io.atomic import atomic_path
     out = check_outdir(outdir, inputs, manifest=options.manifest, overwrite=options.overwrite)
     tmp: Path | None = None
     try:
@@ -192,9 +207,6 @@ class _Diagnosis:
     results are those of one ``diagnose(spectra, params)`` call, in x, y, z order."""
 
     def __init__(self, spectra, params, jobs: int):
-        from concurrent.futures import ThreadPoolExecutor
-
-        from armfit.diagnose import diagnose
         self.spectra, self.params = spectra, params
         self.axes = [a for a in ("x", "y", "z") if (params["axis"] == a).any()]
         self.thread = None
@@ -205,7 +217,6 @@ class _Diagnosis:
                                            jobs=jobs)
 
     def results(self) -> list:
-        from armfit.diagnose import diagnose
         if self.thread is None:
             self.started = time.perf_counter()
             return diagnose(self.spectra, self.params, axes=self.axes)
@@ -223,32 +234,12 @@ class _Diagnosis:
 
 def _run_in(inputs: list, folder: Path, options: RunOptions, *,
             on_stage: OnStage | None, warn: Warn | None) -> RunResult:
-    import contextlib
     with contextlib.ExitStack() as stack:
         return _stages(inputs, folder, options, on_stage=on_stage, warn=warn, stack=stack)
 
 
 def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStage | None,
             warn: Warn | None, stack) -> RunResult:
-    from armfit.diagnose import compare, diagnosis_to_dict
-    from armfit.fitting import fit_study
-    from armfit.io.artifacts import (
-        read_params,
-        read_spectra,
-        write_params,
-        write_spectra,
-        write_wu,
-        write_wu_table,
-        wu_latex,
-        wu_sidecar_paths,
-    )
-    from armfit.io.atomic import write_text_atomic
-    from armfit.io.trials import ingest
-    from armfit.models.effects import get_effect
-    from armfit.spectra import EstimateConfig, estimate_study, spectra_metadata
-    from armfit.tables import caption_for, latex_table
-    from armfit.uncertainty import fit_uncertainty, points_table, summary_table
-
     clock = _Clock(on_stage)
     files: list[str] = []
 
@@ -269,8 +260,8 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
                          skip_bad=options.skip_bad, jobs=options.jobs)
     seen = {f for f, _ in skipped}
     skipped += tuple((f, r) for f, r in est.skipped if f not in seen)
-    write_spectra(est.table, path("spectra.parquet"), meta=spectra_metadata(config, est))
-    spectra = read_spectra(folder / "spectra.parquet")
+    est.spectra.write(path("spectra.parquet"))
+    spectra = Spectra.read(folder / "spectra.parquet")
     clock.done("estimate", f"{len(est.trials)} trial(s), method {config.method}, "
                f"{len(config.grid())} frequencies {config.fmin:g}-{config.fmax:g} Hz")
 
@@ -296,13 +287,9 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
     wu_path = path("wu.csv")
     summary_path, points_path = wu_sidecar_paths(wu_path)
     files += [summary_path.name, points_path.name]
-    unc = fit_uncertainty(spectra, nominal, cost=options.wu_cost)
-    weights = {r.axis: r.result.weight for r in unc}
-    summary = summary_table(unc)
-    write_wu(weights, wu_path)
-    write_wu_table(summary, summary_path)
-    write_wu_table(points_table(unc), points_path)
-    write_text_atomic(path("wu.tex"), wu_latex(weights))
+    uncertainty = api.fit_uncertainty(spectra, nominal, cost=options.wu_cost)
+    uncertainty.write(wu_path, latex=path("wu.tex"))
+    weights, summary, unc = uncertainty.weights, uncertainty.summary(), uncertainty.axes
     clock.done("fit-uncertainty", ", ".join(f"{r.axis}: {r.result.order} pair(s)"
                                             for r in unc) + f", cost {options.wu_cost}")
 
@@ -330,7 +317,7 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
             refitted[eff] = (*refitted.get(eff, ()), axis)
     extended: dict[str, object] = {}
     for eff, axes in refitted.items():
-        sub = spectra[spectra["axis"].isin(axes)]
+        sub = spectra.take(np.isin(spectra.key("axis"), axes))
         bands = {a: tuple(doc["axes"][a]["band_hz"]) for a in axes}
         study = fit_study(sub, which="nominal", cost=options.cost, effects=[get_effect(eff)],
                           bands=bands, source="spectra.parquet")
@@ -374,36 +361,13 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
 
 
 def _median(values) -> float:
-    import numpy as np
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
     return float(np.median(v)) if v.size else float("nan")
 
 
-def compare_frame(rows):
-    """compare.csv as a DataFrame (:data:`COMPARE_COLUMNS`) from
-    :class:`armfit.diagnose.Comparison` rows: one row per comparison and band, band
-    ``overall`` (the whole band compared) or ``LO-HI`` (Hz)."""
-    import pandas as pd
-    out = []
-    for r in rows:
-        for label, b in (("overall", r.overall),
-                         *((f"{b.lo_hz:g}-{b.hi_hz:g}", b) for b in r.bands)):
-            out.append({"axis": r.axis, "grip": r.grip_N, "level": r.level, "model": r.model,
-                        "band": label, "rms_db": b.rms_db, "rms_deg": b.rms_deg,
-                        "rms_norm": b.rms_norm})
-    df = pd.DataFrame(out, columns=list(COMPARE_COLUMNS))
-    order = {m: i for i, m in enumerate(dict.fromkeys(df["model"]))}
-    df["_m"] = df["model"].map(order)
-    df = df.sort_values(["axis", "_m"], kind="stable").drop(columns="_m")
-    return df.reset_index(drop=True)
-
-
 def _save(folder: Path, fig, name: str) -> str:
-    import matplotlib.pyplot as plt
-
-    from armfit.figures import save_figure
-    save_figure(fig, folder / name)
+    F.save_figure(fig, folder / name)
     plt.close(fig)
     return name
 
@@ -412,9 +376,6 @@ def _paper_figures(folder: Path, spectra, grip, nominal, weights) -> list[str]:
     """Fig. 5 (bode: measured dynamics with the grip fits, all axes), Fig. 6 (derived
     dynamics, nominal H_ARM, W_max and |Wu|) and Fig. 7 (the X axis 1 N H_ARM, else the
     first grip fit, against Table IV). Returns the paths written, relative to ``folder``."""
-    import numpy as np
-
-    from armfit import figures as F
     rows = grip[(grip["axis"] == "x") & np.isclose(grip["grip_N"].to_numpy(float), 1.0)]
     return [_save(folder, F.bode_figure(spectra, grip), FIGURES[0]),
             _save(folder, F.uncertainty_figure(spectra, nominal, weights), FIGURES[1]),
@@ -425,7 +386,6 @@ def _paper_figures(folder: Path, spectra, grip, nominal, weights) -> list[str]:
 def _residual_figures(folder: Path, spectra, nominal, extended, refitted, doc) -> list[str]:
     """One residual figure per diagnosed axis: the nominal model solid, the nominal model
     with the axis's named effect dashed, the diagnosis's failing bands shaded."""
-    from armfit import figures as F
     by_axis = {a: eff for eff, axes in refitted.items() for a in axes}
     out = []
     for axis in sorted(doc["axes"]):
@@ -460,7 +420,6 @@ def _num(v, fmt: str = ".3g") -> str:
 
 
 def _params_rows(df) -> tuple[list[str], list[list[str]]]:
-    from armfit.tables import param_names, sig4, unit_of
     names = param_names(df)
     grip = "grip_N" in df.columns
     header = ["axis"] + (["grip (N)"] if grip else []) + \
@@ -487,7 +446,6 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
     """The text of report.md: what was done with which options, the tables, the
     diagnosis per axis in words, the figures. No timestamps or timings (re-running gives
     the same text)."""
-    from armfit.diagnose import BANDS
     cmd = ["armfit run", *inputs, "-o OUTDIR"]
     if options.manifest:
         cmd.append(f"--manifest {options.manifest}")
@@ -633,3 +591,47 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
 
     L += ["## Files", ""] + [f"- `{f}`" for f in files] + [""]
     return "\n".join(L)
+
+
+def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = "h1",
+        cost: str = "complex", wu_cost: str = "envelope", jobs: int = 1,
+        figures: bool = True, overwrite: bool = False, on_stage: OnStage | None = None,
+        warn: Warn | None = None) -> RunResult:
+    """Run every stage on raw trials and write all tables, figures and report.md into
+    ``outdir`` (``armfit run``).
+
+    Parameters
+    ----------
+    inputs : path or sequence of paths
+        Trial files, folders or an ``armfit ingest`` dataset.
+    outdir : path
+        Folder to write (built beside it, renamed into place at the end).
+    manifest : path, optional
+        Trial manifest CSV.
+    skip_bad : bool
+        Go on past bad trials, listing each with its reason.
+    method : {'h1', 'chebwin'}
+        Measured-dynamics estimator (see :func:`armfit.estimate`).
+    cost : {'complex', 'paper'}
+        Arm-fit cost (see :func:`armfit.fit_grip`).
+    wu_cost : {'envelope', 'paper'}
+        Wu fit (see :func:`armfit.fit_uncertainty`).
+    jobs : int
+        Worker processes (estimate, diagnose).
+    figures : bool
+        Draw the figures.
+    overwrite : bool
+        Replace an existing ``outdir``.
+    on_stage : callable, optional
+        Called with each finished :class:`Stage`.
+    warn : callable, optional
+        Receives data warnings.
+
+    Returns
+    -------
+    RunResult
+    """
+    items = [inputs] if isinstance(inputs, str | os.PathLike) else list(inputs)
+    options = RunOptions(manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
+                         wu_cost=wu_cost, jobs=jobs, figures=figures, overwrite=overwrite)
+    return run_pipeline(items, outdir, options, on_stage=on_stage, warn=warn)

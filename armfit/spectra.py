@@ -37,20 +37,32 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import scipy.fft
 from scipy.ndimage import uniform_filter1d
 from scipy.signal import get_window
 from scipy.signal.windows import chebwin
 
-from armfit.errors import BadInputError, UsageError
-from armfit.models.arm import DEVICE_MASS_KG
+from armfit._version import __version__
+from armfit.constants import AXES, DB_PER_NEPER, DEVICE_MASS_KG
+from armfit.errors import BadInputError, NoInputError, UsageError
+from armfit.io.atomic import atomic_path
+from armfit.io.schema import (
+    CSV_FLOAT_FORMAT,
+    SPECTRA_COLUMNS,
+    SPECTRA_KEYS,
+    SPECTRA_META_KEY,
+    SPECTRA_TEXT,
+    SPECTRA_VALUES,
+    json_default,
+)
+from armfit.io.trials import Trial, open_trials, read_trial
 
-AXES = ("x", "y", "z")
 METHODS = ("h1", "chebwin")
-DB_PER_NEPER = 20.0 / math.log(10.0)  # 20 log10(e): d(20 log10|H|) = 8.686 d ln|H|
 
 #: Quantile of the sample median's standard error relative to the mean's for normal
 #: data: sqrt(pi/2) (asymptotic efficiency of the median).
@@ -62,7 +74,7 @@ MEDIAN_SE_FACTOR = math.sqrt(math.pi / 2.0)
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class Spectra:
+class BinSpectra:
     """Auto- and cross-spectra of one trial on the estimator's native bins.
 
     freq_hz: (nb,) bin frequencies, Hz. p_ff: (nb,) force PSD, N²/Hz. p_fx: (k, nb)
@@ -145,7 +157,7 @@ def enbw_bins(win: np.ndarray, nfft: int | None = None) -> float:
 
 def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None = None,
                   window="hann", nfft: int | None = None, detrend: bool = True,
-                  method: str = "h1", first_bin: int | None = None) -> Spectra:
+                  method: str = "h1", first_bin: int | None = None) -> BinSpectra:
     """Welch auto- and cross-spectra of force (n,) and positions (n,) or (n, k).
 
     Same definitions as :func:`scipy.signal.csd` / :func:`scipy.signal.welch` with
@@ -184,7 +196,7 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
     onesided[0] = 1.0
     if nfft % 2 == 0:
         onesided[-1] = 1.0
-    return Spectra(freq_hz=np.fft.rfftfreq(nfft, 1.0 / fs), p_ff=p_ff * onesided,
+    return BinSpectra(freq_hz=np.fft.rfftfreq(nfft, 1.0 / fs), p_ff=p_ff * onesided,
                    p_fx=p_fx * onesided, p_xx=p_xx * onesided,
                    n_avg=welch_overlap_factor(win, step, n_seg),
                    enbw_bins=enbw_bins(win, nfft), method=method,
@@ -207,7 +219,7 @@ def frf_h1(force, pos, fs: float, nperseg: int, noverlap: int | None = None,
 
 
 def chebwin_spectra(force, pos, fs: float, *, attenuation_db: float = 100.0,
-                    detrend: bool = True) -> Spectra:
+                    detrend: bool = True) -> BinSpectra:
     """Single-window periodograms of the whole record, 100 dB Chebyshev window.
 
     The paper's estimator (section III): X = fft(w .* x), F = fft(w .* F) with
@@ -261,7 +273,7 @@ def derived_arm_signals(force, pos, fs: float, mp: float) -> tuple[np.ndarray, n
 
 
 def derived_spectra(force, pos, fs: float, mp: float, *, segments: int = 4,
-                    detrend: bool = True) -> Spectra:
+                    detrend: bool = True) -> BinSpectra:
     """Derived arm dynamics spectra: Xa/Fa by Welch (MATLAB tfestimate semantics).
 
     Input Fa (N), output xa (m) from :func:`derived_arm_signals`; ``segments`` Hamming
@@ -387,7 +399,7 @@ def debiased_coherence(coherence, n_avg) -> np.ndarray:
 NEGLIGIBLE_FORCE_POWER = 1e-4
 
 
-def usable_bins(sp: Spectra, grid: np.ndarray) -> tuple[int, int]:
+def usable_bins(sp: BinSpectra, grid: np.ndarray) -> tuple[int, int]:
     """Native-bin index range [first, last) that :func:`to_grid` may use.
 
     From ``sp.first_bin`` (DC and the mean's main lobe excluded) up to the last bin at or
@@ -473,7 +485,7 @@ def _curvature_correction(h: np.ndarray, grid: np.ndarray, var_u: np.ndarray
     return h, gain
 
 
-def to_grid(sp: Spectra, grid: np.ndarray, *, min_avg: float = 8.0,
+def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
             max_avg: float | None = None) -> GridResponse:
     """Bring native-bin spectra to the common grid by band-averaging (module docstring).
 
@@ -830,7 +842,7 @@ def aggregate_spread(H: np.ndarray, how: str = "mean") -> dict[str, np.ndarray]:
 
 
 # ---------------------------------------------------------------------------
-# The long table (schema armfit.io.artifacts.SPECTRA_COLUMNS)
+# The study's responses (the Spectra object, schema armfit.io.schema)
 # ---------------------------------------------------------------------------
 
 def _block(level: str, subject, axis: str, grip, run, kind: str, out_axis: str, method: str,
@@ -853,30 +865,6 @@ def _block(level: str, subject, axis: str, grip, run, kind: str, out_axis: str, 
     }
 
 
-def _frame(blocks: list[dict[str, object]]):
-    import pandas as pd
-
-    from armfit.io.artifacts import SPECTRA_COLUMNS
-    if not blocks:
-        return pd.DataFrame({c: [] for c in SPECTRA_COLUMNS})
-    sizes = [b["freq_hz"].size for b in blocks]  # type: ignore[union-attr]
-    cols: dict[str, object] = {}
-    for c in SPECTRA_COLUMNS:
-        vals = [b[c] for b in blocks]
-        if isinstance(vals[0], np.ndarray | list):
-            cols[c] = np.concatenate([np.asarray(v) for v in vals])
-        else:
-            cols[c] = np.repeat(np.array(vals, dtype=object), sizes)
-    df = pd.DataFrame(cols, columns=list(SPECTRA_COLUMNS))
-    for c in ("level", "subject", "axis", "kind", "out_axis", "method", "flags"):
-        df[c] = df[c].astype("string")
-    df["grip_N"] = df["grip_N"].astype(float)
-    df["run"] = pd.array([None if v is None or v != v else int(v) for v in df["run"]],
-                         dtype="Int64")
-    df["n"] = df["n"].astype("int64")
-    return df
-
-
 def _majority_flags(flag_rows: Sequence[Sequence[str]]) -> list[str]:
     """Per frequency, the flags carried by more than half of the responses."""
     n = len(flag_rows)
@@ -891,8 +879,8 @@ def _majority_flags(flag_rows: Sequence[Sequence[str]]) -> list[str]:
     return out
 
 
-def spectra_table(trials: Sequence[TrialResponses]):
-    """The spectra table (pandas DataFrame, columns SPECTRA_COLUMNS) of a study.
+def spectra_table(trials: Sequence[TrialResponses], meta: Mapping | None = None) -> Spectra:
+    """The :class:`Spectra` of a study (``meta``: the metadata it carries).
 
     Rows at level ``trial`` for every response of every trial, then the aggregates of
     each kind (measured, derived, cross) and output axis:
@@ -931,7 +919,7 @@ def spectra_table(trials: Sequence[TrialResponses]):
         rs_all = [r for _, r in members]
         blocks.append(_aggregate_block("median", axis, np.nan, kind, out_axis, method, freq,
                                        np.array([r.h for r in rs_all]), rs_all, len(rs_all)))
-    return _frame(blocks)
+    return _stack_blocks(blocks, meta)
 
 
 def _aggregate_block(level: str, axis: str, grip: float, kind: str, out_axis: str,
@@ -953,25 +941,461 @@ def _aggregate_block(level: str, axis: str, grip: float, kind: str, out_axis: st
 
 
 # ---------------------------------------------------------------------------
+# The Spectra object: every response of a study as responses × frequency arrays
+# ---------------------------------------------------------------------------
+
+_EMPTY: dict[str, np.ndarray] = {}
+
+
+@dataclass(frozen=True, eq=False)
+class Spectra:
+    """Every frequency response of a study, held once as responses × frequency arrays.
+
+    One row per response (a trial's measured, derived or cross response, or an
+    aggregate), one column per frequency of ``freq_hz``. The rows' identity is in
+    ``keys`` (the columns :data:`armfit.io.schema.SPECTRA_KEYS` plus ``n``, the trials
+    behind the value); :meth:`select` picks rows by it, so no stage filters a long table
+    by strings. This is also the one reader and writer of the spectra Parquet file
+    (:meth:`read`, :meth:`write`); :meth:`to_frame` gives the file's long table.
+
+    Attributes
+    ----------
+    freq_hz : ndarray, shape (nf,)
+        Frequencies, Hz, ascending.
+    keys : dict of str to ndarray, each shape (nr,)
+        level, subject (None for aggregates), axis, grip_N (NaN for the median), run
+        (None if not repeated), kind, out_axis, method, n.
+    h : ndarray, shape (nr, nf), complex
+        Responses X/F (or Xa/Fa), m/N.
+    values : dict of str to ndarray, each shape (nr, nf)
+        mag_db (dB re 1 m/N), phase_deg (deg), coherence, se_db (dB), se_deg (deg) and
+        the quartiles q25_db, q75_db, q25_deg, q75_deg across trials (aggregates).
+    flags : ndarray, shape (nr, nf), object
+        Comma-joined flags per point ('' where none).
+    present : ndarray, shape (nr, nf), bool
+        Where a response has a value (all True when every response is on one grid).
+    meta : dict
+        The file's metadata: estimator, options, grid, device masses, skipped trials.
+    source : str or None
+        The file it was read from (named in messages).
+    """
+
+    freq_hz: np.ndarray
+    keys: Mapping[str, np.ndarray]
+    h: np.ndarray
+    values: Mapping[str, np.ndarray]
+    flags: np.ndarray
+    present: np.ndarray
+    meta: Mapping[str, object] = field(default_factory=dict)
+    source: str | None = None
+
+    # -- shape and columns ---------------------------------------------------------
+
+    def __len__(self) -> int:
+        return int(self.h.shape[0])
+
+    @property
+    def mag_db(self) -> np.ndarray:
+        """20 log10|H| (dB re 1 m/N), (nr, nf)."""
+        return self.values["mag_db"]
+
+    @property
+    def phase_deg(self) -> np.ndarray:
+        """Phase (deg) as estimated (unwrapped along frequency), (nr, nf)."""
+        return self.values["phase_deg"]
+
+    @property
+    def se_db(self) -> np.ndarray:
+        """Standard error of mag_db (dB), (nr, nf)."""
+        return self.values["se_db"]
+
+    @property
+    def se_deg(self) -> np.ndarray:
+        """Standard error of phase_deg (deg), (nr, nf)."""
+        return self.values["se_deg"]
+
+    @property
+    def coherence(self) -> np.ndarray:
+        """Magnitude-squared coherence 0…1, (nr, nf)."""
+        return self.values["coherence"]
+
+    def key(self, name: str) -> np.ndarray:
+        """The identity column ``name`` (see :attr:`keys`) of every row, (nr,)."""
+        return self.keys[name]
+
+    def labels(self) -> list[str]:
+        """A label per row: ``sub-<s>_grip-<g>N[_run-<k>]`` (trials) or ``<level>``."""
+        out = []
+        for lev, s, g, r in zip(self.keys["level"], self.keys["subject"],
+                                self.keys["grip_N"], self.keys["run"], strict=True):
+            if s is None:
+                out.append(str(lev) + ("" if g != g else f"_grip-{float(g):g}N"))
+            else:
+                out.append(f"sub-{s}_grip-{float(g):g}N" + ("" if r is None else f"_run-{r}"))
+        return out
+
+    # -- selection -----------------------------------------------------------------
+
+    def select(self, *, axis: str | None = None, grip: float | None = None,
+               kind: str | None = None, level: str | None = None,
+               out_axis: str | None = None, method: str | None = None,
+               subject: str | None = None) -> Spectra:
+        """The responses matching every criterion given (None: any).
+
+        Parameters
+        ----------
+        axis : {'x', 'y', 'z'}, optional
+            Stimulated axis.
+        grip : float, optional
+            Target grip force, N (compared with a relative tolerance of 1e-9).
+        kind : {'measured', 'derived', 'cross'}, optional
+            Response kind.
+        level : {'trial', 'mean', 'median'}, optional
+            Trials or an aggregate.
+        out_axis : {'x', 'y', 'z'}, optional
+            Position axis of the response (differs from ``axis`` for kind 'cross').
+        method : str, optional
+            Estimator, e.g. 'h1', 'chebwin', 'tfestimate'.
+        subject : str, optional
+            Subject label.
+
+        Returns
+        -------
+        Spectra
+            The rows in their order here, on the frequencies any of them has.
+        """
+        mask = np.ones(len(self), bool)
+        for name, want in (("axis", axis), ("kind", kind), ("level", level),
+                           ("out_axis", out_axis), ("method", method),
+                           ("subject", subject)):
+            if want is not None:
+                mask &= self.keys[name] == want
+        if grip is not None:
+            mask &= np.isclose(self.keys["grip_N"].astype(float), float(grip), rtol=1e-9,
+                               atol=0.0)
+        return self.take(np.flatnonzero(mask))
+
+    def take(self, rows) -> Spectra:
+        """The rows ``rows`` (indices or a boolean mask), in that order, on the frequencies
+        any of them has."""
+        rows = np.asarray(rows)
+        if rows.dtype == bool:
+            rows = np.flatnonzero(rows)
+        present = self.present[rows]
+        cols = present.any(axis=0) if rows.size else np.zeros(self.freq_hz.size, bool)
+        if cols.all():
+            def pick(a):
+                return a[rows]
+        else:
+            def pick(a):
+                return a[rows][:, cols]
+        return replace(self, freq_hz=self.freq_hz[cols],
+                       keys={k: v[rows] for k, v in self.keys.items()},
+                       h=pick(self.h), values={k: pick(v) for k, v in self.values.items()},
+                       flags=pick(self.flags), present=pick(self.present))
+
+    def sorted(self, by: Sequence[str] = ("subject", "grip_N", "run")) -> Spectra:
+        """The rows ordered by the identity columns ``by`` (missing values last), as
+        pandas' ``groupby(by, sort=True, dropna=False)`` orders its groups."""
+        if len(self) == 0:
+            return self
+        frame = pd.DataFrame({k: pd.array(list(self.keys[k]), dtype=_KEY_DTYPES.get(k))
+                              for k in by})
+        order = frame.sort_values(list(by), na_position="last", kind="stable").index
+        return self.take(order.to_numpy())
+
+    def values_of(self, name: str) -> set:
+        """The distinct values of the identity column ``name``, missing ones left out."""
+        return {v for v in self.keys[name] if v is not None and v == v}
+
+    def common_grid(self, where: str = "") -> np.ndarray:
+        """``freq_hz`` after checking that every row has a value at every frequency.
+
+        Raises
+        ------
+        BadInputError
+            Some response lacks a frequency the others have (column freq_hz).
+        """
+        if not self.present.all():
+            raise BadInputError((f"{where}: " if where else "")
+                                + "responses are not on one frequency grid",
+                                file=self.source, column="freq_hz")
+        return self.freq_hz
+
+    def row(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(freq_hz, H, se_db, se_deg) of row ``i`` at the frequencies it has."""
+        m = self.present[i]
+        return self.freq_hz[m], self.h[i, m], self.se_db[i, m], self.se_deg[i, m]
+
+    # -- the long table and the file -------------------------------------------------
+
+    @classmethod
+    def of(cls, spectra) -> Spectra:
+        """``spectra`` itself, or a long table (pandas DataFrame with the columns of
+        :data:`armfit.io.schema.SPECTRA_COLUMNS`) as a Spectra."""
+        if isinstance(spectra, cls):
+            return spectra
+        return cls.from_frame(spectra, meta=getattr(spectra, "attrs", {}).get("armfit", {}))
+
+    @classmethod
+    def from_frame(cls, df, *, meta: Mapping | None = None, source: str | None = None
+                   ) -> Spectra:
+        """A Spectra from the long table (one row per response and frequency).
+
+        Rows are grouped into responses by :data:`armfit.io.schema.SPECTRA_KEYS` in the
+        order they first appear. A missing ``out_axis`` is taken as ``axis``.
+
+        Raises
+        ------
+        BadInputError
+            A column is missing, or a response holds a frequency twice.
+        """
+        for c in SPECTRA_COLUMNS:
+            if c not in df.columns:
+                raise BadInputError("missing column; not a spectra table written by "
+                                    "`armfit estimate`", file=source, column=c)
+        n_rows = len(df)
+        keys_df = df[list(SPECTRA_KEYS)]
+        if n_rows:
+            codes = keys_df.groupby(list(SPECTRA_KEYS), sort=False, dropna=False
+                                    ).ngroup().to_numpy()
+        else:
+            codes = np.zeros(0, int)
+        grid, fcode = np.unique(df["freq_hz"].to_numpy(float), return_inverse=True)
+        nr, nf = (int(codes.max()) + 1 if n_rows else 0), grid.size
+        flat = codes * nf + fcode
+        if np.unique(flat).size != flat.size:
+            dup = int(np.flatnonzero(np.bincount(flat, minlength=nr * nf)[flat] > 1)[0])
+            raise BadInputError("a frequency appears twice in one response", file=source,
+                                column="freq_hz", row=dup + 1)
+        present = np.zeros((nr, nf), bool)
+        present[codes, fcode] = True
+        h = np.full((nr, nf), np.nan, complex)
+        h.real[codes, fcode] = df["re"].to_numpy(float)
+        h.imag[codes, fcode] = df["im"].to_numpy(float)
+        values = {}
+        for c in SPECTRA_VALUES:
+            a = np.full((nr, nf), np.nan)
+            a[codes, fcode] = df[c].to_numpy(float)
+            values[c] = a
+        flags = np.full((nr, nf), "", dtype=object)
+        flags[codes, fcode] = df["flags"].astype(object).where(df["flags"].notna(), ""
+                                                                ).to_numpy(object)
+        first = np.unique(codes, return_index=True)[1]
+        keys = {}
+        for c in SPECTRA_KEYS:
+            col = keys_df[c].iloc[first].to_numpy(object)
+            if c == "grip_N":
+                keys[c] = np.array([float(v) if v is not None and not pd.isna(v) else np.nan
+                                    for v in col], dtype=object)
+            elif c == "run":
+                keys[c] = np.array([None if v is None or pd.isna(v) else int(v) for v in col],
+                                   dtype=object)
+            else:
+                keys[c] = np.array([None if v is None or pd.isna(v) else str(v) for v in col],
+                                   dtype=object)
+        missing_out = np.array([v is None for v in keys["out_axis"]], bool)
+        keys["out_axis"][missing_out] = keys["axis"][missing_out]
+        keys["n"] = np.array([int(v) for v in df["n"].iloc[first].to_numpy()], dtype=object)
+        return cls(grid, keys, h, values, flags, present, dict(meta or {}), source)
+
+    def to_frame(self):
+        """The long table of the spectra file: one row per response and frequency, columns
+        :data:`armfit.io.schema.SPECTRA_COLUMNS` (text columns as pandas "string",
+        ``run`` nullable Int64)."""
+        if len(self) == 0:
+            return pd.DataFrame({c: [] for c in SPECTRA_COLUMNS})
+        sizes = self.present.sum(axis=1)
+        f = np.broadcast_to(self.freq_hz, self.present.shape)[self.present]
+        cols: dict[str, object] = {}
+        for c in SPECTRA_COLUMNS:
+            if c in self.keys:
+                cols[c] = np.repeat(np.array(list(self.keys[c]), dtype=object), sizes)
+            elif c == "freq_hz":
+                cols[c] = f
+            elif c == "re":
+                cols[c] = self.h.real[self.present]
+            elif c == "im":
+                cols[c] = self.h.imag[self.present]
+            elif c == "flags":
+                cols[c] = self.flags[self.present]
+            else:
+                cols[c] = self.values[c][self.present]
+        df = pd.DataFrame(cols, columns=list(SPECTRA_COLUMNS))
+        for c in SPECTRA_TEXT:
+            df[c] = df[c].astype("string")
+        df["grip_N"] = df["grip_N"].astype(float)
+        df["run"] = pd.array([None if v is None or v != v else int(v) for v in df["run"]],
+                             dtype="Int64")
+        df["n"] = df["n"].astype("int64")
+        return df
+
+    @classmethod
+    def read(cls, path) -> Spectra:
+        """Read a spectra Parquet file written by ``armfit estimate``.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The file.
+
+        Returns
+        -------
+        Spectra
+            With the file's metadata in :attr:`meta` and its name in :attr:`source`.
+
+        Raises
+        ------
+        NoInputError
+            The file is missing.
+        BadInputError
+            Naming the file (and the missing column) if it is not a spectra table.
+        """
+        import json
+
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+        p = Path(path)
+        if not p.is_file():
+            raise NoInputError(f"{p}: no such spectra file")
+        try:
+            table = pq.read_table(p)
+        except (pa.ArrowException, OSError) as exc:
+            raise BadInputError(f"not a readable Parquet spectra file "
+                                f"({str(exc).splitlines()[0]}); make one with "
+                                "`armfit estimate`", file=str(p)) from None
+        for c in SPECTRA_COLUMNS:
+            if c not in table.column_names:
+                raise BadInputError("missing column; not a spectra file written by "
+                                    "`armfit estimate`", file=str(p), column=c)
+        kv = table.schema.metadata or {}
+        try:
+            meta = json.loads(kv[SPECTRA_META_KEY]) if SPECTRA_META_KEY in kv else {}
+        except ValueError:
+            meta = {}
+        df = table.select(list(SPECTRA_COLUMNS)).to_pandas()
+        return cls.from_frame(df, meta=meta, source=str(p))
+
+    def write(self, path, *, overwrite: bool = False):
+        """Write the spectra Parquet file (zstd), atomically, with :attr:`meta` as JSON
+        under the key ``armfit`` of the file's key-value metadata.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            Destination.
+        overwrite : bool
+            Replace an existing file.
+
+        Returns
+        -------
+        str or os.PathLike
+            ``path``.
+
+        Raises
+        ------
+        OutputError
+            ``path`` exists and not ``overwrite``.
+        """
+        import json
+
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+        table = pa.Table.from_pandas(self.to_frame(), preserve_index=False)
+        kv = dict(table.schema.metadata or {})
+        kv[SPECTRA_META_KEY] = json.dumps(dict(self.meta), default=json_default).encode()
+        table = table.replace_schema_metadata(kv)
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            pq.write_table(table, tmp, compression="zstd")
+        return path
+
+    def write_csv(self, path, *, overwrite: bool = False):
+        """Write :meth:`to_frame` as CSV (10 significant digits), atomically."""
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            self.to_frame().to_csv(tmp, index=False, float_format=CSV_FLOAT_FORMAT)
+        return path
+
+    def plot(self, ax=None, *, db: bool = True):
+        """Draw the magnitude (``db``) or phase of every row against frequency.
+
+        Parameters
+        ----------
+        ax : matplotlib.axes.Axes, optional
+            Where to draw; a new figure's axes when None.
+        db : bool
+            Magnitude in dB re 1 m/N (True) or phase in degrees (False).
+
+        Returns
+        -------
+        matplotlib.axes.Axes
+            The axes drawn on (log frequency axis); each line is labelled by
+            :meth:`labels`. The publication figures are :func:`armfit.figures.bode_figure`.
+        """
+        if ax is None:
+            from matplotlib.backends.backend_agg import FigureCanvasAgg
+            from matplotlib.figure import Figure
+            fig = Figure(figsize=(5, 3.5), layout="constrained")
+            FigureCanvasAgg(fig)
+            ax = fig.add_subplot()
+        y = self.mag_db if db else self.phase_deg
+        for i, label in enumerate(self.labels()):
+            m = self.present[i]
+            ax.plot(self.freq_hz[m], y[i, m], lw=0.8, label=label)
+        ax.set_xscale("log")
+        ax.set_xlabel("Frequency (Hz)")
+        ax.set_ylabel("Magnitude (dB re 1 m/N)" if db else "Phase (deg)")
+        return ax
+
+
+_KEY_DTYPES = {"subject": "string", "grip_N": "float64", "run": "Int64", "level": "string",
+               "axis": "string", "kind": "string", "out_axis": "string", "method": "string"}
+
+
+def _stack_blocks(blocks: list[dict[str, object]], meta: Mapping | None = None) -> Spectra:
+    """A Spectra from per-response blocks on one grid (see :func:`_block`)."""
+    if not blocks:
+        empty = np.zeros((0, 0))
+        return Spectra(np.zeros(0), {k: np.zeros(0, object) for k in (*SPECTRA_KEYS, "n")},
+                       empty.astype(complex), {c: empty for c in SPECTRA_VALUES},
+                       empty.astype(object), empty.astype(bool), dict(meta or {}))
+    freq = blocks[0]["freq_hz"]
+    keys = {k: np.array([b[k] for b in blocks] + [None], dtype=object)[:-1]
+            for k in (*SPECTRA_KEYS, "n")}
+    h = np.empty((len(blocks), np.size(freq)), complex)
+    h.real[:] = np.array([b["re"] for b in blocks])
+    h.imag[:] = np.array([b["im"] for b in blocks])
+    values = {c: np.array([b[c] for b in blocks], dtype=float) for c in SPECTRA_VALUES}
+    flags = np.array([list(b["flags"]) for b in blocks], dtype=object)
+    return Spectra(np.asarray(freq, float), keys, h, values, flags,
+                   np.ones(h.shape, bool), dict(meta or {}))
+
+
+# ---------------------------------------------------------------------------
 # A study: read trials (in worker processes if asked), estimate, tabulate
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True)
 class StudySpectra:
-    """Result of :func:`estimate_study`: the table, the trials kept, what was left out."""
+    """Result of :func:`estimate_study`: the spectra (with their file metadata), the
+    trials kept, what was left out (``skipped``: (file, reason)), the files found that
+    are not trials, the common sampling rate (Hz) and data warnings."""
 
-    table: object  # pandas.DataFrame, columns SPECTRA_COLUMNS
+    spectra: Spectra
     trials: tuple[TrialResponses, ...]
-    skipped: tuple[tuple[str, str], ...]  # (file, reason)
+    skipped: tuple[tuple[str, str], ...]
     ignored: tuple[str, ...]
     fs: float | None
     warnings: tuple[str, ...]
+
+    @functools.cached_property
+    def table(self) -> pd.DataFrame:
+        """The long table of the spectra file (:meth:`Spectra.to_frame`)."""
+        return self.spectra.to_frame()
 
 
 def _estimate_source(source, config: EstimateConfig):
     """Worker: read one trial and estimate it. Returns ("ok", TrialResponses, fs, warnings)
     or ("bad", label, message, reason) for a BadInputError."""
-    from armfit.io.trials import read_trial
     warnings: list[str] = []
     try:
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
@@ -998,8 +1422,6 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     ``on_open(n)`` is told the number of trials found, ``advance()`` is called once per
     trial.
     """
-    from armfit.errors import NoInputError
-    from armfit.io.trials import open_trials
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, f_min_hz=config.fmin,
                          force_limit_N=config.force_limit_N)
     skipped = [(s.file, s.reason) for s in stream.skipped]
@@ -1063,16 +1485,65 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     if not kept:
         raise NoInputError("no trial could be estimated"
                            + (f" ({len(skipped)} skipped)" if skipped else ""))
-    return StudySpectra(spectra_table(kept), tuple(kept), tuple(skipped),
-                        tuple(str(p) for p in stream.ignored),
-                        ref[0] if ref else None, tuple(warnings))
+    fs = ref[0] if ref else None
+    meta = study_metadata(config, fs, len(kept), skipped)
+    return StudySpectra(spectra_table(kept, meta), tuple(kept), tuple(skipped),
+                        tuple(str(p) for p in stream.ignored), fs, tuple(warnings))
+
+
+def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpectra:
+    """Estimate trials already in memory (see :func:`estimate_study` for files).
+
+    Parameters
+    ----------
+    trials : sequence of armfit.io.trials.Trial
+        Trials of one sampling rate (e.g. from :func:`armfit.read_trials` or
+        :func:`armfit.simulate.simulate_trial`).
+    config : EstimateConfig
+        Estimator options.
+
+    Returns
+    -------
+    StudySpectra
+
+    Raises
+    ------
+    NoInputError
+        ``trials`` is empty.
+    BadInputError
+        The trials' sampling rates differ, or a trial is too short for the grid.
+    """
+    kept: list[TrialResponses] = []
+    fs = None
+    for trial in trials:
+        m = trial.meta
+        if fs is None:
+            fs = m.fs
+        elif abs(m.fs - fs) > 1e-6 * fs:
+            raise BadInputError(f"sampling rate {m.fs:g} Hz differs from {fs:g} Hz of the "
+                                "first trial; estimate trials of one rate at a time",
+                                file=m.source, column="time_s")
+        responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
+                                   source=m.source)
+        kept.append(TrialResponses(m.subject, m.axis, m.grip_N, m.run, m.source,
+                                   config.grid(), responses))
+    if not kept:
+        raise NoInputError("no trial to estimate")
+    meta = study_metadata(config, fs, len(kept), [])
+    return StudySpectra(spectra_table(kept, meta), tuple(kept), (), (), fs, ())
 
 
 def spectra_metadata(config: EstimateConfig, result: StudySpectra) -> dict:
+    """The metadata a spectra file carries (JSON in its Parquet key-value metadata); see
+    :func:`study_metadata`."""
+    return study_metadata(config, result.fs, len(result.trials), result.skipped)
+
+
+def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,
+                   skipped: Sequence[tuple[str, str]]) -> dict:
     """The metadata a spectra file carries (JSON in its Parquet key-value metadata): the
-    armfit version, the estimator and its options, the grid, Mp, the sampling rate and
-    what was skipped."""
-    from armfit import __version__
+    armfit version, the estimator and its options, the grid, Mp, the sampling rate ``fs``
+    (Hz), the number of trials and what was skipped."""
     return {
         "armfit_version": __version__,
         "method": config.method,
@@ -1086,9 +1557,9 @@ def spectra_metadata(config: EstimateConfig, result: StudySpectra) -> dict:
                     "drift_factor": config.drift_factor},
         "grid_hz": config.grid().tolist(),
         "mp_kg": dict(config.mp),
-        "fs_hz": result.fs,
-        "trials": len(result.trials),
-        "skipped": [{"file": f, "reason": r} for f, r in result.skipped],
+        "fs_hz": fs,
+        "trials": n_trials,
+        "skipped": [{"file": f, "reason": r} for f, r in skipped],
         "aggregation": "mean and median of 20 log10|H| and of the phase (each trial within "
                        "pi of the trials' circular mean)",
     }

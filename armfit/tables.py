@@ -149,3 +149,29 @@ def caption_for(which: str, ci_method: Sequence[str] = ()) -> str:
                       + (" resamples" if m.startswith("bootstrap-") else ""))
             for m in methods)
     return what + "."
+
+
+def wu_latex(weights, *, caption: str | None = None, label: str = "tab:uncertainty") -> str:
+    """A Table III-style booktabs table of {axis: WuWeight}: per axis K, then one zero
+    pair and one pole pair per line as a ± bj (rad/s), 4 significant figures."""
+
+    def pair(r) -> str:
+        return f"${sig4(r.real)} \\pm {sig4(abs(r.imag))}j$"
+
+    cap = caption or (r"Uncertainty weights $W_u(s) = K \prod_i (s - z_i) / \prod_i (s - p_i)$"
+                      r" (eq.~7), $s$ in rad/s; each zero and pole is a conjugate pair.")
+    lines = [r"\begin{table}[t]", r"\centering", f"\\caption{{{cap}}}", f"\\label{{{label}}}",
+             r"\begin{tabular}{cccc}", r"\toprule", r"Axis & $K$ & Zeros & Poles \\",
+             r"\midrule"]
+    for i, axis in enumerate(sorted(weights)):
+        w = weights[axis]
+        n = max(len(w.zeros), len(w.poles), 1)
+        for k in range(n):
+            cells = [axis.upper() if k == 0 else "", sig4(w.gain) if k == 0 else "",
+                     pair(w.zeros[k]) if k < len(w.zeros) else "",
+                     pair(w.poles[k]) if k < len(w.poles) else ""]
+            lines.append(" & ".join(cells) + r" \\")
+        if i < len(weights) - 1:
+            lines.append(r"\midrule")
+    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}", ""]
+    return "\n".join(lines)

@@ -34,9 +34,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 from scipy import optimize
 
+from armfit.constants import AXES
 from armfit.errors import BadInputError, ConvergenceError, UsageError
+from armfit.io.artifacts import read_wu_rows
+from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS
+from armfit.models.effects import model_from_params
+from armfit.spectra import Spectra
 
 #: The paper's band for Wu: 0.01–30 Hz (Sec. II-F).
 PAPER_BAND_HZ: tuple[float, float] = (0.01, 30.0)
@@ -102,6 +108,27 @@ class WuWeight:
     def magnitude_db(self, f_hz) -> np.ndarray:
         """20 log10 |Wu(j2πf)|, dB."""
         return 20.0 * np.log10(np.abs(self.response(f_hz)))
+
+
+def read_wu(path) -> dict[str, WuWeight]:
+    """Read a Wu CSV (the layout of the paper's Table III) into weights.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The CSV written by ``armfit fit-uncertainty`` (or typed from Table III).
+
+    Returns
+    -------
+    dict
+        {axis: :class:`WuWeight`}, axes in x, y, z order.
+
+    Raises
+    ------
+    NoInputError, BadInputError
+        See :func:`armfit.io.artifacts.read_wu_rows`.
+    """
+    return {axis: WuWeight(*rows) for axis, rows in read_wu_rows(path).items()}
 
 
 def _expand(pairs: np.ndarray) -> np.ndarray:
@@ -672,52 +699,49 @@ def _fit_wu(f_hz, wmax, n_pairs, cost, band, max_pairs, order_tol_db, n_bins, n_
 def nominal_arm_response(params_row: Mapping, f_hz) -> np.ndarray:
     """Nominal H_ARM (m/N, eq. 3) of one parameters-CSV row, arm-stage effects included
     (:meth:`ClosedLoopModel.arm_response`; device and output effects excluded)."""
-    from armfit.io.artifacts import model_from_params
-
     model, theta = model_from_params(params_row)
     return model.arm_response(f_hz, theta)
 
 
 def derived_trials(spectra, axis: str, *, method: str | None = None
                    ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Per-trial derived arm dynamics of one axis from a spectra table (SPECTRA_COLUMNS).
+    """Per-trial derived arm dynamics of one axis.
 
-    Uses rows with level "trial", kind "derived", out_axis == axis (== axis). Returns
-    (f_hz (n_freq,), H (n_trials, n_freq) complex m/N, trial labels). ``method`` picks
-    the estimator when the table holds several. Raises BadInputError on an empty
-    selection or trials on different grids.
+    Parameters
+    ----------
+    spectra : armfit.spectra.Spectra or pandas.DataFrame
+        The study's responses; rows of level "trial", kind "derived" and out_axis ==
+        axis are used.
+    axis : {'x', 'y', 'z'}
+    method : str, optional
+        The estimator, when the spectra hold several.
+
+    Returns
+    -------
+    f_hz : ndarray, shape (n_freq,)
+    H : ndarray, shape (n_trials, n_freq), complex
+        m/N; NaN where a trial lacks a frequency.
+    labels : list of str
+        ``sub-<s>_grip-<g>N[_run-<k>]`` per trial, in subject, grip, run order.
+
+    Raises
+    ------
+    BadInputError
+        No such trials.
+    UsageError
+        Derived spectra of several estimators and no ``method``.
     """
-    import pandas as pd
-
-    df = spectra
-    sel = df[(df["level"] == "trial") & (df["kind"] == "derived") & (df["axis"] == axis)
-             & (df["out_axis"] == axis)]
-    if method is not None:
-        sel = sel[sel["method"] == method]
-    if sel.empty:
+    sel = Spectra.of(spectra).select(level="trial", kind="derived", axis=axis,
+                                     out_axis=axis, method=method)
+    if len(sel) == 0:
         raise BadInputError(f"no trial-level 'derived' spectra for axis {axis}"
                             + (f" with method {method!r}" if method else ""), column="kind")
-    methods = sorted(sel["method"].astype(str).unique())
+    methods = sorted(sel.values_of("method"))
     if len(methods) > 1:
         raise UsageError(f"axis {axis}: derived spectra of several estimators "
-                         f"({', '.join(methods)}); choose one with --method")
-    keys = ["subject", "grip_N", "run"]
-    f = np.sort(sel["freq_hz"].unique().astype(float))
-    rows = []
-    labels = []
-    for key, grp in sel.groupby(keys, dropna=False, sort=True):
-        g = grp.sort_values("freq_hz")
-        if g["freq_hz"].duplicated().any():
-            raise BadInputError(f"axis {axis}, trial {key}: a frequency appears twice",
-                                column="freq_hz")
-        h = np.full(f.size, np.nan + 0j)
-        pos = np.searchsorted(f, g["freq_hz"].to_numpy(float))
-        h[pos] = g["re"].to_numpy(float) + 1j * g["im"].to_numpy(float)
-        rows.append(h)
-        subj, grip, run = key
-        labels.append(f"sub-{subj}_grip-{float(grip):g}N"
-                      + ("" if pd.isna(run) else f"_run-{int(run)}"))
-    return f, np.vstack(rows), labels
+                         f"({', '.join(methods)}); choose one with {{opt}}", option="method=")
+    sel = sel.sorted(("subject", "grip_N", "run"))
+    return sel.freq_hz, sel.h, sel.labels()
 
 
 @dataclass(frozen=True, eq=False)
@@ -758,10 +782,10 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
     if "grip_N" in params.columns:
         raise BadInputError("has a grip_N column (grip-dependent fits); give the "
                             "parameters file of fit-nominal", column="grip_N")
-    trial_rows = spectra[(spectra["level"] == "trial") & (spectra["kind"] == "derived")]
-    have_spec = set(trial_rows["axis"].astype(str))
+    trial_rows = Spectra.of(spectra).select(level="trial", kind="derived")
+    have_spec = trial_rows.values_of("axis")
     have_par = set(params["axis"].astype(str))
-    wanted = [a for a in ("x", "y", "z") if a in have_spec and a in have_par]
+    wanted = [a for a in AXES if a in have_spec and a in have_par]
     if not wanted:
         raise BadInputError(f"no axis has both derived trial spectra (axes: "
                             f"{', '.join(sorted(have_spec)) or 'none'}) and a nominal "
@@ -801,9 +825,6 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
 def summary_table(results: Sequence[AxisUncertainty], *, smooth_oct: float | None = None):
     """The per-axis summary (columns :data:`armfit.io.artifacts.WU_SUMMARY_COLUMNS`): one
     row per axis × weight × target with coverage (%) and tightness (dB)."""
-    import pandas as pd
-
-    from armfit.io.artifacts import WU_SUMMARY_COLUMNS
     rows = []
     for r in results:
         for (label, tname), c in r.checks.items():
@@ -828,9 +849,6 @@ def summary_table(results: Sequence[AxisUncertainty], *, smooth_oct: float | Non
 def points_table(results: Sequence[AxisUncertainty]):
     """W_max points per axis (columns :data:`armfit.io.artifacts.WU_POINTS_COLUMNS`): raw
     W_max, the fitted target and the fitted |Wu| in dB at every grid frequency."""
-    import pandas as pd
-
-    from armfit.io.artifacts import WU_POINTS_COLUMNS
     parts = []
     for r in results:
         f = r.f_hz

@@ -23,8 +23,8 @@ from click.testing import CliRunner
 from armfit.cli.main import cli
 from armfit.data import paper_table
 from armfit.fitting import PAPER_BANDS, fit_response, fit_study
-from armfit.io.artifacts import read_spectra
 from armfit.models.arm import PARAM_NAMES, ClosedLoopModel
+from armfit.spectra import Spectra
 
 REPEATS = 3
 
@@ -73,7 +73,7 @@ def main() -> None:
         path = make_spectra(Path(tmp))
         print(f"simulated + estimated the study in {time.perf_counter() - t0:.1f} s (not timed "
               "below)")
-        spectra = read_spectra(path)
+        spectra = Spectra.read(path).to_frame()
         n_bins = int(((spectra["level"] == "mean") & (spectra["kind"] == "measured")
                       & (spectra["axis"] == "x") & (spectra["out_axis"] == "x")
                       & (spectra["grip_N"] == 1.0)).sum())

@@ -21,8 +21,9 @@ import pandas as pd
 
 from armfit import figures
 from armfit.data import paper_table
-from armfit.io.artifacts import SPECTRA_COLUMNS, read_wu
+from armfit.io.schema import SPECTRA_COLUMNS
 from armfit.models.arm import DEVICE_MASS_KG, h_arm, h_cl
+from armfit.uncertainty import read_wu
 
 GRIDS = {"log grid, 100 points": np.geomspace(0.1, 30.0, 100),
          "0.01 Hz grid, 3000 points": np.arange(1, 3001) * 0.01}

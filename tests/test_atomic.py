@@ -10,7 +10,7 @@ from armfit.io.atomic import atomic_path, check_output, write_text_atomic
 def test_write_then_refuse_without_overwrite(tmp_path):
     out = write_text_atomic(tmp_path / "a.txt", "one")
     assert out.read_text() == "one"
-    with pytest.raises(OutputError, match="exists; pass --overwrite"):
+    with pytest.raises(OutputError, match="exists; pass overwrite=True"):
         write_text_atomic(out, "two")
     write_text_atomic(out, "two", overwrite=True)
     assert out.read_text() == "two"

@@ -12,9 +12,10 @@ import pytest
 
 from armfit.cli.main import cli
 from armfit.errors import BadInputError
-from armfit.io.artifacts import SPECTRA_COLUMNS, read_spectra
+from armfit.io.schema import SPECTRA_COLUMNS
 from armfit.models.arm import h_arm
 from armfit.simulate import StudyConfig, plan_study
+from armfit.spectra import Spectra
 
 SIM = ["--subjects", "2", "--axes", "xz", "--grips", "1,2", "--duration", "30,40",
        "--seed", "5"]
@@ -37,7 +38,7 @@ def study(tmp_path_factory) -> dict[str, Path]:
 
 
 def test_output_schema_metadata_and_summary(study):
-    df = read_spectra(study["out"])
+    df = Spectra.read(study["out"]).to_frame()
     assert list(df.columns) == list(SPECTRA_COLUMNS)
     meta = df.attrs["armfit"]
     assert meta["method"] == "h1" and meta["derived_method"] == "tfestimate"
@@ -59,7 +60,7 @@ def test_output_schema_metadata_and_summary(study):
 
 
 def test_estimate_matches_simulated_truth_within_error_bars(study):
-    df = read_spectra(study["out"])
+    df = Spectra.read(study["out"]).to_frame()
     plans = {(p.subject, p.axis, p.grip_N): p for p in plan_study(SIM_CONFIG)}
     inside_m, inside_d = [], []
     for (subj, axis, grip), rows in df[df["level"] == "trial"].groupby(
@@ -84,7 +85,7 @@ def test_jobs_2_gives_the_same_table(runner, study, tmp_path):
     out = tmp_path / "j2.parquet"
     res = runner.invoke(cli, ["estimate", str(study["study"]), "-o", str(out), "-j", "2"])
     assert res.exit_code == 0, res.output
-    a, b = read_spectra(study["out"]), read_spectra(out)
+    a, b = Spectra.read(study["out"]).to_frame(), Spectra.read(out).to_frame()
     pd.testing.assert_frame_equal(a, b)  # same numbers, same order (deterministic)
 
 
@@ -93,7 +94,7 @@ def test_chebwin_method(runner, study, tmp_path):
     res = runner.invoke(cli, ["estimate", str(study["study"]), "-o", str(out),
                               "--method", "chebwin", "--fmax", "10", "--per-decade", "10"])
     assert res.exit_code == 0, res.output
-    df = read_spectra(out)
+    df = Spectra.read(out).to_frame()
     assert set(df.loc[df["kind"] == "measured", "method"]) == {"chebwin"}
     # round(10 * log10(100)) + 1 = 21 grid points, 0.1 .. 10 Hz
     assert df["freq_hz"].nunique() == 21 and df["freq_hz"].max() == pytest.approx(10.0)
@@ -151,7 +152,7 @@ def test_mp_override_changes_derived_only(runner, study, tmp_path):
     res = runner.invoke(cli, ["estimate", str(study["study"]), "-o", str(out),
                               "--mp", "x=0.2"])
     assert res.exit_code == 0, res.stderr
-    a, b = read_spectra(study["out"]), read_spectra(out)
+    a, b = Spectra.read(study["out"]).to_frame(), Spectra.read(out).to_frame()
     assert b.attrs["armfit"]["mp_kg"]["x"] == 0.2
     sel = (a["level"] == "trial") & (a["axis"] == "x")
     meas = sel & (a["kind"] == "measured")
@@ -165,4 +166,4 @@ def test_read_spectra_missing_column(tmp_path, study):
     path = tmp_path / "bad.parquet"
     df.to_parquet(path)
     with pytest.raises(BadInputError, match=r"bad\.parquet, column 'se_db': missing column"):
-        read_spectra(path)
+        Spectra.read(path).to_frame()

@@ -11,15 +11,11 @@ import pytest
 from armfit.cli.main import cli
 from armfit.data import paper_table
 from armfit.errors import BadInputError
-from armfit.io.artifacts import (
-    SPECTRA_COLUMNS,
-    model_from_params,
-    params_columns,
-    read_params,
-    write_spectra,
-)
+from armfit.io.artifacts import read_params
+from armfit.io.schema import SPECTRA_COLUMNS, params_columns
 from armfit.models.arm import PARAM_NAMES, h_cl
-from armfit.spectra import aggregate, aggregate_spread
+from armfit.models.effects import model_from_params
+from armfit.spectra import Spectra, aggregate, aggregate_spread
 
 PAPER_COLS = ["Ma_kg", "k1_N_per_m", "k2_N_per_m", "b1_Ns_per_m", "b2_Ns_per_m"]
 MP = {"x": 0.09, "y": 0.095, "z": 0.091}  # paper eq. 2
@@ -75,7 +71,7 @@ def spectra_file(tmp_path_factory):
                              0.3, 2.0, 12))
     df = pd.concat(blocks, ignore_index=True)[list(SPECTRA_COLUMNS)]
     path = tmp_path_factory.mktemp("spectra") / "spectra.parquet"
-    write_spectra(df, path, meta={"method": "h1"})
+    Spectra.from_frame(df, meta={"method": "h1"}).write(path)
     return path
 
 
@@ -189,7 +185,7 @@ def test_input_errors(runner, spectra_file, tmp_path):
     # a spectra table without aggregates: exit 65 naming the file and the column
     df = pd.read_parquet(spectra_file)
     trials_only = tmp_path / "trials.parquet"
-    write_spectra(df[df["level"] == "trial"], trials_only, meta={})
+    Spectra.from_frame(df[df["level"] == "trial"], meta={}).write(trials_only)
     res = runner.invoke(cli, ["fit-nominal", str(trials_only), "-o", str(out)])
     assert res.exit_code == 65
     assert f"{trials_only}, column 'level'" in res.stderr

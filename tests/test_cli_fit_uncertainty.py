@@ -18,8 +18,9 @@ from scipy import signal
 
 from armfit.cli.main import cli
 from armfit.data import paper_table
-from armfit.io.artifacts import WU_SUMMARY_COLUMNS, read_wu
+from armfit.io.schema import WU_SUMMARY_COLUMNS
 from armfit.models.arm import h_arm
+from armfit.uncertainty import read_wu
 
 BAND = (0.2, 30.0)  # the spectra below start at 0.2 Hz: the default band is limited to it
 

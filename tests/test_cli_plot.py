@@ -15,7 +15,8 @@ from test_figures import TABLE_COLS, params_table, study_spectra, table1
 from armfit.cli.main import cli
 from armfit.data import paper_table
 from armfit.errors import EXIT_CANTCREAT, EXIT_DATAERR, EXIT_NOINPUT, EXIT_USAGE
-from armfit.io.artifacts import write_params, write_spectra
+from armfit.io.artifacts import write_params
+from armfit.spectra import Spectra
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +24,7 @@ def files(tmp_path_factory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("plotin")
     out = {"spectra": d / "spectra.parquet", "grip": d / "grip.csv",
            "nominal": d / "nominal.csv", "delay": d / "delay.csv", "wu": d / "wu.csv"}
-    write_spectra(study_spectra(("x", "y")), out["spectra"], meta={})
+    Spectra.from_frame(study_spectra(("x", "y")), meta={}).write(out["spectra"])
     write_params(params_table(table1()), out["grip"])
     write_params(params_table(table1(), effects={"delay.delay_s": 0.002},
                               effect_name="delay"), out["delay"])
@@ -50,7 +51,7 @@ def test_bode(runner, files, tmp_path):
 
 def test_bode_one_axis_quartiles_no_model(runner, files, tmp_path):
     out = tmp_path / "fig5y.svg"
-    r = run(runner, "bode", files["spectra"], "--axis", "y", "--band", "quartiles",
+    r = run(runner, "bode", files["spectra"], "--axis", "y", "--spread", "quartiles",
             "--no-trials", "-o", out)
     assert r.exit_code == 0, r.output
     assert out.read_bytes().startswith(MAGIC[".svg"])
@@ -59,7 +60,7 @@ def test_bode_one_axis_quartiles_no_model(runner, files, tmp_path):
 def test_residual_with_second_model_and_bands(runner, files, tmp_path):
     out = tmp_path / "res.pdf"
     r = run(runner, "residual", files["spectra"], "--model", files["grip"], "--model2",
-            files["delay"], "--band", "x:8:12", "--band", "20:30", "-o", out)
+            files["delay"], "--band", "x=8:12", "--band", "20:30", "-o", out)
     assert r.exit_code == 0, r.output
     assert out.read_bytes().startswith(MAGIC[".pdf"])
     # Automatic bands (no --band) on the nominal model against the medians.
@@ -162,7 +163,7 @@ def test_weights_bad_kind(runner, files, tmp_path):
         in r.stderr
 
 
-@pytest.mark.parametrize("band", ["8-12", "x:12:8", "q:1:2", "a:b"])
+@pytest.mark.parametrize("band", ["8-12", "x=12:8", "q=1:2", "a:b", "x:8:12"])
 def test_bad_band(runner, files, tmp_path, band):
     r = run(runner, "residual", files["spectra"], "--model", files["grip"], "--band", band,
             "-o", tmp_path / "a.png")

@@ -22,7 +22,9 @@ from click.testing import CliRunner
 from armfit import __version__
 from armfit.cli.main import cli
 from armfit.diagnose import BANDS
-from armfit.io.artifacts import model_from_params, read_params, read_spectra
+from armfit.io.artifacts import read_params
+from armfit.models.effects import model_from_params
+from armfit.spectra import Spectra
 
 TRUE_DELAY_S = 0.012  # the simulator's --effect delay=0.012 on z (its known truth)
 
@@ -129,7 +131,7 @@ def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
     assert set(comp["level"]) == {"median"} and set(comp["grip"]) == {""}
     # analytic check of the overall rows: RMS over the grid of 20 log10|H_med / H_CL| (dB)
     # and of angle(H_med / H_CL) (deg), H_CL of eq. 4 at the row's parameters
-    spectra = read_spectra(out / "spectra.parquet")
+    spectra = Spectra.read(out / "spectra.parquet").to_frame()
     for axis, model_file in (("x", "nominal_params.csv"), ("z", "nominal_params.csv"),
                              ("z", "nominal_params_delay.csv")):
         row = read_params(out / model_file).set_index("axis").loc[axis]

@@ -178,7 +178,7 @@ def test_write_trial_names_columns_and_refuses_existing(tmp_path):
     back = read_trial(TrialSource(str(path), "01", "z", 3.0))
     np.testing.assert_array_equal(back.pos, trial.pos)
     np.testing.assert_array_equal(back.force, trial.force)
-    with pytest.raises(OutputError, match="exists; pass --overwrite"):
+    with pytest.raises(OutputError, match="exists; pass overwrite=True"):
         write_trial(trial, path)
     with pytest.raises(UsageError, match="cannot tell the format"):
         write_trial(trial, tmp_path / "trial.txt")

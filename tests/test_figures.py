@@ -20,8 +20,9 @@ from matplotlib.figure import Figure
 from armfit import figures
 from armfit.data import paper_table
 from armfit.errors import BadInputError, OutputError, UsageError
-from armfit.io.artifacts import SPECTRA_COLUMNS, params_columns, read_wu
+from armfit.io.schema import SPECTRA_COLUMNS, params_columns
 from armfit.models.arm import DEVICE_MASS_KG, h_arm, h_cl
+from armfit.uncertainty import read_wu
 
 #: A small frequency grid (Hz) shared by every row, as in a spectra file.
 F = np.geomspace(0.1, 30.0, 40)
@@ -435,7 +436,7 @@ def test_save_refuses_overwrite_and_bad_extension(tmp_path):
     fig = figures.literature_figure(params_table(table1()).iloc[0])
     out = tmp_path / "fig.png"
     out.write_bytes(b"keep")
-    with pytest.raises(OutputError, match="exists; pass --overwrite"):
+    with pytest.raises(OutputError, match="exists; pass overwrite=True"):
         figures.save_figure(fig, out)
     assert out.read_bytes() == b"keep"
     figures.save_figure(fig, out, overwrite=True)

@@ -14,7 +14,6 @@ from armfit.fitting import (
     bootstrap_fit,
     fit_response,
     log_errors,
-    parse_bands,
 )
 from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, h_cl
 from armfit.models.effects import get_effect
@@ -215,17 +214,6 @@ def test_bad_options():
         fit_response(model, f, H, band=(0.1, 0.105))
     with pytest.raises(UsageError, match="unknown parameter 'Mb'"):
         fit_response(model, f, H, x0={"Mb": 1.0})
-
-
-def test_parse_bands():
-    # default is the paper's (NOTES.md, Fits): X, Y 0.1-30 Hz; Z 0.1-10 Hz
-    assert parse_bands(None) == {"x": (0.1, 30.0), "y": (0.1, 30.0), "z": (0.1, 10.0)}
-    assert parse_bands("z=0.2:8")["z"] == (0.2, 8.0)
-    assert parse_bands("z=0.2:8")["x"] == (0.1, 30.0)
-    with pytest.raises(UsageError, match="expected AXIS=LO:HI"):
-        parse_bands("w=0.1:3")
-    with pytest.raises(UsageError, match="expected AXIS=LO:HI"):
-        parse_bands("x=3:1")
 
 
 def _subject_study(rng, n_subjects=9):

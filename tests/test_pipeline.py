@@ -65,7 +65,7 @@ def test_check_outdir_refusals(tmp_path):
         check_outdir(tmp_path / "raw", [tmp_path / "raw"], overwrite=True)
     with pytest.raises(OutputError, match=r"holds the input .*m\.csv"):
         check_outdir(tmp_path, [], manifest=tmp_path / "m.csv", overwrite=True)
-    with pytest.raises(OutputError, match=r"exists; pass --overwrite"):
+    with pytest.raises(OutputError, match=r"exists; pass overwrite=True"):
         check_outdir(tmp_path / "raw", [tmp_path / "other"])
     assert check_outdir(tmp_path / "new", [tmp_path / "raw"]) == tmp_path / "new"
 

@@ -341,7 +341,7 @@ def _power_law_spectra(freq, slope_mag=-2.0, slope_phase=-0.3, n_avg=10.0):
     f = np.where(freq > 0, freq, 1.0)
     h = f ** slope_mag * np.exp(1j * slope_phase * np.log(f))
     p_ff = np.ones_like(freq)
-    return S.Spectra(freq_hz=freq, p_ff=p_ff, p_fx=(h * p_ff)[None, :],
+    return S.BinSpectra(freq_hz=freq, p_ff=p_ff, p_fx=(h * p_ff)[None, :],
                      p_xx=(np.abs(h) ** 2 * p_ff)[None, :], n_avg=n_avg, enbw_bins=1.5,
                      method="h1", first_bin=2), h
 
@@ -371,7 +371,7 @@ def test_to_grid_ignores_bins_beyond_fmax_and_without_force():
     p_fx = sp.p_fx.copy()
     p_fx[0, above] *= 100.0 * np.exp(1j * np.arange(above.sum()))
     p_ff = np.where(above, 1e-12, 1.0)
-    bad = S.Spectra(freq, p_ff, p_fx * p_ff, sp.p_xx * 1e4, 10.0, 1.5, "h1", 2)
+    bad = S.BinSpectra(freq, p_ff, p_fx * p_ff, sp.p_xx * 1e4, 10.0, 1.5, "h1", 2)
     grid = S.log_grid(1.0, 30.0, 40)
     g = S.to_grid(bad, grid, min_avg=8.0)
     # the top point is the power law at 30 Hz (to 1e-3, see above): nothing from above
@@ -428,7 +428,7 @@ def test_band_average_corrected_for_curvature():
     p = (0.2037, 76.29, 785.4, 7.598, 2.532, 0.095)
     f = np.arange(0, 5001) * 0.01
     H = h_cl(f, *p)
-    sp = S.Spectra(freq_hz=f, p_ff=np.ones_like(f), p_fx=H[None], p_xx=(np.abs(H) ** 2)[None],
+    sp = S.BinSpectra(freq_hz=f, p_ff=np.ones_like(f), p_fx=H[None], p_xx=(np.abs(H) ** 2)[None],
                    n_avg=10.0, enbw_bins=1.5, method="h1")
     g = S.log_grid(0.1, 30.0, 40)
     err = S.to_grid(sp, g).h[0] / h_cl(g, *p)

@@ -16,14 +16,17 @@ from scipy import signal
 
 from armfit.data import paper_table
 from armfit.errors import BadInputError, NoInputError, UsageError
-from armfit.io.artifacts import WU_COLUMNS, read_wu, write_wu, wu_frame, wu_latex
+from armfit.io.artifacts import write_wu, wu_frame
+from armfit.io.schema import WU_COLUMNS
 from armfit.models.arm import h_arm
+from armfit.tables import wu_latex
 from armfit.uncertainty import (
     WuWeight,
     check_envelope,
     derived_trials,
     fit_uncertainty,
     fit_wu,
+    read_wu,
     smooth_fractional_octave,
     w_max,
     wu_response,

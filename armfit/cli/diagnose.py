@@ -3,23 +3,21 @@ which physical effect is missing."""
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict
-
 import click
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
 
-from armfit.cli.options import emit_json, json_option, message, overwrite_option
-from armfit.errors import UsageError
+from armfit.api import ModelFit
+from armfit.api import compare as api_compare
+from armfit.api import diagnose as api_diagnose
+from armfit.cli.options import band_option, emit_json, json_option, message, overwrite_option
+from armfit.errors import BadInputError, UsageError
+from armfit.io.atomic import check_output
 from armfit.models.effects import EFFECTS, get_effect
+from armfit.spectra import Spectra
 
-band_option = click.option(
-    "--band", metavar="LO:HI",
-    help="Frequency band in Hz (default: the whole grid of the spectra file).")
-
-
-def _band(text: str | None) -> tuple[float, float] | None:
-    from armfit.fitting import parse_band
-    return None if text is None else parse_band(text)
+_BAND_HELP = "Frequency band in Hz (default: the whole grid of the spectra file)."
 
 
 def _effects(names) -> list:
@@ -27,7 +25,6 @@ def _effects(names) -> list:
 
 
 def _console():
-    from rich.console import Console
     return Console(soft_wrap=False, width=120)
 
 
@@ -44,8 +41,6 @@ def effects_command(as_json):
     if as_json:
         emit_json({"effects": rows})
         return
-    from rich.markup import escape
-    from rich.table import Table
     t = Table(title="armfit effect library", show_lines=True)
     for c in ("effect", "parameters", "what it is", "suspect it when"):
         t.add_column(c, overflow="fold")
@@ -65,7 +60,7 @@ def effects_command(as_json):
                    "nominal fits).")
 @click.option("--effect", "effect_names", multiple=True, metavar="NAME",
               help="Add this effect, refit, and show the error before and after (repeatable).")
-@band_option
+@band_option(_BAND_HELP)
 @json_option
 def compare_command(spectra, model_path, level, effect_names, band, as_json):
     """Compare a fitted model with the measurements: RMS magnitude (dB), phase (deg) and
@@ -73,25 +68,17 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 
     Example: ``armfit compare spectra.parquet --model nominal_params.csv --effect delay``
     """
-    from armfit.diagnose import band_to_dict as _band_json
-    from armfit.diagnose import compare
-    from armfit.io.artifacts import read_params, read_spectra
-    params = read_params(model_path)
-    if level is None:
-        level = "mean" if "grip_N" in params.columns else "median"
-    df = read_spectra(spectra)
-    rows = compare(df, params, level=level, band=_band(band), effects=_effects(effect_names))
+    model = ModelFit.read(model_path)
+    data = Spectra.read(spectra)
+    result = api_compare(data, model, level=level, band=band,
+                         effects=_effects(effect_names))
+    level, rows = result.level, result.rows
     if not rows:
         raise UsageError(f"{spectra}: holds no {level}-level measured responses for the "
                          f"axes of {model_path}")
     if as_json:
-        emit_json({"level": level, "rows": [{
-            "axis": r.axis, "grip_N": r.grip_N, "model": r.model, "params": r.params,
-            "n_trials": r.n_trials, "overall": _band_json(r.overall),
-            "bands": [_band_json(b) for b in r.bands],
-            "failing": [asdict(fb) for fb in r.failing]} for r in rows]})
+        emit_json(result.to_dict())
         return
-    from rich.table import Table
     t = Table(title=f"model vs measurements ({level}); cells: RMS dB / deg / × noise")
     for c in ("axis", "grip N", "model", "overall"):
         t.add_column(c)
@@ -122,7 +109,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--model", "model_path", required=True, type=click.Path(dir_okay=False),
               help="Params CSV from fit-grip (preferred: per-grip starts) or fit-nominal.")
-@band_option
+@band_option(_BAND_HELP)
 @click.option("--effect", "effect_names", multiple=True, metavar="NAME",
               help="Only these candidates (repeatable; default: the whole effect library).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
@@ -140,25 +127,24 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, over
     residuals, and says which one is significant. Example:
     ``armfit diagnose spectra.parquet --model grip_params.csv``
     """
-    from armfit.diagnose import diagnose, diagnosis_to_dict
-    from armfit.io.artifacts import read_params, read_spectra
-    from armfit.io.atomic import check_output, write_text_atomic
     if output:
         check_output(output, overwrite=overwrite, inputs=[spectra, model_path])
-    params = read_params(model_path)
-    df = read_spectra(spectra)
-    results = diagnose(df, params, band=_band(band),
-                       effects=_effects(effect_names) if effect_names else None, jobs=jobs)
-    if not results:
+    model = ModelFit.read(model_path)
+    data = Spectra.read(spectra)
+    try:
+        result = api_diagnose(data, model, band=band, jobs=jobs,
+                              effects=_effects(effect_names) if effect_names else None)
+    except BadInputError as exc:
+        if exc.column != "level":
+            raise
         raise UsageError(f"{spectra}: holds no trial-level measured responses for the axes "
-                         f"of {model_path}")
-    doc = diagnosis_to_dict(results)
+                         f"of {model_path}") from None
+    results = result.axes
     if output:
-        write_text_atomic(output, json.dumps(doc, indent=2) + "\n", overwrite=overwrite)
+        result.write(output, overwrite=overwrite)
     if as_json:
-        emit_json(doc)
+        emit_json(result.to_dict())
         return
-    from rich.table import Table
     con = _console()
     for d in results:
         t = Table(title=f"axis {d.axis}: {d.n_trials} trials, "

@@ -6,6 +6,7 @@ import contextlib
 
 import click
 
+from armfit.api import estimate_config, estimate_study_result
 from armfit.cli.options import (
     emit_json,
     jobs_option,
@@ -17,7 +18,10 @@ from armfit.cli.options import (
     progress,
     skip_bad_option,
 )
-from armfit.models.arm import DEVICE_MASS_KG
+from armfit.constants import AXES, DEVICE_MASS_KG
+from armfit.errors import UsageError
+from armfit.io.atomic import check_output
+from armfit.io.schema import FLAGS
 
 WINDOWS = ("hann", "hamming", "blackman", "blackmanharris", "boxcar")
 
@@ -33,7 +37,7 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
             mass = float(num)
         except ValueError:
             mass = float("nan")
-        if not sep or axis not in mp or not mass > 0:
+        if not sep or axis not in AXES or not mass > 0:
             raise click.BadParameter(f"expected AXIS=KG items like x=0.09,y=0.095 with AXIS "
                                      f"x, y or z and KG > 0, got {item!r}")
         mp[axis] = mass
@@ -87,11 +91,6 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
     coherence, standard errors and flags. Aggregates: mean per axis x grip over subjects,
     median per axis over all trials. Output: one Parquet table (see the README).
     """
-    from armfit.errors import UsageError
-    from armfit.io.artifacts import write_spectra
-    from armfit.io.atomic import atomic_path, check_output
-    from armfit.spectra import EstimateConfig, estimate_study, spectra_metadata
-
     if not paths and manifest is None:
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
     if fmin >= fmax:
@@ -100,32 +99,35 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
     check_output(output, overwrite=overwrite, inputs=inputs)
     if csv_path is not None:
         check_output(csv_path, overwrite=overwrite, inputs=inputs + [output])
-    config = EstimateConfig(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
-                            nperseg=nperseg, overlap=overlap, window=window, mp=mp,
-                            coherence_min=coherence_min, force_limit_N=force_limit)
+    config = estimate_config(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
+                             nperseg=nperseg, overlap=overlap, window=window, mp=mp,
+                             coherence_min=coherence_min, force_limit_N=force_limit)
     with contextlib.ExitStack() as stack:
         bar = {}
 
         def on_open(n_trials: int) -> None:
             bar["advance"] = stack.enter_context(progress(n_trials, "estimate"))
 
-        result = estimate_study(paths, config, manifest=manifest, skip_bad=skip_bad,
-                                jobs=jobs, on_open=on_open, advance=lambda: bar["advance"](),
-                                warn=lambda text: message(f"warning: {text}"))
-    meta = spectra_metadata(config, result)
-    write_spectra(result.table, output, meta=meta, overwrite=overwrite)
+        result = estimate_study_result(list(paths), config, manifest=manifest,
+                                       skip_bad=skip_bad, jobs=jobs, on_open=on_open,
+                                       advance=lambda: bar["advance"](),
+                                       warn=lambda text: message(f"warning: {text}"))
+    spectra = result.spectra
+    meta = spectra.meta
+    spectra.write(output, overwrite=overwrite)
     if csv_path is not None:
-        with atomic_path(csv_path, overwrite=overwrite) as tmp:
-            result.table.to_csv(tmp, index=False, float_format="%.10g")
+        spectra.write_csv(csv_path, overwrite=overwrite)
     for f, r in result.skipped:
         message(f"skipped {f}: {r}")
     message(f"estimated {len(result.trials)} trial(s) into {output}"
             + (f"; skipped {len(result.skipped)}" if result.skipped else ""))
     if as_json:
-        table = result.table
-        trial_rows = table[table["level"] == "trial"]
-        flags = {f: int(trial_rows["flags"].str.contains(f).sum())
-                 for f in ("low_coherence", "saturation", "drift")}
+        trials = spectra.select(level="trial")
+        point_flags = trials.flags[trials.present]
+        flags = {f: int(sum(f in v for v in point_flags)) for f in FLAGS}
+        levels = spectra.key("level")
+        sizes = spectra.present.sum(axis=1)
+        counts = {k: int(sizes[levels == k].sum()) for k in dict.fromkeys(levels)}
         emit_json({
             "output": str(output),
             "csv": csv_path,
@@ -135,8 +137,8 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
             "ignored": list(result.ignored),
             "fs_hz": result.fs,
             "grid": {"fmin_hz": fmin, "fmax_hz": fmax, "points": len(meta["grid_hz"])},
-            "rows": int(len(table)),
-            "levels": {k: int(v) for k, v in table["level"].value_counts().items()},
+            "rows": int(sizes.sum()),
+            "levels": dict(sorted(counts.items(), key=lambda kv: -kv[1])),
             "flagged_trial_rows": flags,
         })
 

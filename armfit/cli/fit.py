@@ -1,23 +1,26 @@
 """``armfit fit-grip`` and ``armfit fit-nominal``: the arm model fits of Tables I and II.
 
-Each command checks its outputs, reads the spectra file, calls
-:func:`armfit.fitting.fit_study` and writes the params CSV (and optionally a LaTeX
-table) atomically. If any fit fails to converge nothing is written (exit 3).
+Each command checks its outputs, reads the spectra file, calls :func:`armfit.fit_grip`
+or :func:`armfit.fit_nominal` and writes the params CSV (and optionally a LaTeX table)
+atomically. If any fit fails to converge nothing is written (exit 3).
 """
 
 from __future__ import annotations
 
-import math
-
 import click
 
-from armfit.fitting import COSTS, fit_study, parse_bands
-from armfit.io.artifacts import read_spectra, write_params
-from armfit.io.atomic import check_output, write_text_atomic
+from armfit.api import fit_grip as api_fit_grip
+from armfit.api import fit_nominal as api_fit_nominal
+from armfit.constants import PAPER_BANDS
+from armfit.fitting import COSTS
+from armfit.io.atomic import check_output
 from armfit.models.effects import get_effect
-from armfit.tables import caption_for, latex_table
+from armfit.spectra import Spectra
 
 from .options import (
+    axis_bands_option,
+    bands_by_axis,
+    clean,
     effect_option,
     emit_json,
     json_option,
@@ -34,9 +37,9 @@ def _options(f):
         click.option("--cost", type=click.Choice(COSTS), default="complex", show_default=True,
                      help="complex: log-magnitude and phase errors, each divided by its "
                           "standard error; paper: dB magnitude error only (eq. 5, Wt = 1)."),
-        click.option("--band", "band", metavar="AXIS=LO:HI[,...]", default=None,
-                     help="Fit band per axis in Hz [default: x=0.1:30,y=0.1:30,z=0.1:10, "
-                          "as the paper]; axes not named keep the default."),
+        axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis "
+                          "(LO:HI) [default: x=0.1:30,y=0.1:30,z=0.1:10, as the paper]; "
+                          "axes not named keep the default."),
         click.option("--bootstrap", type=click.IntRange(0, 100000), default=0,
                      show_default=True,
                      help="Resample subjects N times for percentile intervals "
@@ -58,47 +61,37 @@ def _options(f):
     return f
 
 
-def _run(which: str, spectra: str, output: str, cost: str, band: str | None, bootstrap: int,
+def _run(which: str, spectra: str, output: str, cost: str, band, bootstrap: int,
          seed: int, effects: tuple[str, ...], method: str | None, max_nfev: int | None,
          latex: str | None, as_json: bool, overwrite: bool) -> None:
-    bands = parse_bands(band)
+    bands = bands_by_axis(band, PAPER_BANDS)
     effect_objs = [get_effect(n) for n in effects]
     check_output(output, overwrite=overwrite, inputs=[spectra])
     if latex is not None:
         check_output(latex, overwrite=overwrite, inputs=[spectra, output])
-    table = read_spectra(spectra)
+    data = Spectra.read(spectra)
 
     def report(axis, grip, fit):
         where = f"{axis}" + (f" {grip:g} N" if grip is not None else "")
         message(f"fit {where}: rms {fit.rms_db:.3g} dB, {fit.rms_deg:.3g} deg, "
                 f"{fit.n_points} bins {fit.band[0]:g}-{fit.band[1]:g} Hz")
 
-    study = fit_study(table, which=which, cost=cost, bands=bands, effects=effect_objs,
-                      bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
-                      source=spectra, on_fit=report)
-    df = study.table()
-    write_params(df, output, overwrite=overwrite)
+    fit = api_fit_grip if which == "grip" else api_fit_nominal
+    model = fit(data, cost=cost, bands=bands, effects=effect_objs, bootstrap=bootstrap,
+                seed=seed, method=method, max_nfev=max_nfev, on_fit=report)
+    df = model.table
+    model.write(output, overwrite=overwrite, latex=latex)
     message(f"wrote {output} ({len(df)} fits)")
-    ci_methods = [f.ci_method for f in study.fits]
     if latex is not None:
-        write_text_atomic(latex, latex_table(df, ci=True, caption=caption_for(which, ci_methods),
-                                             label=f"tab:{which}"), overwrite=overwrite)
         message(f"wrote {latex}")
     if as_json:
         emit_json({
             "command": f"fit-{which}", "spectra": spectra, "output": output,
             "latex": latex, "columns": list(df.columns),
-            "fits": [dict({k: _clean(v) for k, v in row.items()}, ci_method=ci,
-                          objective=fit.objective, message=fit.message)
-                     for row, ci, fit in zip(df.to_dict("records"), ci_methods, study.fits,
-                                             strict=True)],
+            "fits": [dict({k: clean(v) for k, v in row.items()}, ci_method=f.ci_method,
+                          objective=f.objective, message=f.message)
+                     for row, f in zip(df.to_dict("records"), model.fits, strict=True)],
         })
-
-
-def _clean(v):
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
 
 
 @click.command("fit-grip")

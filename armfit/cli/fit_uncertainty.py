@@ -1,9 +1,9 @@
 """``armfit fit-uncertainty``: W_max and the uncertainty weight Wu of Table III (eqs. 6–7).
 
 Checks every output first, reads the spectra and nominal-parameters files (and any
-weights given to evaluate), calls :func:`armfit.uncertainty.fit_uncertainty`, then writes
-the Wu CSV, its summary and W_max points beside it, and optionally a LaTeX table, each
-atomically. With ``--cost paper`` a fit that does not converge writes nothing (exit 3).
+weights given to evaluate), calls :func:`armfit.fit_uncertainty`, then writes the Wu CSV,
+its summary and W_max points beside it, and optionally a LaTeX table, each atomically.
+With ``--cost paper`` a fit that does not converge writes nothing (exit 3).
 """
 
 from __future__ import annotations
@@ -15,25 +15,23 @@ from pathlib import Path
 
 import click
 
-from armfit.errors import ConvergenceError, UsageError
-from armfit.io.artifacts import (
-    read_params,
-    read_spectra,
-    read_wu,
-    write_wu,
-    write_wu_table,
-    wu_latex,
-    wu_sidecar_paths,
+from armfit.api import ModelFit
+from armfit.api import fit_uncertainty as api_fit_uncertainty
+from armfit.errors import UsageError
+from armfit.io.atomic import check_output
+from armfit.io.schema import wu_sidecar_paths
+from armfit.spectra import Spectra
+from armfit.uncertainty import MAX_PAIRS, read_wu
+
+from .options import (
+    band_option,
+    clean,
+    emit_json,
+    json_option,
+    message,
+    output_option,
+    overwrite_option,
 )
-from armfit.io.atomic import check_output, write_text_atomic
-from armfit.uncertainty import MAX_PAIRS, fit_uncertainty, points_table, summary_table
-
-from .options import emit_json, json_option, message, output_option, overwrite_option
-
-
-def _parse_band(value: str | None) -> tuple[float, float] | None:
-    from armfit.fitting import parse_band
-    return None if value is None else parse_band(value)
 
 
 def _parse_octaves(value: str | None) -> float | None:
@@ -64,12 +62,6 @@ def _pairs(reps) -> list[list[float]]:
     return [[float(r.real), float(abs(r.imag))] for r in reps]
 
 
-def _clean(v):
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
-
-
 @click.command("fit-uncertainty")
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--nominal", required=True, type=click.Path(dir_okay=False),
@@ -82,8 +74,7 @@ def _clean(v):
 @click.option("--order", type=click.IntRange(0, MAX_PAIRS), default=None, metavar="N",
               help=f"Zero pairs = pole pairs of Wu, 0..{MAX_PAIRS} [default: the smallest "
                    "order within 0.1 dB of the best].")
-@click.option("--band", default=None, metavar="LO:HI",
-              help="Band in Hz [default: 0.01:30 as the paper, limited to the spectra].")
+@band_option("Band in Hz [default: 0.01:30 as the paper, limited to the spectra].")
 @click.option("--smooth", default=None, metavar="OCT",
               help="Smooth each trial's relative error over a window OCT octaves wide "
                    "(e.g. 1/3) before taking W_max; raw W_max is still reported.")
@@ -108,7 +99,7 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
     OUTPUT_summary.csv (coverage and tightness per axis) and OUTPUT_wmax.csv (W_max and
     |Wu| in dB per frequency).
     """
-    band_hz = _parse_band(band)
+    band_hz = band
     smooth_oct = _parse_octaves(smooth)
     summary_path, points_path = wu_sidecar_paths(output)
     inputs = [spectra, nominal] + ([check_weights] if check_weights else [])
@@ -118,8 +109,8 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
     for path in outputs:
         check_output(path, overwrite=overwrite, inputs=inputs)
 
-    table = read_spectra(spectra)
-    params = read_params(nominal)
+    data = Spectra.read(spectra)
+    params = ModelFit.read(nominal)
     given = {}
     if check_weights:
         label, path, stack = _check_path(check_weights)
@@ -129,12 +120,9 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
             if stack is not None:
                 stack.close()
 
-    results = fit_uncertainty(table, params, cost=cost, n_pairs=order, band=band_hz,
-                              smooth_oct=smooth_oct, method=method, given=given)
-    bad = [r.axis for r in results if not r.result.converged]
-    if bad and cost == "paper":
-        raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "
-                               f"{', '.join(bad)}; nothing written (try --order)")
+    unc = api_fit_uncertainty(data, params, cost=cost, order=order, band=band_hz,
+                              smooth_oct=smooth_oct, method=method, check=given)
+    results = unc.axes
     for r in results:
         res = r.result
         fitted = r.checks[("fitted", "wmax")]
@@ -154,13 +142,8 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
     for text in missing:
         message(f"note: {text}")
 
-    weights = {r.axis: r.result.weight for r in results}
-    summary = summary_table(results, smooth_oct=smooth_oct)
-    write_wu(weights, output, overwrite=overwrite)
-    write_wu_table(summary, summary_path, overwrite=overwrite)
-    write_wu_table(points_table(results), points_path, overwrite=overwrite)
-    if latex:
-        write_text_atomic(latex, wu_latex(weights), overwrite=overwrite)
+    summary = unc.summary()
+    unc.write(output, overwrite=overwrite, latex=latex)
     message(f"wrote {output}, {summary_path.name}, {points_path.name}"
             + (f", {latex}" if latex else ""))
 
@@ -176,6 +159,6 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
                 "poles": _pairs(r.result.poles),
                 "orders_tried": {str(k): v for k, v in r.result.orders_tried.items()},
             } for r in results],
-            "summary_rows": [{k: _clean(v) for k, v in row.items()}
+            "summary_rows": [{k: clean(v) for k, v in row.items()}
                              for row in summary.to_dict("records")],
         })

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import logging
 import sys
+import traceback
 
 import click
 
-from armfit import __version__
+from armfit._version import __version__
+from armfit.cli import diagnose, estimate, fit, fit_uncertainty, ingest, plot, run, simulate
+from armfit.cli.options import cli_message
 from armfit.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, ArmfitError
 
 log = logging.getLogger("armfit")
@@ -40,9 +43,9 @@ class ArmfitGroup(click.Group):
 def _report(ctx: click.Context, exc: BaseException, internal: bool = False) -> None:
     verbose = (ctx.obj or {}).get("verbosity", 0) > 0
     if verbose:
-        import traceback
         traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
-    msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    text = cli_message(exc) if isinstance(exc, ArmfitError) else str(exc)
+    msg = text.splitlines()[0] if text else type(exc).__name__
     if internal:
         msg = f"internal error ({type(exc).__name__}): {msg}" + (
             "" if verbose else " (run with -v for the traceback)")
@@ -72,31 +75,14 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
     log.setLevel(level)
 
 
-def _register() -> None:
-    # Each subcommand module defines its click command(s); add them here.
-    from armfit.cli import ingest
-    cli.add_command(ingest.command)
-    from armfit.cli import plot
-    cli.add_command(plot.command)
-    from armfit.cli import fit
-    cli.add_command(fit.fit_grip)
-    cli.add_command(fit.fit_nominal)
-    from armfit.cli import simulate
-    cli.add_command(simulate.command)
-    from armfit.cli import estimate
-    cli.add_command(estimate.command)
-    from armfit.cli import diagnose
-    cli.add_command(diagnose.effects_command)
-    cli.add_command(diagnose.compare_command)
-    cli.add_command(diagnose.diagnose_command)
-    from armfit.cli import fit_uncertainty
-    cli.add_command(fit_uncertainty.command)
-    from armfit.cli import run
-    cli.add_command(run.command)
-    pass
-
-
-_register()
+#: The subcommands (one module per subcommand; ``armfit --help`` lists them by name).
+COMMANDS = (
+    ingest.command, plot.command, fit.fit_grip, fit.fit_nominal, simulate.command,
+    estimate.command, diagnose.effects_command, diagnose.compare_command,
+    diagnose.diagnose_command, fit_uncertainty.command, run.command,
+)
+for _command in COMMANDS:
+    cli.add_command(_command)
 
 
 def main() -> None:  # pragma: no cover - console entry point

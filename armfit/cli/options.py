@@ -10,7 +10,9 @@ from typing import Any, TypeVar
 
 import click
 
-from armfit.io.artifacts import json_default
+from armfit.constants import AXES
+from armfit.errors import ArmfitError, UsageError
+from armfit.io.schema import finite_or_none, json_default
 
 T = TypeVar("T")
 
@@ -33,6 +35,97 @@ jobs_option = click.option(
 effect_option = click.option(
     "--effect", "effects", multiple=True, metavar="NAME",
     help="Add a physical effect to the model (repeatable; see `armfit effects`).")
+
+
+#: The flag of each library option named in an error message (see
+#: :meth:`armfit.errors.ArmfitError.with_option`).
+FLAGS: dict[str, str] = {
+    "overwrite": "--overwrite", "method": "--method", "n_boot": "--bootstrap",
+    "level": "--level", "fmin": "--fmin", "fmax": "--fmax", "nperseg": "--nperseg",
+    "n_pairs": "--order", "band": "--band", "effects": "--effect", "smooth_oct": "--smooth",
+}
+
+
+def cli_message(exc: ArmfitError) -> str:
+    """The message of ``exc`` with its option named by its command-line flag."""
+    name = exc.option_name
+    return exc.with_option(FLAGS.get(name, f"--{name.replace('_', '-')}")) if name else str(exc)
+
+
+# ---------------------------------------------------------------------------
+# Bands: one grammar, LO:HI in Hz, optionally for one axis as AXIS=LO:HI
+# ---------------------------------------------------------------------------
+
+BAND_HELP = "LO:HI in Hz (0 < LO < HI)"
+
+
+def parse_band(text: str, *, per_axis: bool = False, option: str = "--band"
+               ) -> tuple[str | None, float, float]:
+    """Parse one band: ``LO:HI`` (Hz), or with ``per_axis`` also ``AXIS=LO:HI``.
+
+    Returns (axis or None, lo, hi). Raises UsageError naming ``option`` and the value
+    unless 0 < LO < HI (finite) and AXIS is x, y or z.
+    """
+    axis, sep, rng = text.strip().partition("=")
+    if not sep:
+        axis, rng = None, text.strip()
+    else:
+        axis = axis.strip().lower()
+    lo_s, colon, hi_s = rng.partition(":")
+    try:
+        lo, hi = float(lo_s), float(hi_s)
+    except ValueError:
+        lo = hi = float("nan")
+    ok = colon and 0 < lo < hi < float("inf")
+    if axis is not None and (not per_axis or axis not in AXES):
+        ok = False
+    if not ok:
+        if per_axis and (axis is not None or not colon):
+            raise UsageError(f"{option} {text!r}: expected AXIS=LO:HI or LO:HI in Hz with "
+                             "AXIS x, y or z and 0 < LO < HI, e.g. z=0.1:10")
+        raise UsageError(f"{option} {text!r}: expected LO:HI in Hz with 0 < LO < HI, "
+                         "e.g. 0.1:30")
+    return axis, lo, hi
+
+
+def parse_bands(values, *, option: str = "--band") -> list[tuple[str | None, float, float]]:
+    """Parse repeated and comma-separated ``[AXIS=]LO:HI`` items (see :func:`parse_band`)."""
+    if isinstance(values, str):
+        values = [values]
+    return [parse_band(item, per_axis=True, option=option)
+            for v in values or () for item in v.split(",") if item.strip()]
+
+
+def band_option(help_text: str):
+    """``--band LO:HI``: one band in Hz for every axis (None if not given)."""
+    def convert(ctx, param, value):
+        return None if value is None else parse_band(value)[1:]
+    return click.option("--band", metavar="LO:HI", default=None, callback=convert,
+                        help=help_text)
+
+
+def axis_bands_option(help_text: str, *, multiple: bool = False):
+    """``--band [AXIS=]LO:HI[,...]``: bands in Hz, each for one axis or for every axis;
+    the value is a list of (axis or None, lo, hi)."""
+    def convert(ctx, param, value):
+        return parse_bands(value)
+    return click.option("--band", "band", metavar="[AXIS=]LO:HI[,...]", multiple=multiple,
+                        default=None, callback=convert, help=help_text)
+
+
+def bands_by_axis(items, defaults) -> dict[str, tuple[float, float]]:
+    """{axis: (lo, hi)}: ``defaults`` overridden by each item, in order (an item without
+    an axis applies to every axis)."""
+    bands = dict(defaults)
+    for axis, lo, hi in items or ():
+        for a in ([axis] if axis else list(bands)):
+            bands[a] = (lo, hi)
+    return bands
+
+
+def clean(value):
+    """A value for a JSON document: NaN and infinities as null."""
+    return finite_or_none(value)
 
 
 def verbosity() -> int:

@@ -10,15 +10,18 @@ import click
 import numpy as np
 
 from armfit import figures
+from armfit.api import compare
+from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
 from armfit.errors import BadInputError, UsageError
-from armfit.io.artifacts import read_params, read_spectra, read_wu
+from armfit.io.artifacts import read_params
 from armfit.io.atomic import check_output
-from armfit.models.arm import DEVICE_MASS_KG
+from armfit.spectra import Spectra
+from armfit.uncertainty import read_wu
 
-from .options import message, output_option, overwrite_option
+from .options import axis_bands_option, message, output_option, overwrite_option
 
-AXIS_CHOICE = click.Choice(["x", "y", "z"])
+AXIS_CHOICE = click.Choice(list(AXES))
 
 
 # ---------------------------------------------------------------------------
@@ -42,23 +45,6 @@ def _save(fig, output: str, overwrite: bool) -> None:
     message(f"wrote {out}")
 
 
-def _parse_band(text: str, axes) -> list[tuple[str, float, float]]:
-    from armfit.fitting import parse_band
-    axis, sep, rest = text.partition(":")
-    if axis in ("x", "y", "z") and sep:
-        targets, text_range = [axis], rest
-    elif axis.isalpha() or text.count(":") != 1:
-        raise UsageError(f"--band {text!r}: give LO:HI or AXIS:LO:HI in Hz, e.g. 10:30")
-    else:
-        targets, text_range = list(axes), text
-    try:
-        lo, hi = parse_band(text_range)
-    except UsageError:
-        raise UsageError(f"--band {text!r}: give LO:HI or AXIS:LO:HI in Hz with "
-                         "0 < LO < HI, e.g. 10:30") from None
-    return [(a, lo, hi) for a in targets]
-
-
 # ---------------------------------------------------------------------------
 # Commands
 # ---------------------------------------------------------------------------
@@ -77,18 +63,18 @@ def command() -> None:
 @click.option("--model", "model_path", metavar="CSV",
               help="Fitted parameters (fit-grip or fit-nominal output) to overlay.")
 @click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
-@click.option("--band", type=click.Choice(["se", "quartiles"]), default="se",
-              show_default=True, help="Error band around each grip's mean.")
+@click.option("--spread", type=click.Choice(["se", "quartiles"]), default="se",
+              show_default=True, help="Shaded spread around each grip's mean.")
 @click.option("--no-trials", is_flag=True, help="Leave out the single-trial responses.")
 @output_option
 @overwrite_option
-def bode(spectra, model_path, axis, band, no_trials, output, overwrite):
+def bode(spectra, model_path, axis, spread, no_trials, output, overwrite):
     """Measured dynamics X/F per axis with the model fits (the paper's Fig. 5)."""
     _prepare(output, overwrite, [spectra, model_path])
-    df = read_spectra(spectra)
+    df = Spectra.read(spectra)
     params = read_params(model_path) if model_path else None
     try:
-        fig = figures.bode_figure(df, params, axis=axis, band=band, trials=not no_trials)
+        fig = figures.bode_figure(df, params, axis=axis, band=spread, trials=not no_trials)
     except BadInputError as exc:
         raise _with_file(exc, spectra) from None
     _save(fig, output, overwrite)
@@ -102,29 +88,27 @@ def bode(spectra, model_path, axis, band, no_trials, output, overwrite):
 @click.option("--model2", "model2_path", metavar="CSV",
               help="A second parameters file (e.g. the model with an effect), dashed.")
 @click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
-@click.option("--band", "bands", multiple=True, metavar="[AXIS:]LO:HI",
-              help="Failing band to shade, Hz (repeatable). Default: the failing bands "
-                   "`armfit compare` reports for the first model.")
+@axis_bands_option("Failing band to shade, in Hz, for one axis (AXIS=LO:HI) or every "
+                   "axis (LO:HI); repeatable. Default: the failing bands `armfit compare` "
+                   "reports for the first model.", multiple=True)
 @output_option
 @overwrite_option
-def residual(spectra, model_path, model2_path, axis, bands, output, overwrite):
+def residual(spectra, model_path, model2_path, axis, band, output, overwrite):
     """Normalised residual (measurement - model)/SE with the noise and failing bands."""
     _prepare(output, overwrite, [spectra, model_path, model2_path])
-    df = read_spectra(spectra)
+    df = Spectra.read(spectra)
     params = read_params(model_path)
     params2 = read_params(model2_path) if model2_path else None
-    axes = [axis] if axis else [a for a in figures.AXES if (params["axis"] == a).any()
-                                and (df["axis"] == a).any()]
+    axes = [axis] if axis else [a for a in AXES if (params["axis"] == a).any()
+                                and len(df.select(axis=a))]
     shaded: dict[str, list[tuple[float, float]]] = {a: [] for a in axes}
     try:
-        if bands:
-            for text in bands:
-                for a, lo, hi in _parse_band(text, axes):
+        if band:
+            for a_band, lo, hi in band:
+                for a in ([a_band] if a_band else axes):
                     shaded.setdefault(a, []).append((lo, hi))
         else:
-            from armfit.diagnose import compare
-            level = "mean" if "grip_N" in params.columns else "median"
-            for row in compare(df, params, level=level):
+            for row in compare(df, params).rows:
                 if row.axis in shaded:
                     shaded[row.axis] += [(fb.lo_hz, fb.hi_hz) for fb in row.failing]
         fig = figures.residual_figure(df, params, params2, axis=axis, bands=shaded)
@@ -146,7 +130,7 @@ def residual(spectra, model_path, model2_path, axis, bands, output, overwrite):
 def uncertainty(spectra, nominal_path, weights_path, axis, output, overwrite):
     """Derived arm dynamics with the nominal H_ARM, W_max and |Wu| (the paper's Fig. 6)."""
     _prepare(output, overwrite, [spectra, nominal_path, weights_path])
-    df = read_spectra(spectra)
+    df = Spectra.read(spectra)
     nominal = read_params(nominal_path)
     weights = read_wu(weights_path) if weights_path else None
     try:

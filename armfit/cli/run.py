@@ -14,6 +14,7 @@ from armfit.cli.options import (
     skip_bad_option,
 )
 from armfit.fitting import COSTS
+from armfit.pipeline import run
 from armfit.spectra import METHODS
 
 
@@ -46,15 +47,11 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, jobs, no_
     `armfit ingest` dataset. Nothing is left behind if a stage fails; an existing OUTDIR
     is replaced only with --overwrite.
     """
-    from armfit.pipeline import RunOptions, run_pipeline
-
     if not inputs and manifest is None:
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
-    options = RunOptions(manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
-                         wu_cost=wu_cost, jobs=jobs, figures=not no_figures,
-                         overwrite=overwrite)
-    result = run_pipeline(
-        inputs, outdir, options,
+    result = run(
+        list(inputs), outdir, manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
+        wu_cost=wu_cost, jobs=jobs, figures=not no_figures, overwrite=overwrite,
         on_stage=lambda s: message(f"{s.name}: {s.seconds:.1f} s — {s.summary}"),
         warn=lambda text: message(f"warning: {text}"))
     for f, reason in result.skipped:

@@ -1,163 +1,96 @@
-"""Schemas of armfit's own files: spectra (Parquet), fitted parameters (CSV), Wu (CSV).
+"""Readers and writers of armfit's CSV outputs: fitted parameters and uncertainty weights.
 
-Each schema is defined once here; writers and readers of each file live below its
-schema. Readers validate and raise BadInputError naming the file and column.
+The columns are those of :mod:`armfit.io.schema`. Readers validate and raise
+BadInputError naming the file, column and row. The spectra table (Parquet) is read and
+written by :class:`armfit.spectra.Spectra` alone.
 """
 
 from __future__ import annotations
 
-# ---------------------------------------------------------------------------
-# Spectra (written by `armfit estimate`): one long-format Parquet table.
-# ---------------------------------------------------------------------------
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
 
-#: Columns of the spectra table, in order.
-SPECTRA_COLUMNS: tuple[str, ...] = (
-    "level",      # "trial" | "mean" | "median"
-    "subject",    # subject label (null for aggregates)
-    "axis",       # stimulated axis "x" | "y" | "z"
-    "grip_N",     # target grip force, N (NaN at level "median": all grips pooled)
-    "run",        # repeat index (nullable Int64)
-    "kind",       # "measured" (X/F), "derived" (Xa/Fa, device removed), "cross"
-    "out_axis",   # position axis of the response (== axis except for kind "cross")
-    "method",     # estimator name, e.g. "h1", "chebwin", "tfestimate"
-    "freq_hz",    # frequency, Hz
-    "re", "im",   # complex response, m/N
-    "mag_db",     # 20 log10 |H| with H in m/N
-    "phase_deg",  # phase, deg (unwrapped along frequency)
-    "coherence",  # magnitude-squared coherence 0..1 (NaN where not defined)
-    "se_db",      # standard error of mag_db, dB
-    "se_deg",     # standard error of phase_deg, deg
-    "n",          # number of trials behind the value (1 at level "trial")
-    "q25_db", "q75_db", "q25_deg", "q75_deg",  # quartiles across trials (aggregates)
-    "flags",      # comma-separated: low_coherence, saturation, drift (empty if none)
+import numpy as np
+import pandas as pd
+
+from armfit.errors import BadInputError, NoInputError
+from armfit.io.atomic import atomic_path
+from armfit.io.schema import (
+    CSV_FLOAT_FORMAT,
+    PARAMS_BASE,
+    PARAMS_STATS,
+    WU_COLUMNS,
+    params_columns,
 )
 
-#: Key of armfit's metadata (JSON) in the Parquet file's key-value metadata.
-SPECTRA_META_KEY = b"armfit"
-
-
-def write_spectra(df, path, *, meta: dict, overwrite: bool = False):
-    """Write a spectra table (columns SPECTRA_COLUMNS, in order) as Parquet, atomically.
-
-    ``meta`` (JSON-serialisable: method, options, grid, Mp, armfit version …) is stored as
-    JSON under the key ``armfit`` of the file's key-value metadata. Returns the path.
-    Raises OutputError (exit 73) if ``path`` exists and not ``overwrite``.
-    """
-    import json
-
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from armfit.io.atomic import atomic_path
-    missing = [c for c in SPECTRA_COLUMNS if c not in df.columns]
-    if missing:
-        raise ValueError(f"spectra table lacks columns: {', '.join(missing)}")
-    table = pa.Table.from_pandas(df[list(SPECTRA_COLUMNS)], preserve_index=False)
-    kv = dict(table.schema.metadata or {})
-    kv[SPECTRA_META_KEY] = json.dumps(meta, default=json_default).encode()
-    table = table.replace_schema_metadata(kv)
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        pq.write_table(table, tmp, compression="zstd")
-    return path
-
-
-def json_default(o):
-    """``json.dumps`` default: numpy scalars and arrays as Python numbers and lists."""
-    import numpy as np
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def read_spectra(path):
-    """Read a spectra Parquet file; check its columns. Returns a pandas DataFrame with the
-    file's armfit metadata (dict) in ``df.attrs["armfit"]`` ({} if absent).
-
-    Raises NoInputError if the file is missing, BadInputError naming the file (and the
-    missing column) if it is not a readable spectra table.
-    """
-    import json
-    from pathlib import Path
-
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from armfit.errors import BadInputError, NoInputError
-    p = Path(path)
-    if not p.is_file():
-        raise NoInputError(f"{p}: no such spectra file")
-    try:
-        table = pq.read_table(p)
-    except (pa.ArrowException, OSError) as exc:
-        raise BadInputError(f"not a readable Parquet spectra file ({str(exc).splitlines()[0]})"
-                            "; make one with `armfit estimate`", file=str(p)) from None
-    for c in SPECTRA_COLUMNS:
-        if c not in table.column_names:
-            raise BadInputError("missing column; not a spectra file written by "
-                                "`armfit estimate`", file=str(p), column=c)
-    kv = table.schema.metadata or {}
-    try:
-        meta = json.loads(kv[SPECTRA_META_KEY]) if SPECTRA_META_KEY in kv else {}
-    except ValueError:
-        meta = {}
-    df = table.select(list(SPECTRA_COLUMNS)).to_pandas()
-    df.attrs["armfit"] = meta
-    return df
-
 # ---------------------------------------------------------------------------
-# Fitted parameters (written by `armfit fit-grip` / `fit-nominal`): CSV.
+# Fitted parameters (written by `armfit fit-grip` / `fit-nominal`)
 # ---------------------------------------------------------------------------
 
-#: Base arm parameters of a params file, in the paper's order (SI: kg, N/m, N*s/m).
-PARAMS_BASE: tuple[str, ...] = ("Ma", "k1", "k2", "b1", "b2")
-#: Fit statistics closing every params row, in order.
-PARAMS_STATS: tuple[str, ...] = ("rms_db", "rms_deg", "rms_norm", "band_lo_hz", "band_hi_hz",
-                                 "n_points", "cost", "converged", "mp_kg", "effects")
 
-
-def params_columns(param_names, *, grip: bool) -> list[str]:
-    """Columns of a params file, in order: ``axis``, ``grip_N`` (grip fits only), the
-    parameters (base then ``<effect>.<param>``), ``<p>_lo, <p>_hi`` for each (95 %
-    interval), then :data:`PARAMS_STATS`."""
-    names = list(param_names)
-    cols = ["axis"] + (["grip_N"] if grip else []) + names
-    for n in names:
-        cols += [f"{n}_lo", f"{n}_hi"]
-    return cols + list(PARAMS_STATS)
-
-
-def params_frame(rows, param_names, *, grip: bool):
-    """A params DataFrame from row dicts (one per fit), columns in file order."""
-    import pandas as pd
+def params_frame(rows: Iterable[Mapping], param_names, *, grip: bool) -> pd.DataFrame:
+    """A params DataFrame from row dicts (one per fit), columns in file order
+    (:func:`armfit.io.schema.params_columns`)."""
     return pd.DataFrame(list(rows), columns=params_columns(param_names, grip=grip))
 
 
-def write_params(df, path, *, overwrite: bool = False):
-    """Write a params DataFrame as CSV atomically (full float precision). Returns the path.
+def write_table(df: pd.DataFrame, path: str | os.PathLike, *, overwrite: bool = False
+                ) -> str | os.PathLike:
+    """Write a DataFrame as CSV atomically (10 significant digits, no index).
 
-    Raises OutputError (exit 73) if ``path`` exists and not ``overwrite``.
+    Parameters
+    ----------
+    df : pandas.DataFrame
+        The table (a params, Wu, summary or W_max table).
+    path : str or os.PathLike
+        Destination.
+    overwrite : bool
+        Replace an existing file.
+
+    Returns
+    -------
+    str or os.PathLike
+        ``path``.
+
+    Raises
+    ------
+    OutputError
+        ``path`` exists and not ``overwrite``.
     """
-    from armfit.io.atomic import atomic_path
     with atomic_path(path, overwrite=overwrite) as tmp:
-        df.to_csv(tmp, index=False, float_format="%.10g")
+        df.to_csv(tmp, index=False, float_format=CSV_FLOAT_FORMAT)
     return path
 
 
-def read_params(path):
-    """Read a params CSV; check its columns. Returns a DataFrame (``effects`` as str,
-    ``converged`` as bool, ``grip_N`` present only for grip fits).
+#: A params file and a Wu summary or points table are written alike.
+write_params = write_table
+write_wu_table = write_table
 
-    Raises NoInputError if the file is missing, BadInputError naming the file and the
-    missing column, or the row and column of a non-numeric or non-positive parameter.
+
+def read_params(path: str | os.PathLike) -> pd.DataFrame:
+    """Read a params CSV written by fit-grip or fit-nominal and check its columns.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The CSV.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per fit; ``effects`` as str, ``converged`` as bool, ``grip_N`` present
+        only for grip fits. Effect parameters are the columns ``<effect>.<param>`` of the
+        effects the rows name.
+
+    Raises
+    ------
+    NoInputError
+        The file is missing.
+    BadInputError
+        Naming the file and the missing column, or the row and column of a non-numeric
+        or non-positive parameter.
     """
-    from pathlib import Path
-
-    import numpy as np
-    import pandas as pd
-
-    from armfit.errors import BadInputError, NoInputError
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such params file")
@@ -191,9 +124,8 @@ def read_params(path):
     return df
 
 
-def _effect_param_names(df, path) -> list[str]:
-    from armfit.errors import BadInputError, UsageError
-    from armfit.models.effects import get_effect
+def _effect_param_names(df: pd.DataFrame, path: Path) -> list[str]:
+    """The ``<effect>.<param>`` columns of the effects the rows name, in header order."""
     specs = set(df["effects"])
     if len(specs) > 1:
         raise BadInputError(f"rows list different effects ({' | '.join(sorted(specs))}); "
@@ -202,59 +134,27 @@ def _effect_param_names(df, path) -> list[str]:
     spec = next(iter(specs), "")
     out = []
     for name in [n for n in spec.split(";") if n]:
-        try:
-            eff = get_effect(name)
-        except UsageError as exc:
-            raise BadInputError(str(exc), file=str(path), column="effects") from None
-        out += [f"{eff.name}.{q.name}" for q in eff.params]
+        cols = [c for c in df.columns if c.startswith(f"{name}.")
+                and not c.endswith(("_lo", "_hi"))]
+        if not cols:
+            raise BadInputError(f"effect {name!r} has no parameter column ({name}.<param>)",
+                                file=str(path), column="effects")
+        out += cols
     return out
 
 
-def model_from_params(row):
-    """(ClosedLoopModel, theta) from one params row (a pandas Series or a dict): the
-    model of the row's axis with its effects and device mass ``mp_kg``, and the fitted
-    values {name: value} (base then ``<effect>.<param>``)."""
-    from armfit.models.arm import ClosedLoopModel
-    from armfit.models.effects import get_effect
-    spec = row["effects"] if isinstance(row["effects"], str) else ""
-    effects = [get_effect(n) for n in spec.split(";") if n]
-    model = ClosedLoopModel.for_axis(str(row["axis"]), effects, mp=float(row["mp_kg"]))
-    return model, {n: float(row[n]) for n in model.param_names}
-
 # ---------------------------------------------------------------------------
-# Uncertainty weights (written by `armfit fit-uncertainty`): CSV in the layout of the
-# paper's Table III, plus a per-axis summary CSV and a W_max points CSV beside it.
+# Uncertainty weights (written by `armfit fit-uncertainty`): the layout of Table III
 # ---------------------------------------------------------------------------
 
-#: Columns of a Wu file, in order. kind: "gain" (index 0, K in `real`), "zero", "pole"
-#: (index 1..n; each row the conjugate pair real ± j·imag, rad/s; imag 0 is a double root).
-WU_COLUMNS: tuple[str, ...] = ("axis", "kind", "index", "real", "imag")
-
-#: Columns of the summary written beside a Wu file (``<stem>_summary.csv``), in order.
-WU_SUMMARY_COLUMNS: tuple[str, ...] = (
-    "axis", "weight", "target", "cost", "order", "n_trials", "smooth_oct",
-    "band_lo_hz", "band_hi_hz", "n_points", "coverage_pct", "coverage_between_pct",
-    "tightness_median_db", "tightness_max_db", "tightness_min_db", "mean_gap_db",
-    "converged",
-)
-
-#: Columns of the W_max points written beside a Wu file (``<stem>_wmax.csv``), in order.
-WU_POINTS_COLUMNS: tuple[str, ...] = ("axis", "freq_hz", "wmax_db", "target_db", "wu_db",
-                                      "in_band")
+#: One weight as read from a Wu file: (gain K, zero pairs, pole pairs), pairs complex
+#: rad/s with imaginary part >= 0 (see :class:`armfit.uncertainty.WuWeight`).
+WuRows = tuple[float, np.ndarray, np.ndarray]
 
 
-def wu_sidecar_paths(path) -> tuple:
-    """(summary, points) paths written beside the Wu file ``path``:
-    ``<stem>_summary.csv`` and ``<stem>_wmax.csv`` in the same folder."""
-    from pathlib import Path
-    p = Path(path)
-    stem = p.name[:-4] if p.name.lower().endswith(".csv") else p.name
-    return p.with_name(f"{stem}_summary.csv"), p.with_name(f"{stem}_wmax.csv")
-
-
-def wu_frame(weights):
-    """A Wu DataFrame (:data:`WU_COLUMNS`) from {axis: WuWeight}, axes in x, y, z order."""
-    import pandas as pd
+def wu_frame(weights: Mapping) -> pd.DataFrame:
+    """A Wu DataFrame (:data:`armfit.io.schema.WU_COLUMNS`) from {axis: weight}, axes in
+    x, y, z order; a weight is anything with ``gain``, ``zeros`` and ``poles``."""
     rows = []
     for axis in sorted(weights):
         w = weights[axis]
@@ -265,32 +165,37 @@ def wu_frame(weights):
     return pd.DataFrame(rows, columns=list(WU_COLUMNS))
 
 
-def write_wu(weights, path, *, overwrite: bool = False):
-    """Write {axis: WuWeight} as a Wu CSV atomically (10 significant digits). Returns path.
+def write_wu(weights: Mapping, path: str | os.PathLike, *, overwrite: bool = False):
+    """Write {axis: weight} as a Wu CSV atomically (10 significant digits). Returns path.
 
     Raises OutputError (exit 73) if ``path`` exists and not ``overwrite``.
     """
-    from armfit.io.atomic import atomic_path
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        wu_frame(weights).to_csv(tmp, index=False, float_format="%.10g")
-    return path
+    return write_table(wu_frame(weights), path, overwrite=overwrite)
 
 
-def read_wu(path):
-    """Read a Wu CSV (the layout of the paper's Table III). Returns {axis: WuWeight}.
+def read_wu_rows(path: str | os.PathLike) -> dict[str, WuRows]:
+    """Read a Wu CSV (the layout of the paper's Table III).
 
-    Raises NoInputError if the file is missing; BadInputError naming the file, column and
-    row (1-based data row) of anything that breaks the layout: a missing column, an axis
-    other than x/y/z, a kind other than gain/zero/pole, a non-numeric or non-finite
-    value, or an axis without exactly one positive gain.
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The CSV: columns axis, kind, index, real, imag.
+
+    Returns
+    -------
+    dict
+        {axis: (K, zero pairs, pole pairs)}, pairs as complex rad/s ordered by index.
+
+    Raises
+    ------
+    NoInputError
+        The file is missing.
+    BadInputError
+        Naming the file, column and row (1-based data row) of anything that breaks the
+        layout: a missing column, an axis other than x/y/z, a kind other than
+        gain/zero/pole, a non-numeric or non-finite value, or an axis without exactly
+        one positive gain.
     """
-    from pathlib import Path
-
-    import numpy as np
-    import pandas as pd
-
-    from armfit.errors import BadInputError, NoInputError
-    from armfit.uncertainty import WuWeight
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such uncertainty-weights file")
@@ -343,40 +248,5 @@ def read_wu(path):
             r = rows[kind.to_numpy()[rows] == k]
             r = r[np.argsort(nums["index"][r], kind="stable")]
             reps[k] = nums["real"][r] + 1j * np.abs(nums["imag"][r])
-        out[ax] = WuWeight(float(nums["real"][gains[0]]), reps["zero"], reps["pole"])
+        out[ax] = (float(nums["real"][gains[0]]), reps["zero"], reps["pole"])
     return out
-
-
-def write_wu_table(df, path, *, overwrite: bool = False):
-    """Write a summary or points DataFrame as CSV atomically (10 significant digits)."""
-    from armfit.io.atomic import atomic_path
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        df.to_csv(tmp, index=False, float_format="%.10g")
-    return path
-
-
-def wu_latex(weights, *, caption: str | None = None, label: str = "tab:uncertainty") -> str:
-    """A Table III-style booktabs table of {axis: WuWeight}: per axis K, then one zero
-    pair and one pole pair per line as a ± bj (rad/s), 4 significant figures."""
-    from armfit.tables import sig4
-
-    def pair(r) -> str:
-        return f"${sig4(r.real)} \\pm {sig4(abs(r.imag))}j$"
-
-    cap = caption or (r"Uncertainty weights $W_u(s) = K \prod_i (s - z_i) / \prod_i (s - p_i)$"
-                      r" (eq.~7), $s$ in rad/s; each zero and pole is a conjugate pair.")
-    lines = [r"\begin{table}[t]", r"\centering", f"\\caption{{{cap}}}", f"\\label{{{label}}}",
-             r"\begin{tabular}{cccc}", r"\toprule", r"Axis & $K$ & Zeros & Poles \\",
-             r"\midrule"]
-    for i, axis in enumerate(sorted(weights)):
-        w = weights[axis]
-        n = max(len(w.zeros), len(w.poles), 1)
-        for k in range(n):
-            cells = [axis.upper() if k == 0 else "", sig4(w.gain) if k == 0 else "",
-                     pair(w.zeros[k]) if k < len(w.zeros) else "",
-                     pair(w.poles[k]) if k < len(w.poles) else ""]
-            lines.append(" & ".join(cells) + r" \\")
-        if i < len(weights) - 1:
-            lines.append(r"\midrule")
-    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}", ""]
-    return "\n".join(lines)

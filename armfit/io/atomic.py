@@ -31,7 +31,7 @@ def check_output(path: str | os.PathLike, *, overwrite: bool,
             raise OutputError(f"{out}: output path is also an input (or holds one); choose "
                               "another output")
     if out.exists() and not overwrite:
-        raise OutputError(f"{out}: exists; pass --overwrite to replace it")
+        raise OutputError(f"{out}: exists; pass {{opt}} to replace it", option="overwrite=True")
     return out
 
 
@@ -44,7 +44,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator
     """
     dest = Path(path)
     if dest.exists() and not overwrite:
-        raise OutputError(f"{dest}: exists; pass --overwrite to replace it")
+        raise OutputError(f"{dest}: exists; pass {{opt}} to replace it", option="overwrite=True")
     dest.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
     os.close(fd)

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from armfit.errors import BadInputError, NoInputError
-
-AXES: tuple[str, ...] = ("x", "y", "z")
+from armfit.constants import AXES
+from armfit.errors import BadInputError, NoInputError, UsageError
+from armfit.io.atomic import atomic_path, check_output
 
 #: File extensions of raw trials, longest first (".csv.gz" before ".csv").
 TRIAL_EXTENSIONS: tuple[str, ...] = (".csv.gz", ".csv", ".parquet")
@@ -710,8 +710,6 @@ def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from armfit.io.atomic import atomic_path
-
     schema = _dataset_schema()
     metas: list[TrialMeta] = []
     records: list[dict] = []
@@ -893,11 +891,8 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
     ``advance`` is called after each trial, ``on_open`` once with the stream (e.g. to
     size a progress bar or list ignored files).
     """
-    from armfit.io.atomic import check_output
-
     out = Path(output)
     if _trial_ext(out.name) != ".parquet":
-        from armfit.errors import UsageError
         raise UsageError(f"{out}: the dataset is a Parquet file; give an output ending "
                          "in .parquet")
     check_output(out, overwrite=overwrite,

@@ -21,16 +21,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from armfit.constants import DEVICE_MASS_KG, PARAM_NAMES
 from armfit.errors import UsageError
 
 if TYPE_CHECKING:  # pragma: no cover
     from armfit.models.effects import Effect
 
-#: Device (PHANToM Premium 1.5a) mass per axis in kg — paper eq. 2.
-DEVICE_MASS_KG: dict[str, float] = {"x": 0.09, "y": 0.095, "z": 0.091}
-
-#: Names of the five arm parameters, in the paper's order (Tables I and II).
-PARAM_NAMES: tuple[str, ...] = ("Ma", "k1", "k2", "b1", "b2")
+__all__ = ["BASE_PARAMS", "DEVICE_MASS_KG", "PARAM_NAMES", "ClosedLoopModel", "Param",
+           "arm_tf", "cl_tf", "h_arm", "h_cl", "h_device", "laplace", "z_arm"]
 
 
 @dataclass(frozen=True)

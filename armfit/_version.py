@@ -1,0 +1,3 @@
+"""The armfit version (kept apart so that every module may read it)."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,809 @@
+"""The public Python API: every stage of armfit as a function returning a typed result.
+
+Each function below is what the subcommand of the same name does, without the command
+line: it takes arrays, result objects or paths, and returns a frozen result object with
+``to_frame()`` (a pandas DataFrame), ``write(path, overwrite=False)`` (the same files the
+command writes) and, where a figure fits, ``plot(ax=None)``. The command line
+(:mod:`armfit.cli`) only parses options, calls these functions and writes their results.
+
+Example (from the repository root)::
+
+    import armfit
+    s = armfit.estimate("sample_data/study")     # Spectra
+    m = armfit.fit_nominal(s)                    # ModelFit (Table II)
+    d = armfit.diagnose(s, m)                    # Diagnosis
+    print(d.to_frame())
+    print(m.to_frame()[["axis", "Ma", "k1", "k2", "b1", "b2"]])
+
+Equations cited are those of Fu & Çavuşoğlu, ICRA 2010 (see docs/methods.md).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from armfit import diagnose as _diagnose
+from armfit import figures
+from armfit import fitting as _fitting
+from armfit import uncertainty as _uncertainty
+from armfit.constants import AXES
+from armfit.errors import BadInputError, ConvergenceError, UsageError
+from armfit.io.artifacts import read_params, write_params, write_wu, write_wu_table, wu_frame
+from armfit.io.atomic import atomic_path, write_text_atomic
+from armfit.io.rawwrite import trial_filename, write_trial
+from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
+from armfit.io.trials import Skipped, Trial, open_trials, write_dataset
+from armfit.models.effects import Effect, get_effect
+from armfit.simulate import StudyConfig, plan_study, simulate_trial, truth_dict
+from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimate_study, estimate_trials
+from armfit.tables import caption_for, latex_table, wu_latex
+from armfit.uncertainty import AxisUncertainty, WuWeight, read_wu
+
+PathLike = str | os.PathLike
+Warn = Callable[[str], object]
+
+
+def _effects(effects: Iterable[Effect | str] | None) -> list[Effect]:
+    """Effects given as objects or library names."""
+    return [get_effect(e) if isinstance(e, str) else e for e in (effects or ())]
+
+
+# ---------------------------------------------------------------------------
+# Trials
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Trials:
+    """Raw trials read and validated against the trial contract (docs/formats.md).
+
+    Attributes
+    ----------
+    trials : tuple of armfit.io.trials.Trial
+        The trials kept, in the order found.
+    skipped : tuple of armfit.io.trials.Skipped
+        Trials left out with ``skip_bad`` (file and reason).
+    ignored : tuple of str
+        Files found that are not trials.
+    """
+
+    trials: tuple[Trial, ...]
+    skipped: tuple[Skipped, ...] = ()
+    ignored: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.trials)
+
+    def __iter__(self):
+        return iter(self.trials)
+
+    def to_frame(self) -> pd.DataFrame:
+        """One row per trial: subject, axis, grip_N (N), run, fs (Hz), n_samples,
+        duration_s (s), t0_s (s), source."""
+        return pd.DataFrame(
+            [{"subject": t.meta.subject, "axis": t.meta.axis, "grip_N": t.meta.grip_N,
+              "run": t.meta.run, "fs": t.meta.fs, "n_samples": t.meta.n_samples,
+              "duration_s": t.meta.duration_s, "t0_s": t.meta.t0_s, "source": t.meta.source}
+             for t in self.trials],
+            columns=["subject", "axis", "grip_N", "run", "fs", "n_samples", "duration_s",
+                     "t0_s", "source"])
+
+    def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
+        """Write the canonical dataset ``armfit ingest`` writes (Parquet), atomically."""
+        write_dataset(self.trials, path, overwrite=overwrite)
+        return Path(path)
+
+
+def read_trials(paths: PathLike | Sequence[PathLike], *, manifest: PathLike | None = None,
+                skip_bad: bool = False, resample: bool = False, f_min_hz: float = 0.1,
+                force_limit_N: float = 8.5, warn: Warn | None = None) -> Trials:
+    """Read raw trial files, folders or a canonical dataset into memory.
+
+    Parameters
+    ----------
+    paths : path or sequence of paths
+        Trial files (CSV, CSV.gz, Parquet) named ``sub-<s>_axis-<a>_grip-<g>N...``,
+        folders holding them, or a dataset written by ``armfit ingest``.
+    manifest : path, optional
+        CSV with columns file, subject, axis, grip_N[, run] (paths relative to it).
+    skip_bad : bool
+        Leave bad trials out (listed in ``skipped``) instead of raising.
+    resample : bool
+        Resample trials of another sampling rate to the most common one.
+    f_min_hz : float
+        Lowest frequency to be estimated, Hz: a trial must last at least 2/f_min_hz s.
+    force_limit_N : float
+        Device peak force, N; larger forces are warned about.
+    warn : callable, optional
+        Receives data warnings (saturation, resampling).
+
+    Returns
+    -------
+    Trials
+
+    Raises
+    ------
+    NoInputError
+        Nothing found.
+    BadInputError
+        A trial breaks the contract (without ``skip_bad``).
+    """
+    inputs = [paths] if isinstance(paths, str | os.PathLike) else list(paths)
+    stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, resample=resample,
+                         f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn)
+    trials = tuple(stream)
+    return Trials(trials, tuple(stream.skipped), tuple(str(p) for p in stream.ignored))
+
+
+# ---------------------------------------------------------------------------
+# Spectra
+# ---------------------------------------------------------------------------
+
+def estimate_config(*, method: str = "h1", fmin: float = 0.1, fmax: float = 30.0,
+                    per_decade: int = 40, nperseg: int | None = None, overlap: float = 0.5,
+                    window: str = "hann", mp: Mapping[str, float] | None = None,
+                    coherence_min: float = 0.5, force_limit_N: float = 8.5
+                    ) -> EstimateConfig:
+    """The estimator options of :func:`estimate` as an :class:`EstimateConfig`
+    (frequencies in Hz, masses in kg, forces in N; see :func:`estimate`)."""
+    kw = {} if mp is None else {"mp": dict(mp)}
+    return EstimateConfig(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
+                          nperseg=nperseg, overlap=overlap, window=window,
+                          coherence_min=coherence_min, force_limit_N=force_limit_N, **kw)
+
+
+def estimate_study_result(source, config: EstimateConfig | None = None, *,
+                          manifest: PathLike | None = None, skip_bad: bool = False,
+                          jobs: int = 1, on_open: Callable[[int], object] | None = None,
+                          advance: Callable[[], object] | None = None,
+                          warn: Warn | None = None) -> StudySpectra:
+    """:func:`estimate` with everything it found: the spectra, the trials kept, the
+    trials skipped and files ignored, the sampling rate and data warnings.
+
+    ``source`` and the options are those of :func:`estimate`; ``on_open(n)`` is told the
+    number of trials found and ``advance()`` called once per trial (for progress bars).
+    """
+    config = config or EstimateConfig()
+    if isinstance(source, Trials) or (isinstance(source, Sequence)
+                                      and source and isinstance(source[0], Trial)):
+        return estimate_trials(list(source), config)
+    if isinstance(source, str | os.PathLike):
+        source = [source]
+    return estimate_study(list(source), config, manifest=manifest, skip_bad=skip_bad,
+                          jobs=jobs, on_open=on_open, advance=advance, warn=warn)
+
+
+def estimate(source, *, method: str = "h1", fmin: float = 0.1, fmax: float = 30.0,
+             per_decade: int = 40, nperseg: int | None = None, overlap: float = 0.5,
+             window: str = "hann", mp: Mapping[str, float] | None = None,
+             coherence_min: float = 0.5, force_limit_N: float = 8.5,
+             manifest: PathLike | None = None, skip_bad: bool = False, jobs: int = 1,
+             warn: Warn | None = None) -> Spectra:
+    """Frequency responses of every trial, and their mean per axis × grip and median per
+    axis (``armfit estimate``).
+
+    Parameters
+    ----------
+    source : path, sequence of paths, Trials or sequence of Trial
+        Raw trial files or folders, an ``armfit ingest`` dataset, or trials in memory.
+    method : {'h1', 'chebwin'}
+        Measured-dynamics estimator X/F: Welch H1, or the paper's whole-record FFT
+        ratio with 100 dB Chebyshev windows.
+    fmin, fmax : float
+        Grid range, Hz (fmax at most the Nyquist frequency).
+    per_decade : int
+        Log-spaced grid points per decade.
+    nperseg : int, optional
+        H1 segment length, samples (default: a power of 2 lasting >= 2/fmin s).
+    overlap : float
+        H1 segment overlap, fraction 0…<1.
+    window : str
+        H1 window (scipy.signal.get_window name).
+    mp : dict, optional
+        Device mass per axis, kg, for the derived arm dynamics Xa/Fa with
+        Fa = F − Mp·ẍ (eqs. 1–2); default the paper's.
+    coherence_min : float
+        Points of lower coherence are flagged ``low_coherence``.
+    force_limit_N : float
+        Device peak force, N; trials reaching it are flagged ``saturation``.
+    manifest : path, optional
+        Trial manifest CSV.
+    skip_bad : bool
+        Leave bad trials out (listed in ``meta["skipped"]``) instead of raising.
+    jobs : int
+        Worker processes.
+    warn : callable, optional
+        Receives data warnings.
+
+    Returns
+    -------
+    Spectra
+        Every response as responses × frequency arrays, with the file's metadata;
+        ``.write(path)`` writes what ``armfit estimate -o path`` writes.
+    """
+    config = estimate_config(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
+                             nperseg=nperseg, overlap=overlap, window=window, mp=mp,
+                             coherence_min=coherence_min, force_limit_N=force_limit_N)
+    return estimate_study_result(source, config, manifest=manifest, skip_bad=skip_bad,
+                                 jobs=jobs, warn=warn).spectra
+
+
+def read_spectra(path: PathLike) -> Spectra:
+    """Read a spectra file written by ``armfit estimate`` (:meth:`Spectra.read`)."""
+    return Spectra.read(path)
+
+
+def _spectra(spectra) -> Spectra:
+    if isinstance(spectra, str | os.PathLike):
+        return Spectra.read(spectra)
+    return Spectra.of(spectra)
+
+
+# ---------------------------------------------------------------------------
+# Arm-model fits (Tables I and II)
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class ModelFit:
+    """Fitted arm models: one row per axis (nominal, Table II) or axis × grip (Table I).
+
+    Attributes
+    ----------
+    table : pandas.DataFrame
+        The params-file table (columns of :func:`armfit.io.schema.params_columns`):
+        parameters in SI units (kg, N/m, N·s/m), 95 % intervals, fit statistics.
+    which : {'grip', 'nominal'}
+    fits : tuple of armfit.fitting.FitResult
+        The fits behind the rows (empty for a model read from a file).
+    spectra : Spectra or None
+        What was fitted (for :meth:`plot`).
+    source : str or None
+        The file the model was read from.
+    """
+
+    table: pd.DataFrame
+    which: str
+    fits: tuple = ()
+    spectra: Spectra | None = None
+    source: str | None = None
+
+    @classmethod
+    def read(cls, path: PathLike) -> ModelFit:
+        """A params CSV written by fit-grip or fit-nominal."""
+        table = read_params(path)
+        return cls(table, "grip" if "grip_N" in table.columns else "nominal",
+                   source=str(path))
+
+    @classmethod
+    def of(cls, model) -> ModelFit:
+        """``model`` itself, a params DataFrame, or a params file's path, as a ModelFit."""
+        if isinstance(model, cls):
+            return model
+        if isinstance(model, str | os.PathLike):
+            return cls.read(model)
+        return cls(model, "grip" if "grip_N" in model.columns else "nominal")
+
+    def to_frame(self) -> pd.DataFrame:
+        """The params table (a copy): the rows of the CSV ``write`` writes."""
+        return self.table.copy()
+
+    def latex(self) -> str:
+        """A booktabs LaTeX table laid out like the paper's Table I or II, with intervals."""
+        return latex_table(self.table, ci=True,
+                           caption=caption_for(self.which, [f.ci_method for f in self.fits]),
+                           label=f"tab:{self.which}")
+
+    def write(self, path: PathLike, *, overwrite: bool = False,
+              latex: PathLike | None = None) -> Path:
+        """Write the params CSV (and with ``latex`` the LaTeX table), atomically: the files
+        of ``armfit fit-grip`` / ``fit-nominal``."""
+        write_params(self.table, path, overwrite=overwrite)
+        if latex is not None:
+            write_text_atomic(latex, self.latex(), overwrite=overwrite)
+        return Path(path)
+
+    def plot(self, ax=None):
+        """The Bode figure of the fitted spectra with these models (the paper's Fig. 5);
+        with ``ax``, the models' magnitude (dB re 1 m/N) drawn on it."""
+        if ax is None:
+            if self.spectra is None:
+                raise UsageError("this model holds no spectra to draw; use "
+                                 "armfit.figures.bode_figure(spectra, model.table)")
+            return figures.bode_figure(self.spectra, self.table)
+        f = np.geomspace(0.1, 30.0, 400)
+        for _, row in self.table.iterrows():
+            model, theta = figures.model_from_row(row)
+            grip = f" {float(row['grip_N']):g} N" if "grip_N" in row else ""
+            ax.plot(f, 20 * np.log10(np.abs(model.response(f, theta))), ls="--",
+                    label=f"{row['axis']}{grip}")
+        ax.set_xscale("log")
+        return ax
+
+
+def _fit(which: str, spectra, *, cost: str, bands, effects, bootstrap: int, seed,
+         method, max_nfev, on_fit) -> ModelFit:
+    sp = _spectra(spectra)
+    study = _fitting.fit_study(sp, which=which, cost=cost, bands=bands,
+                               effects=_effects(effects), bootstrap=bootstrap, seed=seed,
+                               method=method, max_nfev=max_nfev, on_fit=on_fit)
+    return ModelFit(study.table(), which, study.fits, sp)
+
+
+def fit_grip(spectra, *, cost: str = "complex",
+             bands: Mapping[str, tuple[float, float]] | None = None,
+             effects: Iterable[Effect | str] = (), bootstrap: int = 0, seed: int | None = 0,
+             method: str | None = None, max_nfev: int | None = None,
+             on_fit: Callable | None = None) -> ModelFit:
+    """Fit the closed loop H_CL (eq. 4) to each axis × grip mean (Table I, ``armfit
+    fit-grip``).
+
+    Parameters
+    ----------
+    spectra : Spectra or path
+        From :func:`estimate` or a spectra file.
+    cost : {'complex', 'paper'}
+        'complex': dB and phase errors over their standard errors; 'paper': dB error
+        only (eq. 5, unit weights).
+    bands : dict, optional
+        Fit band per axis {axis: (lo, hi)} in Hz; default x, y 0.1–30 Hz, z 0.1–10 Hz.
+    effects : sequence of Effect or str
+        Physical effects added to the model (see :data:`armfit.EFFECTS`).
+    bootstrap : int
+        Subject resamples for percentile intervals (0: intervals from the Jacobian).
+    seed : int, optional
+        Seed of the resampling.
+    method : str, optional
+        Estimator to fit when the spectra hold several.
+    max_nfev : int, optional
+        Evaluation budget of each final local fit (default 200 per parameter).
+    on_fit : callable, optional
+        ``on_fit(axis, grip, FitResult)`` after each fit.
+
+    Returns
+    -------
+    ModelFit
+
+    Raises
+    ------
+    ConvergenceError
+        A fit did not converge (nothing is returned).
+    """
+    return _fit("grip", spectra, cost=cost, bands=bands, effects=effects,
+                bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
+                on_fit=on_fit)
+
+
+def fit_nominal(spectra, *, cost: str = "complex",
+                bands: Mapping[str, tuple[float, float]] | None = None,
+                effects: Iterable[Effect | str] = (), bootstrap: int = 0,
+                seed: int | None = 0, method: str | None = None,
+                max_nfev: int | None = None, on_fit: Callable | None = None) -> ModelFit:
+    """Fit H_CL (eq. 4) to each axis median over all trials (Table II, ``armfit
+    fit-nominal``). Parameters as :func:`fit_grip`.
+
+    Returns
+    -------
+    ModelFit
+        One row per axis; ``to_frame()`` has the columns of the CSV ``armfit
+        fit-nominal`` writes (axis, Ma, k1, k2, b1, b2, intervals, statistics).
+    """
+    return _fit("nominal", spectra, cost=cost, bands=bands, effects=effects,
+                bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
+                on_fit=on_fit)
+
+
+def read_model(path: PathLike) -> ModelFit:
+    """Read a params CSV written by fit-grip or fit-nominal (:meth:`ModelFit.read`)."""
+    return ModelFit.read(path)
+
+
+# Per-trial fits (``armfit fit-trials``) join here as ``fit_trials`` returning a ModelFit
+# with one row per trial, once that command is part of the package.
+
+
+# ---------------------------------------------------------------------------
+# Uncertainty weights (Table III)
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Uncertainty:
+    """W_max (eq. 6) and the fitted weight Wu (eq. 7) of every axis.
+
+    Attributes
+    ----------
+    axes : tuple of armfit.uncertainty.AxisUncertainty
+        Per axis: grid, W_max (raw and target), band, trials, fitted weight, checks.
+    cost : {'envelope', 'paper'}
+    smooth_oct : float or None
+        Smoothing of W_max, octaves.
+    spectra, nominal : Spectra, ModelFit
+        The inputs (for :meth:`plot`).
+    """
+
+    axes: tuple[AxisUncertainty, ...]
+    cost: str
+    smooth_oct: float | None = None
+    spectra: Spectra | None = None
+    nominal: ModelFit | None = None
+
+    @property
+    def weights(self) -> dict[str, WuWeight]:
+        """{axis: WuWeight}, the fitted weights."""
+        return {r.axis: r.result.weight for r in self.axes}
+
+    def to_frame(self) -> pd.DataFrame:
+        """The Wu table (axis, kind, index, real, imag; the layout of Table III)."""
+        return wu_frame(self.weights)
+
+    def summary(self) -> pd.DataFrame:
+        """Coverage (%) and tightness (dB) per axis × weight × target."""
+        return _uncertainty.summary_table(list(self.axes), smooth_oct=self.smooth_oct)
+
+    def points(self) -> pd.DataFrame:
+        """W_max, target and |Wu| in dB at every grid frequency, per axis."""
+        return _uncertainty.points_table(list(self.axes))
+
+    def write(self, path: PathLike, *, overwrite: bool = False,
+              latex: PathLike | None = None) -> tuple[Path, ...]:
+        """Write the files of ``armfit fit-uncertainty``: the Wu CSV, ``<stem>_summary.csv``
+        and ``<stem>_wmax.csv`` beside it (and with ``latex`` a Table III-style table),
+        each atomically. Returns the paths written."""
+        summary_path, points_path = wu_sidecar_paths(path)
+        write_wu(self.weights, path, overwrite=overwrite)
+        write_wu_table(self.summary(), summary_path, overwrite=overwrite)
+        write_wu_table(self.points(), points_path, overwrite=overwrite)
+        out = (Path(path), summary_path, points_path)
+        if latex is not None:
+            write_text_atomic(latex, wu_latex(self.weights), overwrite=overwrite)
+            out += (Path(latex),)
+        return out
+
+    def plot(self, ax=None):
+        """The paper's Fig. 6 (derived dynamics, nominal H_ARM, W_max and |Wu|); with
+        ``ax``, W_max (dots) and |Wu| (lines) in dB drawn on it."""
+        if ax is None:
+                return figures.uncertainty_figure(self.spectra, self.nominal.table, self.weights)
+        for r in self.axes:
+            ax.plot(r.f_hz, 20 * np.log10(r.wmax_raw), ".", ms=2, label=f"W_max {r.axis}")
+            ax.plot(r.f_hz, r.result.weight.magnitude_db(r.f_hz), label=f"|Wu| {r.axis}")
+        ax.set_xscale("log")
+        return ax
+
+
+def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | None = None,
+                    band: tuple[float, float] | None = None, smooth_oct: float | None = None,
+                    method: str | None = None,
+                    check: Mapping[str, Mapping[str, WuWeight]] | None = None
+                    ) -> Uncertainty:
+    """W_max (eq. 6) of every trial's derived arm dynamics against the nominal H_ARM and
+    the weight Wu(s) = K Π(s − z)/Π(s − p) (eq. 7, s in rad/s) per axis (Table III,
+    ``armfit fit-uncertainty``).
+
+    Parameters
+    ----------
+    spectra : Spectra or path
+        With trial-level derived responses.
+    nominal : ModelFit, DataFrame or path
+        Nominal fits (one row per axis).
+    cost : {'envelope', 'paper'}
+        'envelope': |Wu| >= W_max on and between grid points, as tight as possible;
+        'paper': dB least squares against W_max (no guarantee).
+    order : int, optional
+        Zero pairs = pole pairs, 0..5 (default: the smallest within 0.1 dB of the best).
+    band : (float, float), optional
+        Band in Hz (default 0.01–30 Hz, limited to the spectra).
+    smooth_oct : float, optional
+        Smooth each trial's relative error over this many octaves before W_max.
+    method : str, optional
+        Estimator of the derived spectra when several.
+    check : dict, optional
+        {label: {axis: WuWeight}} further weights to evaluate on the same data.
+
+    Returns
+    -------
+    Uncertainty
+
+    Raises
+    ------
+    ConvergenceError
+        With cost 'paper', the least-squares fit of an axis did not converge (the one
+        convergence policy of ``fit-uncertainty`` and ``run``; the envelope fit holds its
+        guarantee whether or not its shape optimiser converged).
+    """
+    sp = _spectra(spectra)
+    nom = ModelFit.of(nominal)
+    results = _uncertainty.fit_uncertainty(sp, nom.table, cost=cost, n_pairs=order,
+                                           band=band, smooth_oct=smooth_oct, method=method,
+                                           given=check)
+    bad = [r.axis for r in results if not r.result.converged]
+    if bad and cost == "paper":
+        raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "
+                               f"{', '.join(bad)}; nothing written (try {{opt}})",
+                               option="order=")
+    return Uncertainty(tuple(results), cost, smooth_oct, sp, nom)
+
+
+def read_weights(path: PathLike) -> dict[str, WuWeight]:
+    """Read a Wu CSV (fit-uncertainty output or Table III layout) as {axis: WuWeight}."""
+    return read_wu(path)
+
+
+# ---------------------------------------------------------------------------
+# compare and diagnose
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Comparisons:
+    """Errors of models against measurements, overall and per band.
+
+    Attributes
+    ----------
+    rows : tuple of armfit.diagnose.Comparison
+        One per axis (× grip) and model (the base, then with the effects asked for).
+    level : {'mean', 'median', 'trial'}
+    """
+
+    rows: tuple
+    level: str
+
+    def to_frame(self) -> pd.DataFrame:
+        """One row per comparison and band (columns of compare.csv: axis, grip, level,
+        model, band ``overall`` or ``LO-HI`` Hz, rms_db, rms_deg, rms_norm)."""
+        return compare_frame(self.rows)
+
+    def to_dict(self) -> dict:
+        """The JSON document of ``armfit compare --json``."""
+        return {"level": self.level, "rows": [{
+            "axis": r.axis, "grip_N": r.grip_N, "model": r.model, "params": r.params,
+            "n_trials": r.n_trials, "overall": _diagnose.band_to_dict(r.overall),
+            "bands": [_diagnose.band_to_dict(b) for b in r.bands],
+            "failing": [asdict(fb) for fb in r.failing]} for r in self.rows]}
+
+    def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
+        """Write :meth:`to_frame` as compare.csv (as ``armfit run`` does), atomically."""
+        with atomic_path(path, overwrite=overwrite) as tmp, \
+                open(tmp, "w", encoding="utf-8", newline="") as fh:
+            self.to_frame().to_csv(fh, index=False, float_format="%.10g",
+                                   lineterminator="\n")
+        return Path(path)
+
+
+def compare_frame(rows) -> pd.DataFrame:
+    """compare.csv as a DataFrame (:data:`armfit.io.schema.COMPARE_COLUMNS`) from
+    :class:`armfit.diagnose.Comparison` rows: one row per comparison and band, band
+    ``overall`` (the whole band compared) or ``LO-HI`` (Hz)."""
+    out = []
+    for r in rows:
+        for label, b in (("overall", r.overall),
+                         *((f"{b.lo_hz:g}-{b.hi_hz:g}", b) for b in r.bands)):
+            out.append({"axis": r.axis, "grip": r.grip_N, "level": r.level, "model": r.model,
+                        "band": label, "rms_db": b.rms_db, "rms_deg": b.rms_deg,
+                        "rms_norm": b.rms_norm})
+    df = pd.DataFrame(out, columns=list(COMPARE_COLUMNS))
+    order = {m: i for i, m in enumerate(dict.fromkeys(df["model"]))}
+    df["_m"] = df["model"].map(order)
+    df = df.sort_values(["axis", "_m"], kind="stable").drop(columns="_m")
+    return df.reset_index(drop=True)
+
+
+def compare(spectra, model, *, level: str | None = None,
+            band: tuple[float, float] | None = None,
+            effects: Iterable[Effect | str] = ()) -> Comparisons:
+    """Compare fitted models with the measurements (``armfit compare``): RMS magnitude
+    (dB), phase (deg) and noise-normalised error overall and per band, and the bands
+    where the model fails, in words.
+
+    Parameters
+    ----------
+    spectra : Spectra or path
+    model : ModelFit, DataFrame or path
+        Grip or nominal fits.
+    level : {'mean', 'median', 'trial'}, optional
+        Measurements to compare with (default: mean for grip fits, median for nominal).
+    band : (float, float), optional
+        Band in Hz (default: the whole grid).
+    effects : sequence of Effect or str
+        Add these effects, refit, and report the error before and after.
+
+    Returns
+    -------
+    Comparisons
+    """
+    sp = _spectra(spectra)
+    m = ModelFit.of(model)
+    if level is None:
+        level = "mean" if m.which == "grip" else "median"
+    rows = _diagnose.compare(sp, m.table, level=level, band=band, effects=_effects(effects))
+    return Comparisons(tuple(rows), level)
+
+
+@dataclass(frozen=True, eq=False)
+class Diagnosis:
+    """Which physical effect each axis's model is missing.
+
+    Attributes
+    ----------
+    axes : tuple of armfit.diagnose.AxisDiagnosis
+        Per axis: the verdict, the missing effect (or None), candidates best first,
+        failing bands, base error, cross-axis coupling.
+    spectra, model : Spectra, ModelFit
+        The inputs (for :meth:`plot`).
+    """
+
+    axes: tuple
+    spectra: Spectra | None = None
+    model: ModelFit | None = None
+
+    @property
+    def missing(self) -> dict[str, str | None]:
+        """{axis: missing effect or None}."""
+        return {d.axis: d.missing_effect for d in self.axes}
+
+    def to_dict(self) -> dict:
+        """The JSON document of ``armfit diagnose --json`` (and of diagnosis.json)."""
+        return _diagnose.diagnosis_to_dict(list(self.axes))
+
+    def to_frame(self) -> pd.DataFrame:
+        """One row per axis: axis, n_trials, band_lo_hz, band_hi_hz, missing_effect,
+        tied_with, base rms_db / rms_deg / rms_norm, failing_bands (count), verdict."""
+        return pd.DataFrame([{
+            "axis": d.axis, "n_trials": d.n_trials, "band_lo_hz": d.band[0],
+            "band_hi_hz": d.band[1], "missing_effect": d.missing_effect,
+            "tied_with": ";".join(d.tied_with), "rms_db": d.base_error.rms_db,
+            "rms_deg": d.base_error.rms_deg, "rms_norm": d.base_error.rms_norm,
+            "failing_bands": len(d.failing), "verdict": d.verdict} for d in self.axes],
+            columns=["axis", "n_trials", "band_lo_hz", "band_hi_hz", "missing_effect",
+                     "tied_with", "rms_db", "rms_deg", "rms_norm", "failing_bands",
+                     "verdict"])
+
+    def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
+        """Write the JSON document (``armfit diagnose -o``), atomically."""
+        write_text_atomic(path, json.dumps(self.to_dict(), indent=2, default=json_default)
+                          + "\n", overwrite=overwrite)
+        return Path(path)
+
+    def plot(self, ax=None):
+        """Normalised residuals of the model with the diagnosis's failing bands shaded
+        (:func:`armfit.figures.residual_figure`); with ``ax``, each axis's base-model
+        error per failing band drawn as spans on it."""
+        bands = {d.axis: [(fb.lo_hz, fb.hi_hz) for fb in d.failing] for d in self.axes}
+        if ax is None:
+                return figures.residual_figure(self.spectra, self.model.table, bands=bands)
+        for axis, spans in bands.items():
+            for lo, hi in spans:
+                ax.axvspan(lo, hi, alpha=0.2, label=f"{axis} fails")
+        ax.set_xscale("log")
+        return ax
+
+
+def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
+             effects: Iterable[Effect | str] | None = None, jobs: int = 1) -> Diagnosis:
+    """Name the physical effect the 5-parameter model is missing, per axis (``armfit
+    diagnose``).
+
+    Parameters
+    ----------
+    spectra : Spectra or path
+        With trial-level measured responses.
+    model : ModelFit, DataFrame or path
+        Grip fits (preferred: per-grip starts) or nominal fits.
+    band : (float, float), optional
+        Band in Hz (default: the whole grid).
+    effects : sequence of Effect or str, optional
+        Candidates (default: the whole effect library).
+    jobs : int
+        Worker processes; the result does not depend on it.
+
+    Returns
+    -------
+    Diagnosis
+
+    Raises
+    ------
+    BadInputError
+        The spectra hold no trial-level measured responses for the model's axes.
+    """
+    sp = _spectra(spectra)
+    m = ModelFit.of(model)
+    results = _diagnose.diagnose(sp, m.table, band=band,
+                                 effects=None if effects is None else _effects(effects),
+                                 jobs=jobs)
+    if not results:
+        raise BadInputError("holds no trial-level measured responses for the axes of the "
+                            "model", file=sp.source, column="level")
+    return Diagnosis(tuple(results), sp, m)
+
+
+# Stability (``armfit stability``) joins here as ``stability`` once that stage is part of
+# the package.
+
+
+# ---------------------------------------------------------------------------
+# simulate
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """A simulated study of the paper's protocol with known truth.
+
+    Attributes
+    ----------
+    config : armfit.simulate.StudyConfig
+        Every setting (SI units).
+    plans : tuple of armfit.simulate.TrialPlan
+        The truth of each trial (identity, length, parameters, effects).
+    """
+
+    config: StudyConfig
+    plans: tuple = field(default=())
+
+    def trials(self):
+        """Yield the trials (armfit.io.trials.Trial), simulated one at a time."""
+        for plan in self.plans:
+            yield simulate_trial(plan, self.config)
+
+    def to_frame(self) -> pd.DataFrame:
+        """One row per trial's truth (subject, axis, grip, duration, parameters …)."""
+        return pd.DataFrame([p.as_dict() for p in self.plans])
+
+    def truth(self, options: Mapping[str, object] | None = None) -> dict:
+        """The truth document (the JSON ``armfit simulate`` writes beside the study)."""
+        return truth_dict(self.config, self.plans, options)
+
+    def write(self, folder: PathLike, *, fmt: str = "parquet", units: str = "m",
+              overwrite: bool = False, truth: PathLike | None = None,
+              options: Mapping[str, object] | None = None,
+              advance: Callable[[], object] | None = None) -> list[str]:
+        """Write one raw trial file per trial into ``folder`` and the truth JSON beside it
+        (default ``<folder>.truth.json``), each atomically. Returns the file names."""
+        out = Path(folder)
+        truth_path = Path(truth) if truth else out.with_name(out.name + ".truth.json")
+        files = []
+        with atomic_path(truth_path, overwrite=overwrite) as truth_tmp, \
+                atomic_path(out, overwrite=overwrite) as tmp:
+            tmp.mkdir()
+            for trial in self.trials():
+                name = trial_filename(trial.meta, fmt)
+                write_trial(trial, tmp / name, fmt=fmt, units=units)
+                files.append(name)
+                if advance is not None:
+                    advance()
+            truth_tmp.write_text(json.dumps(self.truth(options), indent=1) + "\n",
+                                 encoding="utf-8")
+        return files
+
+
+def simulate(config: StudyConfig | None = None, **settings) -> Simulation:
+    """Plan a simulated study with known truth (``armfit simulate``).
+
+    Parameters
+    ----------
+    config : armfit.simulate.StudyConfig, optional
+        Every setting; or give them as keywords (subjects, axes, grips_N, duration_s,
+        fs, seed, noise_m, variability, drift_m, quantum_m, effects, …).
+
+    Returns
+    -------
+    Simulation
+        ``.trials()`` simulates the trials one at a time (feed them to
+        :func:`estimate`); ``.write(folder)`` writes the study as ``armfit simulate``.
+    """
+    if config is None:
+        config = StudyConfig(**settings)
+    elif settings:
+        raise UsageError("give either a StudyConfig or settings, not both")
+    return Simulation(config, plan_study(config))
+
+
+__all__ = [
+    "AXES", "Comparisons", "Diagnosis", "ModelFit", "Simulation", "Spectra", "Trials",
+    "Uncertainty", "compare", "compare_frame", "diagnose", "estimate", "estimate_config",
+    "estimate_study_result", "fit_grip", "fit_nominal", "fit_uncertainty", "read_model",
+    "read_spectra", "read_trials", "read_weights", "simulate",
+]

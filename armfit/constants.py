@@ -1,0 +1,29 @@
+"""One home for the names and units every layer shares: axes, the arm parameters, the
+device masses and the dB/neper conversion (Fu & Çavuşoğlu 2010).
+
+Nothing here imports from armfit: every module may use it.
+"""
+
+from __future__ import annotations
+
+import math
+
+#: The device's Cartesian axes, in the order of every table and figure.
+AXES: tuple[str, ...] = ("x", "y", "z")
+
+#: Names of the five arm parameters, in the paper's order (Tables I and II); their units
+#: and bounds are in :data:`armfit.models.arm.BASE_PARAMS`.
+PARAM_NAMES: tuple[str, ...] = ("Ma", "k1", "k2", "b1", "b2")
+
+#: Device (PHANToM Premium 1.5a) moving mass per axis in kg — paper eq. 2.
+DEVICE_MASS_KG: dict[str, float] = {"x": 0.09, "y": 0.095, "z": 0.091}
+
+#: dB per neper: 20 log10|H| = DB_PER_NEPER · ln|H| (20/ln 10 ≈ 8.686).
+DB_PER_NEPER: float = 20.0 / math.log(10.0)
+
+#: Phase (deg) weighted like 1 dB of magnitude: 1 rad ↔ 1 neper, i.e. (180/π)/DB_PER_NEPER.
+UNIT_SE_DEG: float = math.degrees(1.0) / DB_PER_NEPER
+
+#: Default fit bands (Hz) per axis, as the paper: X and Y 0.1–30 Hz, Z 0.1–10 Hz.
+PAPER_BANDS: dict[str, tuple[float, float]] = {
+    "x": (0.1, 30.0), "y": (0.1, 30.0), "z": (0.1, 10.0)}

@@ -1,0 +1,162 @@
+"""Schemas of armfit's own output files: the spectra table (Parquet), fitted parameters
+(CSV), uncertainty weights (CSV) with their summary and W_max tables, and compare.csv.
+
+Column names and their order are defined here once; readers and writers elsewhere
+(:class:`armfit.spectra.Spectra`, :mod:`armfit.io.artifacts`) use these names. The
+meaning and units of every column are documented in docs/formats.md.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+# ---------------------------------------------------------------------------
+# Spectra (written by `armfit estimate`): one long-format Parquet table.
+# ---------------------------------------------------------------------------
+
+#: Columns of the spectra table, in order.
+SPECTRA_COLUMNS: tuple[str, ...] = (
+    "level",      # "trial" | "mean" | "median"
+    "subject",    # subject label (null for aggregates)
+    "axis",       # stimulated axis "x" | "y" | "z"
+    "grip_N",     # target grip force, N (NaN at level "median": all grips pooled)
+    "run",        # repeat index (nullable Int64)
+    "kind",       # "measured" (X/F), "derived" (Xa/Fa, device removed), "cross"
+    "out_axis",   # position axis of the response (== axis except for kind "cross")
+    "method",     # estimator name, e.g. "h1", "chebwin", "tfestimate"
+    "freq_hz",    # frequency, Hz
+    "re", "im",   # complex response, m/N
+    "mag_db",     # 20 log10 |H| with H in m/N
+    "phase_deg",  # phase, deg (unwrapped along frequency)
+    "coherence",  # magnitude-squared coherence 0..1 (NaN where not defined)
+    "se_db",      # standard error of mag_db, dB
+    "se_deg",     # standard error of phase_deg, deg
+    "n",          # number of trials behind the value (1 at level "trial")
+    "q25_db", "q75_db", "q25_deg", "q75_deg",  # quartiles across trials (aggregates)
+    "flags",      # comma-separated: low_coherence, saturation, drift (empty if none)
+)
+
+#: The columns that name one response (one curve along frequency), in file order.
+SPECTRA_KEYS: tuple[str, ...] = ("level", "subject", "axis", "grip_N", "run", "kind",
+                                 "out_axis", "method")
+
+#: Real-valued columns held per response and frequency (besides re, im and flags).
+SPECTRA_VALUES: tuple[str, ...] = ("mag_db", "phase_deg", "coherence", "se_db", "se_deg",
+                                   "q25_db", "q75_db", "q25_deg", "q75_deg")
+
+#: Columns held as text in the spectra table.
+SPECTRA_TEXT: tuple[str, ...] = ("level", "subject", "axis", "kind", "out_axis", "method",
+                                 "flags")
+
+#: Flags a grid point can carry, in the order they are written.
+FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift")
+
+#: Key of armfit's metadata (JSON) in the Parquet file's key-value metadata.
+SPECTRA_META_KEY = b"armfit"
+
+# ---------------------------------------------------------------------------
+# Fitted parameters (written by `armfit fit-grip` / `fit-nominal`): CSV.
+# ---------------------------------------------------------------------------
+
+#: Base arm parameters of a params file, in the paper's order (SI: kg, N/m, N*s/m).
+PARAMS_BASE: tuple[str, ...] = ("Ma", "k1", "k2", "b1", "b2")
+#: Fit statistics closing every params row, in order.
+PARAMS_STATS: tuple[str, ...] = ("rms_db", "rms_deg", "rms_norm", "band_lo_hz", "band_hi_hz",
+                                 "n_points", "cost", "converged", "mp_kg", "effects")
+
+
+def params_columns(param_names, *, grip: bool) -> list[str]:
+    """Columns of a params file, in order.
+
+    Parameters
+    ----------
+    param_names : sequence of str
+        The model's parameters: the base names, then ``<effect>.<param>``.
+    grip : bool
+        True for grip-dependent fits (a ``grip_N`` column after ``axis``).
+
+    Returns
+    -------
+    list of str
+        ``axis``, ``grip_N`` (grip fits only), the parameters, ``<p>_lo, <p>_hi`` for
+        each (95 % interval), then :data:`PARAMS_STATS`.
+    """
+    names = list(param_names)
+    cols = ["axis"] + (["grip_N"] if grip else []) + names
+    for n in names:
+        cols += [f"{n}_lo", f"{n}_hi"]
+    return cols + list(PARAMS_STATS)
+
+
+# ---------------------------------------------------------------------------
+# Uncertainty weights (written by `armfit fit-uncertainty`): CSV in the layout of the
+# paper's Table III, plus a per-axis summary CSV and a W_max points CSV beside it.
+# ---------------------------------------------------------------------------
+
+#: Columns of a Wu file, in order. kind: "gain" (index 0, K in `real`), "zero", "pole"
+#: (index 1..n; each row the conjugate pair real ± j·imag, rad/s; imag 0 is a double root).
+WU_COLUMNS: tuple[str, ...] = ("axis", "kind", "index", "real", "imag")
+
+#: Columns of the summary written beside a Wu file (``<stem>_summary.csv``), in order.
+WU_SUMMARY_COLUMNS: tuple[str, ...] = (
+    "axis", "weight", "target", "cost", "order", "n_trials", "smooth_oct",
+    "band_lo_hz", "band_hi_hz", "n_points", "coverage_pct", "coverage_between_pct",
+    "tightness_median_db", "tightness_max_db", "tightness_min_db", "mean_gap_db",
+    "converged",
+)
+
+#: Columns of the W_max points written beside a Wu file (``<stem>_wmax.csv``), in order.
+WU_POINTS_COLUMNS: tuple[str, ...] = ("axis", "freq_hz", "wmax_db", "target_db", "wu_db",
+                                      "in_band")
+
+
+def wu_sidecar_paths(path) -> tuple[Path, Path]:
+    """The summary and W_max files written beside the Wu file ``path``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The Wu CSV.
+
+    Returns
+    -------
+    (Path, Path)
+        ``<stem>_summary.csv`` and ``<stem>_wmax.csv`` in the same folder.
+    """
+    p = Path(path)
+    stem = p.name[:-4] if p.name.lower().endswith(".csv") else p.name
+    return p.with_name(f"{stem}_summary.csv"), p.with_name(f"{stem}_wmax.csv")
+
+
+# ---------------------------------------------------------------------------
+# compare.csv (written by `armfit run`)
+# ---------------------------------------------------------------------------
+
+#: Columns of compare.csv.
+COMPARE_COLUMNS: tuple[str, ...] = ("axis", "grip", "level", "model", "band", "rms_db",
+                                    "rms_deg", "rms_norm")
+
+#: Float format of every CSV armfit writes (10 significant digits).
+CSV_FLOAT_FORMAT = "%.10g"
+
+# ---------------------------------------------------------------------------
+# JSON documents (--json, diagnosis.json)
+# ---------------------------------------------------------------------------
+
+
+def json_default(o):
+    """``json.dumps`` default: numpy scalars and arrays as Python numbers and lists."""
+    import numpy as np
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def finite_or_none(v):
+    """A float that is NaN or infinite as None (JSON has no NaN); anything else as is."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
