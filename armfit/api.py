@@ -35,12 +35,13 @@ from armfit import fitting as _fitting
 from armfit import uncertainty as _uncertainty
 from armfit.constants import AXES
 from armfit.errors import BadInputError, ConvergenceError, UsageError
-from armfit.io.artifacts import read_params, write_params, write_wu, write_wu_table, wu_frame
+from armfit.io.artifacts import write_params, write_wu, write_wu_table, wu_frame
 from armfit.io.atomic import atomic_path, write_text_atomic
 from armfit.io.rawwrite import trial_filename, write_trial
 from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
 from armfit.io.trials import Skipped, Trial, open_trials, write_dataset
 from armfit.models.effects import Effect, get_effect
+from armfit.models.params import read_params
 from armfit.simulate import StudyConfig, plan_study, simulate_trial, truth_dict
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimate_study, estimate_trials
 from armfit.tables import caption_for, latex_table, wu_latex

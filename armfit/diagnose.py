@@ -51,7 +51,8 @@ from armfit.constants import AXES, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import UsageError
 from armfit.fitting import ParamSpace, analytic_guess, fit_response, log_errors
 from armfit.models.arm import ClosedLoopModel
-from armfit.models.effects import EFFECTS, Effect, model_from_params
+from armfit.models.effects import EFFECTS, Effect
+from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
 
 #: Standard error bands of the compare table (Hz).

@@ -38,8 +38,8 @@ from armfit.constants import AXES
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import atomic_path, check_output
 from armfit.models.arm import ClosedLoopModel
-from armfit.models.effects import model_from_params
 from armfit.models.literature import LiteratureModel, literature_models
+from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
 from armfit.uncertainty import WuWeight, w_max
 

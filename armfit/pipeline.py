@@ -1,23 +1,23 @@
 """The one-shot pipeline of ``armfit run``: raw trials in, every table, figure and a report out.
 
-Stages, each the library call of its own subcommand, in the order data flows (files
-written into OUTDIR in brackets):
+The pipeline is a table of stages (:data:`PIPELINE`), each the API call of its own
+subcommand, run in the order data flows (files written into OUTDIR in brackets):
 
 - ingest: :func:`armfit.io.trials.ingest` (trials.parquet);
-- estimate: :func:`armfit.spectra.estimate_study` (spectra.parquet);
-- fit-grip, fit-nominal: :func:`armfit.fitting.fit_study` and
-  :func:`armfit.tables.latex_table` (grip_params.csv/.tex, nominal_params.csv/.tex);
-- fit-uncertainty: :func:`armfit.uncertainty.fit_uncertainty` (wu.csv, wu_summary.csv,
-  wu_wmax.csv, wu.tex);
+- estimate: :func:`armfit.api.estimate_study_result` (spectra.parquet);
+- fit-grip, fit-nominal: :func:`armfit.fit_grip`, :func:`armfit.fit_nominal`
+  (grip_params.csv/.tex, nominal_params.csv/.tex);
+- fit-uncertainty: :func:`armfit.fit_uncertainty` (wu.csv, wu_summary.csv, wu_wmax.csv,
+  wu.tex), with the same convergence policy as ``armfit fit-uncertainty``;
 - figures: Figs. 5–7 of :mod:`armfit.figures` (figures/bode.png, uncertainty.png,
   literature.png);
-- diagnose: :func:`armfit.diagnose.diagnose` started from the grip fits (diagnosis.json);
-- refit, when the diagnosis names an effect: :func:`armfit.fitting.fit_study` with that
-  effect (nominal_params_<effect>.csv);
-- compare: :func:`armfit.diagnose.compare` of each nominal model with the medians
-  (compare.csv);
+- diagnose: :func:`armfit.diagnose` started from the grip fits (diagnosis.json);
+- refit, when the diagnosis names an effect: :func:`armfit.fit_nominal` with that effect
+  (nominal_params_<effect>.csv);
+- compare: :func:`armfit.compare` of each nominal model with the medians (compare.csv);
 - residuals: :func:`armfit.figures.residual_figure` per axis (figures/residual_<axis>.png);
-- report: :func:`report_markdown` (report.md).
+- report: :func:`report_markdown` (report.md), from the stages' typed results and the
+  configuration they used.
 
 Every later stage reads the files the earlier ones wrote (as the subcommands do), so
 ``armfit run`` gives the same numbers as the subcommands run one after the other with
@@ -45,28 +45,22 @@ from armfit import api
 from armfit import figures as F
 from armfit._version import __version__
 from armfit.api import compare_frame
-from armfit.diagnose import BANDS, compare, diagnose, diagnosis_to_dict
+from armfit.constants import AXES, PAPER_BANDS
+from armfit.diagnose import BANDS, diagnose
 from armfit.errors import ArmfitError, OutputError
-from armfit.fitting import fit_study
-from armfit.io.artifacts import read_params, write_params
 from armfit.io.atomic import atomic_path, check_output, write_text_atomic
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import ingest
 from armfit.models.effects import get_effect
-from armfit.spectra import EstimateConfig, Spectra, estimate_study
-from armfit.tables import caption_for, latex_table, param_names, sig4, unit_of
+from armfit.spectra import EstimateConfig, Spectra
+from armfit.tables import param_names, sig4, unit_of
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
 
-#: Stage names, in the order they are reported (``refit`` only when an effect is named,
-#: ``figures`` and ``residuals`` only with figures on). With jobs > 1 the diagnosis runs
-#: in worker processes from the end of fit-grip on, alongside the stages before it.
-STAGES = ("ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty", "figures",
-          "diagnose", "refit", "compare", "residuals", "report")
-
-__all__ = ["COMPARE_COLUMNS", "FIGURES", "STAGES", "RunOptions", "RunResult", "Stage",
-           "check_outdir", "compare_frame", "report_markdown", "run", "run_pipeline"]
+__all__ = ["COMPARE_COLUMNS", "FIGURES", "PIPELINE", "STAGES", "PipelineStage",
+           "RunOptions", "RunResult", "Stage", "check_outdir", "compare_frame",
+           "report_markdown", "run", "run_pipeline"]
 
 
 @dataclass(frozen=True)
@@ -208,7 +202,7 @@ class _Diagnosis:
 
     def __init__(self, spectra, params, jobs: int):
         self.spectra, self.params = spectra, params
-        self.axes = [a for a in ("x", "y", "z") if (params["axis"] == a).any()]
+        self.axes = [a for a in AXES if (params["axis"] == a).any()]
         self.thread = None
         self.started = time.perf_counter()
         if jobs > 1:
@@ -235,129 +229,208 @@ class _Diagnosis:
 def _run_in(inputs: list, folder: Path, options: RunOptions, *,
             on_stage: OnStage | None, warn: Warn | None) -> RunResult:
     with contextlib.ExitStack() as stack:
-        return _stages(inputs, folder, options, on_stage=on_stage, warn=warn, stack=stack)
+        ctx = _Context(inputs, folder, options, warn=warn, stack=stack,
+                       config=EstimateConfig(method=options.method),
+                       bands=dict(PAPER_BANDS))
+        clock = _Clock(on_stage)
+        for stage in PIPELINE:
+            if stage.when(ctx):
+                summary, since = stage.run(ctx), ctx.since
+                ctx.since = None
+                clock.done(stage.name, summary, since=since)
+        return RunResult(outdir=str(folder), files=tuple(sorted(ctx.files)),
+                         trials=len(ctx.estimated.trials), skipped=ctx.skipped,
+                         verdicts={d.axis: d.verdict for d in ctx.diagnosis.axes},
+                         missing=ctx.diagnosis.missing, refitted=ctx.refitted,
+                         stages=tuple(clock.stages), wall_s=clock.wall())
 
 
-def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStage | None,
-            warn: Warn | None, stack) -> RunResult:
-    clock = _Clock(on_stage)
-    files: list[str] = []
+# ---------------------------------------------------------------------------
+# The stages as data: what each does, on what, and when it runs
+# ---------------------------------------------------------------------------
 
-    def path(name: str) -> Path:
-        files.append(name)
-        return folder / name
+@dataclass
+class _Context:
+    """What the stages of one run share: the inputs and options, the configuration they
+    use, the files written so far, and each stage's typed result."""
 
-    # ingest: validate the raw trials once, into the canonical dataset
-    ing = ingest(inputs, path("trials.parquet"), manifest=options.manifest,
-                 skip_bad=options.skip_bad, warn=warn)
-    skipped = tuple((s.file, s.reason) for s in ing.skipped)
-    clock.done("ingest", f"{len(ing.trials)} trial(s)"
-               + (f", {len(skipped)} skipped" if skipped else ""))
+    inputs: list
+    folder: Path
+    options: RunOptions
+    warn: Warn | None
+    stack: contextlib.ExitStack
+    config: EstimateConfig
+    bands: dict[str, tuple[float, float]]
+    files: list[str] = field(default_factory=list)
+    skipped: tuple[tuple[str, str], ...] = ()
+    n_ingested: int = 0
+    estimated: object = None            # spectra.StudySpectra
+    spectra: Spectra | None = None      # as read back from spectra.parquet
+    grip: api.ModelFit | None = None
+    nominal: api.ModelFit | None = None
+    background: _Diagnosis | None = None
+    uncertainty: api.Uncertainty | None = None
+    drawn: list[str] = field(default_factory=list)
+    diagnosis: api.Diagnosis | None = None
+    refitted: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    extended: dict[str, api.ModelFit] = field(default_factory=dict)
+    comparisons: api.Comparisons | None = None
+    since: float | None = None          # start of a stage that ran alongside others
 
-    # estimate: from the same inputs, so that any message names the user's files
-    config = EstimateConfig(method=options.method)
-    est = estimate_study(inputs, config, manifest=options.manifest,
-                         skip_bad=options.skip_bad, jobs=options.jobs)
-    seen = {f for f, _ in skipped}
-    skipped += tuple((f, r) for f, r in est.skipped if f not in seen)
-    est.spectra.write(path("spectra.parquet"))
-    spectra = Spectra.read(folder / "spectra.parquet")
-    clock.done("estimate", f"{len(est.trials)} trial(s), method {config.method}, "
-               f"{len(config.grid())} frequencies {config.fmin:g}-{config.fmax:g} Hz")
+    def path(self, name: str) -> Path:
+        """``folder / name``, recorded as a file of the run."""
+        self.files.append(name)
+        return self.folder / name
 
-    # fit-grip and fit-nominal: Tables I and II; the diagnosis starts from the grip fits
-    params: dict[str, object] = {}
-    diag = None
-    for which in ("grip", "nominal"):
-        study = fit_study(spectra, which=which, cost=options.cost, source="spectra.parquet")
-        df = study.table()
-        write_params(df, path(f"{which}_params.csv"))
-        write_text_atomic(path(f"{which}_params.tex"), latex_table(
-            df, ci=True, caption=caption_for(which, [f.ci_method for f in study.fits]),
-            label=f"tab:{which}"))
-        params[which] = read_params(folder / f"{which}_params.csv")
-        clock.done(f"fit-{which}", f"{len(df)} fit(s), cost {options.cost}, median rms "
-                   f"{_median(df['rms_db']):.2f} dB")
+
+@dataclass(frozen=True)
+class PipelineStage:
+    """One stage of ``armfit run``: its name (as reported), the function that does it
+    and returns a one-line summary, and when it runs."""
+
+    name: str
+    run: Callable[[_Context], str]
+    when: Callable[[_Context], bool] = lambda ctx: True
+
+
+def _ingest(ctx: _Context) -> str:
+    """Validate the raw trials once, into the canonical dataset (trials.parquet)."""
+    o = ctx.options
+    ing = ingest(ctx.inputs, ctx.path("trials.parquet"), manifest=o.manifest,
+                 skip_bad=o.skip_bad, warn=ctx.warn)
+    ctx.skipped = tuple((s.file, s.reason) for s in ing.skipped)
+    ctx.n_ingested = len(ing.trials)
+    return f"{len(ing.trials)} trial(s)" + (f", {len(ctx.skipped)} skipped"
+                                            if ctx.skipped else "")
+
+
+def _estimate(ctx: _Context) -> str:
+    """Estimate from the same inputs (so that a message names the user's files) into
+    spectra.parquet; later stages read that file back, as the subcommands do."""
+    o, config = ctx.options, ctx.config
+    est = api.estimate_study_result(ctx.inputs, config, manifest=o.manifest,
+                                    skip_bad=o.skip_bad, jobs=o.jobs)
+    seen = {f for f, _ in ctx.skipped}
+    ctx.skipped += tuple((f, r) for f, r in est.skipped if f not in seen)
+    est.spectra.write(ctx.path("spectra.parquet"))
+    ctx.estimated = est
+    ctx.spectra = Spectra.read(ctx.folder / "spectra.parquet")
+    return (f"{len(est.trials)} trial(s), method {config.method}, "
+            f"{len(config.grid())} frequencies {config.fmin:g}-{config.fmax:g} Hz")
+
+
+def _fit(which: str) -> Callable[[_Context], str]:
+    def stage(ctx: _Context) -> str:
+        """Tables I and II (params CSV and LaTeX); the diagnosis starts from the grip
+        fits as soon as they exist."""
+        fit = api.fit_grip if which == "grip" else api.fit_nominal
+        model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands)
+        model.write(ctx.path(f"{which}_params.csv"), latex=ctx.path(f"{which}_params.tex"))
+        back = replace(api.ModelFit.read(ctx.folder / f"{which}_params.csv"),
+                       fits=model.fits, spectra=ctx.spectra)
+        setattr(ctx, which, back)
         if which == "grip":
-            diag = _Diagnosis(spectra, params["grip"], options.jobs)
-            stack.callback(diag.close)
-    grip, nominal = params["grip"], params["nominal"]
+            ctx.background = _Diagnosis(ctx.spectra, back.table, ctx.options.jobs)
+            ctx.stack.callback(ctx.background.close)
+        return (f"{len(back.table)} fit(s), cost {ctx.options.cost}, median rms "
+                f"{_median(back.table['rms_db']):.2f} dB")
+    return stage
 
-    # fit-uncertainty: W_max and Wu (Table III)
-    wu_path = path("wu.csv")
-    summary_path, points_path = wu_sidecar_paths(wu_path)
-    files += [summary_path.name, points_path.name]
-    uncertainty = api.fit_uncertainty(spectra, nominal, cost=options.wu_cost)
-    uncertainty.write(wu_path, latex=path("wu.tex"))
-    weights, summary, unc = uncertainty.weights, uncertainty.summary(), uncertainty.axes
-    clock.done("fit-uncertainty", ", ".join(f"{r.axis}: {r.result.order} pair(s)"
-                                            for r in unc) + f", cost {options.wu_cost}")
 
-    # figures of the paper (Figs. 5-7): they need no diagnosis
-    drawn: list[str] = []
-    if options.figures:
-        (folder / "figures").mkdir()
-        drawn += _paper_figures(folder, spectra, grip, nominal, weights)
-        clock.done("figures", f"{len(drawn)} figure(s): Figs. 5, 6, 7")
+def _fit_uncertainty(ctx: _Context) -> str:
+    """W_max and Wu (Table III): wu.csv, wu_summary.csv, wu_wmax.csv, wu.tex."""
+    wu_path = ctx.path("wu.csv")
+    ctx.files += [p.name for p in wu_sidecar_paths(wu_path)]
+    unc = api.fit_uncertainty(ctx.spectra, ctx.nominal, cost=ctx.options.wu_cost)
+    unc.write(wu_path, latex=ctx.path("wu.tex"))
+    ctx.uncertainty = unc
+    return ", ".join(f"{r.axis}: {r.result.order} pair(s)" for r in unc.axes) + \
+        f", cost {ctx.options.wu_cost}"
 
-    # diagnose: per-trial fits started from the grip fits
-    results = diag.results()
-    doc = diagnosis_to_dict(results)
-    write_text_atomic(path("diagnosis.json"), json.dumps(doc, indent=2) + "\n")
-    missing = {a: d["missing_effect"] for a, d in doc["axes"].items()}
-    clock.done("diagnose", "; ".join(f"{a}: {e or 'no missing effect'}"
-                                     for a, e in missing.items()), since=diag.started)
 
-    # refit: the nominal fit again with each named effect, on the axes that name it and
-    # over the band the diagnosis looked at (the paper's z band stops at 10 Hz because
-    # of an effect the base model lacks; with the effect in the model it need not)
-    refitted: dict[str, tuple[str, ...]] = {}
-    for axis, eff in missing.items():
+def _figures(ctx: _Context) -> str:
+    """The paper's Figs. 5-7 (they need no diagnosis)."""
+    (ctx.folder / "figures").mkdir()
+    ctx.drawn += _paper_figures(ctx.folder, ctx.spectra, ctx.grip.table, ctx.nominal.table,
+                                ctx.uncertainty.weights)
+    return f"{len(ctx.drawn)} figure(s): Figs. 5, 6, 7"
+
+
+def _diagnose(ctx: _Context) -> str:
+    """Per-trial fits started from the grip fits (diagnosis.json)."""
+    results = ctx.background.results()
+    ctx.diagnosis = api.Diagnosis(tuple(results), ctx.spectra, ctx.grip)
+    write_text_atomic(ctx.path("diagnosis.json"),
+                      json.dumps(ctx.diagnosis.to_dict(), indent=2) + "\n")
+    ctx.since = ctx.background.started
+    for axis, eff in ctx.diagnosis.missing.items():
         if eff is not None:
-            refitted[eff] = (*refitted.get(eff, ()), axis)
-    extended: dict[str, object] = {}
-    for eff, axes in refitted.items():
-        sub = spectra.take(np.isin(spectra.key("axis"), axes))
-        bands = {a: tuple(doc["axes"][a]["band_hz"]) for a in axes}
-        study = fit_study(sub, which="nominal", cost=options.cost, effects=[get_effect(eff)],
-                          bands=bands, source="spectra.parquet")
+            ctx.refitted[eff] = (*ctx.refitted.get(eff, ()), axis)
+    return "; ".join(f"{a}: {e or 'no missing effect'}"
+                     for a, e in ctx.diagnosis.missing.items())
+
+
+def _refit(ctx: _Context) -> str:
+    """The nominal fit again with each named effect, on the axes that name it and over
+    the band the diagnosis looked at (the paper's z band stops at 10 Hz because of an
+    effect the base model lacks; with the effect in the model it need not)."""
+    bands_of = {d.axis: tuple(d.band) for d in ctx.diagnosis.axes}
+    for eff, axes in ctx.refitted.items():
+        sub = ctx.spectra.take(np.isin(ctx.spectra.key("axis"), axes))
+        model = api.fit_nominal(sub, cost=ctx.options.cost, effects=[get_effect(eff)],
+                                bands={a: bands_of[a] for a in axes})
         name = f"nominal_params_{eff}.csv"
-        write_params(study.table(), path(name))
-        extended[eff] = read_params(folder / name)
-    if refitted:
-        clock.done("refit", "; ".join(f"{e} on {', '.join(a)}" for e, a in refitted.items()))
+        model.write(ctx.path(name))
+        ctx.extended[eff] = api.ModelFit.read(ctx.folder / name)
+    return "; ".join(f"{e} on {', '.join(a)}" for e, a in ctx.refitted.items())
 
-    # compare: each nominal model (base, base + effect) against the axis medians
-    rows = compare(spectra, nominal, level="median")
-    for table in extended.values():
-        rows += compare(spectra, table, level="median")
-    comp = compare_frame(rows)
-    with open(path("compare.csv"), "w", encoding="utf-8", newline="") as fh:
-        comp.to_csv(fh, index=False, float_format="%.10g", lineterminator="\n")
-    clock.done("compare", f"{len(rows)} model(s) x axis against the medians")
 
-    # residual figures: need the diagnosis (failing bands) and the refits
-    if options.figures:
-        res = _residual_figures(folder, spectra, nominal, extended, refitted, doc)
-        drawn += res
-        clock.done("residuals", f"{len(res)} figure(s)")
-    files += drawn
+def _compare(ctx: _Context) -> str:
+    """Each nominal model (base, base + effect) against the axis medians (compare.csv)."""
+    rows = list(api.compare(ctx.spectra, ctx.nominal, level="median").rows)
+    for model in ctx.extended.values():
+        rows += api.compare(ctx.spectra, model, level="median").rows
+    ctx.comparisons = api.Comparisons(tuple(rows), "median")
+    ctx.comparisons.write(ctx.path("compare.csv"))
+    return f"{len(rows)} model(s) x axis against the medians"
 
-    # report
-    files.append("report.md")
-    text = report_markdown(
-        inputs=[str(p) for p in inputs], options=options, n_trials=len(est.trials),
-        skipped=skipped, grip=grip, nominal=nominal, wu_summary=summary, weights=weights,
-        diagnosis=doc, refitted=refitted, extended=extended, compare_rows=comp,
-        figures=drawn, files=sorted(files))
-    write_text_atomic(folder / "report.md", text)
-    clock.done("report", "report.md")
 
-    return RunResult(outdir=str(folder), files=tuple(sorted(files)),
-                     trials=len(est.trials), skipped=skipped,
-                     verdicts={a: d["verdict"] for a, d in doc["axes"].items()},
-                     missing=missing, refitted=refitted, stages=tuple(clock.stages),
-                     wall_s=clock.wall())
+def _residuals(ctx: _Context) -> str:
+    """Residual figures: they need the diagnosis (failing bands) and the refits."""
+    res = _residual_figures(ctx.folder, ctx.spectra, ctx.nominal.table,
+                            {e: m.table for e, m in ctx.extended.items()}, ctx.refitted,
+                            ctx.diagnosis)
+    ctx.drawn += res
+    return f"{len(res)} figure(s)"
+
+
+def _report(ctx: _Context) -> str:
+    """report.md, from the results above and the configuration they used."""
+    ctx.files += ctx.drawn
+    ctx.files.append("report.md")
+    write_text_atomic(ctx.folder / "report.md", report_markdown(ctx))
+    return "report.md"
+
+
+#: The stages of ``armfit run``, in the order they run; names as reported (:data:`STAGES`).
+PIPELINE: tuple[PipelineStage, ...] = (
+    PipelineStage("ingest", _ingest),
+    PipelineStage("estimate", _estimate),
+    PipelineStage("fit-grip", _fit("grip")),
+    PipelineStage("fit-nominal", _fit("nominal")),
+    PipelineStage("fit-uncertainty", _fit_uncertainty),
+    PipelineStage("figures", _figures, lambda ctx: ctx.options.figures),
+    PipelineStage("diagnose", _diagnose),
+    PipelineStage("refit", _refit, lambda ctx: bool(ctx.refitted)),
+    PipelineStage("compare", _compare),
+    PipelineStage("residuals", _residuals, lambda ctx: ctx.options.figures),
+    PipelineStage("report", _report),
+)
+
+#: Stage names, in the order they are reported (``refit`` only when an effect is named,
+#: ``figures`` and ``residuals`` only with figures on). With jobs > 1 the diagnosis runs
+#: in worker processes from the end of fit-grip on, alongside the stages before it.
+STAGES: tuple[str, ...] = tuple(stage.name for stage in PIPELINE)
 
 
 def _median(values) -> float:
@@ -383,18 +456,18 @@ def _paper_figures(folder: Path, spectra, grip, nominal, weights) -> list[str]:
                   FIGURES[2])]
 
 
-def _residual_figures(folder: Path, spectra, nominal, extended, refitted, doc) -> list[str]:
+def _residual_figures(folder: Path, spectra, nominal, extended, refitted,
+                      diagnosis: api.Diagnosis) -> list[str]:
     """One residual figure per diagnosed axis: the nominal model solid, the nominal model
     with the axis's named effect dashed, the diagnosis's failing bands shaded."""
     by_axis = {a: eff for eff, axes in refitted.items() for a in axes}
     out = []
-    for axis in sorted(doc["axes"]):
-        eff = by_axis.get(axis)
-        bands = {axis: [(fb["lo_hz"], fb["hi_hz"]) for fb in doc["axes"][axis]
-                        ["failing_bands"]]}
+    for d in sorted(diagnosis.axes, key=lambda d: d.axis):
+        eff = by_axis.get(d.axis)
+        bands = {d.axis: [(fb.lo_hz, fb.hi_hz) for fb in d.failing]}
         fig = F.residual_figure(spectra, nominal, None if eff is None else extended[eff],
-                                axis=axis, bands=bands)
-        out.append(_save(folder, fig, f"figures/residual_{axis}.png"))
+                                axis=d.axis, bands=bands)
+        out.append(_save(folder, fig, f"figures/residual_{d.axis}.png"))
     return out
 
 
@@ -438,14 +511,30 @@ def _pairs_text(reps) -> str:
     return "; ".join(f"{r.real:.4g} ± {abs(r.imag):.4g}j" for r in reps) or "–"
 
 
-def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int,
-                    skipped: Sequence[tuple[str, str]], grip, nominal, wu_summary, weights,
-                    diagnosis: Mapping, refitted: Mapping[str, Sequence[str]],
-                    extended: Mapping, compare_rows, figures: Sequence[str],
-                    files: Sequence[str]) -> str:
-    """The text of report.md: what was done with which options, the tables, the
-    diagnosis per axis in words, the figures. No timestamps or timings (re-running gives
-    the same text)."""
+def _bands_text(bands: Mapping[str, tuple[float, float]]) -> str:
+    """Fit bands in words, axes of one band together: "x, y 0.1–30 Hz and z 0.1–10 Hz"."""
+    groups: dict[tuple[float, float], list[str]] = {}
+    for axis in AXES:
+        if axis in bands:
+            groups.setdefault(tuple(bands[axis]), []).append(axis)
+    return " and ".join(f"{', '.join(axes)} {lo:g}–{hi:g} Hz"
+                        for (lo, hi), axes in groups.items())
+
+
+def report_markdown(run: _Context) -> str:
+    """The text of report.md: what was done with the configuration each stage used, the
+    tables, the diagnosis per axis in words, the figures. Built from the stages' typed
+    results; no timestamps or timings (re-running gives the same text)."""
+    options, config = run.options, run.config
+    inputs = [str(p) for p in run.inputs]
+    n_trials, skipped = len(run.estimated.trials), run.skipped
+    grip, nominal = run.grip.table, run.nominal.table
+    wu_summary, weights = run.uncertainty.summary(), run.uncertainty.weights
+    diagnosis = run.diagnosis.to_dict()
+    refitted = run.refitted
+    extended = {e: m.table for e, m in run.extended.items()}
+    compare_rows = run.comparisons.to_frame()
+    figures, files = run.drawn, sorted(run.files)
     cmd = ["armfit run", *inputs, "-o OUTDIR"]
     if options.manifest:
         cmd.append(f"--manifest {options.manifest}")
@@ -470,11 +559,12 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
     steps = [
         f"**ingest** — {n_trials} trial(s) validated against the trial contract into "
         f"`trials.parquet`{skipped_text}.",
-        f"**estimate** — measured dynamics X/F with the `{options.method}` estimator, "
-        "derived arm dynamics Xa/Fa (tfestimate, 4 segments), on 40 points per decade "
-        "0.1–30 Hz; mean per axis × grip and median per axis → `spectra.parquet`.",
+        f"**estimate** — measured dynamics X/F with the `{config.method}` estimator, "
+        f"derived arm dynamics Xa/Fa (tfestimate, {config.derived_segments} segments), on "
+        f"{config.per_decade} points per decade {config.fmin:g}–{config.fmax:g} Hz; mean "
+        "per axis × grip and median per axis → `spectra.parquet`.",
         f"**fit-grip** — eq. 4 fitted to each axis × grip mean (Table I), cost "
-        f"`{options.cost}`, bands x, y 0.1–30 Hz and z 0.1–10 Hz → `grip_params.csv/.tex`.",
+        f"`{options.cost}`, bands {_bands_text(run.bands)} → `grip_params.csv/.tex`.",
         f"**fit-nominal** — eq. 4 fitted to each axis median (Table II), cost "
         f"`{options.cost}` → `nominal_params.csv/.tex`.",
         f"**fit-uncertainty** — W_max (eq. 6) of every trial's derived dynamics against "

@@ -2,7 +2,7 @@
 2010, eqs. 6–7).
 
 Conventions: frequencies ``f_hz`` in Hz; Wu's zeros, poles and the Laplace variable
-``s = j 2π f`` in rad/s (the paper's Table III is read in rad/s, NOTES.md); magnitudes of
+``s = j 2π f`` in rad/s (the paper's Table III is read in rad/s, docs/methods.md); magnitudes of
 W_max and Wu are dimensionless (a relative error: 0 dB = 100 %).
 
 The pieces:
@@ -41,7 +41,7 @@ from armfit.constants import AXES
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import read_wu_rows
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS
-from armfit.models.effects import model_from_params
+from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
 
 #: The paper's band for Wu: 0.01–30 Hz (Sec. II-F).

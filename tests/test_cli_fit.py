@@ -11,10 +11,9 @@ import pytest
 from armfit.cli.main import cli
 from armfit.data import paper_table
 from armfit.errors import BadInputError
-from armfit.io.artifacts import read_params
 from armfit.io.schema import SPECTRA_COLUMNS, params_columns
 from armfit.models.arm import PARAM_NAMES, h_cl
-from armfit.models.effects import model_from_params
+from armfit.models.params import model_from_params, read_params
 from armfit.spectra import Spectra, aggregate, aggregate_spread
 
 PAPER_COLS = ["Ma_kg", "k1_N_per_m", "k2_N_per_m", "b1_Ns_per_m", "b2_Ns_per_m"]

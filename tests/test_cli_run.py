@@ -22,8 +22,7 @@ from click.testing import CliRunner
 from armfit import __version__
 from armfit.cli.main import cli
 from armfit.diagnose import BANDS
-from armfit.io.artifacts import read_params
-from armfit.models.effects import model_from_params
+from armfit.models.params import model_from_params, read_params
 from armfit.spectra import Spectra
 
 TRUE_DELAY_S = 0.012  # the simulator's --effect delay=0.012 on z (its known truth)

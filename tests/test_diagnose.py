@@ -25,9 +25,9 @@ from armfit.diagnose import (
     trial_statistics,
 )
 from armfit.fitting import fit_study
-from armfit.io.artifacts import read_params
 from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, h_cl
 from armfit.models.effects import EFFECTS
+from armfit.models.params import read_params
 from armfit.spectra import EstimateConfig, estimate_study
 
 X1 = dict(Ma=0.1925, k1=85.48, k2=704.2, b1=7.410, b2=2.477)  # Table I, X, 1 N

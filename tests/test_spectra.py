@@ -304,7 +304,7 @@ def _trial(subject, grip, run, value):
 def test_spectra_table_levels_runs_first():
     trials = [_trial("a", 1.0, 1, 1.0), _trial("a", 1.0, 2, 100.0),  # subject a: 20 dB
               _trial("b", 1.0, None, 1000.0)]                         # subject b: 60 dB
-    df = S.spectra_table(trials)
+    df = S.spectra_table(trials).to_frame()
     mean = df[df["level"] == "mean"]
     # runs of a first (0 and 40 dB -> 20 dB), then subjects (20, 60) -> 40 dB, n = 2
     np.testing.assert_allclose(mean["mag_db"], 40.0)

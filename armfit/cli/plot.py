@@ -14,8 +14,8 @@ from armfit.api import compare
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
 from armfit.errors import BadInputError, UsageError
-from armfit.io.artifacts import read_params
 from armfit.io.atomic import check_output
+from armfit.models.params import read_params
 from armfit.spectra import Spectra
 from armfit.uncertainty import read_wu
 

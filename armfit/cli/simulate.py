@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
 
+from armfit.api import simulate
 from armfit.cli.options import (
     effect_option,
     emit_json,
@@ -15,12 +15,12 @@ from armfit.cli.options import (
     overwrite_option,
     progress,
 )
+from armfit.constants import AXES
 from armfit.errors import UsageError
-from armfit.io.atomic import atomic_path, check_output
-from armfit.io.rawwrite import POSITION_UNITS, RAW_FORMATS, trial_filename, write_trial
-from armfit.io.trials import AXES
+from armfit.io.atomic import check_output
+from armfit.io.rawwrite import POSITION_UNITS, RAW_FORMATS
 from armfit.models.effects import parse_effect_spec
-from armfit.simulate import EffectSetting, StudyConfig, plan_study, simulate_trial, truth_dict
+from armfit.simulate import EffectSetting, StudyConfig
 
 _DEFAULTS = StudyConfig()
 
@@ -116,28 +116,18 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
     check_output(out, overwrite=overwrite)
     check_output(truth_path, overwrite=overwrite)
 
-    plans = plan_study(config)
+    sim = simulate(config)
     options = {"output": str(out), "subjects": subjects, "axes": axes, "grips": grips,
                "duration": duration, "fs": fs, "seed": seed, "noise": noise,
                "quantum": quantum, "drift": drift, "variability": variability,
                "format": fmt, "units": units, "effect": list(effects),
                "effect_axes": effect_axes, "truth": str(truth_path)}
-    files = []
-    with atomic_path(truth_path, overwrite=overwrite) as truth_tmp, \
-            atomic_path(out, overwrite=overwrite) as tmp, \
-            progress(len(plans), "simulate") as advance:
-        tmp.mkdir()
-        for plan in plans:
-            trial = simulate_trial(plan, config)
-            name = trial_filename(trial.meta, fmt)
-            write_trial(trial, tmp / name, fmt=fmt, units=units)
-            files.append(name)
-            advance()
-        truth_tmp.write_text(json.dumps(truth_dict(config, plans, options), indent=1) + "\n",
-                             encoding="utf-8")
-    seconds = sum(p.duration_s for p in plans)
-    message(f"simulated {len(plans)} trial(s), {seconds:.0f} s of data, into {out}; "
+    with progress(len(sim.plans), "simulate") as advance:
+        files = sim.write(out, fmt=fmt, units=units, overwrite=overwrite, truth=truth_path,
+                          options=options, advance=advance)
+    seconds = sum(p.duration_s for p in sim.plans)
+    message(f"simulated {len(sim.plans)} trial(s), {seconds:.0f} s of data, into {out}; "
             f"truth in {truth_path}")
     if as_json:
-        emit_json({"output": str(out), "truth": str(truth_path), "trials": len(plans),
+        emit_json({"output": str(out), "truth": str(truth_path), "trials": len(sim.plans),
                    "seconds": seconds, "format": fmt, "seed": seed, "files": files})

@@ -1,8 +1,10 @@
-"""Readers and writers of armfit's CSV outputs: fitted parameters and uncertainty weights.
+"""Writers of armfit's CSV outputs (fitted parameters, uncertainty weights, their
+summaries) and the reader of the Wu layout.
 
 The columns are those of :mod:`armfit.io.schema`. Readers validate and raise
 BadInputError naming the file, column and row. The spectra table (Parquet) is read and
-written by :class:`armfit.spectra.Spectra` alone.
+written by :class:`armfit.spectra.Spectra` alone; a params file is read by
+:func:`armfit.models.params.read_params`, which checks it against the models.
 """
 
 from __future__ import annotations
@@ -14,12 +16,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from armfit.constants import AXES
 from armfit.errors import BadInputError, NoInputError
 from armfit.io.atomic import atomic_path
 from armfit.io.schema import (
     CSV_FLOAT_FORMAT,
-    PARAMS_BASE,
-    PARAMS_STATS,
     WU_COLUMNS,
     params_columns,
 )
@@ -66,81 +67,6 @@ def write_table(df: pd.DataFrame, path: str | os.PathLike, *, overwrite: bool = 
 #: A params file and a Wu summary or points table are written alike.
 write_params = write_table
 write_wu_table = write_table
-
-
-def read_params(path: str | os.PathLike) -> pd.DataFrame:
-    """Read a params CSV written by fit-grip or fit-nominal and check its columns.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The CSV.
-
-    Returns
-    -------
-    pandas.DataFrame
-        One row per fit; ``effects`` as str, ``converged`` as bool, ``grip_N`` present
-        only for grip fits. Effect parameters are the columns ``<effect>.<param>`` of the
-        effects the rows name.
-
-    Raises
-    ------
-    NoInputError
-        The file is missing.
-    BadInputError
-        Naming the file and the missing column, or the row and column of a non-numeric
-        or non-positive parameter.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise NoInputError(f"{p}: no such params file")
-    try:
-        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "cost": str},
-                         keep_default_na=True)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
-            ValueError) as exc:
-        raise BadInputError(f"not a params CSV ({str(exc).splitlines()[0]})", file=str(p)
-                            ) from None
-    if "effects" not in df.columns:
-        raise BadInputError("missing column; expected a file written by fit-grip or "
-                            "fit-nominal", file=str(p), column="effects")
-    df["effects"] = df["effects"].fillna("").astype(str)
-    base_cols = ["axis", *PARAMS_BASE]
-    names = list(PARAMS_BASE) + _effect_param_names(df, p)
-    expected = base_cols + names[len(PARAMS_BASE):] + [
-        f"{n}{sfx}" for n in names for sfx in ("_lo", "_hi")] + list(PARAMS_STATS)
-    for col in expected:
-        if col not in df.columns:
-            raise BadInputError("missing column; expected a file written by fit-grip or "
-                                "fit-nominal", file=str(p), column=col)
-    for col in names:
-        vals = pd.to_numeric(df[col], errors="coerce").to_numpy(float)
-        bad = np.flatnonzero(~(np.isfinite(vals) & (vals > 0)))
-        if bad.size:
-            raise BadInputError(f"parameter must be a positive number, got "
-                                f"{df[col].iloc[bad[0]]!r}", file=str(p), column=col,
-                                row=int(bad[0]) + 1)
-    df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
-    return df
-
-
-def _effect_param_names(df: pd.DataFrame, path: Path) -> list[str]:
-    """The ``<effect>.<param>`` columns of the effects the rows name, in header order."""
-    specs = set(df["effects"])
-    if len(specs) > 1:
-        raise BadInputError(f"rows list different effects ({' | '.join(sorted(specs))}); "
-                            "one params file holds one model", file=str(path),
-                            column="effects")
-    spec = next(iter(specs), "")
-    out = []
-    for name in [n for n in spec.split(";") if n]:
-        cols = [c for c in df.columns if c.startswith(f"{name}.")
-                and not c.endswith(("_lo", "_hi"))]
-        if not cols:
-            raise BadInputError(f"effect {name!r} has no parameter column ({name}.<param>)",
-                                file=str(path), column="effects")
-        out += cols
-    return out
 
 
 # ---------------------------------------------------------------------------
@@ -214,7 +140,7 @@ def read_wu_rows(path: str | os.PathLike) -> dict[str, WuRows]:
                             file=str(p))
     axis = df["axis"].str.strip().str.lower()
     kind = df["kind"].str.strip().str.lower()
-    for col, values, allowed in (("axis", axis, ("x", "y", "z")),
+    for col, values, allowed in (("axis", axis, AXES),
                                  ("kind", kind, ("gain", "zero", "pole"))):
         bad = np.flatnonzero(~values.isin(allowed).to_numpy())
         if bad.size:
@@ -231,7 +157,7 @@ def read_wu_rows(path: str | os.PathLike) -> dict[str, WuRows]:
                                 file=str(p), column=col, row=int(bad[0]) + 1)
         nums[col] = v
     out = {}
-    for ax in ("x", "y", "z"):
+    for ax in AXES:
         rows = np.flatnonzero(axis.to_numpy() == ax)
         if rows.size == 0:
             continue

@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from armfit.constants import PARAM_NAMES
+
 # ---------------------------------------------------------------------------
 # Spectra (written by `armfit estimate`): one long-format Parquet table.
 # ---------------------------------------------------------------------------
@@ -60,7 +62,7 @@ SPECTRA_META_KEY = b"armfit"
 # ---------------------------------------------------------------------------
 
 #: Base arm parameters of a params file, in the paper's order (SI: kg, N/m, N*s/m).
-PARAMS_BASE: tuple[str, ...] = ("Ma", "k1", "k2", "b1", "b2")
+PARAMS_BASE: tuple[str, ...] = PARAM_NAMES
 #: Fit statistics closing every params row, in order.
 PARAMS_STATS: tuple[str, ...] = ("rms_db", "rms_deg", "rms_norm", "band_lo_hz", "band_hi_hz",
                                  "n_points", "cost", "converged", "mp_kg", "effects")

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from armfit.errors import BadInputError, UsageError
-from armfit.models.arm import ClosedLoopModel, Param
+from armfit.errors import UsageError
+from armfit.models.arm import Param
 
 TermFn = Callable[[np.ndarray, Mapping[str, float], float], np.ndarray]
 
@@ -200,33 +200,3 @@ def _number(spec: str, text: str) -> float:
         return float(text)
     except ValueError:
         raise UsageError(f"--effect {spec!r}: {text!r} is not a number") from None
-
-
-def model_from_params(row) -> tuple[ClosedLoopModel, dict[str, float]]:
-    """The closed-loop model and its fitted values from one row of a params table.
-
-    Parameters
-    ----------
-    row : pandas.Series or Mapping
-        A row of a params file (:func:`armfit.io.schema.params_columns`): ``axis``,
-        ``Ma, k1, k2, b1, b2``, ``effects`` (``;``-separated names), the effect
-        parameters ``<effect>.<param>`` and the device mass ``mp_kg``.
-
-    Returns
-    -------
-    (ClosedLoopModel, dict)
-        The model of the row's axis with its effects and device mass (eq. 4), and the
-        values {name: value}, base parameters then ``<effect>.<param>``.
-
-    Raises
-    ------
-    BadInputError
-        The row names an effect the library does not know (column ``effects``).
-    """
-    spec = row["effects"] if isinstance(row["effects"], str) else ""
-    try:
-        effects = [get_effect(n) for n in spec.split(";") if n]
-    except UsageError as exc:
-        raise BadInputError(str(exc), column="effects") from None
-    model = ClosedLoopModel.for_axis(str(row["axis"]), effects, mp=float(row["mp_kg"]))
-    return model, {n: float(row[n]) for n in model.param_names}
