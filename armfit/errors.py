@@ -19,6 +19,9 @@ Exit codes (documented in the README):
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
+
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_USAGE = 2
@@ -32,10 +35,11 @@ EXIT_INTERRUPTED = 130
 class ArmfitError(ValueError):
     """Base class of every error a user's input or options can cause.
 
-    A message about an option names it by its Python spelling, e.g. ``overwrite=True``
-    or ``method=``: the text given may hold the placeholder ``{opt}``, filled with
-    ``option`` (the Python spelling). The command line shows the same message with the
-    option's flag instead (:meth:`with_option`), so library messages never name flags.
+    Messages name options by their Python spelling, never by a command-line flag: the
+    text may hold ``{opt}``, filled with ``option`` (e.g. ``overwrite=True`` or
+    ``method=``), and ``{opt:NAME}``, filled with the bare parameter name NAME. The
+    command line shows the same message with each option's flag instead
+    (:meth:`render`).
     """
 
     exit_code = EXIT_INTERNAL
@@ -43,18 +47,27 @@ class ArmfitError(ValueError):
     def __init__(self, message: str = "", *, option: str | None = None):
         self.template = message
         self.option = option
-        super().__init__(message.replace("{opt}", option or "") if option else message)
+        super().__init__(self.render(lambda name, python: python))
 
     @property
     def option_name(self) -> str | None:
-        """The option's parameter name (``option`` up to any ``=``), or None."""
+        """The main option's parameter name (``option`` up to any ``=``), or None."""
         return None if self.option is None else self.option.split("=", 1)[0]
 
+    def render(self, spell: Callable[[str, str], str]) -> str:
+        """The message with every option written as ``spell(name, python_spelling)``."""
+        text = self.template
+        if self.option is not None:
+            text = text.replace("{opt}", spell(self.option_name, self.option))
+        if "{opt:" in text:
+            text = re.sub(r"\{opt:([A-Za-z_][A-Za-z0-9_]*)\}",
+                          lambda m: spell(m.group(1), m.group(1)), text)
+        return text
+
     def with_option(self, spelling: str) -> str:
-        """The message with the option written as ``spelling`` (e.g. a CLI flag)."""
-        if self.option is None:
-            return str(self)
-        return self.template.replace("{opt}", spelling)
+        """The message with the main option written as ``spelling`` (e.g. a flag)."""
+        return self.render(lambda name, python: spelling if name == self.option_name
+                           else python)
 
 
 class UsageError(ArmfitError):

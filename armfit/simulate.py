@@ -140,23 +140,26 @@ class StudyConfig:
     def __post_init__(self) -> None:
         table_grips = sorted(set(paper_table("grip")["grip_N"].astype(float)))
         if self.subjects < 1:
-            raise UsageError(f"--subjects must be >= 1, got {self.subjects}")
+            raise UsageError(f"{{opt:subjects}} must be >= 1, got {self.subjects}")
         if not self.axes or any(a not in AXES for a in self.axes) \
                 or len(set(self.axes)) != len(self.axes):
-            raise UsageError(f"--axes must be distinct letters of xyz, got {''.join(self.axes)!r}")
+            raise UsageError(f"{{opt:axes}} must be distinct letters of xyz, got "
+                             f"{''.join(self.axes)!r}")
         bad = [g for g in self.grips_N if g not in table_grips]
         if not self.grips_N or bad or len(set(self.grips_N)) != len(self.grips_N):
-            raise UsageError(f"--grips must be distinct values among the rows of Table I "
+            raise UsageError(f"{{opt:grips_N}} must be distinct values among the rows of Table I "
                              f"({', '.join(f'{g:g}' for g in table_grips)} N), got "
                              f"{', '.join(f'{g:g}' for g in self.grips_N)}")
         lo, hi = self.duration_s
         if not (0 < lo <= hi):
-            raise UsageError(f"--duration MIN,MAX needs 0 < MIN <= MAX, got {lo:g},{hi:g}")
+            raise UsageError(f"{{opt:duration_s}} MIN,MAX needs 0 < MIN <= MAX, got "
+                             f"{lo:g},{hi:g}")
         if not self.fs >= 4 * max(self.force_band_hz, GRIP_RATE_HZ):
-            raise UsageError(f"--fs must be >= {4 * max(self.force_band_hz, GRIP_RATE_HZ):g} Hz "
-                             f"(4 x the force band and the grip rate), got {self.fs:g}")
+            least = 4 * max(self.force_band_hz, GRIP_RATE_HZ)
+            raise UsageError(f"{{opt:fs}} must be >= {least:g} Hz (4 x the force band and "
+                             f"the grip rate), got {self.fs:g}")
         if round(lo * self.fs) < 2:
-            raise UsageError(f"--duration {lo:g} s is shorter than two samples")
+            raise UsageError(f"{{opt:duration_s}} {lo:g} s is shorter than two samples")
         for name in ("noise_m", "variability", "drift_m", "quantum_m", "force_step_N"):
             if not (getattr(self, name) >= 0 and np.isfinite(getattr(self, name))):
                 raise UsageError(f"{name} must be a finite number >= 0, got "
@@ -165,7 +168,7 @@ class StudyConfig:
             raise UsageError(f"force limit must be > 0 N, got {self.force_limit_N}")
         names = [e.name for e in self.effects]
         if len(set(names)) != len(names):
-            raise UsageError(f"--effect given twice: {', '.join(names)}")
+            raise UsageError(f"{{opt:effects}} given twice: {', '.join(names)}")
 
 
 @dataclass(frozen=True)

@@ -706,22 +706,25 @@ def check_band(fs: float, n_samples: int, config: EstimateConfig, source: str = 
     """Raise UsageError if fmax is above Nyquist, BadInputError if the record (or the
     estimator's segment) lasts less than one period of fmin."""
     if config.fmax > fs / 2:
-        raise UsageError(f"{source + ': ' if source else ''}--fmax {config.fmax:g} Hz is above "
-                         f"the Nyquist frequency {fs / 2:g} Hz (sampling rate {fs:g} Hz)")
+        raise UsageError(f"{source + ': ' if source else ''}{{opt:fmax}} {config.fmax:g} Hz is "
+                         f"above the Nyquist frequency {fs / 2:g} Hz (sampling rate "
+                         f"{fs:g} Hz)")
     need = 1.0 / config.fmin
     if config.method == "h1":
         seg = config.h1_nperseg(fs, n_samples)
         if seg > n_samples:
             raise BadInputError(
-                f"too short for --fmin {config.fmin:g} Hz: {n_samples / fs:g} s, H1 segments "
-                f"need {seg / fs:g} s; raise --fmin or lower --nperseg", file=source or None)
+                f"too short for {{opt:fmin}} {config.fmin:g} Hz: {n_samples / fs:g} s, H1 "
+                f"segments need {seg / fs:g} s; raise {{opt:fmin}} or lower {{opt:nperseg}}",
+                file=source or None)
     if n_samples / fs < need:
-        raise BadInputError(f"too short for --fmin {config.fmin:g} Hz: {n_samples / fs:g} s, "
-                            f"needs at least {need:g} s", file=source or None)
+        raise BadInputError(f"too short for {{opt:fmin}} {config.fmin:g} Hz: "
+                            f"{n_samples / fs:g} s, needs at least {need:g} s",
+                            file=source or None)
     seg = tfestimate_segment(n_samples - 2, config.derived_segments)[0]
     if seg / fs < need:
         raise BadInputError(
-            f"too short for --fmin {config.fmin:g} Hz: derived-arm segments last "
+            f"too short for {{opt:fmin}} {config.fmin:g} Hz: derived-arm segments last "
             f"{seg / fs:g} s (record {n_samples / fs:g} s), need {need:g} s",
             file=source or None)
 
@@ -1143,17 +1146,20 @@ class Spectra:
         """A Spectra from the long table (one row per response and frequency).
 
         Rows are grouped into responses by :data:`armfit.io.schema.SPECTRA_KEYS` in the
-        order they first appear. A missing ``out_axis`` is taken as ``axis``.
+        order they first appear. Only level, axis, kind, freq_hz, re and im are required:
+        a missing ``out_axis`` is taken as ``axis``, missing ``mag_db`` and ``phase_deg``
+        are computed from re and im, ``n`` is 1, ``flags`` empty and any other column NaN.
 
         Raises
         ------
         BadInputError
-            A column is missing, or a response holds a frequency twice.
+            A required column is missing, or a response holds a frequency twice.
         """
-        for c in SPECTRA_COLUMNS:
+        for c in ("level", "axis", "kind", "freq_hz", "re", "im"):
             if c not in df.columns:
                 raise BadInputError("missing column; not a spectra table written by "
                                     "`armfit estimate`", file=source, column=c)
+        df = _complete(df)
         n_rows = len(df)
         keys_df = df[list(SPECTRA_KEYS)]
         if n_rows:
@@ -1228,6 +1234,7 @@ class Spectra:
         df["run"] = pd.array([None if v is None or v != v else int(v) for v in df["run"]],
                              dtype="Int64")
         df["n"] = df["n"].astype("int64")
+        df.attrs["armfit"] = dict(self.meta)
         return df
 
     @classmethod
@@ -1301,7 +1308,9 @@ class Spectra:
 
         import pyarrow as pa
         import pyarrow.parquet as pq
-        table = pa.Table.from_pandas(self.to_frame(), preserve_index=False)
+        frame = self.to_frame()
+        frame.attrs = {}  # the metadata goes under its own key, below
+        table = pa.Table.from_pandas(frame, preserve_index=False)
         kv = dict(table.schema.metadata or {})
         kv[SPECTRA_META_KEY] = json.dumps(dict(self.meta), default=json_default).encode()
         table = table.replace_schema_metadata(kv)
@@ -1345,6 +1354,33 @@ class Spectra:
         ax.set_xlabel("Frequency (Hz)")
         ax.set_ylabel("Magnitude (dB re 1 m/N)" if db else "Phase (deg)")
         return ax
+
+
+def _complete(df):
+    """``df`` with every spectra column, the optional ones filled (see
+    :meth:`Spectra.from_frame`)."""
+    missing = [c for c in SPECTRA_COLUMNS if c not in df.columns]
+    if not missing:
+        return df
+    df = df.copy()
+    h = df["re"].to_numpy(float) + 1j * df["im"].to_numpy(float)
+    for c in missing:
+        if c == "out_axis":
+            df[c] = df["axis"]
+        elif c == "mag_db":
+            with np.errstate(divide="ignore"):
+                df[c] = 20.0 * np.log10(np.abs(h))
+        elif c == "phase_deg":
+            df[c] = np.degrees(np.angle(h))
+        elif c == "n":
+            df[c] = 1
+        elif c == "flags":
+            df[c] = ""
+        elif c in ("subject", "method", "run"):
+            df[c] = None
+        else:
+            df[c] = np.nan
+    return df
 
 
 _KEY_DTYPES = {"subject": "string", "grip_N": "float64", "run": "Int64", "level": "string",
@@ -1404,7 +1440,7 @@ def _estimate_source(source, config: EstimateConfig):
         responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
                                    source=source.label)
     except BadInputError as exc:
-        return ("bad", source.label, str(exc), exc.detail)
+        return ("bad", source.label, exc.template, exc.detail)
     tr = TrialResponses(m.subject, m.axis, m.grip_N, m.run, source.label, config.grid(),
                         responses)
     return ("ok", tr, m.fs, tuple(warnings))

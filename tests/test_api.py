@@ -31,15 +31,15 @@ def test_exports():
 
 
 def test_spectra_hold_the_study_once(spectra):
-    # sample_data/study: 3 subjects x 3 axes x 3 grips = 27 trials, one file each
+    # sample_data/study: 4 subjects x 3 axes x 3 grips = 36 trials, one file each (its README)
     trials = spectra.select(level="trial", kind="measured")
-    assert len(trials) == 27
-    assert len(spectra.select(level="trial", kind="derived", axis="z")) == 9
+    assert len(trials) == 36
+    assert len(spectra.select(level="trial", kind="derived", axis="z")) == 12
     assert len(spectra.select(level="mean", kind="measured")) == 9       # axis x grip
     assert len(spectra.select(level="median", kind="measured")) == 3     # axis
-    assert trials.h.shape == (27, spectra.freq_hz.size) and trials.present.all()
+    assert trials.h.shape == (36, spectra.freq_hz.size) and trials.present.all()
     one = spectra.select(axis="y", grip=3.0, level="mean", kind="measured")
-    assert one.key("grip_N")[0] == 3.0 and one.key("n")[0] == 3      # 3 subjects
+    assert one.key("grip_N")[0] == 3.0 and one.key("n")[0] == 4      # 4 subjects
     # the long table round-trips exactly
     back = armfit.Spectra.from_frame(spectra.to_frame(), meta=spectra.meta)
     assert back.to_frame().equals(spectra.to_frame())

@@ -43,7 +43,60 @@ COMMANDS: tuple[tuple[str, ...], ...] = (
 )
 
 #: SHA-256 of each output (``<command>.stdout`` for what a command prints).
-EXPECTED: dict[str, str] = {}
+EXPECTED: dict[str, str] = {
+    "run.stdout":
+        "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
+    "fit-grip.stdout":
+        "5b99ae661096cb4d72bb8e24bea6ad46d18414b6a0b5f019d7a27a046344a234",
+    "fit-nominal.stdout":
+        "f93dedfbd4d1bdae2d0295bd545cc995bbf962fdfc697849a57dc416a177f0a6",
+    "fit-uncertainty.stdout":
+        "3f4c6981d5612cee3f15e6a9193c7fc19b943eb813e6a2c9f6ca5c025d94bdfe",
+    "compare.stdout":
+        "68d52b6fffe31b4cf76911e3414a14189e3e8f1b59bb37e18b0aff29d838a2f4",
+    "diagnose.stdout":
+        "bff5d2d289d4af8870a81392f258daed76ff5c0822831190504324774f019996",
+    "plot-bode.stdout":
+        "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
+    "bode.png":
+        "b16d136190b933c181793bd311e7d9b623201dc26dc3fea1e11c9f827c7912c4",
+    "grip.csv":
+        "c3c0a156cd95020a4cccac539bf7bc622fa9a5777b5417164b88c76ace71a0a3",
+    "nominal.csv":
+        "1ca41ed0b134228eba13fa61e97453eba1db979839e181250f0f61ef41f9404e",
+    "run/compare.csv":
+        "a5f960dfafebe811c2e3cf9f1c703eed0b319f606342e280a4ae07107b5df476",
+    "run/diagnosis.json":
+        "728ff152a649886b51302d256e27fcf776f7847bfe4c4a79c3f22ef9b202726e",
+    "run/grip_params.csv":
+        "c3c0a156cd95020a4cccac539bf7bc622fa9a5777b5417164b88c76ace71a0a3",
+    "run/grip_params.tex":
+        "ce805c7003ce143c6c46a158f39a09770a417a5b0f352d69587f22894c859cdb",
+    "run/nominal_params.csv":
+        "1ca41ed0b134228eba13fa61e97453eba1db979839e181250f0f61ef41f9404e",
+    "run/nominal_params.tex":
+        "8b2805c400b0554e386fbc2b2672f6865fc80e1d029f78024d272eac18db5802",
+    "run/report.md":
+        "c1df1ab3ebad62324f612629c5d5a78aad7cab5f18f911c518cf42348e5e033a",
+    "run/spectra.parquet":
+        "56ebf66085ed38c23d2af3f72252bf65215802c3e5f6f61b70777640c50119c5",
+    "run/trials.parquet":
+        "f11d71fa08bdbf7aaa708763a1b50612aec51f96af640c7cc23806c513ff7855",
+    "run/wu.csv":
+        "511ab974288fe419bb85c419f9791b8a1f3bbbad60c5d2a9e047215af7dd2b6b",
+    "run/wu.tex":
+        "f04afb6c5653e883f1fa77c852f1cb4f237fd6cbae7befce94fe5ea77cf0784d",
+    "run/wu_summary.csv":
+        "f80422978fd05829467189f251e714f5c67a8be79914b3e98c04e8237035156a",
+    "run/wu_wmax.csv":
+        "817201b0dd94fe77735125ef61d9683112a8a7cd41f428a350d0198147f795a0",
+    "wu.csv":
+        "511ab974288fe419bb85c419f9791b8a1f3bbbad60c5d2a9e047215af7dd2b6b",
+    "wu_summary.csv":
+        "f80422978fd05829467189f251e714f5c67a8be79914b3e98c04e8237035156a",
+    "wu_wmax.csv":
+        "817201b0dd94fe77735125ef61d9683112a8a7cd41f428a350d0198147f795a0",
+}
 
 
 def locked_versions(lock: Path = REPO / "requirements.lock") -> dict[str, str]:

@@ -228,7 +228,7 @@ def test_band_and_length_errors(x1_trial):
     _, force, pos = x1_trial
     with pytest.raises(UsageError, match="above the Nyquist frequency 25 Hz"):
         S.estimate_trial(force[::20], pos[::20], 50.0, "x", S.EstimateConfig(fmax=30.0))
-    with pytest.raises(BadInputError, match=r"trial\.csv: too short for --fmin 0\.01 Hz"):
+    with pytest.raises(BadInputError, match=r"trial\.csv: too short for fmin 0\.01 Hz"):
         S.estimate_trial(force, pos, FS, "x", S.EstimateConfig(fmin=0.01),
                          source="trial.csv")
 
@@ -434,3 +434,52 @@ def test_band_average_corrected_for_curvature():
     err = S.to_grid(sp, g).h[0] / h_cl(g, *p)
     assert np.max(np.abs(20 * np.log10(np.abs(err)))) < 0.005
     assert np.max(np.abs(np.degrees(np.angle(err)))) < 0.03
+
+
+# --- the Spectra object ------------------------------------------------------------------
+
+def _long(rows):
+    """A long table from (level, subject, axis, grip, run, kind, freqs, h) tuples."""
+    import pandas as pd
+    parts = []
+    for level, subject, axis, grip, run, kind, f, h in rows:
+        parts.append(pd.DataFrame({"level": level, "subject": subject, "axis": axis,
+                                   "grip_N": grip, "run": run, "kind": kind, "freq_hz": f,
+                                   "re": np.real(h), "im": np.imag(h)}))
+    return pd.concat(parts, ignore_index=True)
+
+
+def test_spectra_select_sort_and_grids():
+    f = np.array([1.0, 2.0, 4.0])
+    df = _long([("trial", "b", "x", 2.0, None, "measured", f, [1, 2, 3]),
+                ("trial", "a", "x", 2.0, 2, "measured", f, [4, 5, 6]),
+                ("trial", "a", "x", 2.0, 1, "measured", f[:2], [7, 8]),
+                ("trial", "a", "z", 1.0, None, "derived", f, [9, 9, 9]),
+                ("mean", None, "x", 2.0, None, "measured", f, [1j, 1j, 1j])])
+    sp = S.Spectra.from_frame(df)
+    assert len(sp) == 5 and list(sp.freq_hz) == [1.0, 2.0, 4.0]
+    x = sp.select(axis="x", level="trial", grip=2.0)
+    assert len(x) == 3
+    # ordered like pandas' groupby(subject, grip, run): runs ascending, missing last
+    order = x.sorted()
+    assert [(s, r) for s, r in zip(order.key("subject"), order.key("run"), strict=True)] == \
+        [("a", 1), ("a", 2), ("b", None)]
+    # the short trial has no value at 4 Hz: NaN there, and not "on one grid"
+    np.testing.assert_array_equal(order.h[0], [7, 8, np.nan])
+    with pytest.raises(BadInputError, match="not on one frequency grid"):
+        order.common_grid()
+    f1, h1, _, _ = order.row(0)
+    np.testing.assert_array_equal(f1, [1.0, 2.0])
+    assert list(order.labels()) == ["sub-a_grip-2N_run-1", "sub-a_grip-2N_run-2",
+                                    "sub-b_grip-2N"]
+    # a selection keeps only the frequencies its rows have
+    short = sp.take(np.array([2]))
+    assert list(short.freq_hz) == [1.0, 2.0] and short.present.all()
+    # missing optional columns are filled: out_axis = axis, |H| in dB from re, im
+    z = sp.select(kind="derived")
+    assert z.key("out_axis")[0] == "z"
+    np.testing.assert_allclose(z.mag_db[0], 20 * np.log10(9.0))
+    # a frequency twice in one response is refused
+    with pytest.raises(BadInputError, match="appears twice"):
+        S.Spectra.from_frame(_long([("trial", "a", "x", 1.0, None, "measured",
+                                     np.array([1.0, 1.0]), [1, 2])]))

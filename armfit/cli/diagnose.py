@@ -11,7 +11,14 @@ from rich.table import Table
 from armfit.api import ModelFit
 from armfit.api import compare as api_compare
 from armfit.api import diagnose as api_diagnose
-from armfit.cli.options import band_option, emit_json, json_option, message, overwrite_option
+from armfit.cli.options import (
+    band_option,
+    emit_json,
+    jobs_option,
+    json_option,
+    message,
+    overwrite_option,
+)
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import check_output
 from armfit.models.effects import EFFECTS, get_effect
@@ -114,8 +121,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
               help="Only these candidates (repeatable; default: the whole effect library).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="Also write the JSON document to this file (atomically).")
-@click.option("-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
-              help="Worker processes (one axis each).")
+@jobs_option
 @overwrite_option
 @json_option
 def diagnose_command(spectra, model_path, band, effect_names, output, jobs, overwrite,

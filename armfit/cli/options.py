@@ -42,14 +42,20 @@ effect_option = click.option(
 FLAGS: dict[str, str] = {
     "overwrite": "--overwrite", "method": "--method", "n_boot": "--bootstrap",
     "level": "--level", "fmin": "--fmin", "fmax": "--fmax", "nperseg": "--nperseg",
-    "n_pairs": "--order", "band": "--band", "effects": "--effect", "smooth_oct": "--smooth",
+    "n_pairs": "--order", "order": "--order", "band": "--band", "effects": "--effect",
+    "smooth_oct": "--smooth", "grips_N": "--grips", "duration_s": "--duration",
+    "noise_m": "--noise", "drift_m": "--drift", "quantum_m": "--quantum",
 }
 
 
+def flag(name: str) -> str:
+    """The command-line flag of the library option ``name``."""
+    return FLAGS.get(name, f"--{name.replace('_', '-')}")
+
+
 def cli_message(exc: ArmfitError) -> str:
-    """The message of ``exc`` with its option named by its command-line flag."""
-    name = exc.option_name
-    return exc.with_option(FLAGS.get(name, f"--{name.replace('_', '-')}")) if name else str(exc)
+    """The message of ``exc`` with every option named by its command-line flag."""
+    return exc.render(lambda name, python: flag(name))
 
 
 # ---------------------------------------------------------------------------
