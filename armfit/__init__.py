@@ -16,50 +16,42 @@ Stages: :func:`read_trials`, :func:`estimate`, :func:`fit_grip`, :func:`fit_nomi
 :data:`EFFECTS`.
 """
 
-from armfit._version import __version__
-from armfit.api import (
-    Comparisons,
-    Diagnosis,
-    ModelFit,
-    Simulation,
-    Trials,
-    Uncertainty,
-    compare,
-    diagnose,
-    estimate,
-    fit_grip,
-    fit_nominal,
-    fit_uncertainty,
-    read_model,
-    read_spectra,
-    read_trials,
-    read_weights,
-    simulate,
-)
-from armfit.errors import (
-    ArmfitError,
-    BadInputError,
-    ConvergenceError,
-    NoInputError,
-    OutputError,
-    UsageError,
-)
-from armfit.models import EFFECTS, ClosedLoopModel, Effect, Param, get_effect
-from armfit.pipeline import run
-from armfit.spectra import Spectra
-from armfit.uncertainty import WuWeight
+from importlib import import_module
 
-__all__ = [
-    "__version__",
+from armfit._version import __version__
+
+#: The public names and the module each comes from. They are imported on first use, so
+#: that ``import armfit.spectra`` (e.g. in a worker process) does not load the figures.
+_EXPORTS: dict[str, str] = {
     # stages
-    "read_trials", "estimate", "fit_grip", "fit_nominal", "fit_uncertainty", "compare",
-    "diagnose", "simulate", "run",
+    "read_trials": "armfit.api", "estimate": "armfit.api", "fit_grip": "armfit.api",
+    "fit_nominal": "armfit.api", "fit_uncertainty": "armfit.api", "compare": "armfit.api",
+    "diagnose": "armfit.api", "simulate": "armfit.api", "run": "armfit.pipeline",
     # results and readers
-    "Trials", "Spectra", "ModelFit", "Uncertainty", "Comparisons", "Diagnosis",
-    "Simulation", "WuWeight", "read_spectra", "read_model", "read_weights",
+    "Trials": "armfit.api", "Spectra": "armfit.spectra", "ModelFit": "armfit.api",
+    "Uncertainty": "armfit.api", "Comparisons": "armfit.api", "Diagnosis": "armfit.api",
+    "Simulation": "armfit.api", "WuWeight": "armfit.uncertainty",
+    "read_spectra": "armfit.api", "read_model": "armfit.api", "read_weights": "armfit.api",
     # models and effects
-    "ClosedLoopModel", "Effect", "Param", "EFFECTS", "get_effect",
+    "ClosedLoopModel": "armfit.models.arm", "Param": "armfit.models.arm",
+    "Effect": "armfit.models.effects", "EFFECTS": "armfit.models.effects",
+    "get_effect": "armfit.models.effects",
     # errors
-    "ArmfitError", "BadInputError", "ConvergenceError", "NoInputError", "OutputError",
-    "UsageError",
-]
+    "ArmfitError": "armfit.errors", "BadInputError": "armfit.errors",
+    "ConvergenceError": "armfit.errors", "NoInputError": "armfit.errors",
+    "OutputError": "armfit.errors", "UsageError": "armfit.errors",
+}
+
+__all__ = ["__version__", *_EXPORTS]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'armfit' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))
