@@ -531,38 +531,6 @@ def bootstrap_fit(base: FitResult, f_hz, H_trials, subjects: Sequence[str], *,
 STUDY_FITS: dict[str, str] = {"grip": "mean", "nominal": "median"}
 
 
-def parse_band(text: str, *, option: str = "--band") -> tuple[float, float]:
-    """Parse ``LO:HI`` (Hz) into (lo, hi); UsageError unless 0 < LO < HI (finite)."""
-    lo_s, sep, hi_s = text.partition(":")
-    try:
-        lo, hi = float(lo_s), float(hi_s)
-    except ValueError:
-        lo = hi = float("nan")
-    if not sep or not (0 < lo < hi < float("inf")):
-        raise UsageError(f"{option} {text!r}: expected LO:HI in Hz with 0 < LO < HI, "
-                         "e.g. 0.1:30")
-    return lo, hi
-
-
-def parse_bands(spec: str | None) -> dict[str, tuple[float, float]]:
-    """Parse ``x=0.1:30,y=0.1:30,z=0.1:10`` (Hz) into {axis: (lo, hi)}; axes not named keep
-    :data:`PAPER_BANDS`. Raises UsageError on a malformed item."""
-    bands = dict(PAPER_BANDS)
-    if not spec:
-        return bands
-    for item in (x.strip() for x in spec.split(",") if x.strip()):
-        axis, sep, rng = item.partition("=")
-        axis = axis.strip().lower()
-        try:
-            if axis not in PAPER_BANDS or not sep:
-                raise UsageError(item)
-            bands[axis] = parse_band(rng)
-        except UsageError:
-            raise UsageError(f"--band {item!r}: expected AXIS=LO:HI in Hz with AXIS x, y or z "
-                             "and 0 < LO < HI, e.g. z=0.1:10") from None
-    return bands
-
-
 @dataclass(frozen=True)
 class StudyFit:
     """The fits of one set ("grip" or "nominal"): one FitResult per (axis, grip_N)
@@ -731,5 +699,4 @@ def exact_response(model: ClosedLoopModel, f_hz, params: Mapping[str, float]) ->
 
 
 __all__ = ["COSTS", "PAPER_BANDS", "STUDY_FITS", "FitResult", "StudyFit", "analytic_guess",
-           "bootstrap_fit", "exact_response", "fit_response", "fit_study", "log_errors",
-           "parse_bands"]
+           "bootstrap_fit", "exact_response", "fit_response", "fit_study", "log_errors"]
