@@ -19,6 +19,7 @@ from armfit.tables import caption_for, latex_table
 
 from .options import (
     effect_option,
+    effects_file_option,
     emit_json,
     json_option,
     message,
@@ -44,6 +45,7 @@ def _options(f):
         click.option("--seed", type=int, default=0, show_default=True,
                      help="Seed of the bootstrap resampling (the fit itself uses none)."),
         effect_option,
+        effects_file_option,
         click.option("--method", default=None, metavar="NAME",
                      help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin)."),
         click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",
