@@ -48,7 +48,7 @@ from scipy.ndimage import uniform_filter1d
 from scipy.stats import qmc
 
 from armfit.errors import BadInputError, ConvergenceError, UsageError
-from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, laplace
+from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, at_bound, laplace
 from armfit.spectra import aggregate
 
 COSTS: tuple[str, ...] = ("complex", "paper")
@@ -77,7 +77,9 @@ class FitResult:
 
     ``rms_db``/``rms_deg``: RMS magnitude (dB) and phase (deg) error over the band, whatever
     the cost; ``rms_norm``: RMS of both errors divided by the measurement's standard errors
-    (≈ 1 when the model fits within the noise; NaN without standard errors); ``band``: the
+    (≈ 1 when the model fits within the noise; NaN without standard errors); ``at_bound``:
+    the parameters within 1 % of a physical bound (:func:`armfit.models.arm.at_bound`);
+    ``band``: the
     (lo, hi) band in Hz; ``n_points``: bins fitted; ``cost``: "complex" or "paper";
     ``ci_method``: "jacobian" or "bootstrap-<N>"; ``objective``: the minimised Σ r².
     """
@@ -97,6 +99,10 @@ class FitResult:
     nfev: int = 0
     ci_method: str = "jacobian"
     objective: float = field(default=float("nan"))
+    #: Parameters within 1 % of a physical bound (:func:`armfit.models.arm.at_bound`):
+    #: the data pushed them against the edge, so their values and intervals are not
+    #: estimates of anything.
+    at_bound: tuple[str, ...] = ()
 
     def row(self) -> dict[str, float | str | bool]:
         """Parameters, intervals and statistics as one flat dict (interface C names)."""
@@ -107,7 +113,8 @@ class FitResult:
         out.update(rms_db=self.rms_db, rms_deg=self.rms_deg, rms_norm=self.rms_norm,
                    band_lo_hz=self.band[0], band_hi_hz=self.band[1], n_points=self.n_points,
                    cost=self.cost, converged=self.converged, mp_kg=self.model.mp,
-                   effects=";".join(e.name for e in self.model.effects))
+                   effects=";".join(e.name for e in self.model.effects),
+                   at_bound=";".join(self.at_bound))
         return out
 
 
@@ -426,13 +433,12 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
         rms_norm = float("nan")
     else:
         rms_norm = float(np.sqrt(np.mean(np.concatenate([db / sdb, deg / sdeg]) ** 2)))
-    at_bound = [n for n, v, p in zip(space.names, theta, model.params, strict=True)
-                if np.isclose(v, p.lower, rtol=1e-6) or np.isclose(v, p.upper, rtol=1e-6)]
-    msg = res.message + (f"; at physical bound: {', '.join(at_bound)}" if at_bound else "")
+    stuck = at_bound(model.params, params)
+    msg = res.message + (f"; at physical bound: {', '.join(stuck)}" if stuck else "")
     return FitResult(model=model, params=params, ci_lo=ci_lo, ci_hi=ci_hi, rms_db=rms_db,
                      rms_deg=rms_deg, rms_norm=rms_norm, band=band_used, n_points=m,
                      cost=cost, converged=converged, message=msg, nfev=nfev,
-                     objective=float(2 * res.cost))
+                     objective=float(2 * res.cost), at_bound=tuple(stuck))
 
 
 def residual_correlation(blocks: np.ndarray) -> float:
