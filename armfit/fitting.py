@@ -43,9 +43,10 @@ Confidence intervals (95 %) are formed in log-parameter space and are the wider 
   contiguous bands, half-width t₀.₉₇₅(G − 1)·sd_j. A
   model that misses the data by more than the noise (a discretised device, an
   estimator's bias) moves its parameters by more than the noise interval says, and by
-  about as much as leaving out part of the band does. On time-domain simulated studies
-  with no between-subject variability the noise intervals alone covered 61 % of the true
-  values (rms_norm 1.2–2.2), the wider of the two 97 % (benchmarks/interval_coverage.py).
+  about as much as leaving out part of the band does. On five time-domain simulated
+  studies with no between-subject variability (225 true values, rms_norm 0.96–2.2) the
+  noise intervals alone covered 68 % of the true values, the wider of the two 97 %
+  (benchmarks/interval_coverage.py, docs/intervals.md).
 
 Transformed back: lo = θ·exp(−h), hi = θ·exp(+h) (asymmetric in θ, never negative).
 Parameters declared ``log=False`` (e.g. a delay that may be 0) are searched, and their
@@ -88,7 +89,8 @@ SE_POOL_BINS = 9
 #: Contiguous frequency bands of the delete-a-band jackknife (:func:`band_jackknife`):
 #: six bands of equal log width, about half a decade each over 0.1–30 Hz. Chosen on
 #: time-domain simulated studies (benchmarks/interval_coverage.py): with 6 bands the
-#: 95 % intervals covered 97 % of the true values, with 10 bands 88 %, with 16 75 %.
+#: 95 % intervals covered 97 % of the true values, with 10 bands 92 % (16 bands: 75 % on
+#: an exploratory subset).
 JACKKNIFE_BANDS = 6
 
 
