@@ -128,6 +128,10 @@ def test_cli_happy_path_simulate_fit_and_read_back(runner, tmp_path):
                                    "--effects", str(SPRING), "--json"])
     assert code == 0, err
     assert json.loads(out)["rows"][0]["model"] == "base+device-spring"
+    png = tmp_path / "bode.png"
+    code, _, err = _run(runner, ["plot", "bode", str(spectra), "--model", str(params),
+                                 "-o", str(png), "--effects", str(SPRING)])
+    assert code == 0 and png.stat().st_size > 0, err
 
 
 def test_diagnose_workers_see_the_file_effects(runner, tmp_path):
