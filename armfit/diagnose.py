@@ -876,7 +876,9 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
         from concurrent.futures import ProcessPoolExecutor
         # forkserver: safe when the caller has threads of its own (the run pipeline)
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method))
+        from armfit.workers import ignore_sigint  # Ctrl-C is the main process's to handle
+        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method),
+                                   initializer=ignore_sigint)
     try:
         run = pool.map if pool is not None else map
         bases = list(run(_base_task, tasks))

@@ -1036,16 +1036,11 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     if on_open is not None:
         on_open(len(sources))
     if jobs > 1 and len(sources) > 1:
-        import concurrent.futures as cf
         import functools
-        import multiprocessing as mp
-        if "forkserver" in mp.get_all_start_methods():
-            ctx = mp.get_context("forkserver")
-            ctx.set_forkserver_preload(["armfit.spectra", "armfit.io.trials"])
-        else:
-            ctx = mp.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=min(jobs, len(sources)),
-                                    mp_context=ctx) as pool:
+
+        from armfit.workers import process_pool
+        with process_pool(min(jobs, len(sources)),
+                          preload=("armfit.spectra", "armfit.io.trials")) as pool:
             try:
                 for res in pool.map(functools.partial(_estimate_source, config=config),
                                     sources, chunksize=2):

@@ -124,9 +124,8 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
                "effect_axes": effect_axes, "truth": str(truth_path)}
     files = []
     with atomic_path(truth_path, overwrite=overwrite) as truth_tmp, \
-            atomic_path(out, overwrite=overwrite) as tmp, \
+            atomic_path(out, overwrite=overwrite, folder=True) as tmp, \
             progress(len(plans), "simulate") as advance:
-        tmp.mkdir()
         for plan in plans:
             trial = simulate_trial(plan, config)
             name = trial_filename(trial.meta, fmt)
