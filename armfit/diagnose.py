@@ -837,6 +837,8 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
             continue
         with np.errstate(all="ignore"):
             ratio = 20 * np.log10(np.abs(H_c[:, sel]) / np.abs(H_on[:, sel]))
+        if not np.isfinite(ratio).any():  # no signal on that axis (cells flagged no_signal)
+            continue
         out[other] = float(np.nanmedian(ratio))
     return out
 
