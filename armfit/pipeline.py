@@ -126,7 +126,7 @@ def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike],
         inp_res = Path(inp).resolve()
         if inp_res == out_res or out_res in inp_res.parents:
             raise OutputError(f"{out}: holds the input {inp}; choose another OUTDIR")
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, inputs=inputs, manifest=manifest, folder=True)
     return out
 
 

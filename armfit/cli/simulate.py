@@ -113,7 +113,7 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
     truth_path = Path(truth) if truth else out.with_name(out.name + ".truth.json")
     if out.resolve() in truth_path.resolve().parents:
         raise UsageError(f"--truth {truth_path}: keep the truth file outside the study folder")
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, folder=True)
     check_output(truth_path, overwrite=overwrite)
 
     plans = plan_study(config)

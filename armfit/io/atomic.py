@@ -147,12 +147,13 @@ def _same(a: Path, b: Path) -> bool:
 
 def check_output(path: str | os.PathLike, *, overwrite: bool,
                  inputs: Iterable[str | os.PathLike] = (),
-                 manifest: str | os.PathLike | None = None) -> Path:
+                 manifest: str | os.PathLike | None = None, folder: bool = False) -> Path:
     """Refuse an output that exists without ``overwrite``, or that would destroy or
     pollute an input: the output is one of the ``inputs`` (or the ``manifest``), holds
     one (as a folder), is a file listed in the manifest, or lies inside an input folder
     under a raw-trial name that reading the folder would pick up. The refusals about
-    inputs hold even with ``overwrite``.
+    inputs hold even with ``overwrite``. A file output (``folder`` False) that is an
+    existing folder (``-o .``) is refused before any work.
 
     Returns the output as a Path. Raises OutputError (exit 73).
     """
@@ -175,12 +176,17 @@ def check_output(path: str | os.PathLike, *, overwrite: bool,
                               "(an input is never overwritten, even with --overwrite)")
     if manifest is not None:
         from armfit.io.trials import read_manifest
-        with contextlib.suppress(Exception):  # a bad manifest is reported when it is read
-            if out_res in read_manifest(manifest):
-                raise OutputError(f"{out}: listed as a trial in the manifest {manifest}; "
-                                  "choose another output")
+        try:
+            listed = read_manifest(manifest)
+        except Exception:  # a bad manifest is reported when it is read as an input
+            listed = {}
+        if out_res in listed:
+            raise OutputError(f"{out}: listed as a trial in the manifest {manifest}, so it "
+                              "is also an input; choose another output")
     if out.exists() and not overwrite:
         raise OutputError(f"{out}: exists; pass --overwrite to replace it")
+    if not folder and out.is_dir():
+        raise OutputError(f"{out}: is a folder; give a file name for this output")
     if out.parent.exists() and not out.parent.is_dir():
         raise OutputError(f"{out}: cannot write: {out.parent} is a file, not a folder")
     clean_stale(out.parent, out.name)

@@ -213,6 +213,8 @@ def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, 
     """
     mpath = Path(path)
     file = str(path)
+    if not mpath.is_file():
+        raise NoInputError(f"{file}: no such manifest file")
     try:
         text = mpath.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
@@ -1032,8 +1034,7 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
         from armfit.errors import UsageError
         raise UsageError(f"{out}: the dataset is a Parquet file; give an output ending "
                          "in .parquet")
-    check_output(out, overwrite=overwrite,
-                 inputs=[*inputs, *([manifest] if manifest is not None else [])])
+    check_output(out, overwrite=overwrite, inputs=inputs, manifest=manifest)
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, resample=resample,
                          f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn)
     if on_open is not None:
