@@ -235,12 +235,13 @@ def test_crash_between_the_two_renames_is_repaired_by_the_next_run(tmp_path):
     assert clean_stale(tmp_path, "results") == [] and mine.exists() and other.exists()
 
 
-def test_run_replaces_outdir_and_leaves_no_old_copy(study, tmp_path):
-    out = tmp_path / "out"
+def test_folder_output_replaced_whole_and_no_old_copy_left(tmp_path):
+    out = tmp_path / "study"
     _folder(out, "previous")
-    res = invoke("run", study, "-o", out, "--overwrite", "--no-figures")
+    res = invoke("simulate", "-o", out, "--subjects", "1", "--axes", "x", "--grips", "1",
+                 "--duration", "26,26", "--overwrite")
     assert res.exit_code == 0, res.stderr
-    assert (out / "report.md").read_text().startswith("# armfit report")
+    assert sorted(p.name for p in out.iterdir()) == ["sub-01_axis-x_grip-1N.parquet"]
     assert temps(tmp_path) == []
 
 

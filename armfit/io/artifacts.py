@@ -29,7 +29,11 @@ SPECTRA_COLUMNS: tuple[str, ...] = (
     "se_deg",     # standard error of phase_deg, deg
     "n",          # number of trials behind the value (1 at level "trial")
     "q25_db", "q75_db", "q25_deg", "q75_deg",  # quartiles across trials (aggregates)
-    "flags",      # comma-separated: low_coherence, saturation, drift (empty if none)
+    "flags",      # comma-separated: low_coherence, saturation, drift, no_signal (empty if
+                  # none); no_signal: the cell carries no information (no force or no
+                  # position power there, e.g. an unstimulated axis recorded as constant
+                  # zero): re, im, mag_db, phase_deg, coherence, se_* are NaN, never ±inf,
+                  # and aggregates leave the cell out (NaN and no_signal if no trial has it)
 )
 
 #: Key of armfit's metadata (JSON) in the Parquet file's key-value metadata.
