@@ -173,6 +173,15 @@ def test_temporary_name_is_short_next_to_a_255_byte_name(tmp_path):
     assert (tmp_path / name).read_text() == "ok"
 
 
+def test_concurrent_writers_each_land_whole(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+    dest = tmp_path / "out.txt"
+    texts = [str(i) * 200_000 for i in range(8)]
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(lambda t: write_text_atomic(dest, t, overwrite=True), texts))
+    assert dest.read_text() in texts and temps(tmp_path) == []
+
+
 def test_file_and_folder_fsynced_before_the_rename(tmp_path, monkeypatch):
     events = []
     real_fsync, real_replace = os.fsync, os.replace
@@ -433,9 +442,14 @@ def test_parent_is_a_regular_file(command, study, tmp_path):
 
 def test_output_dot(study, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
+    (tmp_path / "keep.txt").write_text("mine")
     res = invoke("estimate", study, "-o", ".", "--overwrite")
     assert res.exit_code == EXIT_CANTCREAT
     assert "is a folder" in one_line_error(res.stderr)
+    res = invoke("run", study, "-o", ".", "--overwrite")
+    assert res.exit_code == EXIT_CANTCREAT
+    assert "never replaced" in one_line_error(res.stderr)
+    assert (tmp_path / "keep.txt").read_text() == "mine"
 
 
 # ---------------------------------------------------------------------------
@@ -539,6 +553,23 @@ def test_manifest_row_with_an_unknown_axis(tmp_path, write_trial):
     res = invoke("ingest", "--manifest", manifest, "-o", tmp_path / "t.parquet")
     assert res.exit_code == EXIT_DATAERR
     assert "column 'axis', row 1: axis 'w' is not x, y or z" in res.stderr
+
+
+def test_spectra_or_params_rows_of_an_unknown_axis(spectra, nominal, tmp_path):
+    df = pd.read_parquet(spectra)
+    df.loc[df.index[5], "axis"] = "w"
+    bad = tmp_path / "s.parquet"
+    df.to_parquet(bad)
+    res = invoke("fit-nominal", bad, "-o", tmp_path / "n.csv")
+    assert res.exit_code == EXIT_DATAERR
+    assert f"{bad}, column 'axis', row 6: axis 'w' is not x, y or z" in res.stderr
+    p = pd.read_csv(nominal)
+    p.loc[1, "axis"] = "q"
+    badp = tmp_path / "p.csv"
+    p.to_csv(badp, index=False)
+    res = invoke("fit-uncertainty", spectra, "--nominal", badp, "-o", tmp_path / "wu.csv")
+    assert res.exit_code == EXIT_DATAERR
+    assert f"{badp}, column 'axis', row 2: axis 'q' is not x, y or z" in res.stderr
 
 
 def test_grip_in_the_name_differs_from_the_grip_column(tmp_path, write_trial):

@@ -85,10 +85,11 @@ def read_spectra(path):
     import json
     from pathlib import Path
 
+    import numpy as np
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from armfit.errors import BadInputError, NoInputError
+    from armfit.errors import BadInputError, NoInputError, cell
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such spectra file")
@@ -107,6 +108,11 @@ def read_spectra(path):
     except ValueError:
         meta = {}
     df = table.select(list(SPECTRA_COLUMNS)).to_pandas()
+    for col in ("axis", "out_axis"):  # rows of another axis would be dropped silently
+        bad = np.flatnonzero(~df[col].isin(["x", "y", "z"]).to_numpy())
+        if bad.size:
+            raise BadInputError(f"axis {cell(df[col].iloc[bad[0]])} is not x, y or z",
+                                file=str(p), column=col, row=int(bad[0]) + 1)
     df.attrs["armfit"] = meta
     return df
 

@@ -303,6 +303,9 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False,
     OutputError naming ``path`` and the OS reason.
     """
     dest = Path(path)
+    if dest.name in ("", ".", ".."):
+        raise OutputError(f"{dest}: the current folder (or a root) is never replaced; give "
+                          "the output a name")
     if dest.exists() and not overwrite:
         raise OutputError(f"{dest}: exists; pass --overwrite to replace it")
     if not folder and dest.is_dir() and not dest.is_symlink():
