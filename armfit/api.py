@@ -767,8 +767,7 @@ class Simulation:
         truth_path = Path(truth) if truth else out.with_name(out.name + ".truth.json")
         files = []
         with atomic_path(truth_path, overwrite=overwrite) as truth_tmp, \
-                atomic_path(out, overwrite=overwrite) as tmp:
-            tmp.mkdir()
+                atomic_path(out, overwrite=overwrite, folder=True) as tmp:
             for trial in self.trials():
                 name = trial_filename(trial.meta, fmt)
                 write_trial(trial, tmp / name, fmt=fmt, units=units)

@@ -54,6 +54,7 @@ from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import EFFECTS, Effect
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
+from armfit.workers import ignore_sigint
 
 #: Standard error bands of the compare table (Hz).
 BANDS: tuple[tuple[float, float], ...] = ((0.1, 1.0), (1.0, 3.0), (3.0, 10.0), (10.0, 30.0))
@@ -685,7 +686,7 @@ def fit_candidate(data: AxisData, band: tuple[float, float], base: JointFit,
     fit = joint_fit(model, data, band, [base.base, start], starts, pairs=pairs)
     if fit.rss > base.rss:  # nested: never worse than the base fit
         fit = JointFit(model, base.base, {f"{effect.name}.{k}": v
-                                          for k, v in effect.null(model.mp).items()},
+                                          for k, v in effect.null_values(model.mp).items()},
                        {}, {}, base.r_db, base.r_deg, base.rss, base.n_res, base.rho,
                        base.converged)
     return fit
@@ -826,6 +827,8 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
             continue
         with np.errstate(all="ignore"):
             ratio = 20 * np.log10(np.abs(H_c[:, sel]) / np.abs(H_on[:, sel]))
+        if not np.isfinite(ratio).any():  # no signal on that axis (cells flagged no_signal)
+            continue
         out[other] = float(np.nanmedian(ratio))
     return out
 
@@ -866,7 +869,9 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
         from concurrent.futures import ProcessPoolExecutor
         # forkserver: safe when the caller has threads of its own (the run pipeline)
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method))
+        # Ctrl-C is the main process's to handle
+        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method),
+                                   initializer=ignore_sigint)
     try:
         run = pool.map if pool is not None else map
         bases = list(run(_base_task, tasks))

@@ -136,7 +136,7 @@ def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike],
         inp_res = Path(inp).resolve()
         if inp_res == out_res or out_res in inp_res.parents:
             raise OutputError(f"{out}: holds the input {inp}; choose another OUTDIR")
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, inputs=inputs, manifest=manifest, folder=True)
     return out
 
 
@@ -156,8 +156,7 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
     out = check_outdir(outdir, inputs, manifest=options.manifest, overwrite=options.overwrite)
     tmp: Path | None = None
     try:
-        with atomic_path(out, overwrite=options.overwrite) as tmp:
-            tmp.mkdir()
+        with atomic_path(out, overwrite=options.overwrite, folder=True) as tmp:
             result = _run_in(list(inputs), tmp, options, on_stage=on_stage, warn=warn)
     except ArmfitError as exc:
         # a message about a file of the temporary folder names it as it would be in OUTDIR
@@ -325,6 +324,7 @@ def _fit(which: str) -> Callable[[_Context], str]:
         fits as soon as they exist."""
         fit = api.fit_grip if which == "grip" else api.fit_nominal
         model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands)
+        _warn_at_bound(which, model, ctx.warn)
         model.write(ctx.path(f"{which}_params.csv"), latex=ctx.path(f"{which}_params.tex"))
         back = replace(api.ModelFit.read(ctx.folder / f"{which}_params.csv"),
                        fits=model.fits, spectra=ctx.spectra)
@@ -725,3 +725,14 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
     options = RunOptions(manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
                          wu_cost=wu_cost, jobs=jobs, figures=figures, overwrite=overwrite)
     return run_pipeline(items, outdir, options, on_stage=on_stage, warn=warn)
+def _warn_at_bound(which: str, model: api.ModelFit, warn: Warn | None) -> None:
+    """One warning per fit with a parameter at a physical bound (column ``at_bound``)."""
+    if warn is None:
+        return
+    grips = model.table["grip_N"] if "grip_N" in model.table.columns else [None] * len(
+        model.table)
+    for axis, grip, fit in zip(model.table["axis"], grips, model.fits, strict=True):
+        if fit.at_bound:
+            where = axis + ("" if grip is None else f" {grip:g} N")
+            warn(f"fit-{which} {where}: {', '.join(fit.at_bound)} at a physical bound "
+                 "(within 1 % of its range); the value is a limit, not an estimate")

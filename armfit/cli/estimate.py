@@ -21,7 +21,7 @@ from armfit.cli.options import (
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
-from armfit.io.schema import FLAGS
+from armfit.io.schema import COUNTED_FLAGS
 
 WINDOWS = ("hann", "hamming", "blackman", "blackmanharris", "boxcar")
 
@@ -95,10 +95,11 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
     if fmin >= fmax:
         raise UsageError(f"--fmin {fmin:g} Hz must be below --fmax {fmax:g} Hz")
-    inputs = list(paths) + ([manifest] if manifest else [])
-    check_output(output, overwrite=overwrite, inputs=inputs)
+    inputs = list(paths)
+    check_output(output, overwrite=overwrite, inputs=inputs, manifest=manifest)
     if csv_path is not None:
-        check_output(csv_path, overwrite=overwrite, inputs=inputs + [output])
+        check_output(csv_path, overwrite=overwrite, inputs=inputs + [output],
+                     manifest=manifest)
     config = estimate_config(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
                              nperseg=nperseg, overlap=overlap, window=window, mp=mp,
                              coherence_min=coherence_min, force_limit_N=force_limit)
@@ -124,7 +125,7 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
     if as_json:
         trials = spectra.select(level="trial")
         point_flags = trials.flags[trials.present]
-        flags = {f: int(sum(f in v for v in point_flags)) for f in FLAGS}
+        flags = {f: int(sum(f in v for v in point_flags)) for f in COUNTED_FLAGS}
         levels = spectra.key("level")
         sizes = spectra.present.sum(axis=1)
         counts = {k: int(sizes[levels == k].sum()) for k in dict.fromkeys(levels)}

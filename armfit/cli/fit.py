@@ -22,6 +22,7 @@ from .options import (
     bands_by_axis,
     clean,
     effect_option,
+    effects_file_option,
     emit_json,
     json_option,
     message,
@@ -47,6 +48,7 @@ def _options(f):
         click.option("--seed", type=int, default=0, show_default=True,
                      help="Seed of the bootstrap resampling (the fit itself uses none)."),
         effect_option,
+        effects_file_option,
         click.option("--method", default=None, metavar="NAME",
                      help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin)."),
         click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",
@@ -75,6 +77,10 @@ def _run(which: str, spectra: str, output: str, cost: str, band, bootstrap: int,
         where = f"{axis}" + (f" {grip:g} N" if grip is not None else "")
         message(f"fit {where}: rms {fit.rms_db:.3g} dB, {fit.rms_deg:.3g} deg, "
                 f"{fit.n_points} bins {fit.band[0]:g}-{fit.band[1]:g} Hz")
+        if fit.at_bound:
+            message(f"warning: fit {where}: {', '.join(fit.at_bound)} at a physical bound "
+                    "(within 1 % of its range); the value is a limit, not an estimate "
+                    "(column at_bound)")
 
     fit = api_fit_grip if which == "grip" else api_fit_nominal
     model = fit(data, cost=cost, bands=bands, effects=effect_objs, bootstrap=bootstrap,
@@ -89,7 +95,8 @@ def _run(which: str, spectra: str, output: str, cost: str, band, bootstrap: int,
             "command": f"fit-{which}", "spectra": spectra, "output": output,
             "latex": latex, "columns": list(df.columns),
             "fits": [dict({k: clean(v) for k, v in row.items()}, ci_method=f.ci_method,
-                          objective=f.objective, message=f.message)
+                          objective=f.objective, message=f.message,
+                          at_bound=list(f.at_bound))
                      for row, f in zip(df.to_dict("records"), model.fits, strict=True)],
         })
 

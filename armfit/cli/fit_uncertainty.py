@@ -26,6 +26,7 @@ from armfit.uncertainty import MAX_PAIRS, read_wu
 from .options import (
     band_option,
     clean,
+    effects_file_option,
     emit_json,
     json_option,
     message,
@@ -63,6 +64,7 @@ def _pairs(reps) -> list[list[float]]:
 
 
 @click.command("fit-uncertainty")
+@effects_file_option
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--nominal", required=True, type=click.Path(dir_okay=False),
               help="Nominal parameters CSV written by `armfit fit-nominal` (H_ARM per axis).")

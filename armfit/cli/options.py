@@ -13,6 +13,7 @@ import click
 from armfit.constants import AXES
 from armfit.errors import ArmfitError, UsageError
 from armfit.io.schema import finite_or_none, json_default
+from armfit.models.effects import EFFECTS, load_effect_files
 
 T = TypeVar("T")
 
@@ -27,7 +28,7 @@ skip_bad_option = click.option(
     "--skip-bad", is_flag=True,
     help="Go on past bad trials, listing each with its reason (default: stop at the first).")
 manifest_option = click.option(
-    "--manifest", type=click.Path(exists=True, dir_okay=False),
+    "--manifest", type=click.Path(dir_okay=False),
     help="CSV with columns file,subject,axis,grip_N[,run]; paths relative to it.")
 jobs_option = click.option(
     "-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
@@ -132,6 +133,30 @@ def bands_by_axis(items, defaults) -> dict[str, tuple[float, float]]:
 def clean(value):
     """A value for a JSON document: NaN and infinities as null."""
     return finite_or_none(value)
+
+def _load_effect_files(ctx: click.Context, param: click.Parameter, value) -> tuple:
+    """Register the effects of each ``--effects FILE`` for this command (they are removed
+    again when the command ends, so one process can run several commands)."""
+    paths = tuple(value or ())
+    ctx.meta["armfit.effect_files"] = paths
+    if paths:
+        names = load_effect_files(paths)
+        ctx.call_on_close(lambda: EFFECTS.unregister(names))
+    return paths
+
+
+effects_file_option = click.option(
+    "--effects", "effect_files", multiple=True, metavar="FILE", is_eager=True,
+    expose_value=False, callback=_load_effect_files,
+    type=click.Path(dir_okay=False),
+    help="Python file defining more effects in a module-level EFFECTS list (repeatable; "
+         "see `armfit effects`). Loaded before the other options.")
+
+
+def effect_files() -> tuple[str, ...]:
+    """The ``--effects`` files given to the current command (empty if none)."""
+    ctx = click.get_current_context(silent=True)
+    return tuple(ctx.meta.get("armfit.effect_files", ())) if ctx is not None else ()
 
 
 def verbosity() -> int:

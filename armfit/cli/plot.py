@@ -19,7 +19,13 @@ from armfit.models.params import read_params
 from armfit.spectra import Spectra
 from armfit.uncertainty import read_wu
 
-from .options import axis_bands_option, message, output_option, overwrite_option
+from .options import (
+    axis_bands_option,
+    effects_file_option,
+    message,
+    output_option,
+    overwrite_option,
+)
 
 AXIS_CHOICE = click.Choice(list(AXES))
 
@@ -59,6 +65,7 @@ def command() -> None:
 
 
 @command.command("bode")
+@effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
 @click.option("--model", "model_path", metavar="CSV",
               help="Fitted parameters (fit-grip or fit-nominal output) to overlay.")
@@ -81,6 +88,7 @@ def bode(spectra, model_path, axis, spread, no_trials, output, overwrite):
 
 
 @command.command("residual")
+@effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
 @click.option("--model", "model_path", required=True, metavar="CSV",
               help="Fitted parameters: grip fits are compared with each grip's mean, "
@@ -118,6 +126,7 @@ def residual(spectra, model_path, model2_path, axis, band, output, overwrite):
 
 
 @command.command("uncertainty")
+@effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
 @click.option("--nominal", "nominal_path", required=True, metavar="CSV",
               help="Nominal fit (fit-nominal output): its H_ARM is the reference.")
@@ -141,6 +150,7 @@ def uncertainty(spectra, nominal_path, weights_path, axis, output, overwrite):
 
 
 @command.command("literature")
+@effects_file_option
 @click.option("--model", "model_path", metavar="CSV",
               help="Fitted parameters; default: the paper's Table I.")
 @click.option("--axis", type=AXIS_CHOICE, default="x", show_default=True,

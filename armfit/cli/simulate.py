@@ -8,7 +8,9 @@ import click
 
 from armfit.api import simulate
 from armfit.cli.options import (
+    effect_files,
     effect_option,
+    effects_file_option,
     emit_json,
     json_option,
     message,
@@ -60,6 +62,7 @@ def build_config(*, subjects: int, axes: str, grips: str, duration: str, fs: flo
 
 
 @click.command("simulate")
+@effects_file_option
 @click.option("-o", "--output", "output", required=True, type=click.Path(file_okay=False),
               help="Study folder to write (one file per trial; written atomically).")
 @click.option("--subjects", type=click.IntRange(1, 999), default=_DEFAULTS.subjects,
@@ -113,7 +116,7 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
     truth_path = Path(truth) if truth else out.with_name(out.name + ".truth.json")
     if out.resolve() in truth_path.resolve().parents:
         raise UsageError(f"--truth {truth_path}: keep the truth file outside the study folder")
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, folder=True)
     check_output(truth_path, overwrite=overwrite)
 
     sim = simulate(config)
@@ -121,7 +124,8 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
                "duration": duration, "fs": fs, "seed": seed, "noise": noise,
                "quantum": quantum, "drift": drift, "variability": variability,
                "format": fmt, "units": units, "effect": list(effects),
-               "effect_axes": effect_axes, "truth": str(truth_path)}
+               "effect_axes": effect_axes, "effects_files": list(effect_files()),
+               "truth": str(truth_path)}
     with progress(len(sim.plans), "simulate") as advance:
         files = sim.write(out, fmt=fmt, units=units, overwrite=overwrite, truth=truth_path,
                           options=options, advance=advance)

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from armfit.constants import AXES
-from armfit.errors import BadInputError, NoInputError
+from armfit.errors import BadInputError, NoInputError, cell
 from armfit.io.atomic import atomic_path
 from armfit.io.schema import (
     CSV_FLOAT_FORMAT,
@@ -99,13 +99,17 @@ def write_wu(weights: Mapping, path: str | os.PathLike, *, overwrite: bool = Fal
     return write_table(wu_frame(weights), path, overwrite=overwrite)
 
 
-def read_wu_rows(path: str | os.PathLike) -> dict[str, WuRows]:
+def read_wu_rows(path: str | os.PathLike, *, require_stable: bool = True
+                 ) -> dict[str, WuRows]:
     """Read a Wu CSV (the layout of the paper's Table III).
 
     Parameters
     ----------
     path : str or os.PathLike
         The CSV: columns axis, kind, index, real, imag.
+    require_stable : bool
+        Refuse a pole or zero with a real part >= 0 (an unstable or non-minimum-phase
+        weight; eq. 7 allows neither), naming its row.
 
     Returns
     -------
@@ -145,7 +149,7 @@ def read_wu_rows(path: str | os.PathLike) -> dict[str, WuRows]:
         bad = np.flatnonzero(~values.isin(allowed).to_numpy())
         if bad.size:
             raise BadInputError(f"expected one of {', '.join(allowed)}, got "
-                                f"{df[col].iloc[bad[0]]!r}", file=str(p), column=col,
+                                f"{cell(df[col].iloc[bad[0]])}", file=str(p), column=col,
                                 row=int(bad[0]) + 1)
     nums = {}
     for col in ("index", "real", "imag"):
@@ -153,7 +157,7 @@ def read_wu_rows(path: str | os.PathLike) -> dict[str, WuRows]:
                           errors="coerce").to_numpy(float)
         bad = np.flatnonzero(~np.isfinite(v))
         if bad.size:
-            raise BadInputError(f"expected a finite number, got {df[col].iloc[bad[0]]!r}",
+            raise BadInputError(f"expected a finite number, got {cell(df[col].iloc[bad[0]])}",
                                 file=str(p), column=col, row=int(bad[0]) + 1)
         nums[col] = v
     out = {}
@@ -174,5 +178,15 @@ def read_wu_rows(path: str | os.PathLike) -> dict[str, WuRows]:
             r = rows[kind.to_numpy()[rows] == k]
             r = r[np.argsort(nums["index"][r], kind="stable")]
             reps[k] = nums["real"][r] + 1j * np.abs(nums["imag"][r])
+        for k, what in (("pole", "unstable: a pole"), ("zero", "not minimum phase: a zero")):
+            r = rows[kind.to_numpy()[rows] == k]
+            bad = r[nums["real"][r] >= 0]
+            if require_stable and bad.size:
+                i = int(bad[0])
+                raise BadInputError(
+                    f"Wu of axis {ax} is {what} at {cell(nums['real'][i])} ± "
+                    f"{cell(abs(nums['imag'][i]))}j rad/s is not in the open left half plane; "
+                    "an uncertainty weight must be stable and minimum phase",
+                    file=str(p), column="real", row=i + 1)
         out[ax] = (float(nums["real"][gains[0]]), reps["zero"], reps["pole"])
     return out

@@ -36,7 +36,11 @@ SPECTRA_COLUMNS: tuple[str, ...] = (
     "se_deg",     # standard error of phase_deg, deg
     "n",          # number of trials behind the value (1 at level "trial")
     "q25_db", "q75_db", "q25_deg", "q75_deg",  # quartiles across trials (aggregates)
-    "flags",      # comma-separated: low_coherence, saturation, drift (empty if none)
+    "flags",      # comma-separated: low_coherence, saturation, drift, no_signal (empty if
+                  # none); no_signal: the cell carries no information (no force or no
+                  # position power there, e.g. an unstimulated axis recorded as constant
+                  # zero): re, im, mag_db, phase_deg, coherence, se_* are NaN, never ±inf,
+                  # and aggregates leave the cell out (NaN and no_signal if no trial has it)
 )
 
 #: The columns that name one response (one curve along frequency), in file order.
@@ -52,7 +56,10 @@ SPECTRA_TEXT: tuple[str, ...] = ("level", "subject", "axis", "kind", "out_axis",
                                  "flags")
 
 #: Flags a grid point can carry, in the order they are written.
-FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift")
+FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift", "no_signal")
+
+#: The flags ``armfit estimate --json`` counts over the trial rows.
+COUNTED_FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift")
 
 #: Key of armfit's metadata (JSON) in the Parquet file's key-value metadata.
 SPECTRA_META_KEY = b"armfit"
@@ -65,7 +72,11 @@ SPECTRA_META_KEY = b"armfit"
 PARAMS_BASE: tuple[str, ...] = PARAM_NAMES
 #: Fit statistics closing every params row, in order.
 PARAMS_STATS: tuple[str, ...] = ("rms_db", "rms_deg", "rms_norm", "band_lo_hz", "band_hi_hz",
-                                 "n_points", "cost", "converged", "mp_kg", "effects")
+                                 "n_points", "cost", "converged", "mp_kg", "effects",
+                                 "at_bound")
+#: Columns of :data:`PARAMS_STATS` that files written by older versions may lack, with the
+#: value they take when read.
+PARAMS_OPTIONAL: dict[str, str] = {"at_bound": ""}
 
 
 def params_columns(param_names, *, grip: bool) -> list[str]:

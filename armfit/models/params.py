@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from armfit.errors import BadInputError, NoInputError, UsageError
-from armfit.io.schema import PARAMS_BASE, PARAMS_STATS
-from armfit.models.arm import ClosedLoopModel
+from armfit.constants import AXES
+from armfit.errors import BadInputError, NoInputError, UsageError, cell
+from armfit.io.schema import PARAMS_BASE, PARAMS_OPTIONAL, PARAMS_STATS
+from armfit.models.arm import BASE_PARAMS, ClosedLoopModel, Param
 from armfit.models.effects import get_effect
 
 
@@ -30,22 +31,24 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
     Returns
     -------
     pandas.DataFrame
-        One row per fit; ``effects`` as str, ``converged`` as bool, ``grip_N`` present
-        only for grip fits.
+        One row per fit; ``effects`` as str, ``converged`` as bool, ``at_bound`` as str
+        (the parameters at a physical bound, ";"-separated, empty when none or in a file
+        written before the column existed), ``grip_N`` present only for grip fits.
 
     Raises
     ------
     NoInputError
         The file is missing.
     BadInputError
-        Naming the file and the missing column, or the row and column of a non-numeric
-        or non-positive parameter.
+        Naming the file and the missing column, an unknown or unlisted effect column, an
+        axis other than x, y or z, or the row and column of a parameter that is not a
+        number inside its physical range.
     """
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such params file")
     try:
-        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "cost": str},
+        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "cost": str, "at_bound": str},
                          keep_default_na=True)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
             ValueError) as exc:
@@ -55,23 +58,64 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
         raise BadInputError("missing column; expected a file written by fit-grip or "
                             "fit-nominal", file=str(p), column="effects")
     df["effects"] = df["effects"].fillna("").astype(str)
+    for col, default in PARAMS_OPTIONAL.items():
+        df[col] = df[col].fillna(default).astype(str) if col in df.columns else default
     base_cols = ["axis", *PARAMS_BASE]
-    names = list(PARAMS_BASE) + _effect_param_names(df, p)
+    bounds = _param_bounds(df, p)
+    names = list(bounds)
     expected = base_cols + names[len(PARAMS_BASE):] + [
         f"{n}{sfx}" for n in names for sfx in ("_lo", "_hi")] + list(PARAMS_STATS)
     for col in expected:
         if col not in df.columns:
             raise BadInputError("missing column; expected a file written by fit-grip or "
                                 "fit-nominal", file=str(p), column=col)
-    for col in names:
+    known = set(expected)
+    for col in df.columns:  # an effect parameter the model would silently ignore
+        if "." in str(col) and str(col) not in known:
+            raise BadInputError(_unknown_effect_column(str(col), df),
+                                file=str(p), column=str(col))
+    axes = df["axis"].fillna("").astype(str).str.strip()
+    bad = np.flatnonzero(~axes.isin(list(AXES)).to_numpy())
+    if bad.size:
+        raise BadInputError(f"axis {cell(df['axis'].iloc[bad[0]])} is not x, y or z",
+                            file=str(p), column="axis", row=int(bad[0]) + 1)
+    for col, par in bounds.items():
         vals = pd.to_numeric(df[col], errors="coerce").to_numpy(float)
-        bad = np.flatnonzero(~(np.isfinite(vals) & (vals > 0)))
+        bad = np.flatnonzero(~np.isfinite(vals))
         if bad.size:
             raise BadInputError(f"parameter must be a positive number, got "
-                                f"{df[col].iloc[bad[0]]!r}", file=str(p), column=col,
+                                f"{cell(df[col].iloc[bad[0]])}", file=str(p), column=col,
                                 row=int(bad[0]) + 1)
+        tol = 1e-9 * max(abs(par.lower), abs(par.upper))  # 10-digit rounding of a bound
+        bad = np.flatnonzero((vals < par.lower - tol) | (vals > par.upper + tol))
+        if bad.size:
+            raise BadInputError(f"{col} = {cell(vals[bad[0]])} {par.unit} is outside its "
+                                f"physical range [{par.lower:g}, {par.upper:g}] {par.unit}",
+                                file=str(p), column=col, row=int(bad[0]) + 1)
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
     return df
+
+
+def _unknown_effect_column(col: str, df: pd.DataFrame) -> str:
+    """Why the column ``<effect>.<param>`` does not belong to the file's model."""
+    name = col.split(".", 1)[0]
+    spec = next(iter(set(df["effects"])), "") or "none"
+    try:
+        get_effect(name)
+    except UsageError:
+        return (f"unknown effect '{name}' (not built in, and no loaded effect has that "
+                f"name); the file's model lists effects: {spec}")
+    return (f"parameter of the effect '{name}', which the column 'effects' does not list "
+            f"({spec}); the model would ignore it")
+
+
+def _param_bounds(df: pd.DataFrame, path: Path) -> dict[str, Param]:
+    """{column: Param} of the base parameters, then of each listed effect's parameters."""
+    out = {q.name: q for q in BASE_PARAMS}
+    for name in _effect_param_names(df, path):
+        eff = get_effect(name.split(".", 1)[0])
+        out[name] = next(q for q in eff.params if f"{eff.name}.{q.name}" == name)
+    return out
 
 
 def _effect_param_names(df: pd.DataFrame, path: Path) -> list[str]:
