@@ -47,9 +47,9 @@ EXPECTED: dict[str, str] = {
     "run.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "fit-grip.stdout":
-        "5b99ae661096cb4d72bb8e24bea6ad46d18414b6a0b5f019d7a27a046344a234",
+        "b545b13137856f843cf7452c6e0ebd29146550c0ba012af307982caef8571f4a",
     "fit-nominal.stdout":
-        "f93dedfbd4d1bdae2d0295bd545cc995bbf962fdfc697849a57dc416a177f0a6",
+        "501203cf10818b2b56d0177cf97f63bb76dea7aef4bd5bb46c3e640831ae5eb0",
     "fit-uncertainty.stdout":
         "3f4c6981d5612cee3f15e6a9193c7fc19b943eb813e6a2c9f6ca5c025d94bdfe",
     "compare.stdout":
@@ -61,25 +61,25 @@ EXPECTED: dict[str, str] = {
     "bode.png":
         "b16d136190b933c181793bd311e7d9b623201dc26dc3fea1e11c9f827c7912c4",
     "grip.csv":
-        "c3c0a156cd95020a4cccac539bf7bc622fa9a5777b5417164b88c76ace71a0a3",
+        "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
     "nominal.csv":
-        "1ca41ed0b134228eba13fa61e97453eba1db979839e181250f0f61ef41f9404e",
+        "086929d69cbf9b11936a4a84ff047dbb56d4bcbd835fe01a0f38aa05f8f79da8",
     "run/compare.csv":
         "a5f960dfafebe811c2e3cf9f1c703eed0b319f606342e280a4ae07107b5df476",
     "run/diagnosis.json":
         "728ff152a649886b51302d256e27fcf776f7847bfe4c4a79c3f22ef9b202726e",
     "run/grip_params.csv":
-        "c3c0a156cd95020a4cccac539bf7bc622fa9a5777b5417164b88c76ace71a0a3",
+        "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
     "run/grip_params.tex":
-        "ce805c7003ce143c6c46a158f39a09770a417a5b0f352d69587f22894c859cdb",
+        "a30e9288acad14b36f41695e560bea5d7201a820e8e1f5151b4040acda5136ca",
     "run/nominal_params.csv":
-        "1ca41ed0b134228eba13fa61e97453eba1db979839e181250f0f61ef41f9404e",
+        "086929d69cbf9b11936a4a84ff047dbb56d4bcbd835fe01a0f38aa05f8f79da8",
     "run/nominal_params.tex":
-        "8b2805c400b0554e386fbc2b2672f6865fc80e1d029f78024d272eac18db5802",
+        "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.md":
         "c1df1ab3ebad62324f612629c5d5a78aad7cab5f18f911c518cf42348e5e033a",
     "run/spectra.parquet":
-        "56ebf66085ed38c23d2af3f72252bf65215802c3e5f6f61b70777640c50119c5",
+        "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
     "run/trials.parquet":
         "f11d71fa08bdbf7aaa708763a1b50612aec51f96af640c7cc23806c513ff7855",
     "run/wu.csv":
