@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,11 +30,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from armfit import diagnose as _diagnose
 from armfit import figures
 from armfit import fitting as _fitting
 from armfit import uncertainty as _uncertainty
 from armfit.constants import AXES
+from armfit.diagnose import band_to_dict, diagnosis_to_dict
+from armfit.diagnose import compare as compare_rows
+from armfit.diagnose import diagnose as diagnose_axes
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import write_params, write_wu, write_wu_table, wu_frame
 from armfit.io.atomic import atomic_path, write_text_atomic
@@ -562,8 +565,8 @@ class Comparisons:
         """The JSON document of ``armfit compare --json``."""
         return {"level": self.level, "rows": [{
             "axis": r.axis, "grip_N": r.grip_N, "model": r.model, "params": r.params,
-            "n_trials": r.n_trials, "overall": _diagnose.band_to_dict(r.overall),
-            "bands": [_diagnose.band_to_dict(b) for b in r.bands],
+            "n_trials": r.n_trials, "overall": band_to_dict(r.overall),
+            "bands": [band_to_dict(b) for b in r.bands],
             "failing": [asdict(fb) for fb in r.failing]} for r in self.rows]}
 
     def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
@@ -620,7 +623,7 @@ def compare(spectra, model, *, level: str | None = None,
     m = ModelFit.of(model)
     if level is None:
         level = "mean" if m.which == "grip" else "median"
-    rows = _diagnose.compare(sp, m.table, level=level, band=band, effects=_effects(effects))
+    rows = compare_rows(sp, m.table, level=level, band=band, effects=_effects(effects))
     return Comparisons(tuple(rows), level)
 
 
@@ -648,7 +651,7 @@ class Diagnosis:
 
     def to_dict(self) -> dict:
         """The JSON document of ``armfit diagnose --json`` (and of diagnosis.json)."""
-        return _diagnose.diagnosis_to_dict(list(self.axes))
+        return diagnosis_to_dict(list(self.axes))
 
     def to_frame(self) -> pd.DataFrame:
         """One row per axis: axis, n_trials, band_lo_hz, band_hi_hz, missing_effect,
@@ -712,7 +715,7 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
     """
     sp = _spectra(spectra)
     m = ModelFit.of(model)
-    results = _diagnose.diagnose(sp, m.table, band=band,
+    results = diagnose_axes(sp, m.table, band=band,
                                  effects=None if effects is None else _effects(effects),
                                  jobs=jobs)
     if not results:
@@ -807,3 +810,18 @@ __all__ = [
     "estimate_study_result", "fit_grip", "fit_nominal", "fit_uncertainty", "read_model",
     "read_spectra", "read_trials", "read_weights", "simulate",
 ]
+
+
+def _bind_package_names() -> None:
+    """Make ``armfit.diagnose``, ``armfit.simulate`` (and ``armfit.stability``) the stages
+    of this module, not the submodules of the same names: importing a submodule binds it
+    on the package, so the names are bound again once the submodules are loaded (they stay
+    importable as modules: ``from armfit.diagnose import compare``)."""
+    package = sys.modules.get("armfit")
+    if package is not None:
+        for name in ("diagnose", "simulate", "stability"):
+            if name in globals():
+                setattr(package, name, globals()[name])
+
+
+_bind_package_names()
