@@ -975,7 +975,7 @@ def _estimate_source(source, config: EstimateConfig):
     warnings: list[str] = []
     try:
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
-                           warn=warnings.append)
+                           warn=warnings.append, grip=False)  # estimate needs no grip
         m = trial.meta
         responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
                                    source=source.label)
