@@ -41,9 +41,9 @@ from matplotlib import patheffects
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
-from matplotlib.lines import Line2D
+from matplotlib.lines import TICKDOWN, TICKUP, Line2D
 from matplotlib.patches import Patch
-from matplotlib.ticker import FuncFormatter, Locator
+from matplotlib.ticker import FuncFormatter, Locator, NullLocator
 
 from armfit.errors import BadInputError, UsageError
 from armfit.io.artifacts import model_from_params
@@ -441,6 +441,55 @@ def _grid(nrows: int, ncols: int, *, legend_rows: int = 1) -> tuple[Figure, np.n
     return fig, axs
 
 
+def _minor_ticks_as_lines(fig: Figure) -> None:
+    """Draw the minor ticks and grid lines of log frequency axes as two artists per axes.
+
+    Matplotlib keeps a tick object (two marks, a grid line, two labels) per minor tick and
+    updates each of them some twenty times while laying out and drawing a figure; a log
+    axis over 0.1-30 Hz has twenty. Where the view spans more than a decade the minor
+    ticks carry no labels, so the same marks and grid lines are drawn here as one
+    Line2D of tick markers and one of NaN-separated grid lines, at the locations the
+    axis's own minor locator gives for the final view, with the rc tick and grid style,
+    at the axis's zorder. Call it when every artist is in place (the view is final).
+    """
+    rc = mpl.rcParams
+    marker = {"out": TICKDOWN, "in": TICKUP}.get(rc["xtick.direction"])
+    bottom = rc["xtick.bottom"] and rc["xtick.minor.bottom"]
+    top = rc["xtick.top"] and rc["xtick.minor.top"]
+    if marker is None or not bottom or top:
+        return
+    done: dict = {}
+    for ax in fig.axes:
+        if ax.get_xscale() != "log" or not rc["axes.grid"] or \
+                rc["axes.grid.which"] not in ("both", "minor") or \
+                rc["axes.grid.axis"] not in ("both", "x"):
+            continue
+        view = ax.get_xlim()  # autoscaled to the data: final
+        lo, hi = sorted(view)
+        if not (lo > 0 and hi > 10.0 * lo):
+            continue  # within a decade the minor ticks are labelled: leave them
+        locs = np.asarray(ax.xaxis.get_minorticklocs(), dtype=float)
+        locs = locs[(locs >= lo) & (locs <= hi)]
+        z = ax.xaxis.get_zorder()
+        gx = np.repeat(locs, 3)
+        gx[2::3] = np.nan
+        gy = np.tile([0.0, 1.0, np.nan], locs.size)
+        ax.add_line(Line2D(gx, gy, transform=ax.get_xaxis_transform(which="grid"),
+                           color=rc["grid.color"], linestyle=rc["grid.linestyle"],
+                           linewidth=rc["grid.linewidth"], alpha=rc["grid.alpha"],
+                           zorder=z, gid="minor-grid"))
+        ax.add_line(Line2D(locs, np.zeros(locs.size), linestyle="none", marker=marker,
+                           markersize=rc["xtick.minor.size"],
+                           markeredgewidth=rc["xtick.minor.width"],
+                           color=rc["xtick.color"], zorder=z, clip_on=False,
+                           transform=ax.get_xaxis_transform(which="tick1"),
+                           gid="minor-ticks"))
+        done[ax] = view
+    for ax, view in done.items():  # the view stays as it was, not widened by the lines
+        ax.xaxis.set_minor_locator(NullLocator())
+        ax.set_xlim(view)
+
+
 def _legend(fig: Figure, handles: list, ncol: int | None = None) -> None:
     if handles:
         fig.legend(handles=handles, loc="outside lower center",
@@ -567,6 +616,7 @@ def bode_figure(spectra: pd.DataFrame, params: pd.DataFrame | None = None, *,
     axs[1, 0].set_ylabel(PHASE_LABEL)
     # One legend column per grip (mean above fit), single trials last.
     _legend(fig, [seen[k] for k in sorted(seen)], ncol=len({k[0] for k in seen}))
+    _minor_ticks_as_lines(fig)
     return fig
 
 
@@ -690,6 +740,7 @@ def residual_figure(spectra: pd.DataFrame, params: pd.DataFrame,
     axs[0, 0].set_ylabel("Magnitude residual / SE (–)")
     axs[1, 0].set_ylabel("Phase residual / SE (–)")
     _legend(fig, list(handles.values()), ncol=2)
+    _minor_ticks_as_lines(fig)
     return fig
 
 
@@ -760,6 +811,7 @@ def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
     axs[1, 0].set_ylabel(PHASE_LABEL)
     axs[2, 0].set_ylabel("Uncertainty (dB)")
     _legend(fig, list(handles.values()))
+    _minor_ticks_as_lines(fig)
     return fig
 
 
@@ -803,6 +855,7 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
     mag.set_title("Arm dynamics H_ARM = Xa/Fa")
     handles, _ = mag.get_legend_handles_labels()
     _legend(fig, handles, ncol=2)
+    _minor_ticks_as_lines(fig)
     return fig
 
 
