@@ -93,6 +93,9 @@ def _register() -> None:
     cli.add_command(fit_uncertainty.command)
     from armfit.cli import run
     cli.add_command(run.command)
+    from armfit.cli import stability
+    cli.add_command(stability.stability_command)
+    cli.add_command(stability.fit_trials_command)
     pass
 
 
