@@ -95,7 +95,7 @@ def certificate_sentences(table, summary) -> list[str]:
     """Plain sentences on the robust certificate per axis."""
     out = []
     for axis, s in summary.items():
-        if "k_robust_N_per_m" not in s:
+        if "k_robust_min_N_per_m" not in s:
             continue
         g = table[table["axis"] == axis]
         if not g["wu_t_peak_k0"].notna().any():
