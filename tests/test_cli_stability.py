@@ -152,3 +152,33 @@ def test_stability_unstable_row_warns(runner):
 def test_stability_missing_file_exit_66(tmp_path, runner):
     res = runner.invoke(cli, ["stability", str(tmp_path / "none.csv")])
     assert res.exit_code == 66
+
+
+def test_plot_stability_is_deterministic_and_marks_the_minimum(tmp_path, runner):
+    """Two runs give byte-identical PNGs; the figure's minimum line of each axis sits at
+    the smallest K_max of `armfit stability` on the same rows (Table I, defaults)."""
+    from armfit import figures
+    from armfit.io.paramsets import paper_params
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    for out in (a, b):
+        res = runner.invoke(cli, ["plot", "stability", "grip", "-o", str(out)])
+        assert res.exit_code == 0, res.output
+    assert a.read_bytes() == b.read_bytes()
+    fig = figures.stability_figure(paper_params("grip"))
+    doc = json.loads(runner.invoke(cli, ["stability", "grip", "--json"]).stdout)
+    for ax in fig.axes:
+        for line in ax.get_lines():
+            gid = line.get_gid() or ""
+            if gid.startswith("kmin:"):
+                axis = gid.split(":")[1]
+                assert line.get_ydata()[0] * 1e3 == pytest.approx(
+                    doc["axes"][axis]["k_max_min_N_per_m"])
+    sweeps = [ln for ax in fig.axes for ln in ax.get_lines()
+              if (ln.get_gid() or "").startswith("sweep-min:x:d1")]
+    assert len(sweeps) == 1
+    # at 1 kHz (on the sweep grid: 250 Hz in half-octave steps) the d = 1 minimum equals
+    # the population minimum of the top row
+    x, y = sweeps[0].get_data()
+    i = int(np.argmin(np.abs(np.asarray(x) - 1000.0)))
+    assert x[i] == pytest.approx(1000.0) and y[i] * 1e3 == pytest.approx(
+        doc["axes"]["x"]["k_max_min_N_per_m"], rel=1e-9)
