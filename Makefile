@@ -1,15 +1,21 @@
 # armfit — set-up, demo and tests. `make demo` and `make test` are all a new machine needs.
+#
+# The virtual environment .venv gets the locked, tested versions of requirements.lock;
+# `make lock` regenerates that file from a clean environment (see the README's developer
+# section). `make test-latest` and `make test-oldest` run the suite against the newest
+# versions pyproject.toml allows and against its lower bounds, each in its own venv.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+PIP    := python -m pip install --quiet --disable-pip-version-check
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench clean lock test-latest test-oldest
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/$(PIP) -r requirements.lock
+	$(BIN)/$(PIP) --no-deps -e .
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -25,5 +31,29 @@ lint: $(STAMP)
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
 
+# Regenerate requirements.lock: newest versions pyproject.toml allows, resolved by pip in
+# a clean venv, frozen with exact versions. Run `make test` (and commit) afterwards.
+lock:
+	rm -rf .venv-lock && $(PYTHON) -m venv .venv-lock
+	.venv-lock/bin/$(PIP) '.[dev]'
+	{ echo "# Exact versions the test suite is green with. Regenerate: make lock"; \
+	  .venv-lock/bin/python -m pip freeze --exclude armfit; } > requirements.lock
+	rm -rf .venv-lock
+
+# The newest versions pyproject.toml allows (no lock).
+test-latest:
+	rm -rf .venv-latest && $(PYTHON) -m venv .venv-latest
+	.venv-latest/bin/$(PIP) --upgrade -e '.[dev]'
+	.venv-latest/bin/python -m pip freeze --exclude armfit
+	.venv-latest/bin/python -m pytest -q -p no:cacheprovider
+
+# The lower bounds of pyproject.toml (every `name>=X` installed as `name==X`).
+test-oldest:
+	rm -rf .venv-oldest && $(PYTHON) -m venv .venv-oldest
+	$(PYTHON) .ci/lower-bounds.py pyproject.toml > .venv-oldest/constraints.txt
+	.venv-oldest/bin/$(PIP) -c .venv-oldest/constraints.txt -e '.[dev]'
+	.venv-oldest/bin/python -m pip freeze --exclude armfit
+	.venv-oldest/bin/python -m pytest -q -p no:cacheprovider
+
 clean:
-	rm -rf out build *.egg-info .pytest_cache
+	rm -rf out build *.egg-info .pytest_cache .venv-lock .venv-latest .venv-oldest

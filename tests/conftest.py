@@ -90,3 +90,21 @@ def make_columns() -> Callable[..., dict[str, np.ndarray]]:
 def runner() -> CliRunner:
     """A click CliRunner; stderr is kept apart from stdout (``result.stderr``)."""
     return CliRunner()
+
+
+@pytest.fixture
+def solver_stops_at_budget(monkeypatch):
+    """Every least-squares solve reports that it ran out of evaluations (status 0), as
+    scipy.optimize.least_squares does when max_nfev is reached: an injected solver result,
+    so the test does not depend on how many evaluations a scipy release needs."""
+    from armfit import fitting
+
+    real = fitting.optimize.least_squares
+
+    def stopped(*args, **kwargs):
+        res = real(*args, **kwargs)
+        res.status, res.success = 0, False
+        res.message = "The maximum number of function evaluations is exceeded."
+        return res
+
+    monkeypatch.setattr(fitting.optimize, "least_squares", stopped)
