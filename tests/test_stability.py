@@ -281,3 +281,18 @@ def test_expm_batch_matches_scipy():
     for i in range(12):
         ref = linalg.expm(M[i])
         assert np.max(np.abs(got[i] - ref)) <= 1e-12 * np.max(np.abs(ref))
+
+
+def test_reflex_at_null_gain_gives_the_base_k_max():
+    """The reflex (through its Padé approximant) at its null gain 0.01 N/m, τ = 40 ms,
+    changes Table II's X K_max (3.62 kN/m) by less than 0.01 %: the term is 10⁻⁴ of the
+    arm's smallest stiffness; a strong reflex (1000 N/m, τ = 5 ms, where the Padé
+    approximant is exact to 0.1°) makes the arm itself unstable: K_max = 0."""
+    model = ClosedLoopModel.for_axis("x", [get_effect("reflex")])
+    base = wall_stability([plant_from_model(*TABLE2["x"])], WallSettings())[0]
+    theta = {**TABLE2["x"][1], "reflex.gain_N_per_m": 0.01, "reflex.delay_s": 0.04}
+    got = wall_stability([plant_from_model(model, theta)], WallSettings())[0]
+    assert got.k_max_N_per_m == pytest.approx(base.k_max_N_per_m, rel=1e-4)
+    theta.update({"reflex.gain_N_per_m": 1000.0, "reflex.delay_s": 0.005})
+    strong = wall_stability([plant_from_model(model, theta)], WallSettings())[0]
+    assert strong.unstable_at_zero and strong.k_max_N_per_m == 0.0
