@@ -859,8 +859,102 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
     return fig
 
 
+
+# ---------------------------------------------------------------------------
+# Stability of a virtual wall: K_max per subject and grip, and against the servo rate
+# ---------------------------------------------------------------------------
+
+#: Servo rates (Hz) of the K_max sweep: 250 Hz to 8 kHz in half-octave steps (so 500 Hz,
+#: 1, 2 and 4 kHz are on it), and 10 kHz.
+SWEEP_RATES_HZ = tuple(250.0 * 2.0 ** (k / 2) for k in range(11)) + (1.0e4,)
+#: Computation delays (samples) of the sweep.
+SWEEP_DELAYS = (0, 1, 2)
+_DELAY_COLOURS = ("black", "#CC79A7", "#56B4E9")  # apart from the grip colours
+
+
+@_styled
+def stability_figure(params: pd.DataFrame, settings=None, *,
+                     rates_hz: Sequence[float] = SWEEP_RATES_HZ,
+                     delays: Sequence[int] = SWEEP_DELAYS) -> Figure:
+    """The stiffest stable virtual wall per arm model, and its sensitivity to T and d.
+
+    Top row, per axis: K_max (kN/m, :func:`armfit.stability.stability_table` at
+    ``settings``, default T = 1 ms, B = 0, d = 1) of each row of ``params`` (any
+    parameters table: per-trial fits with ``subject``, grip or nominal fits), one column
+    per subject (or per row), coloured by grip, with the population minimum as a dashed
+    line. Bottom row: K_max against servo rate 1/T (``rates_hz``, log-log) for each
+    delay d in ``delays`` — the minimum over the rows (line) and their range (band).
+    """
+    import warnings
+
+    from armfit.stability import WallSettings, k_max_sweep, plant_from_model, stability_table
+    st = WallSettings() if settings is None else settings
+    if "row" not in params.columns:
+        params = params.assign(row=np.arange(1, len(params) + 1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)   # rows unstable at K = 0: K_max 0
+        table = stability_table(params, st)
+    axes = [a for a in AXES if (table["axis"] == a).any()]
+    if not axes:
+        raise BadInputError("no model rows", column="axis")
+    fig = Figure(figsize=(PANEL_WIDTH_IN * len(axes), PANEL_HEIGHT_IN * 2 + 0.5),
+                 layout="constrained")
+    FigureCanvasAgg(fig)
+    axs = np.atleast_2d(fig.subplots(2, len(axes), squeeze=False))
+    grips = [_grip_key(g) for g in table["grip_N"]]
+    colour = _grip_colours(grips)
+    handles: dict[Any, Any] = {}
+    for j, axis in enumerate(axes):
+        top, bot = axs[0, j], axs[1, j]
+        sel = table["axis"] == axis
+        t = table[sel]
+        has_subject = t["subject"].notna().any()
+        labels = sorted(t["subject"].dropna().astype(str).unique()) if has_subject \
+            else [str(r) for r in t["row"]]
+        xpos = {lab: i for i, lab in enumerate(labels)}
+        for _, r in t.iterrows():
+            g = _grip_key(r["grip_N"])
+            x = xpos[str(r["subject"])] if has_subject else xpos[str(r["row"])]
+            top.plot([x], [r["k_max_N_per_m"] / 1e3], ls="none", marker="o", ms=3.5,
+                     color=colour.get(g, "black"),
+                     gid=f"kmax:{axis}:row{int(r['row'])}")
+            handles.setdefault((_order(g), 0), Line2D(
+                [], [], ls="none", marker="o", ms=3.5, color=colour.get(g, "black"),
+                label=_grip_text(g) if g is not None else "model"))
+        kmin = float(t["k_max_N_per_m"].min())
+        top.axhline(kmin / 1e3, color="0.3", ls="--", lw=0.8, gid=f"kmin:{axis}")
+        top.annotate(f"min {kmin / 1e3:.3g} kN/m", (0.02, 0.04), xycoords="axes fraction",
+                     fontsize=6)
+        top.set_xticks(range(len(labels)), labels, rotation=90 if len(labels) > 6 else 0)
+        top.set_xlim(-0.6, len(labels) - 0.4)
+        top.set_title(AXIS_TITLES[axis])
+        top.set_xlabel("Subject" if has_subject else "Row")
+        rows = params[sel.to_numpy()]
+        plants = [plant_from_model(*model_from_row(r)) for _, r in rows.iterrows()]
+        sweep = k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m)
+        for i, d in enumerate(delays):
+            col = _DELAY_COLOURS[i % len(_DELAY_COLOURS)]
+            lo, hi = sweep[i].min(axis=1) / 1e3, sweep[i].max(axis=1) / 1e3
+            bot.fill_between(rates_hz, lo, hi, color=col, alpha=0.2, lw=0,
+                             gid=f"sweep-range:{axis}:d{d}")
+            bot.plot(rates_hz, lo, color=col, lw=1.2, marker=".", ms=2.5,
+                     gid=f"sweep-min:{axis}:d{d}")
+            handles.setdefault((math.inf, 1, d), Line2D([], [], color=col, lw=1.2,
+                                                        label=f"d = {d}: minimum (band: range)"))
+        bot.set_xscale("log")
+        bot.set_yscale("log")
+        bot.axvline(1.0 / st.sample_time_s, color="0.5", ls=":", lw=0.8)
+        bot.set_xlabel("Servo rate 1/T (Hz)")
+    axs[0, 0].set_ylabel("K_max (kN/m)")
+    axs[1, 0].set_ylabel("K_max (kN/m)")
+    fig.suptitle(f"Stiffest stable wall: T = {st.sample_time_s * 1e3:g} ms, "
+                 f"B = {st.damping_Ns_per_m:g} N·s/m, d = {st.delay_samples}", fontsize=8)
+    _legend(fig, [handles[k] for k in sorted(handles, key=lambda k: (k[0], k[1], k[2:]))],
+            ncol=min(len(handles), 4))
+    return fig
+
 __all__ = [
     "FORMATS", "Residuals", "bode_figure", "figure_format",
     "literature_figure", "model_from_row", "normalised_residuals", "residual_figure",
-    "save_figure", "uncertainty_figure",
+    "save_figure", "stability_figure", "uncertainty_figure",
 ]

@@ -112,6 +112,8 @@ def _register() -> None:
         "diagnose": "armfit.cli.diagnose:diagnose_command",
         "fit-uncertainty": "armfit.cli.fit_uncertainty:command",
         "run": "armfit.cli.run:command",
+        "stability": "armfit.cli.stability:stability_command",
+        "fit-trials": "armfit.cli.stability:fit_trials_command",
     })
 
 
