@@ -20,6 +20,7 @@ Equations cited are those of Fu & Çavuşoğlu, ICRA 2010 (see docs/methods.md).
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import sys
@@ -30,7 +31,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from armfit import figures
 from armfit import fitting as _fitting
 from armfit import uncertainty as _uncertainty
 from armfit.constants import AXES
@@ -44,14 +44,23 @@ from armfit.io.rawwrite import trial_filename, write_trial
 from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
 from armfit.io.trials import Skipped, Trial, open_trials, write_dataset
 from armfit.models.effects import Effect, get_effect
-from armfit.models.params import read_params
+from armfit.models.params import model_from_params, read_params
+from armfit.paramsets import read_param_rows
+from armfit.paramsets import read_weights as read_param_weights
 from armfit.simulate import StudyConfig, plan_study, simulate_trial, truth_dict
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimate_study, estimate_trials
+from armfit.stability import WallSettings, axis_summary, stability_table
 from armfit.tables import caption_for, latex_table, wu_latex
 from armfit.uncertainty import AxisUncertainty, WuWeight, read_wu
 
 PathLike = str | os.PathLike
 Warn = Callable[[str], object]
+
+
+def _figures():
+    """:mod:`armfit.figures`, imported on first use: matplotlib takes a while to load, and
+    only the ``plot`` methods need it."""
+    return importlib.import_module("armfit.figures")
 
 
 def _effects(effects: Iterable[Effect | str] | None) -> list[Effect]:
@@ -319,10 +328,10 @@ class ModelFit:
             if self.spectra is None:
                 raise UsageError("this model holds no spectra to draw; use "
                                  "armfit.figures.bode_figure(spectra, model.table)")
-            return figures.bode_figure(self.spectra, self.table)
+            return _figures().bode_figure(self.spectra, self.table)
         f = np.geomspace(0.1, 30.0, 400)
         for _, row in self.table.iterrows():
-            model, theta = figures.model_from_row(row)
+            model, theta = model_from_params(row)
             grip = f" {float(row['grip_N']):g} N" if "grip_N" in row else ""
             ax.plot(f, 20 * np.log10(np.abs(model.response(f, theta))), ls="--",
                     label=f"{row['axis']}{grip}")
@@ -407,10 +416,6 @@ def read_model(path: PathLike) -> ModelFit:
     return ModelFit.read(path)
 
 
-# Per-trial fits (``armfit fit-trials``) join here as ``fit_trials`` returning a ModelFit
-# with one row per trial, once that command is part of the package.
-
-
 # ---------------------------------------------------------------------------
 # Uncertainty weights (Table III)
 # ---------------------------------------------------------------------------
@@ -472,7 +477,7 @@ class Uncertainty:
         """The paper's Fig. 6 (derived dynamics, nominal H_ARM, W_max and |Wu|); with
         ``ax``, W_max (dots) and |Wu| (lines) in dB drawn on it."""
         if ax is None:
-                return figures.uncertainty_figure(self.spectra, self.nominal.table, self.weights)
+                return _figures().uncertainty_figure(self.spectra, self.nominal.table, self.weights)
         for r in self.axes:
             ax.plot(r.f_hz, 20 * np.log10(r.wmax_raw), ".", ms=2, label=f"W_max {r.axis}")
             ax.plot(r.f_hz, r.result.weight.magnitude_db(r.f_hz), label=f"|Wu| {r.axis}")
@@ -678,7 +683,7 @@ class Diagnosis:
         error per failing band drawn as spans on it."""
         bands = {d.axis: [(fb.lo_hz, fb.hi_hz) for fb in d.failing] for d in self.axes}
         if ax is None:
-                return figures.residual_figure(self.spectra, self.model.table, bands=bands)
+                return _figures().residual_figure(self.spectra, self.model.table, bands=bands)
         for axis, spans in bands.items():
             for lo, hi in spans:
                 ax.axvspan(lo, hi, alpha=0.2, label=f"{axis} fails")
@@ -724,8 +729,169 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
     return Diagnosis(tuple(results), sp, m)
 
 
-# Stability (``armfit stability``) joins here as ``stability`` once that stage is part of
-# the package.
+# ---------------------------------------------------------------------------
+# Per-trial fits and the stiffest stable virtual wall
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class TrialFits:
+    """One fit of H_CL (eq. 4) per trial (``armfit fit-trials``).
+
+    Attributes
+    ----------
+    fits : tuple of armfit.fitting.TrialFit
+        Per trial (axis, subject, grip, run order): its FitResult, or None and the reason
+        the fit failed.
+    effects : tuple of Effect
+        The effects in the model.
+    spectra : Spectra or None
+        What was fitted.
+    """
+
+    fits: tuple
+    effects: tuple = ()
+    spectra: Spectra | None = None
+
+    @property
+    def failed(self) -> list[tuple[str, str, float, int | None, str]]:
+        """(axis, subject, grip_N, run, reason) of every trial whose fit failed."""
+        return [(t.axis, t.subject, t.grip_N, t.run, t.reason) for t in self.fits
+                if t.fit is None]
+
+    def to_frame(self) -> pd.DataFrame:
+        """The table ``armfit fit-trials`` writes: the params-file columns with ``subject``
+        (and ``run``) after ``grip_N`` and a last column ``reason``."""
+        return _fitting.trial_fits_table(list(self.fits), self.effects)
+
+    def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
+        """Write :meth:`to_frame` as CSV (the file of ``armfit fit-trials``), atomically."""
+        write_params(self.to_frame(), path, overwrite=overwrite)
+        return Path(path)
+
+
+def fit_trials(spectra, *, cost: str = "complex",
+               bands: Mapping[str, tuple[float, float]] | None = None,
+               effects: Iterable[Effect | str] = (), method: str | None = None,
+               max_nfev: int | None = None, jobs: int = 1,
+               on_fit: Callable | None = None) -> TrialFits:
+    """Fit H_CL (eq. 4) to every trial's measured response (``armfit fit-trials``): the
+    population of arms that :func:`stability` takes.
+
+    Parameters
+    ----------
+    spectra : Spectra or path
+    cost, bands, effects, method, max_nfev
+        As :func:`fit_grip`.
+    jobs : int
+        Worker processes; the result does not depend on it.
+    on_fit : callable, optional
+        Called with each :class:`armfit.fitting.TrialFit`.
+
+    Returns
+    -------
+    TrialFits
+        A failed fit is kept with its reason, not raised.
+    """
+    sp = _spectra(spectra)
+    objs = tuple(_effects(effects))
+    fits = _fitting.fit_trials(sp, cost=cost, bands=bands, effects=objs, method=method,
+                               max_nfev=max_nfev, jobs=jobs, on_fit=on_fit)
+    return TrialFits(tuple(fits), objs, sp)
+
+
+@dataclass(frozen=True, eq=False)
+class Stability:
+    """The stiffest virtual wall a sampled haptic device renders stably with each arm
+    model (``armfit stability``).
+
+    Attributes
+    ----------
+    table : pandas.DataFrame
+        One row per model: K_max (N/m), the frequency where the loop first goes unstable,
+        and with weights the robust certificate (columns of
+        :data:`armfit.stability.STABILITY_COLUMNS`).
+    settings : armfit.stability.WallSettings
+        Servo period (s), virtual damping (N·s/m), computation delay (samples).
+    models : pandas.DataFrame
+        The parameter rows analysed (for :meth:`plot`).
+    """
+
+    table: pd.DataFrame
+    settings: object
+    models: pd.DataFrame
+
+    def summary(self) -> dict[str, dict]:
+        """Per axis: minimum, median and 5th percentile of K_max (N/m), and what limits it."""
+        return axis_summary(self.table)
+
+    def to_frame(self) -> pd.DataFrame:
+        """The table (a copy): the rows of the CSV ``write`` writes."""
+        return self.table.copy()
+
+    def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
+        """Write the table as CSV (``armfit stability -o``), atomically."""
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            self.table.to_csv(tmp, index=False, float_format="%.10g")
+        return Path(path)
+
+    def plot(self, ax=None):
+        """K_max per model and against servo rate (:func:`armfit.figures.stability_figure`);
+        with ``ax``, K_max (kN/m) of each model drawn as points on it."""
+        if ax is None:
+            return _figures().stability_figure(self.models, self.settings)
+        k = self.table["k_max_N_per_m"].to_numpy(float) / 1e3
+        ax.plot(np.arange(k.size), k, "o")
+        ax.set_ylabel("K_max (kN/m)")
+        return ax
+
+
+def stability(model, *, weights=None, sample_time_s: float | None = None,
+              damping_Ns_per_m: float | None = None,
+              delay_samples: int | None = None) -> Stability:
+    """K_max: the stiffest virtual wall F[k] = −(K x[k−d] + B (x[k−d] − x[k−d−1])/T), held
+    by a zero-order hold, that a device sampling every T renders stably with each arm
+    model (exact discretisation of eq. 4) (``armfit stability``).
+
+    Parameters
+    ----------
+    model : ModelFit, TrialFits, DataFrame, path or str
+        The arm models: fits, a params file, or a paper table by name ('nominal',
+        'grip').
+    weights : Uncertainty, dict or path, optional
+        Uncertainty weights Wu for the robust certificate (a fit, {axis: WuWeight}, a Wu
+        CSV or 'paper' for Table III).
+    sample_time_s, damping_Ns_per_m, delay_samples : optional
+        The wall (default 1 ms, 0 N·s/m, 1 sample).
+
+    Returns
+    -------
+    Stability
+    """
+    kw = {k: v for k, v in (("sample_time_s", sample_time_s),
+                            ("damping_Ns_per_m", damping_Ns_per_m),
+                            ("delay_samples", delay_samples)) if v is not None}
+    settings = WallSettings(**kw)
+    if isinstance(model, ModelFit):
+        rows, label = model.table, model.source
+    elif isinstance(model, TrialFits):
+        rows, label = model.to_frame(), None
+        rows = rows[rows["converged"].astype(bool)]
+    elif isinstance(model, pd.DataFrame):
+        rows, label = model, None
+    else:
+        pr = read_param_rows(str(model))
+        rows, label = pr.table, pr.label
+    w = bands = None
+    if isinstance(weights, Uncertainty):
+        w = weights.weights
+        bands = {r.axis: tuple(r.band_hz) for r in weights.axes}
+    elif isinstance(weights, Mapping):
+        w = dict(weights)
+    elif weights is not None:
+        w, bands, _ = read_param_weights(str(weights))
+    table = stability_table(rows, settings, weights=w, weights_band_hz=bands,
+                                       source=label)
+    return Stability(table, settings, rows)
 
 
 # ---------------------------------------------------------------------------
@@ -806,9 +972,10 @@ def simulate(config: StudyConfig | None = None, **settings) -> Simulation:
 
 __all__ = [
     "AXES", "Comparisons", "Diagnosis", "ModelFit", "Simulation", "Spectra", "Trials",
-    "Uncertainty", "compare", "compare_frame", "diagnose", "estimate", "estimate_config",
-    "estimate_study_result", "fit_grip", "fit_nominal", "fit_uncertainty", "read_model",
-    "read_spectra", "read_trials", "read_weights", "simulate",
+    "Uncertainty", "Stability", "TrialFits", "compare", "compare_frame", "diagnose",
+    "estimate", "estimate_config", "estimate_study_result", "fit_grip", "fit_nominal",
+    "fit_trials", "fit_uncertainty", "read_model", "read_spectra", "read_trials",
+    "read_weights", "simulate", "stability",
 ]
 
 

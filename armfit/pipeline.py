@@ -16,6 +16,10 @@ subcommand, run in the order data flows (files written into OUTDIR in brackets):
   (nominal_params_<effect>.csv);
 - compare: :func:`armfit.compare` of each nominal model with the medians (compare.csv);
 - residuals: :func:`armfit.figures.residual_figure` per axis (figures/residual_<axis>.png);
+- fit-trials: :func:`armfit.fitting.fit_trials`, one fit per trial (trial_params.csv);
+- stability: :func:`armfit.stability.stability_table` of the per-trial fits at the
+  defaults (stability.csv), the certificate of the nominal models against Wu, and
+  :func:`armfit.figures.stability_figure` (figures/stability.png);
 - report: :func:`report_markdown` (report.md), from the stages' typed results and the
   configuration they used.
 
@@ -33,6 +37,7 @@ import json
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -48,11 +53,15 @@ from armfit.api import compare_frame
 from armfit.constants import AXES, PAPER_BANDS
 from armfit.diagnose import BANDS, diagnose
 from armfit.errors import ArmfitError, OutputError
+from armfit.fitting import fit_trials, trial_fits_table
+from armfit.io.artifacts import write_params
 from armfit.io.atomic import atomic_path, check_output, write_text_atomic
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import ingest
 from armfit.models.effects import get_effect
+from armfit.paramsets import read_param_rows
 from armfit.spectra import EstimateConfig, Spectra
+from armfit.stability import WallSettings, axis_summary, stability_table
 from armfit.tables import param_names, sig4, unit_of
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
@@ -274,6 +283,8 @@ class _Context:
     refitted: dict[str, tuple[str, ...]] = field(default_factory=dict)
     extended: dict[str, api.ModelFit] = field(default_factory=dict)
     comparisons: api.Comparisons | None = None
+    trial_failed: list[tuple[str, str]] = field(default_factory=list)
+    wall: dict | None = None            # the stability stage's results, for the report
     since: float | None = None          # start of a stage that ran alongside others
 
     def path(self, name: str) -> Path:
@@ -412,6 +423,49 @@ def _report(ctx: _Context) -> str:
     return "report.md"
 
 
+def _fit_trials(ctx: _Context) -> str:
+    """One fit per trial (trial_params.csv): the population the stability stage uses."""
+    fits = fit_trials(ctx.spectra, cost=ctx.options.cost, jobs=ctx.options.jobs,
+                      source="spectra.parquet")
+    write_params(trial_fits_table(fits), ctx.path("trial_params.csv"))
+    ctx.trial_failed = [(f"{t.axis} {t.subject} {t.grip_N:g} N", t.reason) for t in fits
+                        if t.fit is None]
+    return f"{len(fits) - len(ctx.trial_failed)} trial fit(s)" + (
+        f", {len(ctx.trial_failed)} failed" if ctx.trial_failed else "")
+
+
+def _stability(ctx: _Context) -> str:
+    """The stiffest stable virtual wall of every trial's fit at the defaults
+    (stability.csv), the certificate of the nominal models against the fitted Wu, and
+    the stability figure."""
+    settings = WallSettings()
+    rows = read_param_rows(str(ctx.folder / "trial_params.csv"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        table = stability_table(rows.table, settings, source="trial_params.csv")
+    text = table.to_csv(index=False, float_format="%.10g", lineterminator="\n")
+    write_text_atomic(ctx.path("stability.csv"), text)
+    summary = axis_summary(table)
+    wu_summary = ctx.uncertainty.summary()
+    bands = {}
+    for _, r in wu_summary[(wu_summary["weight"] == "fitted")
+                           & (wu_summary["target"] == "wmax")].iterrows():
+        bands[r["axis"]] = (float(r["band_lo_hz"]), float(r["band_hi_hz"]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        cert = stability_table(ctx.nominal.table, settings, weights=ctx.uncertainty.weights,
+                               weights_band_hz=bands)
+    figure = None
+    if ctx.options.figures:
+        figure = _save(ctx.folder, F.stability_figure(rows.table, settings), STABILITY_FIGURE)
+        ctx.drawn.append(figure)
+    ctx.wall = {"settings": settings, "summary": summary, "failed": ctx.trial_failed,
+                "certificate": cert, "warnings": [str(w.message) for w in caught],
+                "figure": figure, "n_models": len(table)}
+    return "; ".join(f"{a}: K_max min {s['k_max_min_N_per_m'] / 1e3:.3g} kN/m"
+                     for a, s in summary.items()) + (f"; {figure}" if figure else "")
+
+
 #: The stages of ``armfit run``, in the order they run; names as reported (:data:`STAGES`).
 PIPELINE: tuple[PipelineStage, ...] = (
     PipelineStage("ingest", _ingest),
@@ -424,6 +478,8 @@ PIPELINE: tuple[PipelineStage, ...] = (
     PipelineStage("refit", _refit, lambda ctx: bool(ctx.refitted)),
     PipelineStage("compare", _compare),
     PipelineStage("residuals", _residuals, lambda ctx: ctx.options.figures),
+    PipelineStage("fit-trials", _fit_trials),
+    PipelineStage("stability", _stability),
     PipelineStage("report", _report),
 )
 
@@ -659,6 +715,9 @@ def report_markdown(run: _Context) -> str:
                     + [cells.get(b, "–") for b in bands])
     L += _md_table(header, rows)
 
+    if run.wall is not None:
+        L += stability_markdown(run.wall)
+
     if figures:
         L += ["## Figures", ""]
         captions = {
@@ -668,6 +727,8 @@ def report_markdown(run: _Context) -> str:
                                        "W_max and |Wu| (Fig. 6)",
             "figures/literature.png": "H_ARM of the X axis at 1 N grip against the "
                                       "literature models of Table IV (Fig. 7)",
+            STABILITY_FIGURE: "Stiffest stable virtual wall per subject and grip, and "
+                              "against servo rate for d = 0, 1, 2",
         }
         for f in figures:
             cap = captions.get(f)
@@ -736,3 +797,49 @@ def _warn_at_bound(which: str, model: api.ModelFit, warn: Warn | None) -> None:
             where = axis + ("" if grip is None else f" {grip:g} N")
             warn(f"fit-{which} {where}: {', '.join(fit.at_bound)} at a physical bound "
                  "(within 1 % of its range); the value is a limit, not an estimate")
+
+
+# ---------------------------------------------------------------------------
+# fit-trials and stability stages
+# ---------------------------------------------------------------------------
+
+#: The stability figure written by ``run`` (figures on), relative to OUTDIR.
+STABILITY_FIGURE = "figures/stability.png"
+
+
+def stability_markdown(wall: Mapping) -> list[str]:
+    """The report's section on the stiffest stable virtual wall (lines of Markdown)."""
+    st = wall["settings"]
+    rate = 1.0 / st.sample_time_s
+    L = ["## Stiffest stable virtual wall (stability.csv)", "",
+         f"One fit per trial (`trial_params.csv`, {wall['n_models']} fitted), then K_max: "
+         f"the largest wall stiffness K for which the sampled loop F[k] = −(K x[k−d] + "
+         f"B (x[k−d] − x[k−d−1])/T) with each arm is stable for every K′ ≤ K (exact "
+         f"zero-order-hold discretisation; see `armfit stability`). Defaults: "
+         f"{rate:g} Hz servo, B = {st.damping_Ns_per_m:g} N·s/m, d = {st.delay_samples} "
+         "sample(s).", ""]
+    for axis, s in wall["summary"].items():
+        L.append(f"- A {rate / 1e3:g} kHz device with {st.delay_samples} sample(s) of delay "
+                 f"renders walls up to {s['k_max_min_N_per_m'] / 1e3:.3g} kN/m on "
+                 f"{axis.upper()} for every subject and grip ({s['n_models']} trials; "
+                 f"limited by {s['limiting']}); median {s['k_max_median_N_per_m'] / 1e3:.3g}"
+                 f" kN/m, 5th percentile {s['k_max_p05_N_per_m'] / 1e3:.3g} kN/m.")
+    L.append("")
+    for who, why in wall["failed"]:
+        L.append(f"- Trial {who} has no fit ({why}) and is not in the population.")
+    for text in wall["warnings"]:
+        L.append(f"- Warning: {text}.")
+    cert = wall["certificate"]
+    if "k_robust_N_per_m" in cert.columns:
+        L += ["", "Robust certificate of the nominal models against the fitted Wu "
+              "(max |Wu T| < 1, T the complementary sensitivity seen by the arm's "
+              "multiplicative uncertainty):", ""]
+        for _, r in cert.iterrows():
+            if math.isfinite(r["k_robust_N_per_m"]):
+                L.append(f"- {r['axis'].upper()}: holds for K up to "
+                         f"{r['k_robust_N_per_m'] / 1e3:.3g} kN/m (peak at K = 0: "
+                         f"{r['wu_t_peak_k0']:.2f}).")
+            else:
+                L.append(f"- {r['axis'].upper()}: holds for no K at all (max |Wu T| is "
+                         f"{r['wu_t_peak_k0']:.2f} > 1 already at K = 0).")
+    return L + [""]

@@ -1344,20 +1344,21 @@ class Spectra:
         cols: dict[str, object] = {}
         for c in SPECTRA_COLUMNS:
             if c in self.keys:
-                cols[c] = np.repeat(np.array(list(self.keys[c]), dtype=object), sizes)
+                col = np.repeat(np.array(list(self.keys[c]), dtype=object), sizes)
             elif c == "freq_hz":
-                cols[c] = f
+                col = f
             elif c == "re":
-                cols[c] = self.h.real[self.present]
+                col = self.h.real[self.present]
             elif c == "im":
-                cols[c] = self.h.imag[self.present]
+                col = self.h.imag[self.present]
             elif c == "flags":
-                cols[c] = self.flags[self.present]
+                col = self.flags[self.present]
             else:
-                cols[c] = self.values[c][self.present]
-        df = pd.DataFrame(cols, columns=list(SPECTRA_COLUMNS))
-        for c in SPECTRA_TEXT:
-            df[c] = df[c].astype("string")
+                col = self.values[c][self.present]
+            cols[c] = pd.array(col, dtype="string") if c in SPECTRA_TEXT else col
+        # the columns are fresh arrays: the frame takes them without another copy
+        df = pd.DataFrame(cols, columns=list(SPECTRA_COLUMNS), copy=False)
+        del cols
         df["grip_N"] = df["grip_N"].astype(float)
         df["run"] = pd.array([None if v is None or v != v else int(v) for v in df["run"]],
                              dtype="Int64")
@@ -1569,7 +1570,7 @@ def _estimate_source(source, config: EstimateConfig):
     warnings: list[str] = []
     try:
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
-                           warn=warnings.append)
+                           warn=warnings.append, grip=False)  # estimate needs no grip
         m = trial.meta
         responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
                                    source=source.label)

@@ -11,7 +11,7 @@ from typing import Any, TypeVar
 import click
 
 from armfit.constants import AXES
-from armfit.errors import ArmfitError, UsageError
+from armfit.errors import UsageError
 from armfit.io.schema import finite_or_none, json_default
 from armfit.models.effects import EFFECTS, load_effect_files
 
@@ -36,27 +36,6 @@ jobs_option = click.option(
 effect_option = click.option(
     "--effect", "effects", multiple=True, metavar="NAME",
     help="Add a physical effect to the model (repeatable; see `armfit effects`).")
-
-
-#: The flag of each library option named in an error message (see
-#: :meth:`armfit.errors.ArmfitError.with_option`).
-FLAGS: dict[str, str] = {
-    "overwrite": "--overwrite", "method": "--method", "n_boot": "--bootstrap",
-    "level": "--level", "fmin": "--fmin", "fmax": "--fmax", "nperseg": "--nperseg",
-    "n_pairs": "--order", "order": "--order", "band": "--band", "effects": "--effect",
-    "smooth_oct": "--smooth", "grips_N": "--grips", "duration_s": "--duration",
-    "noise_m": "--noise", "drift_m": "--drift", "quantum_m": "--quantum",
-}
-
-
-def flag(name: str) -> str:
-    """The command-line flag of the library option ``name``."""
-    return FLAGS.get(name, f"--{name.replace('_', '-')}")
-
-
-def cli_message(exc: ArmfitError) -> str:
-    """The message of ``exc`` with every option named by its command-line flag."""
-    return exc.render(lambda name, python: flag(name))
 
 
 # ---------------------------------------------------------------------------
