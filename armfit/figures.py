@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -52,6 +53,7 @@ from armfit.models.arm import ClosedLoopModel
 from armfit.models.literature import LiteratureModel, literature_models
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
+from armfit.stability import WallSettings, k_max_sweep, plant_from_model, stability_table
 from armfit.uncertainty import WuWeight, w_max
 
 # fontTools, which subsets fonts for PDF output, logs every table it prunes at INFO.
@@ -889,9 +891,6 @@ def stability_figure(params: pd.DataFrame, settings=None, *,
     line. Bottom row: K_max against servo rate 1/T (``rates_hz``, log-log) for each
     delay d in ``delays`` — the minimum over the rows (line) and their range (band).
     """
-    import warnings
-
-    from armfit.stability import WallSettings, k_max_sweep, plant_from_model, stability_table
     st = WallSettings() if settings is None else settings
     if "row" not in params.columns:
         params = params.assign(row=np.arange(1, len(params) + 1))

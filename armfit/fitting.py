@@ -68,6 +68,7 @@ from scipy.stats import qmc
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import params_frame
+from armfit.io.schema import params_columns
 from armfit.models.arm import ClosedLoopModel, at_bound, laplace
 from armfit.spectra import Spectra, aggregate
 
@@ -907,7 +908,6 @@ def trial_fits_table(fits: Sequence[TrialFit], effects: Sequence = ()):
     reason, with empty parameters and ``converged`` false)."""
     import pandas as pd
 
-    from armfit.io.schema import params_columns
     names = ClosedLoopModel.for_axis("x", effects).param_names
     cols = params_columns(names, grip=True)
     cols = cols[:1] + ["subject"] + cols[1:2] + ["run"] + cols[2:] + ["reason"]

@@ -46,10 +46,13 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 from scipy import linalg
 
 from armfit.errors import UsageError
 from armfit.models.arm import ClosedLoopModel
+from armfit.models.params import model_from_params
+from armfit.uncertainty import PAPER_BAND_HZ
 
 #: Defaults of the wall: a 1 kHz servo, no virtual damping, one sample of delay.
 DEFAULT_SAMPLE_TIME_S = 1.0e-3
@@ -595,10 +598,6 @@ def stability_table(params, settings: WallSettings, *, weights=None,
     gets K_max = 0 and a ``RuntimeWarning`` naming it. Returns a DataFrame with
     :data:`STABILITY_COLUMNS` (the certificate columns only with weights).
     """
-    import pandas as pd
-
-    from armfit.models.params import model_from_params
-    from armfit.uncertainty import PAPER_BAND_HZ
     models, plants = [], []
     for _, row in params.iterrows():
         model, theta = model_from_params(row)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from armfit.cli.options import bands_by_axis, cli_message, parse_band, parse_bands
+from armfit.cli.messages import cli_message
+from armfit.cli.options import bands_by_axis, parse_band, parse_bands
 from armfit.constants import PAPER_BANDS
 from armfit.errors import OutputError, UsageError
 

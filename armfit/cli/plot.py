@@ -16,7 +16,9 @@ from armfit.data import paper_table
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import check_output
 from armfit.models.params import read_params
+from armfit.paramsets import read_param_rows
 from armfit.spectra import Spectra
+from armfit.stability import WallSettings
 from armfit.uncertainty import read_wu
 
 from .options import (
@@ -201,8 +203,6 @@ def stability(params, sample_time, damping, delay, output, overwrite):
     PARAMS: any parameters file armfit writes (fit-trials for the population), or a
     paper table by name (nominal, grip).
     """
-    from armfit.paramsets import read_param_rows
-    from armfit.stability import WallSettings
     settings = WallSettings(sample_time, damping, delay)
     _prepare(output, overwrite, [params])
     rows = read_param_rows(params)

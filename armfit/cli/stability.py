@@ -26,13 +26,18 @@ from armfit.cli.options import (
     overwrite_option,
 )
 from armfit.constants import PAPER_BANDS
-from armfit.io.atomic import check_output
+from armfit.errors import BadInputError
+from armfit.io.atomic import atomic_path, check_output
 from armfit.models.effects import get_effect
+from armfit.paramsets import read_param_rows, read_weights
 from armfit.spectra import Spectra
 from armfit.stability import (
     DEFAULT_DAMPING_NS_PER_M,
     DEFAULT_DELAY_SAMPLES,
     DEFAULT_SAMPLE_TIME_S,
+    WallSettings,
+    axis_summary,
+    stability_table,
 )
 
 
@@ -146,9 +151,6 @@ def stability_command(params, sample_time, damping, delay, weights_path, output,
     each row, discretised exactly. Per row: K_max (N/m) and the frequency at which the
     loop first goes unstable; per axis: minimum, median and 5th percentile.
     """
-    from armfit.io.atomic import atomic_path, check_output
-    from armfit.paramsets import read_param_rows, read_weights
-    from armfit.stability import WallSettings, axis_summary, stability_table
 
     settings = WallSettings(sample_time, damping, delay)
     if output is not None:
@@ -162,7 +164,6 @@ def stability_command(params, sample_time, damping, delay, weights_path, output,
     for r, who, why in rows.skipped:
         message(f"warning: {rows.label}: row {r} ({who}) has no fit and is left out: {why}")
     if len(rows.table) == 0:
-        from armfit.errors import BadInputError
         raise BadInputError("no row with fitted parameters", file=rows.label)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
