@@ -59,7 +59,7 @@ EXPECTED: dict[str, str] = {
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
-        "b16d136190b933c181793bd311e7d9b623201dc26dc3fea1e11c9f827c7912c4",
+        "97e04742b234a01967fdc6dfb47ea6c603aec556105f95d1a70cc2c73dafe478",
     "grip.csv":
         "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
     "nominal.csv":
@@ -77,9 +77,13 @@ EXPECTED: dict[str, str] = {
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.md":
-        "c1df1ab3ebad62324f612629c5d5a78aad7cab5f18f911c518cf42348e5e033a",
+        "209ddb9cb327601144b20de9f4174e21e1f7f8d4255a55c0aad07277960bf526",
     "run/spectra.parquet":
         "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
+    "run/stability.csv":
+        "315e1a914a3f7862106cf015e1d0b451983653c08618f2b9d343ab34361c6e29",
+    "run/trial_params.csv":
+        "d0d4910b1ca4615e3a1634db0f826c942cf5980fe2919c365ee45c4d53885605",
     "run/trials.parquet":
         "f11d71fa08bdbf7aaa708763a1b50612aec51f96af640c7cc23806c513ff7855",
     "run/wu.csv":
