@@ -947,8 +947,9 @@ def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray
              band: tuple[float, float], n_params: int, min_db: float = MIN_EFFECT_DB,
              min_deg: float = MIN_EFFECT_DEG) -> Adequacy:
     """Judge ``fit`` (residuals (T, n) on ``f``) against the noise ``se_db``, ``se_deg``
-    (floored, (T, n)). Adequate when no band fails and every band's RMS normalised error
-    is at most :data:`NOISE_TOL`. A band fails (:func:`failing_bands`) where the trials'
+    (floored, (T, n)). Adequate when no band fails and every band is within the noise:
+    its RMS normalised error is at most :data:`NOISE_TOL`, or its systematic part
+    (``bias_norm``) at most 1. A band fails (:func:`failing_bands`) where the trials'
     t statistic exceeds :data:`T_FAIL` on :data:`MIN_RUN` consecutive points and the mean
     residual exceeds both one trial's noise and the practical floor ``min_db`` (dB) or
     ``min_deg`` (deg): a bias of a few hundredths of a dB is detectable with many
@@ -967,7 +968,12 @@ def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray
                                          max(lo, band[0]), min(hi, band[1]))
                               for lo, hi in BANDS if hi > band[0] and lo < band[1])
                   if b.n_points >= MIN_RUN)
-    over = tuple(b for b in bands if np.isfinite(b.rms_norm) and b.rms_norm > NOISE_TOL)
+    # a band is within the noise when its RMS normalised error is at most NOISE_TOL, or
+    # when its systematic part (bias_norm: RMS of the trials' mean normalised residual,
+    # the only part a missing effect leaves) is within one trial's noise — there the
+    # excess is noise that the standard errors underestimate, not a model error
+    over = tuple(b for b in bands if np.isfinite(b.rms_norm) and b.rms_norm > NOISE_TOL
+                 and not (np.isfinite(b.bias_norm) and b.bias_norm <= 1.0))
     z = np.concatenate([zdb.ravel(), zdeg.ravel()])
     n_res = int(np.isfinite(z).sum())
     nu = max(n_res - n_params, 1)
@@ -1224,6 +1230,64 @@ class _Search:
             lr=float(lr), score=float(score), rss_reduction=float(reduction),
             significant=bool(ok))
 
+    def borrow_model(self, agreement: Mapping[str, dict]) -> ClosedLoopModel | None:
+        """The model to refit from the axes' common values, or None: for an axis that is
+        not adequate, or that lacks a shared effect named on other axes."""
+        have = {e.name for e in self.added}
+        lack = [n for n in agreement if n not in have and n in EFFECTS
+                and len(self.added) < self.max_steps]
+        if self.adequacies[-1].adequate and not lack:
+            return None
+        if not agreement or (not lack and not any(n in have for n in agreement)):
+            return None
+        model = self.fits[-1].model
+        for n in lack:
+            if len(model.effects) < self.max_steps:
+                model = model.with_effect(EFFECTS[n])
+        return model
+
+    def borrow(self, fit: JointFit) -> None:
+        """Take the refit from the common values when it helps: same effects and a lower
+        cost (the last step's errors improve), or new effects that are significant in both
+        senses (each becomes a step)."""
+        cur = self.fits[-1]
+        new = [e for e in fit.model.effects if e.name not in {a.name for a in self.added}]
+        if fit.rss >= cur.rss:
+            return
+        if new:
+            lr, n_eff, reduction = _robust_lr(cur, fit, self.se_db, self.se_deg)
+            k = sum(len(e.params) for e in new)
+            score = float(lr - k * np.log(max(n_eff, 2.0)))
+            prac = all(practical(self.f, *effect_size(fit, e, self.f), self.se_db,
+                                 self.se_deg, self.min_db, self.min_deg)[0] for e in new)
+            if not (score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION and prac):
+                return
+        ad = adequacy(self.f, fit, self.se_db, self.se_deg, self.band, self.n_params(fit),
+                      self.min_db, self.min_deg)
+        err = ad.overall
+        if new:
+            for e in new:
+                self.added.append(e)
+                p = _short(fit.shared, e.name)
+                self.steps.append(Step(e.name, p, _short(fit.shared_lo, e.name),
+                                       _short(fit.shared_hi, e.name),
+                                       tuple(at_bound(e.params, p)), err.rms_db,
+                                       err.rms_deg, err.rms_norm, float(score)))
+                self.fits.append(fit)
+                self.adequacies.append(ad)
+        else:
+            last = self.steps[-1]
+            p = _short(fit.shared, last.effect) if last.effect else {}
+            self.steps[-1] = replace(last, params=p or last.params,
+                                     params_lo=_short(fit.shared_lo, last.effect or ""),
+                                     params_hi=_short(fit.shared_hi, last.effect or ""),
+                                     rms_db=err.rms_db, rms_deg=err.rms_deg,
+                                     rms_norm=err.rms_norm)
+            self.fits[-1] = fit
+            self.adequacies[-1] = ad
+        self.stop = "adequate" if ad.adequate else self.stop
+        self.borrowed = True
+
     def _screened_candidate(self, eff: Effect, fit: JointFit) -> Candidate:
         """A candidate that the screening ranked below the joint fits: its subset fit's
         parameters, not significant (its error fields are NaN: not fitted on all)."""
@@ -1386,6 +1450,17 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
                 s.take([(e, full[e.name]) for e, _ in screened[id(s)] if e.name in full],
                        screened=[(e, sc) for e, sc in screened[id(s)]
                                  if e.name not in full])
+        share = SHARED_EFFECTS if share is None else tuple(share)
+        agreement = cross_axis_agreement([s.result() for s in searches], share)
+        # an axis whose search ended inadequate, or without a shared effect the other
+        # axes name, tries the axes' common values as a start (one joint fit each)
+        tasks = [(s, s.borrow_model(agreement)) for s in searches]
+        tasks = [(s, m) for s, m in tasks if m is not None]
+        if tasks:
+            fits = list(run(_borrow_task, [(s.data, s.band, s.fits[-1], m, agreement)
+                                           for s, m in tasks]))
+            for (s, _), fit in zip(tasks, fits, strict=True):
+                s.borrow(fit)
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
@@ -1393,10 +1468,33 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
     for s in searches:
         d = s.result()
         out.append(replace(d, coupling=cross_coupling(spectra, s.data, s.band)))
-    agreement = cross_axis_agreement(out, SHARED_EFFECTS if share is None else share)
+    agreement = cross_axis_agreement(out, share)
     if agreement:
         out = [replace(d, shared=agreement) for d in out]
     return out
+
+
+def _borrow_task(args):
+    data, band, current, model, agreement = args
+    return fit_borrowed(data, band, current, model, agreement)
+
+
+def fit_borrowed(data: AxisData, band: tuple[float, float], current: JointFit,
+                 model: ClosedLoopModel, agreement: Mapping[str, dict]) -> JointFit:
+    """``model`` (``current``'s effects plus any shared effect it lacks) fitted jointly
+    to the axis, started from the common values of the shared effects across axes
+    (``agreement``, see :func:`cross_axis_agreement`) and from ``current``; all
+    parameters free. Never worse than ``current`` on its own effects."""
+    common = {f"{name}.{p}": v["common"] for name, e in agreement.items()
+              for p, v in e["params"].items() if f"{name}.{p}" in model.param_names}
+    null = {}
+    for e in model.effects:
+        null.update({f"{e.name}.{k}": v for k, v in e.null_values(model.mp).items()})
+    st_common = {**null, **current.shared, **common}
+    st_current = {**null, **current.shared}
+    start = _start_array(data)
+    pairs = [(_start_rows(model, data, band, st_common, [start, current.base]), st_common)]
+    return joint_fit(model, data, band, [current.base], [st_common, st_current], pairs=pairs)
 
 
 #: Apparatus effects (latency, sensor lag) that act alike on every axis: their fitted
@@ -1443,9 +1541,13 @@ def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]
             chi2 = float(np.sum(ws * (vals - common) ** 2))
             pval = float(stats.chi2.sf(chi2, len(vals) - 1))
             value = float(np.exp(common)) if p.log else common
+            # practically different: the values spread by more than 10 % of the value
+            # (log parameters) or than 10 % of the common value (linear ones)
+            spread = float(np.max(vals) - np.min(vals))
+            big = spread > (np.log(1.1) if p.log else 0.1 * abs(common))
             entry["params"][p.name] = {"common": value, "chi2": chi2,
                                        "dof": len(vals) - 1, "p": pval}
-            entry["disagree"] = bool(entry["disagree"] or pval < 0.01)
+            entry["disagree"] = bool(entry["disagree"] or (pval < 0.01 and big))
         if entry["params"]:
             out[name] = entry
     return out
