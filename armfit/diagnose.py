@@ -1714,6 +1714,11 @@ def band_to_dict(b: BandError) -> dict:
             "rms_norm": b.rms_norm, "bias_norm": b.bias_norm, "n_points": b.n_points}
 
 
+def _finite(v: float) -> float | None:
+    """``v``, or None (JSON null) when it is NaN or infinite."""
+    return float(v) if np.isfinite(v) else None
+
+
 def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
     """The JSON document of ``armfit diagnose`` (schema in the README)."""
     axes = {}
@@ -1727,18 +1732,21 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
             "base_error": band_to_dict(d.base_error),
             "failing_bands": [asdict(fb) for fb in d.failing],
             "cross_coupling_db": d.coupling,
+            # a candidate the screening left out has no errors on all trials: null
             "candidates": [{
                 "effect": c.effect, "params": c.params, "params_lo": c.params_lo,
                 "params_hi": c.params_hi,
-                "rms_db_before": c.rms_db_before, "rms_db_after": c.rms_db_after,
-                "rms_deg_before": c.rms_deg_before, "rms_deg_after": c.rms_deg_after,
-                "rms_norm_before": c.rms_norm_before, "rms_norm_after": c.rms_norm_after,
-                "failing_bias_before": c.failing_bias_before,
-                "failing_bias_after": c.failing_bias_after,
+                "rms_db_before": c.rms_db_before, "rms_db_after": _finite(c.rms_db_after),
+                "rms_deg_before": c.rms_deg_before,
+                "rms_deg_after": _finite(c.rms_deg_after),
+                "rms_norm_before": c.rms_norm_before,
+                "rms_norm_after": _finite(c.rms_norm_after),
+                "failing_bias_before": _finite(c.failing_bias_before),
+                "failing_bias_after": _finite(c.failing_bias_after),
                 "failing_before": [band_to_dict(b) for b in c.failing_before],
                 "failing_after": [band_to_dict(b) for b in c.failing_after],
-                "lr": c.lr, "score": c.score, "rss_reduction": c.rss_reduction,
-                "significant": c.significant,
+                "lr": c.lr, "score": _finite(c.score),
+                "rss_reduction": _finite(c.rss_reduction), "significant": c.significant,
             } for c in d.candidates],
             "missing_effects": [{
                 "effect": m.effect, "params": m.params, "params_lo": m.params_lo,

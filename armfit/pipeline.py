@@ -317,7 +317,9 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
     results = diag.results()
     doc = diagnosis_to_dict(results)
     write_text_atomic(path("diagnosis.json"), json.dumps(doc, indent=2) + "\n")
-    missing = {a: d["missing_effect"] for a, d in doc["axes"].items()}
+    # every effect the stepwise search named on an axis, in order ("delay+lowpass")
+    missing = {a: "+".join(m["effect"] for m in d.get("missing_effects", []))
+               or d["missing_effect"] for a, d in doc["axes"].items()}
     clock.done("diagnose", "; ".join(f"{a}: {e or 'no missing effect'}"
                                      for a, e in missing.items()), since=diag.started)
 
@@ -332,7 +334,8 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
     for eff, axes in refitted.items():
         sub = spectra[spectra["axis"].isin(axes)]
         bands = {a: tuple(doc["axes"][a]["band_hz"]) for a in axes}
-        study = fit_study(sub, which="nominal", cost=options.cost, effects=[get_effect(eff)],
+        study = fit_study(sub, which="nominal", cost=options.cost,
+                          effects=[get_effect(e) for e in eff.split("+")],
                           bands=bands, source="spectra.parquet")
         name = f"nominal_params_{eff}.csv"
         write_params(study.table(), path(name))
@@ -452,6 +455,8 @@ def _md_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> list[s
 
 
 def _num(v, fmt: str = ".3g") -> str:
+    if v is None:
+        return "–"
     try:
         x = float(v)
     except (TypeError, ValueError):
@@ -598,10 +603,11 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
         if d["tied_with"]:
             L += ["About as good as the first effect: "
                   + ", ".join(f"`{t}`" for t in d["tied_with"]) + ".", ""]
+        # candidates of the first step; those the screening left out have null errors
         cands = [[c["effect"], ", ".join(f"{k}={v:.4g}" for k, v in c["params"].items()),
-                  f"{c['rms_db_before']:.2f} → {c['rms_db_after']:.2f}",
-                  f"{c['rms_deg_before']:.1f} → {c['rms_deg_after']:.1f}",
-                  f"{c['score']:.1f}", "yes" if c["significant"] else "no"]
+                  f"{c['rms_db_before']:.2f} → {_num(c['rms_db_after'], '.2f')}",
+                  f"{c['rms_deg_before']:.1f} → {_num(c['rms_deg_after'], '.1f')}",
+                  _num(c["score"], ".1f"), "yes" if c["significant"] else "no"]
                  for c in d["candidates"]]
         if cands:
             L += _md_table(["candidate", "parameters", "RMS dB", "RMS deg", "ΔBIC",

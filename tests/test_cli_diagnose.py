@@ -57,7 +57,7 @@ def test_diagnose_json_schema_and_verdict(runner, study):
     assert first["rms_db_after"] <= first["rms_db_before"]
     for key in ("effect", "params", "rms_db_before", "rms_db_after", "score", "significant"):
         assert all(key in c for c in x["candidates"])
-    scores = [c["score"] for c in x["candidates"] if c["rms_norm_after"] == c["rms_norm_after"]]
+    scores = [c["score"] for c in x["candidates"] if c["rms_norm_after"] is not None]
     assert scores == sorted(scores, reverse=True)             # best first
     # the stepwise keys: delay found, the error falls to within the noise
     assert x["missing_effects"][0]["effect"] == "delay"
