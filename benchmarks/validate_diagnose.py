@@ -153,7 +153,10 @@ def main() -> None:
              "15 % between-subject variability, drift, quantisation, sensor noise). "
              "`check`: named = truth, adequate, final error ≤ 1.5× noise (for the spring "
              "without its file: never adequate while > 1.5× noise remains). Timings are "
-             "with `--jobs 2` on a shared 2-core machine (inflated by other load).", "",
+             "with `--jobs 2` on a shared 2-core machine (inflated by other load). The "
+             "zero-order-hold study has no effect in the arm but its force is held between "
+             "samples: a real half-sample (0.5 ms) lag, about 5 deg at 30 Hz, which a delay "
+             "of 0.5 ms or a lag near 340 Hz describes; naming one is right there.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     lines += ["", nonwhite, "",
