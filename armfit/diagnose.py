@@ -829,8 +829,9 @@ def diagnose_axis(data: AxisData, *, band: tuple[float, float],
     search.start(fit_base(data, band))
     while not search.done:
         screened = search.screen()
-        search.take([(e, fit_extend(data, band, search.fits[-1], e, sc))
-                     for e, sc in screened[:SCREEN_KEEP]], screened=screened[SCREEN_KEEP:])
+        keep = _keep(screened)
+        search.take([(e, fit_extend(data, band, search.fits[-1], e, sc)) for e, sc in keep],
+                    screened=screened[len(keep):])
     return search.result()
 
 
@@ -1074,6 +1075,21 @@ def fit_extend(data: AxisData, band: tuple[float, float], current: JointFit,
 SCREEN_KEEP = 2
 #: Trials in the screening fits.
 SCREEN_SUBSET = 3
+
+
+#: A screened candidate whose subset cost exceeds the best one's by more than this factor
+#: gets no joint fit on all trials (it cannot win: the joint fits rank as the screening
+#: does when the gap is this large).
+SCREEN_GAP = 2.0
+
+
+def _keep(screened: Sequence[tuple[Effect, JointFit]]) -> list[tuple[Effect, JointFit]]:
+    """The screened candidates (lowest subset cost first) that get the joint fit on all
+    trials: at most :data:`SCREEN_KEEP`, within :data:`SCREEN_GAP` of the best."""
+    if not screened:
+        return []
+    best = screened[0][1].rss
+    return [c for c in screened[:SCREEN_KEEP] if c[1].rss <= SCREEN_GAP * best]
 
 
 def _subset(data: AxisData, fit: JointFit, idx: np.ndarray) -> tuple[AxisData, JointFit]:
@@ -1441,7 +1457,7 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
                 break
             # cheap screening of every remaining effect, then joint fits of the best
             screened = {id(s): s.screen() for s in live}
-            tasks = [(s, e, sc) for s in live for e, sc in screened[id(s)][:SCREEN_KEEP]]
+            tasks = [(s, e, sc) for s in live for e, sc in _keep(screened[id(s)])]
             fits = list(run(_extend_task, [(s.data, s.band, s.fits[-1], e, sc)
                                            for s, e, sc in tasks]))
             for s in live:
