@@ -51,7 +51,7 @@ def test_null_study_names_nothing_and_is_adequate(tmp_path):
 
 
 def test_delay_and_lag_both_named(tmp_path):
-    # truth: 5 ms delay and a 20 Hz first-order lag (the compound case); the
+    # truth: 5 ms delay and a 20 Hz first-order lag (the compound case); the
     # resonance is a distractor that can mimic part of both
     spectra, params = _study(tmp_path, seed=32, effects={"delay": {"delay_s": 0.005},
                                                           "lowpass": {"cutoff_hz": 20.0}})
