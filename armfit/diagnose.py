@@ -33,6 +33,12 @@ effect worth modelling explains a good part of the misfit. Two candidates whose 
 by less than :data:`TIE_BIC` (or :data:`TIE_FRACTION` of the best) "explain the data about
 equally well".
 
+Stepwise search and verdict: :func:`diagnose` adds effects one at a time while the model
+is not adequate (:func:`adequacy`: every band within the noise, no band failing), each
+significant both statistically (the criterion above) and practically (:func:`practical`:
+it changes the response by more than the noise and a floor); standard errors are bounded
+by :func:`effective_se`. The statistics and choices are documented in docs/diagnose.md.
+
 Failing bands: per frequency, the mean over trials of the normalised residual of the base
 fit, divided by its standard error across trials (a t statistic); runs of at least
 :data:`MIN_RUN` grid points with |t| > :data:`T_FAIL` and a mean normalised residual above 1
