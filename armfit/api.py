@@ -34,7 +34,13 @@ import pandas as pd
 from armfit import fitting as _fitting
 from armfit import uncertainty as _uncertainty
 from armfit.constants import AXES
-from armfit.diagnose import band_to_dict, diagnosis_to_dict
+from armfit.diagnose import (
+    MAX_STEPS,
+    MIN_EFFECT_DB,
+    MIN_EFFECT_DEG,
+    band_to_dict,
+    diagnosis_to_dict,
+)
 from armfit.diagnose import compare as compare_rows
 from armfit.diagnose import diagnose as diagnose_axes
 from armfit.errors import BadInputError, ConvergenceError, UsageError
@@ -632,6 +638,11 @@ def compare(spectra, model, *, level: str | None = None,
     return Comparisons(tuple(rows), level)
 
 
+def _effect_name(m) -> str:
+    """The name of a missing effect as the diagnosis lists it (a name or a record)."""
+    return m if isinstance(m, str) else str(getattr(m, "effect", getattr(m, "name", m)))
+
+
 @dataclass(frozen=True, eq=False)
 class Diagnosis:
     """Which physical effect each axis's model is missing.
@@ -659,16 +670,19 @@ class Diagnosis:
         return diagnosis_to_dict(list(self.axes))
 
     def to_frame(self) -> pd.DataFrame:
-        """One row per axis: axis, n_trials, band_lo_hz, band_hi_hz, missing_effect,
-        tied_with, base rms_db / rms_deg / rms_norm, failing_bands (count), verdict."""
+        """One row per axis: axis, n_trials, band_lo_hz, band_hi_hz, missing_effects (the
+        effects added, ";"-separated), adequate (the final model fits within the noise),
+        base and final rms_norm, failing_bands (count, base model), verdict."""
         return pd.DataFrame([{
             "axis": d.axis, "n_trials": d.n_trials, "band_lo_hz": d.band[0],
-            "band_hi_hz": d.band[1], "missing_effect": d.missing_effect,
-            "tied_with": ";".join(d.tied_with), "rms_db": d.base_error.rms_db,
-            "rms_deg": d.base_error.rms_deg, "rms_norm": d.base_error.rms_norm,
+            "band_hi_hz": d.band[1],
+            "missing_effects": ";".join(_effect_name(m) for m in d.missing_effects)
+            or (d.missing_effect or ""),
+            "adequate": bool(d.adequate), "rms_norm_base": d.base_error.rms_norm,
+            "rms_norm_final": (d.final_error or d.base_error).rms_norm,
             "failing_bands": len(d.failing), "verdict": d.verdict} for d in self.axes],
-            columns=["axis", "n_trials", "band_lo_hz", "band_hi_hz", "missing_effect",
-                     "tied_with", "rms_db", "rms_deg", "rms_norm", "failing_bands",
+            columns=["axis", "n_trials", "band_lo_hz", "band_hi_hz", "missing_effects",
+                     "adequate", "rms_norm_base", "rms_norm_final", "failing_bands",
                      "verdict"])
 
     def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
@@ -692,9 +706,14 @@ class Diagnosis:
 
 
 def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
-             effects: Iterable[Effect | str] | None = None, jobs: int = 1) -> Diagnosis:
-    """Name the physical effect the 5-parameter model is missing, per axis (``armfit
-    diagnose``).
+             effects: Iterable[Effect | str] | None = None, jobs: int = 1,
+             max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
+             min_effect_deg: float = MIN_EFFECT_DEG,
+             share: Sequence[str] | None = None) -> Diagnosis:
+    """Find the physical effects the 5-parameter model is missing, per axis, step by step
+    (``armfit diagnose``): while the model is not within the noise, add the library
+    effect with the best significant ΔBIC that changes the response by more than the
+    noise and the floors, refitting all added effects jointly.
 
     Parameters
     ----------
@@ -708,6 +727,14 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
         Candidates (default: the whole effect library).
     jobs : int
         Worker processes; the result does not depend on it.
+    max_steps : int
+        At most this many effects added, one per step.
+    min_effect_db, min_effect_deg : float
+        Practical floors: an effect must change the response by more than this (dB, or
+        deg in phase) and more than the noise somewhere in the band.
+    share : sequence of str, optional
+        Effects whose parameters are compared across axes (default: the apparatus
+        effects delay and lowpass; ``()`` for none).
 
     Returns
     -------
@@ -721,8 +748,9 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
     sp = _spectra(spectra)
     m = ModelFit.of(model)
     results = diagnose_axes(sp, m.table, band=band,
-                                 effects=None if effects is None else _effects(effects),
-                                 jobs=jobs)
+                            effects=None if effects is None else _effects(effects),
+                            jobs=jobs, max_steps=max_steps, min_effect_db=min_effect_db,
+                            min_effect_deg=min_effect_deg, share=share)
     if not results:
         raise BadInputError("holds no trial-level measured responses for the axes of the "
                             "model", file=sp.source, column="level")
