@@ -55,7 +55,7 @@ EXPECTED: dict[str, str] = {
     "compare.stdout":
         "68d52b6fffe31b4cf76911e3414a14189e3e8f1b59bb37e18b0aff29d838a2f4",
     "diagnose.stdout":
-        "bff5d2d289d4af8870a81392f258daed76ff5c0822831190504324774f019996",
+        "6ec6dd445474e6de2364a775cca7e07ce86b40105953c446a689a232185e5d68",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
@@ -67,7 +67,7 @@ EXPECTED: dict[str, str] = {
     "run/compare.csv":
         "a5f960dfafebe811c2e3cf9f1c703eed0b319f606342e280a4ae07107b5df476",
     "run/diagnosis.json":
-        "728ff152a649886b51302d256e27fcf776f7847bfe4c4a79c3f22ef9b202726e",
+        "6ec6dd445474e6de2364a775cca7e07ce86b40105953c446a689a232185e5d68",
     "run/grip_params.csv":
         "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
     "run/grip_params.tex":
@@ -77,7 +77,7 @@ EXPECTED: dict[str, str] = {
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.md":
-        "209ddb9cb327601144b20de9f4174e21e1f7f8d4255a55c0aad07277960bf526",
+        "c554021e225532fe340a768b84454817d660e95422706988e3c01b8dd3f2c63d",
     "run/spectra.parquet":
         "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
     "run/stability.csv":
