@@ -1643,7 +1643,7 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
     spectra = Spectra.of(spectra)
     grip_model = "grip_N" in params.columns
     if level == "median" and grip_model:
-        raise UsageError("grip fits are compared at --level mean or trial; the median "
+        raise UsageError("grip fits are compared at {opt:level} mean or trial; the median "
                          "pools all grips (use nominal fits)")
     out: list[Comparison] = []
     for axis in AXES:

@@ -115,7 +115,7 @@ def test_cli_happy_path_simulate_fit_and_read_back(runner, tmp_path):
                                  "--effects", str(SPRING), "--effect", "device-spring"])
     assert code == 0, err
     from armfit.models.params import read_params
-    with pytest.raises(Exception, match="--effects FILE"):
+    with pytest.raises(Exception, match="effect_files FILE"):
         read_params(params)      # the file's effect is gone once the command ended
     effects_mod.load_effect_file(SPRING)
     try:

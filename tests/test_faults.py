@@ -322,7 +322,8 @@ def _start_estimate(study: Path, out: Path):
         kids.update(_descendants(proc.pid))
         return len(kids) >= 3  # fork server + 2 workers
     assert _wait_for(workers_up, step=0.02), "no worker processes appeared"
-    time.sleep(0.3)
+    # workers forked from a preloaded server start at once: signal while they work
+    time.sleep(0.05)
     kids.update(_descendants(proc.pid))
     return proc, kids
 

@@ -184,7 +184,7 @@ def test_rate_mismatch_and_resample_to_most_common(tmp_path, write_trial):
     write_trial(tmp_path / "sub-02_axis-y_grip-1N.csv", axis="y", fs=100.0)
     write_trial(tmp_path / "sub-03_axis-y_grip-1N.csv", axis="y", fs=100.0)
     with pytest.raises(BadInputError, match=r"sub-02.*column 'time_s': sampling rate 100 Hz "
-                       r"differs from 200 Hz of .*sub-01.*--resample"):
+                       r"differs from 200 Hz of .*sub-01.*pass resample"):
         list(open_trials([tmp_path]))
     notes = []
     trials = list(open_trials([tmp_path], resample=True, warn=notes.append))

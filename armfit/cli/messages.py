@@ -8,24 +8,39 @@ what the subcommands need.
 
 from __future__ import annotations
 
+import click
+
 from armfit.errors import ArmfitError
 
 #: The flag of each library option named in an error message (see
 #: :meth:`armfit.errors.ArmfitError.render`).
-FLAGS: dict[str, str] = {
+FLAGS: dict[str, str | tuple[str, ...]] = {
     "overwrite": "--overwrite", "method": "--method", "n_boot": "--bootstrap",
     "level": "--level", "fmin": "--fmin", "fmax": "--fmax", "nperseg": "--nperseg",
     "n_pairs": "--order", "order": "--order", "band": "--band", "effects": "--effect",
     "smooth_oct": "--smooth", "grips_N": "--grips", "duration_s": "--duration",
     "noise_m": "--noise", "drift_m": "--drift", "quantum_m": "--quantum",
     "sample_time_s": "--sample-time", "damping_Ns_per_m": "--damping",
-    "delay_samples": "--delay-samples",
+    "delay_samples": "--delay-samples", "effect_files": "--effects",
+    "manifest": "--manifest", "skip_bad": "--skip-bad", "resample": "--resample",
+    "f_min_hz": ("--f-min", "--fmin"),
 }
 
 
 def flag(name: str) -> str:
-    """The command-line flag of the library option ``name``."""
-    return FLAGS.get(name, f"--{name.replace('_', '-')}")
+    """The command-line flag of the library option ``name`` (where commands spell it
+    differently, the spelling of the command running)."""
+    known = FLAGS.get(name, f"--{name.replace('_', '-')}")
+    if isinstance(known, str):
+        return known
+    ctx = click.get_current_context(silent=True)
+    while ctx is not None and ctx.command is not None:
+        opts = {o for p in ctx.command.params for o in getattr(p, "opts", ())}
+        for spelled in known:
+            if spelled in opts:
+                return spelled
+        ctx = ctx.parent
+    return known[0]
 
 
 def cli_message(exc: ArmfitError) -> str:

@@ -165,7 +165,7 @@ def check_output(path: str | os.PathLike, *, overwrite: bool,
         inp_res = inp_path.resolve()
         if out_res == inp_res or (out.exists() and inp_path.exists() and _same(out, inp_path)):
             raise OutputError(f"{out}: output path is also an input; choose another output "
-                              "(an input is never overwritten, even with --overwrite)")
+                              "(an input is never overwritten, even with {opt:overwrite})")
         if out_res in inp_res.parents:
             raise OutputError(f"{out}: output path is also an input (it holds {inp}); choose "
                               "another output")
@@ -173,7 +173,7 @@ def check_output(path: str | os.PathLike, *, overwrite: bool,
             raise OutputError(f"{out}: inside the input folder {inp} under a raw-trial name, "
                               "so it is also an input (reading the folder picks it up); "
                               "choose another output "
-                              "(an input is never overwritten, even with --overwrite)")
+                              "(an input is never overwritten, even with {opt:overwrite})")
     if manifest is not None:
         from armfit.io.trials import read_manifest
         try:

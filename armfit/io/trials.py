@@ -322,7 +322,7 @@ def _discover(inputs: Sequence[str | os.PathLike], manifest: str | os.PathLike |
                 extra = (", and it is not an armfit dataset"
                          if _trial_ext(path.name) == ".parquet" else "")
                 fail(BadInputError(f"file name matches no pattern ({_NAME_HELP}) and has no "
-                                   f"--manifest entry{extra}", file=str(path)))
+                                   f"{{opt:manifest}} entry{extra}", file=str(path)))
             else:
                 ignored.append(path)
             return
@@ -353,7 +353,8 @@ def _discover(inputs: Sequence[str | os.PathLike], manifest: str | os.PathLike |
             raise NoInputError(f"{p}: no such file or folder")
     for where, reason in problems:
         if bad is None:
-            raise NoInputError(f"{where}: {reason}; or pass --skip-bad to go on without it")
+            raise NoInputError(f"{where}: {reason}; or pass {{opt:skip_bad}} to go on "
+                               "without it")
         bad.append(Skipped(where, reason))
     # a manifest row whose file is missing is an error, also when PATHs are given
     for row_no, target in enumerate(entries, start=1):
@@ -702,7 +703,7 @@ def _check_trial(trial: Trial, file: str, *, f_min_hz: float, force_limit_N: flo
     if f_min_hz > 0 and meta.duration_s < 2.0 / f_min_hz:
         raise BadInputError(f"too short: {meta.duration_s:.6g} s; reaching the lowest "
                             f"frequency {f_min_hz:g} Hz needs at least "
-                            f"{2.0 / f_min_hz:.6g} s (two periods); lower --f-min or "
+                            f"{2.0 / f_min_hz:.6g} s (two periods); lower {{opt:f_min_hz}} or "
                             "drop the trial", file=file)
     f = trial.f
     col = f"force_{meta.axis}_N"
@@ -941,7 +942,7 @@ class TrialStream:
                     if not self.resample:
                         raise BadInputError(
                             f"sampling rate {fs:g} Hz differs from {ref_fs:g} Hz of "
-                            f"{ref_file}; pass --resample to resample to a common rate",
+                            f"{ref_file}; pass {{opt:resample}} to resample to a common rate",
                             file=src.label, column="time_s")
                     trial = resample_trial(trial, ref_fs)
                     if self.warn is not None:
@@ -1022,7 +1023,7 @@ def open_trials(inputs: Sequence[str | os.PathLike], *,
     if not kept and not skipped:
         where = ", ".join(str(p) for p in inputs) or str(manifest)
         raise NoInputError(f"{where}: no trial files found (expected names like "
-                           f"{_NAME_HELP}, or a --manifest)")
+                           f"{_NAME_HELP}, or a {{opt:manifest}})")
     return TrialStream(kept, ignored, skipped, skip_bad=skip_bad, resample=resample,
                        f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn)
 

@@ -522,7 +522,7 @@ def get_effect(name: str) -> Effect:
     except KeyError:
         raise UsageError(f"unknown effect {name!r}; known effects: "
                          f"{', '.join(EFFECTS)} (see `armfit effects`; an effect defined "
-                         "in a file needs --effects FILE)") from None
+                         "in a file needs {opt:effect_files} FILE)") from None
 
 
 def parse_effect_spec(spec: str) -> tuple[Effect, dict[str, float]]:
@@ -534,31 +534,31 @@ def parse_effect_spec(spec: str) -> tuple[Effect, dict[str, float]]:
     name, sep, rest = spec.partition("=")
     effect = get_effect(name.strip())
     if not sep or not rest.strip():
-        raise UsageError(f"--effect {spec!r}: give values as {effect.name}="
+        raise UsageError(f"{{opt:effects}} {spec!r}: give values as {effect.name}="
                          + ",".join(effect.param_names))
     items = [x.strip() for x in rest.split(",") if x.strip()]
     values: dict[str, float] = {}
     keyed = [":" in x for x in items]
     if any(keyed) and not all(keyed):
-        raise UsageError(f"--effect {spec!r}: use either all positional or all param:value")
+        raise UsageError(f"{{opt:effects}} {spec!r}: use either all positional or all param:value")
     if all(keyed):
         for item in items:
             k, _, v = item.partition(":")
             if k not in effect.param_names:
-                raise UsageError(f"--effect {spec!r}: {effect.name} has no parameter {k!r}; "
+                raise UsageError(f"{{opt:effects}} {spec!r}: {effect.name} has no parameter {k!r}; "
                                  f"it has {', '.join(effect.param_names)}")
             values[k] = _number(spec, v)
     else:
         if len(items) != len(effect.params):
-            raise UsageError(f"--effect {spec!r}: {effect.name} takes {len(effect.params)} "
+            raise UsageError(f"{{opt:effects}} {spec!r}: {effect.name} takes {len(effect.params)} "
                              f"value(s): {', '.join(effect.param_names)}")
         values = {p.name: _number(spec, v) for p, v in zip(effect.params, items, strict=True)}
     missing = [p for p in effect.param_names if p not in values]
     if missing:
-        raise UsageError(f"--effect {spec!r}: missing {', '.join(missing)}")
+        raise UsageError(f"{{opt:effects}} {spec!r}: missing {', '.join(missing)}")
     for p in effect.params:
         if not (p.lower <= values[p.name] <= p.upper):
-            raise UsageError(f"--effect {spec!r}: {p.name}={values[p.name]} outside the "
+            raise UsageError(f"{{opt:effects}} {spec!r}: {p.name}={values[p.name]} outside the "
                              f"physical range [{p.lower}, {p.upper}] {p.unit}")
     return effect, values
 
@@ -567,4 +567,4 @@ def _number(spec: str, text: str) -> float:
     try:
         return float(text)
     except ValueError:
-        raise UsageError(f"--effect {spec!r}: {text!r} is not a number") from None
+        raise UsageError(f"{{opt:effects}} {spec!r}: {text!r} is not a number") from None

@@ -131,7 +131,7 @@ def _effect_param_names(df: pd.DataFrame, path: Path) -> list[str]:
         try:
             eff = get_effect(name)
         except UsageError as exc:
-            raise BadInputError(str(exc), file=str(path), column="effects") from None
+            raise BadInputError(exc.template, file=str(path), column="effects") from None
         out += [f"{eff.name}.{q.name}" for q in eff.params]
     return out
 
@@ -161,6 +161,6 @@ def model_from_params(row) -> tuple[ClosedLoopModel, dict[str, float]]:
     try:
         effects = [get_effect(n) for n in spec.split(";") if n]
     except UsageError as exc:
-        raise BadInputError(str(exc), column="effects") from None
+        raise BadInputError(exc.template, column="effects") from None
     model = ClosedLoopModel.for_axis(str(row["axis"]), effects, mp=float(row["mp_kg"]))
     return model, {n: float(row[n]) for n in model.param_names}
