@@ -1058,7 +1058,7 @@ def band_to_dict(b: BandError) -> dict:
 
 
 def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
-    """The JSON document of ``armfit diagnose`` (schema in the README)."""
+    """The JSON document of ``armfit diagnose`` (schema in docs/formats.md, "Diagnosis JSON")."""
     axes = {}
     for d in results:
         axes[d.axis] = {

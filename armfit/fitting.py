@@ -99,7 +99,8 @@ class FitResult:
     objective: float = field(default=float("nan"))
 
     def row(self) -> dict[str, float | str | bool]:
-        """Parameters, intervals and statistics as one flat dict (interface C names)."""
+        """Parameters, intervals and statistics as one flat dict (the params CSV column names,
+        docs/formats.md "Params CSV")."""
         out: dict[str, float | str | bool] = dict(self.params)
         for n in self.params:
             out[f"{n}_lo"] = self.ci_lo[n]
@@ -579,7 +580,8 @@ class StudyFit:
     fits: tuple[FitResult, ...]
 
     def table(self):
-        """The params table (interface C columns, :func:`armfit.io.artifacts.params_columns`)."""
+        """The params table (columns of :func:`armfit.io.artifacts.params_columns`; docs/formats.md,
+        "Params CSV")."""
         from armfit.io.artifacts import params_frame
         rows = []
         for (axis, grip), fit in zip(self.keys, self.fits, strict=True):
