@@ -250,7 +250,8 @@ def tfestimate_segment(n: int, segments: int = 4) -> tuple[int, int, int]:
 
 
 def derived_arm_signals(force, pos, fs: float, mp: float) -> tuple[np.ndarray, np.ndarray]:
-    """Arm-side force and position, Fu & Çavuşoğlu 2010, eqs. 1–2 (docs/methods.md, "Models").
+    """Arm-side force and position, Fu & Çavuşoğlu 2010, eqs. 1–2 (docs/methods.md, "Arm,
+    device and closed loop").
 
     Fa[n] = F[n] − Mp·ẍ[n], ẍ[n] = (x[n+1] − 2x[n] + x[n−1])·fs² (m/s²); returns
     (Fa, xa) for n = 1…N−2 (first and last samples dropped), N and m; ``mp`` in kg.

@@ -299,3 +299,45 @@ def test_parse_console_block(tmp_path: Path) -> None:
     (step,) = steps_of(block)
     assert step.argv == ["fit-grip", "s.parquet", "-o", "g.csv"]
     assert step.exit_code == 73 and step.expected == ["armfit: error: exists"]
+
+
+# ---------------------------------------------------------------------------
+# Links between the documents
+# ---------------------------------------------------------------------------
+
+LINK = re.compile(r"\]\(([^)\s]+)\)")
+
+
+def anchors_of(path: Path) -> set[str]:
+    """GitHub's heading anchors of a Markdown file: lower case, punctuation other than
+    hyphens removed, spaces as hyphens, a -N suffix for repeats."""
+    seen: dict[str, int] = {}
+    out = set()
+    fenced = False
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if FENCE.match(line.strip()):
+            fenced = not fenced
+        if fenced or not line.startswith("#"):
+            continue
+        text = line.lstrip("#").strip().replace("`", "").lower()
+        slug = re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
+        n = seen.get(slug, 0)
+        seen[slug] = n + 1
+        out.add(slug if n == 0 else f"{slug}-{n}")
+    return out
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=[str(p.relative_to(ROOT)) for p in DOCS])
+def test_doc_links(doc: Path) -> None:
+    """Every relative link names an existing file, and every #anchor an existing heading."""
+    bad = []
+    for target in LINK.findall(doc.read_text(encoding="utf-8")):
+        if re.match(r"[a-z]+:", target):
+            continue  # http:, https:, mailto:
+        file_part, _, anchor = target.partition("#")
+        dest = (doc.parent / file_part).resolve() if file_part else doc
+        if not dest.exists():
+            bad.append(f"{target}: no such file")
+        elif anchor and dest.suffix == ".md" and anchor not in anchors_of(dest):
+            bad.append(f"{target}: no such heading")
+    assert not bad, f"{doc.relative_to(ROOT)}: broken links: {bad}"
