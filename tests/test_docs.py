@@ -341,3 +341,54 @@ def test_doc_links(doc: Path) -> None:
         elif anchor and dest.suffix == ".md" and anchor not in anchors_of(dest):
             bad.append(f"{target}: no such heading")
     assert not bad, f"{doc.relative_to(ROOT)}: broken links: {bad}"
+
+
+# ---------------------------------------------------------------------------
+# docs/cli.md covers the command line as it is
+# ---------------------------------------------------------------------------
+
+def _cli_sections() -> dict[str, str]:
+    """docs/cli.md's level-2 sections by heading."""
+    text = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
+    parts = re.split(r"^## ", text, flags=re.M)[1:]
+    return {p.split("\n", 1)[0].strip(): p for p in parts}
+
+
+def _commands():
+    """(name, click command, its section's heading word) for every subcommand; the plot
+    subcommands belong to the plot section."""
+    import click
+    for name, cmd in sorted(cli.commands.items()):
+        if isinstance(cmd, click.Group):
+            for sub in sorted(cmd.commands.values(), key=lambda c: c.name):
+                yield f"{name} {sub.name}", sub, name
+        else:
+            yield name, cmd, name
+
+
+def test_cli_md_documents_every_command_and_option() -> None:
+    """Each subcommand has a section `## armfit <name>` (possibly shared, e.g. fit-grip and
+    fit-nominal) naming each of its options."""
+    import click
+    sections = _cli_sections()
+    missing = []
+    for full, cmd, name in _commands():
+        heads = [h for h in sections if re.search(rf"`?armfit {re.escape(name)}`?(\s|$)", h)]
+        if not heads:
+            missing.append(f"armfit {name}: no section")
+            continue
+        body = "".join(sections[h] for h in heads)
+        for p in cmd.params:
+            if isinstance(p, click.Option) and p.name != "help":
+                opt = max(p.opts, key=len)
+                if opt not in body:
+                    missing.append(f"armfit {full}: {opt}")
+    assert not missing, f"docs/cli.md lacks: {missing}"
+
+
+def test_cli_md_exit_codes_are_the_code_s() -> None:
+    from armfit import errors
+    codes = {v for k, v in vars(errors).items() if k.startswith("EXIT_")}
+    text = _cli_sections()["Conventions"]
+    documented = {int(m) for m in re.findall(r"^\| (\d+) \|", text, flags=re.M)}
+    assert documented == codes
