@@ -392,3 +392,45 @@ def test_cli_md_exit_codes_are_the_code_s() -> None:
     text = _cli_sections()["Conventions"]
     documented = {int(m) for m in re.findall(r"^\| (\d+) \|", text, flags=re.M)}
     assert documented == codes
+
+
+def _illustrations(path: Path):
+    """(where, argv) of the `armfit ...` lines of a file's sh blocks (not run)."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    inside = False
+    for n, line in enumerate(lines, start=1):
+        m = FENCE.match(line.strip())
+        if m:
+            inside = not inside and m["info"].split()[:1] == ["sh"]
+            continue
+        text = line.strip()
+        if inside and text.startswith("armfit "):
+            k = n
+            while text.endswith("\\") and k < len(lines):
+                text = text[:-1] + " " + lines[k].strip()
+                k += 1
+            yield f"{path.relative_to(ROOT)}:{n}", shlex.split(text, comments=True)[1:]
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=[str(p.relative_to(ROOT)) for p in DOCS])
+def test_illustrations_use_real_options(doc: Path) -> None:
+    """The `armfit` lines of sh blocks name real subcommands and options (they are not
+    run: their paths are a user's)."""
+    import click
+    bad = []
+    for where, argv in _illustrations(doc):
+        cmd: click.Command = cli
+        known = {o for p in cli.params for o in getattr(p, "opts", [])}
+        args = [a for a in argv if not a.startswith("-") or a in ("-v", "-q")]
+        for a in args:
+            if isinstance(cmd, click.Group) and a in cmd.commands:
+                cmd = cmd.commands[a]
+                known |= {o for p in cmd.params for o in getattr(p, "opts", [])}
+        if isinstance(cmd, click.Group):
+            bad.append(f"{where}: no subcommand")
+            continue
+        for a in argv:
+            opt = a.split("=", 1)[0]
+            if opt.startswith("-") and not NUMBER.fullmatch(opt) and opt not in known:
+                bad.append(f"{where}: {cmd.name} has no option {opt}")
+    assert not bad, bad
