@@ -5,3 +5,16 @@ Hand Dynamics and Variability Model for a Stylus-based Haptic Interface", ICRA 2
 """
 
 __version__ = "0.1.0"
+
+__all__ = ["Effect", "Param", "__version__"]
+
+
+def __getattr__(name: str):
+    # the plugin API, imported on first use so that `import armfit` stays light
+    if name == "Effect":
+        from armfit.models.effects import Effect
+        return Effect
+    if name == "Param":
+        from armfit.models.arm import Param
+        return Param
+    raise AttributeError(f"module 'armfit' has no attribute {name!r}")

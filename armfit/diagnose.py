@@ -683,7 +683,7 @@ def fit_candidate(data: AxisData, band: tuple[float, float], base: JointFit,
     fit = joint_fit(model, data, band, [base.base, start], starts, pairs=pairs)
     if fit.rss > base.rss:  # nested: never worse than the base fit
         fit = JointFit(model, base.base, {f"{effect.name}.{k}": v
-                                          for k, v in effect.null(model.mp).items()},
+                                          for k, v in effect.null_values(model.mp).items()},
                        {}, {}, base.r_db, base.r_deg, base.rss, base.n_res, base.rho,
                        base.converged)
     return fit

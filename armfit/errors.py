@@ -91,3 +91,9 @@ class ConvergenceError(ArmfitError):
     """An optimiser did not converge; no result is reported."""
 
     exit_code = EXIT_NOT_CONVERGED
+
+
+class EffectDefinitionError(BadInputError):
+    """A user-defined effect (or its parameters) that breaks the effect contract of
+    :mod:`armfit.models.effects`: the message names the file or entry point that defined
+    it and what is wrong (exit 65, as any other input whose content is bad)."""

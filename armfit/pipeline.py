@@ -280,6 +280,7 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
     for which in ("grip", "nominal"):
         study = fit_study(spectra, which=which, cost=options.cost, source="spectra.parquet")
         df = study.table()
+        _warn_at_bound(which, study, warn)
         write_params(df, path(f"{which}_params.csv"))
         write_text_atomic(path(f"{which}_params.tex"), latex_table(
             df, ci=True, caption=caption_for(which, [f.ci_method for f in study.fits]),
@@ -633,3 +634,14 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
 
     L += ["## Files", ""] + [f"- `{f}`" for f in files] + [""]
     return "\n".join(L)
+
+
+def _warn_at_bound(which: str, study, warn: Warn | None) -> None:
+    """One warning per fit with a parameter at a physical bound (column ``at_bound``)."""
+    if warn is None:
+        return
+    for (axis, grip), fit in zip(study.keys, study.fits, strict=True):
+        if fit.at_bound:
+            where = axis + ("" if grip is None else f" {grip:g} N")
+            warn(f"fit-{which} {where}: {', '.join(fit.at_bound)} at a physical bound "
+                 "(within 1 % of its range); the value is a limit, not an estimate")

@@ -68,6 +68,11 @@ def paper_layout(df: pd.DataFrame, *, ci: bool = False) -> pd.DataFrame:
     return out.reset_index(drop=True)
 
 
+def _stuck(value) -> list[str]:
+    """The parameter names of an ``at_bound`` cell (";"-separated; NaN or "" → none)."""
+    return [n for n in value.split(";") if n] if isinstance(value, str) else []
+
+
 def csv_text(df: pd.DataFrame, *, ci: bool = False) -> str:
     """:func:`paper_layout` as CSV text (4 significant figures, as the paper)."""
     lay = paper_layout(df, ci=ci)
@@ -103,8 +108,9 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
                 label: str | None = None) -> str:
     """A booktabs ``table`` laid out like the paper's Table I (with a grip column) or
     Table II (without). Axes are rows groups separated by ``\\midrule``; with ``ci`` the
-    95 % interval ``[lo, hi]`` follows each value in small type. Needs ``\\usepackage
-    {booktabs}`` in the document."""
+    95 % interval ``[lo, hi]`` follows each value in small type. A value whose parameter
+    is listed in the row's ``at_bound`` gets a dagger and the table a footnote. Needs
+    ``\\usepackage{booktabs}`` in the document."""
     names = param_names(df)
     grip = "grip_N" in df.columns
     first_cols = ["Axis"] + (["Grip (N)"] if grip else [])
@@ -117,7 +123,9 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
     lines += [r"\begin{tabular}{" + cols + "}", r"\toprule",
               " & ".join(first_cols + [_header(n) for n in names]) + r" \\", r"\midrule"]
     prev_axis = None
+    any_stuck = False
     for _, row in df.iterrows():
+        stuck = _stuck(row["at_bound"]) if "at_bound" in df.columns else []
         axis = str(row["axis"]).upper()
         if prev_axis is not None and axis != prev_axis:
             lines.append(r"\midrule")
@@ -127,12 +135,19 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
             cells.append(f"{float(row['grip_N']):g}")
         for n in names:
             cell = sig4(float(row[n]))
+            if n in stuck:
+                cell += r"$^\dagger$"
+                any_stuck = True
             if ci:
                 cell += (r" {\scriptsize[" + sig4(float(row[f'{n}_lo'])) + ", "
                          + sig4(float(row[f'{n}_hi'])) + "]}")
             cells.append(cell)
         lines.append(" & ".join(cells) + r" \\")
-    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    if any_stuck:
+        lines += [r"\par\smallskip{\footnotesize $^\dagger$ at a physical bound of the fit "
+                  r"(within 1\,\% of its range): a limit, not an estimate.}"]
+    lines += [r"\end{table}"]
     return "\n".join(lines) + "\n"
 
 

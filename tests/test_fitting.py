@@ -250,8 +250,16 @@ def test_bootstrap_percentile_intervals(subject_study):
     model = ClosedLoopModel.for_axis("x")
     base = fit_response(model, f, aggregate(hs, "mean"))
     agg = lambda H: aggregate(H, "mean")  # noqa: E731
-    boot = bootstrap_fit(base, f, hs, subjects, aggregate=agg, n_boot=40, seed=1)
-    again = bootstrap_fit(base, f, hs, subjects, aggregate=agg, n_boot=40, seed=1)
+    # the percentile intervals themselves (widen=False; the default also takes in the
+    # base fit's own interval, checked below)
+    boot = bootstrap_fit(base, f, hs, subjects, aggregate=agg, n_boot=40, seed=1,
+                         widen=False)
+    again = bootstrap_fit(base, f, hs, subjects, aggregate=agg, n_boot=40, seed=1,
+                          widen=False)
+    wide = bootstrap_fit(base, f, hs, subjects, aggregate=agg, n_boot=40, seed=1)
+    for n in PARAM_NAMES:
+        assert wide.ci_lo[n] == min(boot.ci_lo[n], base.ci_lo[n])
+        assert wide.ci_hi[n] == max(boot.ci_hi[n], base.ci_hi[n])
     assert boot.ci_method == "bootstrap-40"
     assert boot.params == base.params
     # same seed, same intervals (numpy Generator determinism)
@@ -261,7 +269,8 @@ def test_bootstrap_percentile_intervals(subject_study):
     # it with ~15 % noise and a sqrt(8/9) shrinkage: within a factor 2 is required.
     rng = np.random.default_rng(11)
     mc = np.array([[fit_response(model, f, aggregate(_subject_study(rng)[1], "mean"),
-                                 global_search=False, x0=X1).params[n] for n in PARAM_NAMES]
+                                 global_search=False, x0=X1, intervals=False).params[n]
+                    for n in PARAM_NAMES]
                    for _ in range(40)])
     sd_mc = np.log(mc).std(axis=0, ddof=1)
     for i, n in enumerate(PARAM_NAMES):

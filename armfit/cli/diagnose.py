@@ -8,7 +8,13 @@ from dataclasses import asdict
 
 import click
 
-from armfit.cli.options import emit_json, json_option, message, overwrite_option
+from armfit.cli.options import (
+    effects_file_option,
+    emit_json,
+    json_option,
+    message,
+    overwrite_option,
+)
 from armfit.errors import UsageError
 from armfit.models.effects import EFFECTS, get_effect
 
@@ -32,12 +38,16 @@ def _console():
 
 
 @click.command("effects")
+@effects_file_option
 @json_option
 def effects_command(as_json):
     """List the physical effects the 5-parameter model lacks, with their parameters,
-    physical ranges and when to suspect each, e.g. ``armfit effects``."""
+    physical ranges and when to suspect each, e.g. ``armfit effects``: the built-in
+    library, effects of installed packages (entry-point group ``armfit.effects``) and of
+    each ``--effects FILE`` (a Python file with a module-level EFFECTS list of
+    ``armfit.Effect``; see ``examples/device_spring.py``)."""
     rows = [{"effect": e.name, "acts_on": e.stage, "summary": e.summary,
-             "suspect_when": e.suspect_when,
+             "suspect_when": e.suspect_when, "source": EFFECTS.describe_origin(e.name),
              "params": [{"name": p.name, "unit": p.unit, "lower": p.lower, "upper": p.upper,
                          "description": p.description} for p in e.params]}
             for e in EFFECTS.values()]
@@ -52,11 +62,14 @@ def effects_command(as_json):
     for r in rows:
         params = "\n".join(escape(f"{p['name']} [{p['unit']}] {p['lower']:g}…{p['upper']:g}")
                            for p in r["params"])
-        t.add_row(r["effect"], params, r["summary"], r["suspect_when"])
+        what = r["summary"] + ("" if r["source"] == "the built-in library"
+                               else f" (from {r['source']})")
+        t.add_row(r["effect"], params, escape(what), r["suspect_when"])
     _console().print(t)
 
 
 @click.command("compare")
+@effects_file_option
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--model", "model_path", required=True, type=click.Path(dir_okay=False),
               help="Params CSV from fit-grip or fit-nominal.")
@@ -119,6 +132,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 
 
 @click.command("diagnose")
+@effects_file_option
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--model", "model_path", required=True, type=click.Path(dir_okay=False),
               help="Params CSV from fit-grip (preferred: per-grip starts) or fit-nominal.")

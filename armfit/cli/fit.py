@@ -19,6 +19,7 @@ from armfit.tables import caption_for, latex_table
 
 from .options import (
     effect_option,
+    effects_file_option,
     emit_json,
     json_option,
     message,
@@ -44,6 +45,7 @@ def _options(f):
         click.option("--seed", type=int, default=0, show_default=True,
                      help="Seed of the bootstrap resampling (the fit itself uses none)."),
         effect_option,
+        effects_file_option,
         click.option("--method", default=None, metavar="NAME",
                      help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin)."),
         click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",
@@ -72,6 +74,10 @@ def _run(which: str, spectra: str, output: str, cost: str, band: str | None, boo
         where = f"{axis}" + (f" {grip:g} N" if grip is not None else "")
         message(f"fit {where}: rms {fit.rms_db:.3g} dB, {fit.rms_deg:.3g} deg, "
                 f"{fit.n_points} bins {fit.band[0]:g}-{fit.band[1]:g} Hz")
+        if fit.at_bound:
+            message(f"warning: fit {where}: {', '.join(fit.at_bound)} at a physical bound "
+                    "(within 1 % of its range); the value is a limit, not an estimate "
+                    "(column at_bound)")
 
     study = fit_study(table, which=which, cost=cost, bands=bands, effects=effect_objs,
                       bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
@@ -89,7 +95,8 @@ def _run(which: str, spectra: str, output: str, cost: str, band: str | None, boo
             "command": f"fit-{which}", "spectra": spectra, "output": output,
             "latex": latex, "columns": list(df.columns),
             "fits": [dict({k: _clean(v) for k, v in row.items()}, ci_method=ci,
-                          objective=fit.objective, message=fit.message)
+                          objective=fit.objective, message=fit.message,
+                          at_bound=list(fit.at_bound))
                      for row, ci, fit in zip(df.to_dict("records"), ci_methods, study.fits,
                                              strict=True)],
         })

@@ -28,7 +28,14 @@ from armfit.io.artifacts import (
 from armfit.io.atomic import check_output, write_text_atomic
 from armfit.uncertainty import MAX_PAIRS, fit_uncertainty, points_table, summary_table
 
-from .options import emit_json, json_option, message, output_option, overwrite_option
+from .options import (
+    effects_file_option,
+    emit_json,
+    json_option,
+    message,
+    output_option,
+    overwrite_option,
+)
 
 
 def _parse_band(value: str | None) -> tuple[float, float] | None:
@@ -71,6 +78,7 @@ def _clean(v):
 
 
 @click.command("fit-uncertainty")
+@effects_file_option
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--nominal", required=True, type=click.Path(dir_okay=False),
               help="Nominal parameters CSV written by `armfit fit-nominal` (H_ARM per axis).")

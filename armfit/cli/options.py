@@ -35,6 +35,33 @@ effect_option = click.option(
     help="Add a physical effect to the model (repeatable; see `armfit effects`).")
 
 
+
+def _load_effect_files(ctx: click.Context, param: click.Parameter, value) -> tuple:
+    """Register the effects of each ``--effects FILE`` for this command (they are removed
+    again when the command ends, so one process can run several commands)."""
+    paths = tuple(value or ())
+    ctx.meta["armfit.effect_files"] = paths
+    if paths:
+        from armfit.models.effects import EFFECTS, load_effect_files
+        names = load_effect_files(paths)
+        ctx.call_on_close(lambda: EFFECTS.unregister(names))
+    return paths
+
+
+effects_file_option = click.option(
+    "--effects", "effect_files", multiple=True, metavar="FILE", is_eager=True,
+    expose_value=False, callback=_load_effect_files,
+    type=click.Path(dir_okay=False),
+    help="Python file defining more effects in a module-level EFFECTS list (repeatable; "
+         "see `armfit effects`). Loaded before the other options.")
+
+
+def effect_files() -> tuple[str, ...]:
+    """The ``--effects`` files given to the current command (empty if none)."""
+    ctx = click.get_current_context(silent=True)
+    return tuple(ctx.meta.get("armfit.effect_files", ())) if ctx is not None else ()
+
+
 def verbosity() -> int:
     """The group's -v/-q level: -1 quiet, 0 normal, >0 verbose."""
     ctx = click.get_current_context(silent=True)

@@ -16,7 +16,7 @@ from armfit.io.artifacts import read_params, read_spectra, read_wu
 from armfit.io.atomic import check_output
 from armfit.models.arm import DEVICE_MASS_KG
 
-from .options import message, output_option, overwrite_option
+from .options import effects_file_option, message, output_option, overwrite_option
 
 AXIS_CHOICE = click.Choice(["x", "y", "z"])
 
@@ -73,6 +73,7 @@ def command() -> None:
 
 
 @command.command("bode")
+@effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
 @click.option("--model", "model_path", metavar="CSV",
               help="Fitted parameters (fit-grip or fit-nominal output) to overlay.")
@@ -95,6 +96,7 @@ def bode(spectra, model_path, axis, band, no_trials, output, overwrite):
 
 
 @command.command("residual")
+@effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
 @click.option("--model", "model_path", required=True, metavar="CSV",
               help="Fitted parameters: grip fits are compared with each grip's mean, "
@@ -134,6 +136,7 @@ def residual(spectra, model_path, model2_path, axis, bands, output, overwrite):
 
 
 @command.command("uncertainty")
+@effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
 @click.option("--nominal", "nominal_path", required=True, metavar="CSV",
               help="Nominal fit (fit-nominal output): its H_ARM is the reference.")
@@ -157,6 +160,7 @@ def uncertainty(spectra, nominal_path, weights_path, axis, output, overwrite):
 
 
 @command.command("literature")
+@effects_file_option
 @click.option("--model", "model_path", metavar="CSV",
               help="Fitted parameters; default: the paper's Table I.")
 @click.option("--axis", type=AXIS_CHOICE, default="x", show_default=True,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from armfit.cli.options import (
+    effects_file_option,
     emit_json,
     jobs_option,
     json_option,
@@ -18,6 +19,7 @@ from armfit.spectra import METHODS
 
 
 @click.command("run")
+@effects_file_option
 @click.argument("inputs", nargs=-1, type=click.Path(), metavar="INPUT...")
 @click.option("-o", "--output", "outdir", required=True, type=click.Path(), metavar="OUTDIR",
               help="Folder to write (built beside it, renamed into place at the end).")

@@ -8,7 +8,9 @@ from pathlib import Path
 import click
 
 from armfit.cli.options import (
+    effect_files,
     effect_option,
+    effects_file_option,
     emit_json,
     json_option,
     message,
@@ -60,6 +62,7 @@ def build_config(*, subjects: int, axes: str, grips: str, duration: str, fs: flo
 
 
 @click.command("simulate")
+@effects_file_option
 @click.option("-o", "--output", "output", required=True, type=click.Path(file_okay=False),
               help="Study folder to write (one file per trial; written atomically).")
 @click.option("--subjects", type=click.IntRange(1, 999), default=_DEFAULTS.subjects,
@@ -121,7 +124,8 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
                "duration": duration, "fs": fs, "seed": seed, "noise": noise,
                "quantum": quantum, "drift": drift, "variability": variability,
                "format": fmt, "units": units, "effect": list(effects),
-               "effect_axes": effect_axes, "truth": str(truth_path)}
+               "effect_axes": effect_axes, "effects_files": list(effect_files()),
+               "truth": str(truth_path)}
     files = []
     with atomic_path(truth_path, overwrite=overwrite) as truth_tmp, \
             atomic_path(out, overwrite=overwrite) as tmp, \

@@ -114,7 +114,11 @@ def read_spectra(path):
 PARAMS_BASE: tuple[str, ...] = ("Ma", "k1", "k2", "b1", "b2")
 #: Fit statistics closing every params row, in order.
 PARAMS_STATS: tuple[str, ...] = ("rms_db", "rms_deg", "rms_norm", "band_lo_hz", "band_hi_hz",
-                                 "n_points", "cost", "converged", "mp_kg", "effects")
+                                 "n_points", "cost", "converged", "mp_kg", "effects",
+                                 "at_bound")
+#: Columns of :data:`PARAMS_STATS` that files written by older versions may lack, with the
+#: value they take when read.
+PARAMS_OPTIONAL: dict[str, str] = {"at_bound": ""}
 
 
 def params_columns(param_names, *, grip: bool) -> list[str]:
@@ -147,7 +151,9 @@ def write_params(df, path, *, overwrite: bool = False):
 
 def read_params(path):
     """Read a params CSV; check its columns. Returns a DataFrame (``effects`` as str,
-    ``converged`` as bool, ``grip_N`` present only for grip fits).
+    ``converged`` as bool, ``at_bound`` as str — the parameters at a physical bound,
+    ";"-separated, empty when none or in a file written before the column existed —
+    ``grip_N`` present only for grip fits).
 
     Raises NoInputError if the file is missing, BadInputError naming the file and the
     missing column, or the row and column of a non-numeric or non-positive parameter.
@@ -162,7 +168,7 @@ def read_params(path):
     if not p.is_file():
         raise NoInputError(f"{p}: no such params file")
     try:
-        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "cost": str},
+        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "cost": str, "at_bound": str},
                          keep_default_na=True)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
             ValueError) as exc:
@@ -172,6 +178,8 @@ def read_params(path):
         raise BadInputError("missing column; expected a file written by fit-grip or "
                             "fit-nominal", file=str(p), column="effects")
     df["effects"] = df["effects"].fillna("").astype(str)
+    for col, default in PARAMS_OPTIONAL.items():
+        df[col] = df[col].fillna(default).astype(str) if col in df.columns else default
     base_cols = ["axis", *PARAMS_BASE]
     names = list(PARAMS_BASE) + _effect_param_names(df, p)
     expected = base_cols + names[len(PARAMS_BASE):] + [

@@ -33,11 +33,19 @@ DEVICE_MASS_KG: dict[str, float] = {"x": 0.09, "y": 0.095, "z": 0.091}
 PARAM_NAMES: tuple[str, ...] = ("Ma", "k1", "k2", "b1", "b2")
 
 
+#: Default closeness (fraction of a parameter's range in its search coordinate) at which
+#: a fitted value counts as being at a bound: see :meth:`Param.near_bound`.
+AT_BOUND_REL = 0.01
+
+
 @dataclass(frozen=True)
 class Param:
     """One model parameter: name, SI unit, physical bounds and a typical value.
 
-    ``log`` parameters are positive and are searched on a log scale by the fitter.
+    ``Param(name, unit, lower, upper, typical, description="", log=True)``. ``log``
+    parameters are positive and are searched on a log scale by the fitter; the others on
+    a linear scale across their bounds. The bounds must hold ``lower < typical < upper``
+    (all finite), else :class:`armfit.errors.EffectDefinitionError` (a ValueError).
     """
 
     name: str
@@ -49,11 +57,58 @@ class Param:
     log: bool = True
 
     def __post_init__(self) -> None:
+        from armfit.errors import EffectDefinitionError
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise EffectDefinitionError(f"parameter name must be a non-empty string, "
+                                        f"got {self.name!r}")
+        for what in ("lower", "upper", "typical"):
+            v = getattr(self, what)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating,
+                                                         np.integer)) or not np.isfinite(v):
+                raise EffectDefinitionError(f"parameter {self.name!r}: {what} must be a "
+                                            f"finite number, got {v!r}")
         if not (self.lower < self.typical < self.upper):
-            raise ValueError(f"{self.name}: typical {self.typical} outside "
-                             f"[{self.lower}, {self.upper}]")
+            raise EffectDefinitionError(
+                f"parameter {self.name!r}: bounds must hold lower < typical < upper, got "
+                f"lower {self.lower:g}, typical {self.typical:g}, upper {self.upper:g}")
         if self.log and self.lower <= 0:
-            raise ValueError(f"{self.name}: log parameter needs lower > 0")
+            raise EffectDefinitionError(f"parameter {self.name!r}: a log parameter needs "
+                                        f"lower > 0 (got {self.lower:g}); give log=False "
+                                        "for one that may be 0 or negative")
+
+    def near_bound(self, value: float, rel: float = AT_BOUND_REL) -> str | None:
+        """Which bound ``value`` lies within ``rel`` of, or None.
+
+        The distance is measured in the fitter's search coordinate, as a fraction of the
+        whole range: |ln v − ln bound| ≤ rel·(ln upper − ln lower) for a log parameter,
+        |v − bound| ≤ rel·(upper − lower) for a linear one. With the default 1 %, b1 of
+        the base model (0.05 … 1000 N·s/m) is flagged below 0.0552 N·s/m. Returns
+        "lower" or "upper"; a NaN value is never at a bound.
+        """
+        v = float(value)
+        if not np.isfinite(v):
+            return None
+        if self.log:
+            if v <= 0:
+                return "lower"
+            x, lo, hi = np.log(v), np.log(self.lower), np.log(self.upper)
+        else:
+            x, lo, hi = v, self.lower, self.upper
+        tol = rel * (hi - lo)
+        if x - lo <= tol:
+            return "lower"
+        if hi - x <= tol:
+            return "upper"
+        return None
+
+
+def at_bound(params: Sequence[Param], values: Mapping[str, float],
+             rel: float = AT_BOUND_REL) -> list[str]:
+    """Names of the parameters whose value in ``values`` lies within ``rel`` (default
+    1 %) of a bound, in the order of ``params`` (see :meth:`Param.near_bound`). Names
+    missing from ``values`` are skipped."""
+    return [p.name for p in params
+            if p.name in values and p.near_bound(values[p.name], rel) is not None]
 
 
 #: The five arm parameters with physical bounds wide enough for every row of
@@ -189,7 +244,7 @@ class ClosedLoopModel:
         """Base parameters plus every effect at its null values: the base model's response."""
         theta = {n: float(base[n]) for n in PARAM_NAMES}
         for e in self.effects:
-            theta.update({f"{e.name}.{k}": v for k, v in e.null(self.mp).items()})
+            theta.update({f"{e.name}.{k}": v for k, v in e.null_values(self.mp).items()})
         return theta
 
     def start_points(self, base: Mapping[str, float]) -> list[dict[str, float]]:

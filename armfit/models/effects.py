@@ -1,7 +1,7 @@
-"""The effect library: physical effects the 5-parameter model of eq. 4 lacks.
+"""Effects: physical effects the 5-parameter model of eq. 4 lacks, and their registry.
 
 Each effect is a value that plugs into :class:`armfit.models.arm.ClosedLoopModel` at
-one of three places:
+one of three places (its ``stage``):
 
 ``arm``     an impedance (N/m) added to the arm's Z_ARM = 1/H_ARM;
 ``device``  an impedance (N/m) added to the device's Mp s²;
@@ -10,54 +10,127 @@ one of three places:
 So with every effect present the measured dynamics are
 X/F = Π R_out(s) / (Z_ARM + ΔZ_arm + Mp s² + ΔZ_dev).
 The same definitions drive the simulator, the fits and the diagnosis.
+
+Defining an effect (a user's file, an installed package, or the built-in library)::
+
+    from armfit import Effect, Param
+
+    def _spring(s, values, mp):
+        return values["k_N_per_m"] + 0.0 * s
+
+    EFFECTS = [Effect(
+        name="device-spring", stage="device",
+        params=(Param("k_N_per_m", "N/m", 0.01, 5000.0, 50.0, "spring in the device"),),
+        term=_spring, summary="A spring in the device: its impedance gains k.",
+        null=(0.01,))]
+
+``term(s, values, mp)`` gets s = j·2π·f (rad/s, a numpy array), ``values`` mapping the
+effect's own parameter names to numbers (or to arrays that broadcast against s: the
+fitter evaluates many points at once, so write it with numpy, not ``math``), and the
+device mass ``mp`` (kg); it returns an array of the shape of s (add ``0.0 * s`` to a
+constant). ``null`` gives the values at which the effect vanishes (``None``: the device
+mass, for an effect that replaces Mp); nested fits start there. ``starts`` (optional)
+gives further starting points, ``suspect_when`` (optional) the symptom, in words.
+
+The registry (:data:`EFFECTS`, a read-only mapping name → Effect) holds, in order: the
+built-in library (:mod:`armfit.models.library`), the effects of installed packages (the
+entry-point group ``armfit.effects``: each entry point names a module, or an object, with
+an ``EFFECTS`` list), and the files loaded with :func:`load_effect_file` (the CLI's
+``--effects FILE``). Every effect is checked when it is registered
+(:func:`check_effect`); a bad one raises :class:`armfit.errors.EffectDefinitionError`
+naming the file and what is wrong.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+import hashlib
+import importlib.util
+import sys
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from armfit.errors import UsageError
-from armfit.models.arm import Param
+from armfit.errors import EffectDefinitionError, NoInputError, UsageError
+from armfit.models.arm import BASE_PARAMS, DEVICE_MASS_KG, Param
 
 TermFn = Callable[[np.ndarray, Mapping[str, float], float], np.ndarray]
 
+#: Where an effect can act (see the module docstring).
+STAGES: tuple[str, ...] = ("arm", "device", "output")
 
-@dataclass(frozen=True)
+#: Entry-point group through which installed packages register effects.
+ENTRY_POINT_GROUP = "armfit.effects"
+
+#: Probe frequencies (Hz) of the registration checks: the paper's fit band, 0.1–30 Hz,
+#: 40 points log-spaced.
+PROBE_HZ = np.geomspace(0.1, 30.0, 40)
+
+#: Largest relative change |H_null/H_base − 1| of the closed-loop response an effect may
+#: cause at its null values (probe band, base parameters at their typical values, every
+#: axis's device mass). 1e-3 is 0.009 dB and 0.06°, far below the noise of any measured
+#: bin (0.1–1 dB), yet loose enough for effects whose null sits on a bound short of the
+#: exact zero (a 100 kHz low-pass changes the response by 3e-4 at 30 Hz).
+NULL_TOLERANCE = 1e-3
+
+_BAD_NAME_CHARS = ".;,:="
+
+
+@dataclass(frozen=True, kw_only=True)
 class Effect:
     """A named physical effect: its parameters, where it acts and what it does.
 
-    ``term(s, values, mp)`` returns the impedance (N/m) for ``arm``/``device`` stages or
-    the dimensionless factor for the ``output`` stage, at s in rad/s; ``values`` maps the
-    effect's own (unqualified) parameter names to numbers; ``mp`` is the device mass (kg).
+    Parameters
+    ----------
+    name : str
+        Unique name (no spaces or ``. ; , : =``), e.g. ``"device-spring"``.
+    stage : str
+        ``"arm"`` or ``"device"`` (``term`` is an impedance in N/m added there) or
+        ``"output"`` (``term`` is a dimensionless factor on X/F).
+    params : tuple of Param
+        The effect's parameters, with physical bounds and typical values.
+    term : callable
+        ``term(s, values, mp)`` → array of the shape of s (see the module docstring).
+    null : tuple
+        One value per parameter at which the effect vanishes (``None``: the device mass).
+    summary : str, optional
+        One sentence: what the effect is.
+    starts : tuple of tuples, optional
+        Further starting points of nested fits, one value per parameter.
+    suspect_when : str, optional
+        The symptom in the comparison that suggests this effect.
     """
 
     name: str
     stage: str
     params: tuple[Param, ...]
-    summary: str
-    suspect_when: str
-    _term: TermFn
-    #: Values at which the effect (nearly) vanishes; ``None`` means "the device mass"
-    #: (for an effect that replaces Mp). Nested fits start here, so adding the effect
-    #: never makes a fit worse.
-    null_values: tuple[float | None, ...] = ()
-    #: Further starting points (tuples in parameter order) for a global search.
+    term: TermFn
+    null: tuple[float | None, ...]
+    summary: str = ""
     starts: tuple[tuple[float, ...], ...] = ()
+    suspect_when: str = ""
 
-    def term(self, s: np.ndarray, values: Mapping[str, float], mp: float) -> np.ndarray:
-        return self._term(s, values, mp)
+    def __post_init__(self) -> None:
+        # accept lists where tuples are documented (an Effect is immutable and hashable)
+        for attr in ("params", "null"):
+            v = getattr(self, attr)
+            if isinstance(v, list):
+                object.__setattr__(self, attr, tuple(v))
+        if isinstance(self.starts, (list, tuple)):
+            object.__setattr__(self, "starts", tuple(
+                tuple(st) if isinstance(st, list) else st for st in self.starts))
+        _check_structure(self)
 
-    def null(self, mp: float) -> dict[str, float]:
-        """The parameter values at which this effect leaves the model (nearly) unchanged."""
-        return {p.name: (mp if v is None else v)
-                for p, v in zip(self.params, self.null_values, strict=True)}
+    def null_values(self, mp: float) -> dict[str, float]:
+        """The parameter values at which this effect leaves the model (nearly) unchanged,
+        ``None`` entries of :attr:`null` replaced by the device mass ``mp`` (kg)."""
+        return {p.name: (float(mp) if v is None else float(v))
+                for p, v in zip(self.params, self.null, strict=True)}
 
     def start_points(self, mp: float) -> list[dict[str, float]]:
         """The null point, then the effect's further starting points, clipped to bounds."""
-        pts = [self.null(mp)]
+        pts = [self.null_values(mp)]
         for st in self.starts:
             pts.append({p.name: float(np.clip(v, p.lower, p.upper))
                         for p, v in zip(self.params, st, strict=True)})
@@ -67,85 +140,379 @@ class Effect:
     def param_names(self) -> tuple[str, ...]:
         return tuple(p.name for p in self.params)
 
-
-def _delay(s, v, mp):
-    return np.exp(-s * v["delay_s"])
-
-
-def _lowpass(s, v, mp):
-    return 1.0 / (1.0 + s / (2.0 * np.pi * v["cutoff_hz"]))
-
-
-def _device_damping(s, v, mp):
-    return v["damping_Ns_per_m"] * s
+    def __reduce_ex__(self, protocol):
+        # A registered effect travels to worker processes by reference (its name and
+        # where it came from), so an effect defined in a user's file need not be
+        # importable there: the worker loads that file itself.
+        origin = EFFECTS.origin_of(self)
+        if origin is not None:
+            return (_restore_effect, (self.name, origin))
+        return super().__reduce_ex__(protocol)
 
 
-def _device_mass(s, v, mp):
-    return (v["mass_kg"] - mp) * s * s
+def _is_number(v) -> bool:
+    return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+            and bool(np.isfinite(v)))
 
 
-def _resonance(s, v, mp):
-    wn = 2.0 * np.pi * v["freq_hz"]
-    mode = wn * wn / (s * s + 2.0 * v["zeta"] * wn * s + wn * wn)
-    return (1.0 - v["weight"]) + v["weight"] * mode
+def _check_structure(e: Effect) -> None:
+    """The checks that need no evaluation of ``term`` (run by the constructor)."""
+    def fail(what: str) -> None:
+        raise EffectDefinitionError(f"effect {e.name!r}: {what}")
+
+    if not isinstance(e.name, str) or not e.name.strip():
+        raise EffectDefinitionError(f"effect name must be a non-empty string, got {e.name!r}")
+    bad = [c for c in e.name if c in _BAD_NAME_CHARS or c.isspace()]
+    if bad:
+        fail(f"its name may not hold {bad[0]!r} (no spaces or . ; , : =)")
+    if e.stage not in STAGES:
+        fail(f"stage must be one of {', '.join(STAGES)}, got {e.stage!r}")
+    if not isinstance(e.params, tuple) or not e.params:
+        fail("params must be a non-empty tuple of armfit.Param")
+    for i, p in enumerate(e.params):
+        if not isinstance(p, Param):
+            fail(f"params[{i}] is a {type(p).__name__}, not an armfit.Param")
+    names = [p.name for p in e.params]
+    for n in names:
+        bad = [c for c in n if c in _BAD_NAME_CHARS or c.isspace()]
+        if bad:
+            fail(f"parameter name {n!r} may not hold {bad[0]!r} (no spaces or . ; , : =)")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        fail(f"parameter {dup[0]!r} given twice")
+    if not callable(e.term):
+        fail(f"term must be a function term(s, values, mp), got {type(e.term).__name__}")
+    if not isinstance(e.null, tuple) or len(e.null) != len(e.params):
+        n = len(e.null) if isinstance(e.null, tuple) else "not a tuple"
+        fail(f"null must give one value per parameter ({len(e.params)}: "
+             f"{', '.join(names)}), got {n}")
+    for p, v in zip(e.params, e.null, strict=True):
+        if v is None:
+            continue
+        if not _is_number(v):
+            fail(f"null value of {p.name} must be a number (or None for the device mass), "
+                 f"got {v!r}")
+        if not (p.lower <= v <= p.upper):
+            fail(f"null value {v:g} of {p.name} lies outside its bounds "
+                 f"[{p.lower:g}, {p.upper:g}] {p.unit}")
+    if not isinstance(e.starts, tuple):
+        fail("starts must be a tuple of starting points")
+    for j, st in enumerate(e.starts):
+        if not isinstance(st, tuple) or len(st) != len(e.params):
+            fail(f"starts[{j}] must give one value per parameter ({len(e.params)})")
+        for p, v in zip(e.params, st, strict=True):
+            if not _is_number(v) or not (p.lower <= v <= p.upper):
+                fail(f"starts[{j}]: {p.name}={v!r} is not a number inside its bounds "
+                     f"[{p.lower:g}, {p.upper:g}] {p.unit}")
+    for attr in ("summary", "suspect_when"):
+        if not isinstance(getattr(e, attr), str):
+            fail(f"{attr} must be a string")
 
 
-def _reflex(s, v, mp):
-    return v["gain_N_per_m"] * np.exp(-s * v["delay_s"])
+def _probe_term(e: Effect, values: Mapping[str, float], mp: float, where: str
+                ) -> np.ndarray:
+    s = 2j * np.pi * PROBE_HZ
+    try:
+        with np.errstate(all="ignore"):
+            out = e.term(s, dict(values), mp)
+    except Exception as exc:  # the user's code: report whatever it raised, in one line
+        msg = str(exc).splitlines()[0] if str(exc) else ""
+        raise EffectDefinitionError(f"effect {e.name!r}: term raised {type(exc).__name__}"
+                                    f"{': ' + msg if msg else ''} {where}") from None
+    try:
+        arr = np.asarray(out, dtype=complex)
+    except (TypeError, ValueError):
+        raise EffectDefinitionError(f"effect {e.name!r}: term returned "
+                                    f"{type(out).__name__}, not numbers, {where}") from None
+    if arr.shape != s.shape:
+        raise EffectDefinitionError(
+            f"effect {e.name!r}: term returned shape {arr.shape} for s of shape {s.shape} "
+            f"{where}; return an array shaped like s (add 0.0 * s to a constant)")
+    if not np.all(np.isfinite(arr)):
+        bad = PROBE_HZ[~np.isfinite(arr)][0]
+        raise EffectDefinitionError(f"effect {e.name!r}: term is NaN or infinite at "
+                                    f"{bad:.3g} Hz {where}")
+    return arr
 
 
-EFFECTS: dict[str, Effect] = {e.name: e for e in (
-    Effect(
-        "delay", "output",
-        (Param("delay_s", "s", 0.0, 0.1, 0.01, "latency between force and position", log=False),),
-        "Transport, servo or sensor latency: X/F is multiplied by exp(-s*delay_s).",
-        "phase lags more and more with frequency (linearly in Hz) while the magnitude fits",
-        _delay, null_values=(0.0,), starts=((0.004,), (0.015,), (0.04,))),
-    Effect(
-        "lowpass", "output",
-        (Param("cutoff_hz", "Hz", 1.0, 1.0e5, 60.0, "corner frequency"),),
-        "First-order sensor or amplifier lag: X/F is multiplied by 1/(1 + s/(2*pi*cutoff_hz)).",
-        "magnitude droops and phase lags at high frequency, up to 90 deg past the corner",
-        _lowpass, null_values=(1.0e5,), starts=((8.0,), (25.0,), (80.0,))),
-    Effect(
-        "device-damping", "device",
-        (Param("damping_Ns_per_m", "N*s/m", 1e-4, 100.0, 2.0, "viscous friction"),),
-        "Viscous friction in the device: its impedance becomes Mp*s^2 + B*s.",
-        "magnitude too low and phase lag too small in the mid band, as if the hand "
-        "damping grew",
-        _device_damping, null_values=(1e-4,), starts=((1.0,), (5.0,))),
-    Effect(
-        "device-mass", "device",
-        (Param("mass_kg", "kg", 0.005, 3.0, 0.1, "actual moving mass of the device"),),
-        "The device's moving mass differs from the paper's Mp (e.g. another stylus or "
-        "gimbal): its impedance becomes mass_kg*s^2.",
-        "magnitude off by a constant in dB above ~15 Hz, where the -40 dB/dec mass line "
-        "dominates",
-        _device_mass, null_values=(None,), starts=((0.05,), (0.2,))),
-    Effect(
-        "resonance", "output",
-        (Param("freq_hz", "Hz", 2.0, 300.0, 40.0, "natural frequency of the mode"),
-         Param("zeta", "1", 0.02, 0.5, 0.1, "damping ratio of the mode"),
-         Param("weight", "1", 1e-5, 1.0, 0.3, "share of the motion through the mode")),
-        "An extra lightly damped mode (link, cable or tissue compliance) in the path to the "
-        "measured point: X/F is multiplied by (1 - weight) + weight*wn^2/(s^2 + "
-        "2*zeta*wn*s + wn^2), wn = 2*pi*freq_hz.",
-        "magnitude rises above the model towards a peak (or a peak-notch pair) with a "
-        "phase swing; above 30 Hz only the rise shows (the paper's Z axis)",
-        _resonance, null_values=(60.0, 0.3, 1e-5),
-        starts=((8.0, 0.2, 0.3), (15.0, 0.2, 0.3), (30.0, 0.2, 0.3), (60.0, 0.2, 0.3),
-                (120.0, 0.2, 0.5))),
-    Effect(
-        "reflex", "arm",
-        (Param("gain_N_per_m", "N/m", 1e-2, 5000.0, 200.0, "reflex stiffness"),
-         Param("delay_s", "s", 0.005, 0.2, 0.04, "reflex loop delay")),
-        "Delayed position feedback of the stretch reflex inside the arm: the arm impedance "
-        "gains gain_N_per_m*exp(-s*delay_s).",
-        "a ripple in magnitude and phase whose spacing in Hz is 1/delay_s, strongest in "
-        "the 1-10 Hz band where the arm is compliant",
-        _reflex, null_values=(1e-2, 0.04),
-        starts=((100.0, 0.02), (100.0, 0.04), (100.0, 0.07), (100.0, 0.12))),
-)}
+def check_effect(e: Effect) -> None:
+    """Check an effect before registering it; raise EffectDefinitionError (without the
+    file name: the loader adds it) when it breaks the contract.
+
+    On the probe grid :data:`PROBE_HZ`, for the device mass of every axis: ``term`` must
+    return finite values of the shape of s at the typical values, at the null values and
+    at each start; it must also broadcast (values given as arrays of shape (2, 1) give a
+    result of shape (2, n)), as the fitter evaluates many points at once; and at its null
+    values the effect must leave the closed-loop response of the base model (typical
+    parameters) unchanged within :data:`NULL_TOLERANCE`, so that fits with the effect
+    nest the fit without it.
+    """
+    from armfit.models.arm import ClosedLoopModel
+    if not isinstance(e, Effect):
+        raise EffectDefinitionError(f"{type(e).__name__} is not an armfit.Effect")
+    typical = {p.name: float(p.typical) for p in e.params}
+    base = {p.name: p.typical for p in BASE_PARAMS}
+    for axis, mp in DEVICE_MASS_KG.items():
+        null = e.null_values(mp)
+        for p in e.params:
+            if not (p.lower <= null[p.name] <= p.upper):
+                raise EffectDefinitionError(
+                    f"effect {e.name!r}: null value of {p.name} (the device mass of axis "
+                    f"{axis}, {mp:g} kg) lies outside its bounds [{p.lower:g}, {p.upper:g}]")
+        _probe_term(e, typical, mp, "at the typical values")
+        _probe_term(e, null, mp, "at the null values")
+        for j, st in enumerate(e.start_points(mp)[1:]):
+            _probe_term(e, st, mp, f"at starts[{j}]")
+        s = 2j * np.pi * PROBE_HZ
+        batch = {k: np.array([[v], [v]]) for k, v in typical.items()}
+        try:
+            with np.errstate(all="ignore"):
+                out = np.asarray(e.term(s, batch, mp))
+            ok = out.shape == (2, s.size)
+        except Exception:
+            ok = False
+        if not ok:
+            raise EffectDefinitionError(
+                f"effect {e.name!r}: term does not broadcast: with each value an array of "
+                f"shape (2, 1) it must return shape (2, {s.size}); write it with numpy "
+                "operations (np.exp, not math.exp)")
+        model = ClosedLoopModel(mp=mp, effects=(e,))
+        theta = {**base, **{f"{e.name}.{k}": v for k, v in null.items()}}
+        with np.errstate(all="ignore"):
+            h0 = ClosedLoopModel(mp=mp).response(PROBE_HZ, base)
+            h1 = model.response(PROBE_HZ, theta)
+            change = np.abs(h1 / h0 - 1.0)
+            ht = model.response(PROBE_HZ, {**theta, **{f"{e.name}.{k}": v
+                                                       for k, v in typical.items()}})
+        if not np.all(np.isfinite(change)) or change.max() > NULL_TOLERANCE:
+            worst = float(np.nanmax(np.where(np.isfinite(change), change, np.inf)))
+            raise EffectDefinitionError(
+                f"effect {e.name!r}: at its null values "
+                f"({', '.join(f'{k}={v:g}' for k, v in null.items())}) it changes the "
+                f"closed-loop response by {worst:.2g} (relative) on axis {axis}; the null "
+                f"must leave the model unchanged (within {NULL_TOLERANCE:g})")
+        if not np.all(np.isfinite(ht)) or np.any(ht == 0):
+            raise EffectDefinitionError(
+                f"effect {e.name!r}: at its typical values the closed-loop response is "
+                "zero, NaN or infinite on the probe band")
+
+
+# ---------------------------------------------------------------------------
+# The registry
+# ---------------------------------------------------------------------------
+
+#: Where a registered effect came from: ("builtin", module), ("entry-point", label) or
+#: ("file", absolute path).
+Origin = tuple[str, str]
+
+
+class EffectRegistry(Mapping):
+    """The known effects, name → :class:`Effect`, in registration order: built-ins, then
+    installed packages (entry points), then loaded files. Read-only as a mapping; fills
+    itself (built-ins and entry points) on first use."""
+
+    def __init__(self) -> None:
+        self._effects: dict[str, Effect] = {}
+        self._origins: dict[str, Origin] = {}
+        self._labels: dict[str, str] = {}
+        self._files: dict[str, list[str]] = {}
+        self._state = "empty"     # "empty" → "loading" → "ready"
+
+    # -- Mapping --------------------------------------------------------------
+    def _ready(self) -> dict[str, Effect]:
+        if self._state == "empty":
+            self._state = "loading"
+            try:
+                from armfit.models import library
+                self.register_source(library, ("builtin", library.__name__),
+                                     label=library.__name__)
+                _load_entry_points(self)
+            finally:
+                self._state = "ready"
+        return self._effects
+
+    def __getitem__(self, name: str) -> Effect:
+        return self._ready()[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(self._ready()))
+
+    def __len__(self) -> int:
+        return len(self._ready())
+
+    def __contains__(self, name) -> bool:
+        return name in self._ready()
+
+    # -- registration -----------------------------------------------------------
+    def origin_of(self, effect: Effect) -> Origin | None:
+        """Where ``effect`` was registered from, or None if it is not the registered one."""
+        if self._effects.get(effect.name) is effect:
+            return self._origins[effect.name]
+        return None
+
+    def describe_origin(self, name: str) -> str:
+        """Where effect ``name`` came from, in words: "the built-in library", the entry
+        point, or the file as it was given."""
+        kind, where = self._origins[name]
+        if kind == "builtin":
+            return "the built-in library"
+        return self._labels.get(name, where)
+
+    def register_source(self, source, origin: Origin, *, label: str) -> list[Effect]:
+        """Check and register the ``EFFECTS`` of ``source`` (a module or any object with
+        an ``EFFECTS`` list or tuple): all of them or, on the first problem, none.
+        Raises EffectDefinitionError naming ``label``."""
+        if isinstance(source, (list, tuple)):
+            effects = source
+        elif not hasattr(source, "EFFECTS"):
+            raise EffectDefinitionError("defines no EFFECTS (a module-level list of "
+                                        "armfit.Effect)", file=label)
+        else:
+            effects = source.EFFECTS
+        return self.register(effects, origin, label=label)
+
+    def register(self, effects: Sequence[Effect], origin: Origin, *, label: str
+                 ) -> list[Effect]:
+        """Check and register ``effects`` (all or none); see :meth:`register_source`."""
+        self._ready()
+        if not isinstance(effects, (list, tuple)):
+            raise EffectDefinitionError(f"EFFECTS must be a list or tuple of armfit.Effect, "
+                                        f"got {type(effects).__name__}", file=label)
+        if not effects:
+            raise EffectDefinitionError("EFFECTS is empty", file=label)
+        seen: set[str] = set()
+        for i, e in enumerate(effects):
+            if not isinstance(e, Effect):
+                raise EffectDefinitionError(f"EFFECTS[{i}] is a {type(e).__name__}, not an "
+                                            "armfit.Effect", file=label)
+            if e.name in self._effects:
+                raise EffectDefinitionError(
+                    f"effect name {e.name!r} is already taken by "
+                    f"{self.describe_origin(e.name)}; choose another name", file=label)
+            if e.name in seen:
+                raise EffectDefinitionError(f"effect name {e.name!r} is defined twice",
+                                            file=label)
+            seen.add(e.name)
+            try:
+                check_effect(e)
+            except EffectDefinitionError as exc:
+                raise EffectDefinitionError(exc.detail, file=label) from None
+        for e in effects:
+            self._effects[e.name] = e
+            self._origins[e.name] = origin
+            self._labels[e.name] = label
+        return list(effects)
+
+    def unregister(self, names: Iterable[str]) -> None:
+        """Remove effects that came from files (built-ins and entry points stay)."""
+        for n in list(names):
+            origin = self._origins.get(n)
+            if origin is None or origin[0] != "file":
+                continue
+            del self._effects[n], self._origins[n], self._labels[n]
+            left = [k for k in self._files.get(origin[1], []) if k != n]
+            if left:
+                self._files[origin[1]] = left
+            else:
+                self._files.pop(origin[1], None)
+
+    def load_file(self, path) -> list[Effect]:
+        """See :func:`load_effect_file`."""
+        self._ready()
+        p = Path(path)
+        if not p.is_file():
+            raise NoInputError(f"{p}: no such effects file" + (" (it is a folder)"
+                                                              if p.is_dir() else ""))
+        key = str(p.resolve())
+        if key in self._files:
+            return [self._effects[n] for n in self._files[key]]
+        module = _import_file(p, key)
+        effects = self.register_source(module, ("file", key), label=str(p))
+        self._files[key] = [e.name for e in effects]
+        return effects
+
+
+def _import_file(path: Path, key: str):
+    """Execute a Python file as a fresh module; any failure becomes one line naming it."""
+    mod_name = "armfit_user_effects_" + hashlib.sha1(key.encode()).hexdigest()[:12]
+    try:
+        spec = importlib.util.spec_from_file_location(mod_name, path)
+        if spec is None or spec.loader is None:
+            raise EffectDefinitionError("cannot be imported as a Python file (give a .py "
+                                        "file)", file=str(path))
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[mod_name] = module
+        spec.loader.exec_module(module)
+    except EffectDefinitionError as exc:
+        sys.modules.pop(mod_name, None)
+        raise EffectDefinitionError(exc.detail if exc.file in (None, str(path)) else str(exc),
+                                    file=str(path)) from None
+    except SyntaxError as exc:
+        sys.modules.pop(mod_name, None)
+        raise EffectDefinitionError(f"cannot import: SyntaxError: {exc.msg} (line "
+                                    f"{exc.lineno})", file=str(path)) from None
+    except (Exception, SystemExit) as exc:  # the user's code: whatever it raised
+        sys.modules.pop(mod_name, None)
+        msg = str(exc).splitlines()[0] if str(exc) else ""
+        raise EffectDefinitionError(f"cannot import: {type(exc).__name__}"
+                                    + (f": {msg}" if msg else ""), file=str(path)) from None
+    return module
+
+
+def _entry_points():
+    from importlib.metadata import entry_points
+    return entry_points(group=ENTRY_POINT_GROUP)
+
+
+def _load_entry_points(registry: EffectRegistry) -> None:
+    for ep in sorted(_entry_points(), key=lambda ep: (ep.name, ep.value)):
+        dist = getattr(ep, "dist", None)
+        label = f"entry point '{ep.name} = {ep.value}'" + (
+            f" of {dist.metadata['Name']} {dist.version}" if dist is not None else "")
+        try:
+            obj = ep.load()
+        except EffectDefinitionError as exc:
+            raise EffectDefinitionError(exc.detail, file=label) from None
+        except Exception as exc:  # an installed package's code: whatever it raised
+            msg = str(exc).splitlines()[0] if str(exc) else ""
+            raise EffectDefinitionError(f"cannot import: {type(exc).__name__}"
+                                        + (f": {msg}" if msg else ""), file=label) from None
+        registry.register_source(obj, ("entry-point", label), label=label)
+
+
+#: The registry of known effects (name → Effect): built-ins, installed packages, files.
+EFFECTS = EffectRegistry()
+
+
+def load_effect_file(path) -> list[Effect]:
+    """Load a Python file that defines a module-level ``EFFECTS`` list and register its
+    effects (checked with :func:`check_effect`). Loading the same file again returns the
+    same effects. Raises NoInputError if the file is missing, EffectDefinitionError (one
+    line naming the file) if it cannot be imported, defines no EFFECTS, reuses a name
+    already taken, or holds an effect that breaks the contract."""
+    return EFFECTS.load_file(path)
+
+
+def load_effect_files(paths: Iterable) -> list[str]:
+    """Load several effect files (see :func:`load_effect_file`); returns the names of the
+    effects newly registered (for :meth:`EffectRegistry.unregister`)."""
+    before = set(EFFECTS)
+    new: list[str] = []
+    try:
+        for p in paths:
+            new += [e.name for e in load_effect_file(p) if e.name not in before]
+    except BaseException:
+        EFFECTS.unregister(new)      # all files or none
+        raise
+    return new
+
+
+def _restore_effect(name: str, origin: Origin) -> Effect:
+    """Unpickle a registered effect (see :meth:`Effect.__reduce_ex__`), loading the file
+    it came from first when this process has not seen it."""
+    if name not in EFFECTS and origin[0] == "file":
+        load_effect_file(origin[1])
+    return EFFECTS[name]
 
 
 def get_effect(name: str) -> Effect:
@@ -154,7 +521,8 @@ def get_effect(name: str) -> Effect:
         return EFFECTS[name]
     except KeyError:
         raise UsageError(f"unknown effect {name!r}; known effects: "
-                         f"{', '.join(EFFECTS)} (see `armfit effects`)") from None
+                         f"{', '.join(EFFECTS)} (see `armfit effects`; an effect defined "
+                         "in a file needs --effects FILE)") from None
 
 
 def parse_effect_spec(spec: str) -> tuple[Effect, dict[str, float]]:

@@ -1,0 +1,287 @@
+"""Time-domain study simulator, independent of armfit's closed-loop formula.
+
+Test and validation infrastructure: it writes raw trial files of the data contract (one
+file per trial, ``sub-<s>_axis-<a>_grip-<g>N.parquet``) whose truth is known, so the whole
+path ``estimate → fit-grip/fit-nominal → diagnose`` can be checked on data that armfit's
+own frequency-domain model did not make. Use from benchmarks by adding ``tests/`` to
+``sys.path``.
+
+How a trial is made
+-------------------
+1. The continuous closed loop as a rational transfer function in s (rad/s), built here
+   from polynomials, not from :mod:`armfit.models`:
+
+   * arm impedance (paper eq. 3 inverted) Z_A = C1 (Ma s² + C2) / (Ma s² + C1 + C2),
+     C1 = k1 + b1 s, C2 = k2 + b2 s;
+   * reflex (arm stage) g·exp(−s τ_r), the delay by a Padé approximant of order
+     :data:`PADE_ORDER`;
+   * device impedance m s² + B s + k (mass m = the axis's Mp unless ``device-mass``,
+     damping B from ``device-damping``, spring k from ``device-spring``);
+   * output factors: first-order lag ω_c/(s + ω_c) (``lowpass``), a structural mode
+     (1 − w) + w ω_n²/(s² + 2ζω_n s + ω_n²) (``resonance``);
+
+   X/F = R(s) / (Z_A + ΔZ_arm + Z_dev).
+2. Discretisation with :func:`scipy.signal.cont2discrete` (``bilinear`` by default — a
+   frequency warp of 0.3 % at 30 Hz — or ``zoh``, the force held between samples, which
+   adds the half-sample lag a real servo loop has), as zeros/poles/gain, run as
+   second-order sections (:func:`scipy.signal.sosfilt`, the numerically safe form of
+   ``lfilter``) on the sampled force, after a discarded lead-in of :data:`LEAD_S`.
+3. An output delay (``delay``) as an integer number of samples plus a first-order Thiran
+   all-pass for the fraction (fraction kept in [0.5, 1.5) samples so the all-pass is
+   stable), not as exp(−sτ).
+4. The measurement chain: position sensor noise (white, ``noise_m`` rms), slow postural
+   drift (white noise through a 2nd-order Butterworth low-pass at 0.05 Hz, ``drift_m``
+   rms), encoder quantisation (``quantum_m``), force quantisation (``force_step_N``).
+
+Force: Gaussian white noise through an 8th-order Butterworth low-pass at ``band_hz``
+(not armfit's ideal FFT low-pass), scaled to a peak of ``limit_N``; or, with
+``input="steps"``, pseudo-random steps: levels uniform in ±``limit_N`` held for random
+times uniform in ``hold_s`` (a non-white input whose power falls as 1/f² above a few Hz).
+
+Subjects: log-normal factors exp(``variability`` · z) on the five arm parameters of the
+paper's Table I row (axis, grip); seeds give reproducible studies.
+
+Units: SI throughout (kg, N/m, N·s/m, s, Hz, m, N).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import signal
+
+#: Device mass per axis (kg), the paper's eq. 2 values.
+MP_KG = {"x": 0.09, "y": 0.095, "z": 0.091}
+#: Order of the Padé approximant of the reflex delay.
+PADE_ORDER = 6
+#: Discarded lead-in before the recorded window (s), so the filters' start-up is gone.
+LEAD_S = 8.0
+#: Table I (Fu & Çavuşoğlu 2010): (axis, grip N) -> (Ma kg, k1, k2 N/m, b1, b2 N·s/m).
+TABLE1: dict[tuple[str, float], tuple[float, ...]] = {}
+
+
+def _table1() -> dict[tuple[str, float], tuple[float, ...]]:
+    if not TABLE1:
+        from armfit.data import paper_table
+        for r in paper_table("grip").to_dict("records"):
+            TABLE1[(r["axis"], float(r["grip_N"]))] = (
+                float(r["Ma_kg"]), float(r["k1_N_per_m"]), float(r["k2_N_per_m"]),
+                float(r["b1_Ns_per_m"]), float(r["b2_Ns_per_m"]))
+    return TABLE1
+
+
+@dataclass(frozen=True)
+class Study:
+    """Settings of one simulated study (SI units).
+
+    effects: {effect name: {param: value}} with armfit's effect parameter names
+    (``delay``: delay_s; ``lowpass``: cutoff_hz; ``device-damping``: damping_Ns_per_m;
+    ``device-mass``: mass_kg; ``resonance``: freq_hz, zeta, weight; ``reflex``:
+    gain_N_per_m, delay_s; ``device-spring``: k_N_per_m). effect_axes: the axes the
+    effects act on (all by default).
+    """
+
+    subjects: int = 4
+    axes: tuple[str, ...] = ("x", "y", "z")
+    grips_N: tuple[float, ...] = (1.0, 2.0, 3.0)
+    duration_s: tuple[float, float] = (30.0, 40.0)
+    fs: float = 1000.0
+    seed: int = 0
+    effects: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    effect_axes: tuple[str, ...] = ("x", "y", "z")
+    method: str = "bilinear"
+    input: str = "white"
+    band_hz: float = 30.0
+    limit_N: float = 5.0
+    hold_s: tuple[float, float] = (0.03, 0.3)
+    noise_m: float = 2e-6
+    drift_m: float = 1e-3
+    quantum_m: float = 3e-5
+    force_step_N: float = 2.0 ** -12
+    variability: float = 0.15
+
+
+def arm_params(study: Study, subject: int, axis: str, grip: float) -> dict[str, float]:
+    """The subject's five arm parameters on (axis, grip): Table I times its factors."""
+    z = np.random.default_rng([study.seed, 1, subject]).standard_normal(5)
+    row = _table1()[(axis, float(grip))]
+    factors = np.exp(study.variability * z)
+    return {n: float(v * g) for n, v, g in zip(("Ma", "k1", "k2", "b1", "b2"), row, factors,
+                                                strict=True)}
+
+
+def pade_delay(tau_s: float, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """(num, den) in s (highest power first) of the [order/order] Padé approximant of
+    exp(−s τ): c_k = (2n − k)! n! / ((2n)! k! (n − k)!), num Σ c_k (−τ s)^k, den Σ c_k (τ s)^k."""
+    from math import factorial
+    n = order
+    c = np.array([factorial(2 * n - k) * factorial(n)
+                  / (factorial(2 * n) * factorial(k) * factorial(n - k)) for k in range(n + 1)])
+    k = np.arange(n + 1)
+    num = (c * (-tau_s) ** k)[::-1]
+    den = (c * tau_s ** k)[::-1]
+    return num, den
+
+
+def closed_loop_tf(arm: Mapping[str, float], mp: float,
+                   effects: Mapping[str, Mapping[str, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """(num, den) polynomials in s of X/F (m/N) without the output delay (see module
+    docstring, step 1)."""
+    pm = np.polymul
+    c1, c2 = np.array([arm["b1"], arm["k1"]]), np.array([arm["b2"], arm["k2"]])
+    ms2 = np.array([arm["Ma"], 0.0, 0.0])
+    za_num = pm(c1, np.polyadd(ms2, c2))
+    za_den = np.polyadd(ms2, np.polyadd(c1, c2))
+    if "reflex" in effects:
+        g, tau = effects["reflex"]["gain_N_per_m"], effects["reflex"]["delay_s"]
+        pn, pd = pade_delay(tau, PADE_ORDER)
+        za_num = np.polyadd(pm(za_num, pd), g * pm(pn, za_den))
+        za_den = pm(za_den, pd)
+    m = effects.get("device-mass", {}).get("mass_kg", mp)
+    b = effects.get("device-damping", {}).get("damping_Ns_per_m", 0.0)
+    k = effects.get("device-spring", {}).get("k_N_per_m", 0.0)
+    zd = np.array([m, b, k])
+    num, den = za_den, np.polyadd(za_num, pm(zd, za_den))
+    if "lowpass" in effects:
+        wc = 2 * np.pi * effects["lowpass"]["cutoff_hz"]
+        num, den = num * wc, pm(den, [1.0, wc])
+    if "resonance" in effects:
+        r = effects["resonance"]
+        wn, zeta, w = 2 * np.pi * r["freq_hz"], r["zeta"], r["weight"]
+        mode = np.array([1.0, 2 * zeta * wn, wn * wn])
+        num = pm(num, np.polyadd((1 - w) * mode, [w * wn * wn]))
+        den = pm(den, mode)
+    return np.asarray(num, float), np.asarray(den, float)
+
+
+def discrete_sos(num, den, fs: float, method: str = "bilinear") -> np.ndarray:
+    """Second-order sections of the discretised transfer function (cont2discrete, as
+    zeros/poles/gain). Raises ValueError for an unstable loop."""
+    z, p, k = signal.tf2zpk(num, den)
+    if np.any(p.real >= 0):
+        raise ValueError("the continuous closed loop is unstable")
+    # time in units of 1/w0 (w0 = 2 pi 10 Hz) keeps the state-space form that
+    # cont2discrete builds well conditioned: s' = s / w0, dt' = dt w0
+    w0 = 2 * np.pi * 10.0
+    k = k * w0 ** (z.size - p.size)
+    zd, pd, kd, _ = signal.cont2discrete((z / w0, p / w0, k), w0 / fs, method=method)
+    zd = np.atleast_1d(np.squeeze(zd))
+    if np.any(np.abs(pd) >= 1):
+        raise ValueError("the discretised closed loop is unstable")
+    return signal.zpk2sos(zd, pd, float(np.squeeze(kd)))
+
+
+def fractional_delay(x: np.ndarray, delay_samples: float) -> np.ndarray:
+    """Delay ``x`` by a (non-integer) number of samples: integer shift plus a first-order
+    Thiran all-pass (a + z⁻¹)/(1 + a z⁻¹), a = (1 − d)/(1 + d), d in [0.5, 1.5)."""
+    n = int(np.floor(delay_samples))
+    d = delay_samples - n
+    if n >= 1 and d < 0.5:
+        n, d = n - 1, d + 1.0
+    y = x
+    if d > 1e-9:
+        if d < 0.5:  # total delay below half a sample: linear interpolation
+            y = np.concatenate([[x[0]], (1 - d) * x[1:] + d * x[:-1]])
+        else:
+            a = (1 - d) / (1 + d)
+            y = signal.lfilter([a, 1.0], [1.0, a], x)
+    if n:
+        y = np.concatenate([np.full(n, y[0]), y[:-n]])
+    return y
+
+
+def force_signal(rng: np.random.Generator, n: int, study: Study) -> np.ndarray:
+    """The commanded force (N), (n,): band-limited white noise or pseudo-random steps."""
+    fs = study.fs
+    if study.input == "white":
+        sos = signal.butter(8, study.band_hz, fs=fs, output="sos")
+        f = signal.sosfilt(sos, rng.standard_normal(n))
+        f *= study.limit_N / np.max(np.abs(f))
+    elif study.input == "steps":
+        f = np.empty(n)
+        i = 0
+        while i < n:
+            hold = int(max(1, round(rng.uniform(*study.hold_s) * fs)))
+            f[i:i + hold] = rng.uniform(-study.limit_N, study.limit_N)
+            i += hold
+    else:
+        raise ValueError(f"input must be 'white' or 'steps', got {study.input!r}")
+    if study.force_step_N > 0:
+        f = np.trunc(f / study.force_step_N) * study.force_step_N
+    return f
+
+
+def simulate_trial(study: Study, subject: int, axis: str, grip: float
+                   ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(force (n,) N, position (n,) m, truth dict) of one trial."""
+    rng = np.random.default_rng([study.seed, 2, subject, "xyz".index(axis),
+                                 int(round(grip * 1000))])
+    fs = study.fs
+    n = int(round(rng.uniform(*study.duration_s) * fs))
+    lead = int(round(LEAD_S * fs))
+    arm = arm_params(study, subject, axis, grip)
+    effects = {k: dict(v) for k, v in study.effects.items()} if axis in study.effect_axes \
+        else {}
+    num, den = closed_loop_tf(arm, MP_KG[axis], effects)
+    sos = discrete_sos(num, den, fs, study.method)
+    force = force_signal(rng, n + lead, study)
+    x = signal.sosfilt(sos, force)
+    if "delay" in effects:
+        x = fractional_delay(x, effects["delay"]["delay_s"] * fs)
+    x, force = x[lead:], force[lead:]
+    if study.drift_m > 0:
+        dsos = signal.butter(2, 0.05, fs=fs, output="sos")
+        d = signal.sosfilt(dsos, rng.standard_normal(n + lead))[lead:]
+        x = x + study.drift_m * d / max(np.std(d), 1e-30)
+    x = x + study.noise_m * rng.standard_normal(n)
+    if study.quantum_m > 0:
+        x = np.round(x / study.quantum_m) * study.quantum_m
+    truth = {"subject": subject, "axis": axis, "grip_N": grip, "arm": arm,
+             "mp_kg": MP_KG[axis], "effects": effects, "n_samples": n}
+    return force, x, truth
+
+
+def write_study(study: Study, out: str | Path) -> Path:
+    """Simulate every trial of ``study`` and write raw trial files (Parquet, the data
+    contract's columns time_s, force_<a>_N, pos_<a>_m) and ``truth.json`` into ``out``.
+    Returns the folder."""
+    from armfit.io.rawwrite import trial_filename, write_trial
+    from armfit.io.trials import Trial, TrialMeta
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    truths = []
+    for s in range(study.subjects):
+        for axis in study.axes:
+            for grip in study.grips_N:
+                force, x, truth = simulate_trial(study, s, axis, grip)
+                j = "xyz".index(axis)
+                F = np.full((x.size, 3), np.nan)
+                P = np.full((x.size, 3), np.nan)
+                F[:, j], P[:, j] = force, x
+                meta = TrialMeta(subject=f"{s + 1:02d}", axis=axis, grip_N=float(grip),
+                                 run=None, fs=study.fs, n_samples=x.size, t0_s=0.0,
+                                 source="tdsim")
+                write_trial(Trial(meta=meta, force=F, pos=P, grip=None),
+                            out / trial_filename(meta))
+                truths.append(truth)
+    settings = asdict(study)
+    settings["effects"] = {k: dict(v) for k, v in study.effects.items()}
+    (out / "truth.json").write_text(json.dumps({"generator": "tests/tdsim.py",
+                                                "settings": settings, "trials": truths},
+                                               indent=1))
+    return out
+
+
+def estimate_and_fit(folder: str | Path, which: str = "grip",
+                     effects: Sequence = ()):
+    """(spectra DataFrame, params DataFrame) of a written study: ``armfit estimate``
+    defaults, then ``fit-grip`` (which="grip") or ``fit-nominal`` (which="nominal")."""
+    from armfit.fitting import fit_study
+    from armfit.spectra import EstimateConfig, estimate_study
+    spectra = estimate_study([Path(folder)], EstimateConfig()).table
+    params = fit_study(spectra, which=which).table()
+    return spectra, params
