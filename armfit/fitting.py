@@ -46,7 +46,7 @@ Confidence intervals (95 %) are formed in log-parameter space and are the wider 
   about as much as leaving out part of the band does. On five time-domain simulated
   studies with no between-subject variability (225 true values, rms_norm 0.96–2.2) the
   noise intervals alone covered 68 % of the true values, the wider of the two 97 %
-  (benchmarks/interval_coverage.py, docs/intervals.md).
+  (benchmarks/interval_coverage.py; docs/methods.md, "Intervals").
 
 Transformed back: lo = θ·exp(−h), hi = θ·exp(+h) (asymmetric in θ, never negative).
 Parameters declared ``log=False`` (e.g. a delay that may be 0) are searched, and their

@@ -23,11 +23,12 @@ automatically, e.g. docs/api.md):
   blocks must not depend on a slow block's files.
 - ``skip``: a block of one of the languages above that is shown but never run.
 
-Every file's examples run in a fresh temporary folder that holds a link to
-``sample_data/``, so paths are written as from the repository root (``sample_data/study``)
-and outputs land in the temporary folder. A command run with the same arguments on the
-same input files (e.g. ``armfit estimate sample_data/study -o study/spectra.parquet`` in
-two files) runs once per session: its files and output are replayed afterwards.
+Every file's examples run in a fresh temporary folder that holds links to
+``sample_data/`` and ``examples/``, so paths are written as from the repository root
+(``sample_data/study``) and outputs land in the temporary folder. A command run with the
+same arguments on the same input files (e.g. ``armfit estimate sample_data/study -o
+study/spectra.parquet`` in two files) runs once per session: its files and output are
+replayed afterwards.
 """
 
 from __future__ import annotations
@@ -48,6 +49,8 @@ from armfit.cli.main import cli
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [p for p in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))] if p.is_file()]
 RUN_SLOW = os.environ.get("ARMFIT_DOCS_SLOW") == "1"
+#: Folders of the repository linked into each example's working folder.
+LINKED = ("sample_data", "examples")
 LANGS = ("console", "python")
 REL_TOL = 0.05
 
@@ -174,7 +177,7 @@ def _snapshot(root: Path) -> dict[str, tuple[int, int]]:
     out = {}
     for p in root.rglob("*"):
         rel = p.relative_to(root)
-        if rel.parts[0] == "sample_data" or not p.is_file():
+        if rel.parts[0] in LINKED or not p.is_file():
             continue
         st = p.stat()
         out[str(rel)] = (st.st_size, st.st_mtime_ns)
@@ -249,7 +252,9 @@ def doc_runner(tmp_path_factory) -> Runner:
 
 @pytest.mark.parametrize("doc", DOCS, ids=[str(p.relative_to(ROOT)) for p in DOCS])
 def test_doc_examples(doc: Path, doc_runner: Runner, tmp_path: Path, monkeypatch) -> None:
-    (tmp_path / "sample_data").symlink_to(ROOT / "sample_data", target_is_directory=True)
+    for name in LINKED:
+        if (ROOT / name).is_dir():
+            (tmp_path / name).symlink_to(ROOT / name, target_is_directory=True)
     namespace: dict = {"__name__": "__docs__"}
     ran = 0
     for block in blocks_of(doc):
