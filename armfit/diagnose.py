@@ -837,6 +837,8 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
             continue
         with np.errstate(all="ignore"):
             ratio = 20 * np.log10(np.abs(H_c[:, sel]) / np.abs(H_on[:, sel]))
+        if not np.isfinite(ratio).any():  # no signal on that axis (cells flagged no_signal)
+            continue
         out[other] = float(np.nanmedian(ratio))
     return out
 
@@ -876,7 +878,9 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
         from concurrent.futures import ProcessPoolExecutor
         # forkserver: safe when the caller has threads of its own (the run pipeline)
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method))
+        from armfit.workers import ignore_sigint  # Ctrl-C is the main process's to handle
+        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method),
+                                   initializer=ignore_sigint)
     try:
         run = pool.map if pool is not None else map
         bases = list(run(_base_task, tasks))

@@ -12,9 +12,14 @@ Exit codes (documented in docs/cli.md, "Conventions"):
 3    a fit did not converge (no numbers are printed or written)
 65   bad input data (file content breaks the data contract)
 66   input not found, or nothing to read
-73   output cannot be written (exists without --overwrite, or is also an input)
-130  interrupted
+73   output cannot be written: it exists without --overwrite, it is (or would be
+     picked up as) an input, or the system refused the write (the message gives
+     the path and the OS reason: no space, permission, not a folder, ...)
+130  interrupted (SIGINT, Ctrl-C): workers stopped, partial outputs removed
+143  terminated (SIGTERM): workers stopped, partial outputs removed
 ==== =========================================================
+
+The same fault gives the same code on every command.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ EXIT_DATAERR = 65
 EXIT_NOINPUT = 66
 EXIT_CANTCREAT = 73
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
 
 
 class ArmfitError(ValueError):
@@ -97,3 +103,31 @@ class EffectDefinitionError(BadInputError):
     """A user-defined effect (or its parameters) that breaks the effect contract of
     :mod:`armfit.models.effects`: the message names the file or entry point that defined
     it and what is wrong (exit 65, as any other input whose content is bad)."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received: unwinds like Ctrl-C (partial outputs removed), exit 143."""
+
+    exit_code = EXIT_TERMINATED
+
+
+#: Longest cell text echoed in a message; longer cells are cut (with "…").
+CELL_CHARS = 80
+
+
+def cell(value, limit: int = CELL_CHARS) -> str:
+    """A data cell as a message shows it: numbers as plain numbers (never
+    ``np.float64(...)``), text quoted and cut at ``limit`` characters."""
+    import math
+    import numbers
+    if isinstance(value, bool):
+        return str(value)
+    if isinstance(value, numbers.Integral):
+        return str(int(value))
+    if isinstance(value, numbers.Real):
+        x = float(value)
+        return repr(x) if math.isfinite(x) else str(x)
+    text = "" if value is None else str(value)
+    if len(text) > limit:
+        text = text[:limit] + f"… ({len(text)} characters)"
+    return repr(text) if len(text) <= limit else "'" + text + "'"

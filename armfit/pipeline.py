@@ -126,7 +126,7 @@ def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike],
         inp_res = Path(inp).resolve()
         if inp_res == out_res or out_res in inp_res.parents:
             raise OutputError(f"{out}: holds the input {inp}; choose another OUTDIR")
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, inputs=inputs, manifest=manifest, folder=True)
     return out
 
 
@@ -147,8 +147,7 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
     out = check_outdir(outdir, inputs, manifest=options.manifest, overwrite=options.overwrite)
     tmp: Path | None = None
     try:
-        with atomic_path(out, overwrite=options.overwrite) as tmp:
-            tmp.mkdir()
+        with atomic_path(out, overwrite=options.overwrite, folder=True) as tmp:
             result = _run_in(list(inputs), tmp, options, on_stage=on_stage, warn=warn)
     except ArmfitError as exc:
         # a message about a file of the temporary folder names it as it would be in OUTDIR

@@ -745,7 +745,9 @@ def estimate_trial(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
                            window=config.window, method="h1")
     else:
         sp = chebwin_spectra(f, y, fs)
-    g = to_grid(sp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
+    _check_finite_spectra(sp, f, axis, source)
+    with np.errstate(all="ignore"):  # cells without signal are marked below (no_signal)
+        g = to_grid(sp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
     sat = ["saturation"] if saturated(f, config.force_limit_N) else []
 
     def trial_flags(j: int) -> list[str]:
@@ -754,8 +756,10 @@ def estimate_trial(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
 
     stim_flags = trial_flags(i)
     mp = config.mp.get(axis, DEVICE_MASS_KG[axis])
-    d = to_grid(derived_spectra(f, pos[:, i], fs, mp, segments=config.derived_segments),
-                grid, min_avg=config.min_avg, max_avg=config.max_avg)
+    dsp = derived_spectra(f, pos[:, i], fs, mp, segments=config.derived_segments)
+    _check_finite_spectra(dsp, f, axis, source)
+    with np.errstate(all="ignore"):
+        d = to_grid(dsp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
     out = [Response("measured", axis, sp.method, g.h[0], g.coherence[0], g.se_db[0],
                     g.se_deg[0], _flag_strings(g.coherence[0], config.coherence_min,
                                                stim_flags)),
@@ -766,7 +770,58 @@ def estimate_trial(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
         out.append(Response("cross", AXES[j], sp.method, g.h[k], g.coherence[k], g.se_db[k],
                             g.se_deg[k], _flag_strings(g.coherence[k], config.coherence_min,
                                                        trial_flags(j))))
-    return tuple(out)
+    return tuple(_mark_no_signal(r) for r in out)
+
+
+#: Flag of a grid cell without information (no force or no position power there, e.g.
+#: an unstimulated axis whose position is recorded as constant zero): its values are NaN.
+NO_SIGNAL = "no_signal"
+
+
+def _check_finite_spectra(sp: Spectra, force: np.ndarray, axis: str, source: str) -> None:
+    """Refuse a trial whose spectra overflowed (BadInputError naming the force column and
+    the row of its largest value): input checks keep values far below that, so this only
+    guards against a non-finite intermediate."""
+    with np.errstate(all="ignore"):
+        ok = (np.all(np.isfinite(sp.p_ff)) and np.all(np.isfinite(sp.p_xx))
+              and np.all(np.isfinite(sp.p_fx)))
+    if not ok:
+        k = int(np.argmax(np.abs(force)))
+        raise BadInputError(f"the spectra overflow (non-finite intermediate); the largest "
+                            f"value is in row {k + 1}", file=source or None,
+                            column=f"force_{axis}_N", row=k + 1)
+
+
+def _mark_no_signal(r: Response) -> Response:
+    """Cells whose response is zero or not finite carry no information: their values
+    become NaN and their flags ``no_signal`` (plus the trial's own flags)."""
+    with np.errstate(all="ignore"):
+        empty = ~np.isfinite(r.h) | (r.h == 0)
+    if not empty.any():
+        return r
+    nan = np.where(empty, np.nan, 1.0)
+    flags = tuple(",".join([NO_SIGNAL, *[x for x in fl.split(",") if x and x != "low_coherence"]])
+                  if e else fl for fl, e in zip(r.flags, empty, strict=True))
+    return Response(r.kind, r.out_axis, r.method, np.where(empty, np.nan + 0j, r.h),
+                    np.where(empty, np.nan, r.coherence), r.se_db * nan, r.se_deg * nan, flags)
+
+
+def no_signal_messages(label: str, axis: str, responses: Sequence[Response]) -> list[str]:
+    """One message per response of a trial with ``no_signal`` cells: what it means."""
+    out = []
+    for r in responses:
+        k = sum(NO_SIGNAL in fl.split(",") for fl in r.flags)
+        if not k:
+            continue
+        what = {"measured": "measured response X/F", "derived": "derived arm response Xa/Fa",
+                "cross": f"cross response force {axis} -> position {r.out_axis}"}[r.kind]
+        scope = "all" if k == len(r.flags) else f"{k} of {len(r.flags)}"
+        cause = (f"position {r.out_axis} is constant: not recorded?"
+                 if r.kind == "cross" and k == len(r.flags) else "no force or position power "
+                 "there")
+        out.append(f"{label}: {what}: {scope} frequencies carry no signal ({cause}); "
+                   f"they are NaN, flagged {NO_SIGNAL}, and left out of the mean and median")
+    return out
 
 
 # ---------------------------------------------------------------------------
@@ -779,12 +834,44 @@ def _log_parts(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     taken within π of it at every frequency (so a 2π slip of one noisy trial cannot shift
     the aggregate)."""
     H = np.atleast_2d(np.asarray(H, dtype=complex))
+    ok = np.isfinite(H) & (H != 0)
+    if not ok.all():  # cells without signal (NaN): left out, NaN where none is left
+        with np.errstate(all="ignore"):
+            db = np.where(ok, 20.0 * np.log10(np.abs(H)), np.nan)
+            unit = np.where(ok, H / np.abs(H), 0.0)
+        centre = np.angle(unit.sum(axis=0))
+        ref = np.unwrap(centre)
+        dev = np.where(ok, np.angle(unit * np.exp(-1j * centre)), np.nan)
+        return db, ref[None, :] + dev
     db = 20.0 * np.log10(np.abs(H))
     unit = H / np.abs(H)
     centre = np.angle(np.mean(unit, axis=0))            # circular mean per frequency
     ref = np.unwrap(centre)                              # continuous along frequency
     dev = np.angle(unit * np.exp(-1j * centre))          # each trial's offset, in (-π, π]
     return db, ref[None, :] + dev
+
+
+def _nan_stat(x: np.ndarray, how: str, *, ddof: int = 0, q=None) -> np.ndarray:
+    """Column statistic of ``x`` (n, m) over its finite entries, NaN where a column has
+    too few (none; fewer than 2 for a standard deviation), without numpy warnings."""
+    ok = np.isfinite(x)
+    cnt = ok.sum(axis=0)
+    need = 1 + ddof
+    cols = cnt >= need
+    shape = (len(q),) + x.shape[1:] if q is not None else x.shape[1:]
+    out = np.full(shape, np.nan)
+    if not cols.any():
+        return out
+    sub = x[:, cols]
+    if how == "mean":
+        out[cols] = np.where(ok[:, cols], sub, 0.0).sum(axis=0) / cnt[cols]
+    elif how == "median":
+        out[cols] = np.nanmedian(sub, axis=0)
+    elif how == "std":
+        out[cols] = np.nanstd(sub, axis=0, ddof=ddof)
+    elif how == "percentile":
+        out[:, cols] = np.nanpercentile(sub, q, axis=0)
+    return out
 
 
 def aggregate(H: np.ndarray, how: str) -> np.ndarray:
@@ -797,12 +884,14 @@ def aggregate(H: np.ndarray, how: str) -> np.ndarray:
     outlying trials from pulling the magnitude.
     """
     db, ph = _log_parts(H)
-    if how == "mean":
-        m_db, m_ph = db.mean(axis=0), ph.mean(axis=0)
-    elif how == "median":
-        m_db, m_ph = np.median(db, axis=0), np.median(ph, axis=0)
-    else:
+    if how not in ("mean", "median"):
         raise UsageError(f"aggregate how must be 'mean' or 'median', got {how!r}")
+    if not np.isfinite(db).all():
+        m_db, m_ph = _nan_stat(db, how), _nan_stat(ph, how)
+    elif how == "mean":
+        m_db, m_ph = db.mean(axis=0), ph.mean(axis=0)
+    else:
+        m_db, m_ph = np.median(db, axis=0), np.median(ph, axis=0)
     return 10.0 ** (m_db / 20.0) * np.exp(1j * m_ph)
 
 
@@ -819,6 +908,16 @@ def aggregate_spread(H: np.ndarray, how: str = "mean") -> dict[str, np.ndarray]:
     deg = np.degrees(ph)
     n = db.shape[0]
     factor = MEDIAN_SE_FACTOR if how == "median" else 1.0
+    if not np.isfinite(db).all():  # cells without signal: statistics of the rest
+        cnt = np.isfinite(db).sum(axis=0)
+        with np.errstate(all="ignore"):
+            root = np.sqrt(cnt.astype(float))
+        q_db = _nan_stat(db, "percentile", q=[25, 75])
+        q_deg = _nan_stat(deg, "percentile", q=[25, 75])
+        return {"se_db": factor * _nan_stat(db, "std", ddof=1) / root,
+                "se_deg": factor * _nan_stat(deg, "std", ddof=1) / root,
+                "q25_db": q_db[0], "q75_db": q_db[1], "q25_deg": q_deg[0],
+                "q75_deg": q_deg[1]}
     if n > 1:
         se_db = factor * db.std(axis=0, ddof=1) / math.sqrt(n)
         se_deg = factor * deg.std(axis=0, ddof=1) / math.sqrt(n)
@@ -835,18 +934,37 @@ def aggregate_spread(H: np.ndarray, how: str = "mean") -> dict[str, np.ndarray]:
 # The long table (schema armfit.io.artifacts.SPECTRA_COLUMNS)
 # ---------------------------------------------------------------------------
 
+def _db(h: np.ndarray) -> np.ndarray:
+    """20 log10|h| (dB); NaN, never -inf, where h is 0 or not finite (no signal)."""
+    ok = np.isfinite(h) & (h != 0)
+    if ok.all():
+        return 20.0 * np.log10(np.abs(h))
+    with np.errstate(all="ignore"):
+        return np.where(ok, 20.0 * np.log10(np.abs(h)), np.nan)
+
+
+def _unwrap_finite(ph: np.ndarray) -> np.ndarray:
+    """np.unwrap over the finite entries only (a NaN cell would spoil every later one)."""
+    ok = np.isfinite(ph)
+    if ok.all():
+        return np.unwrap(ph)
+    out = np.full(ph.shape, np.nan)
+    out[ok] = np.unwrap(ph[ok])
+    return out
+
+
 def _block(level: str, subject, axis: str, grip, run, kind: str, out_axis: str, method: str,
            freq: np.ndarray, h: np.ndarray, coherence: np.ndarray, se_db: np.ndarray,
            se_deg: np.ndarray, n: int, flags: Sequence[str], phase_rad: np.ndarray | None = None,
            spread: Mapping[str, np.ndarray] | None = None) -> dict[str, object]:
     ng = freq.size
-    phase = np.unwrap(np.angle(h)) if phase_rad is None else phase_rad
+    phase = _unwrap_finite(np.angle(h)) if phase_rad is None else phase_rad
     nan = np.full(ng, np.nan)
     spread = spread or {}
     return {
         "level": level, "subject": subject, "axis": axis, "grip_N": grip, "run": run,
         "kind": kind, "out_axis": out_axis, "method": method, "freq_hz": freq,
-        "re": h.real, "im": h.imag, "mag_db": 20.0 * np.log10(np.abs(h)),
+        "re": h.real, "im": h.imag, "mag_db": _db(h),
         "phase_deg": np.degrees(phase), "coherence": coherence, "se_db": se_db,
         "se_deg": se_deg, "n": n,
         "q25_db": spread.get("q25_db", nan), "q75_db": spread.get("q75_db", nan),
@@ -888,7 +1006,7 @@ def _majority_flags(flag_rows: Sequence[Sequence[str]]) -> list[str]:
         for s in per_freq:
             for flag in filter(None, s.split(",")):
                 counts[flag] = counts.get(flag, 0) + 1
-        out.append(",".join(f for f in ("low_coherence", "saturation", "drift")
+        out.append(",".join(f for f in ("low_coherence", "saturation", "drift", NO_SIGNAL)
                             if counts.get(f, 0) * 2 > n))
     return out
 
@@ -943,15 +1061,24 @@ def _aggregate_block(level: str, axis: str, grip: float, kind: str, out_axis: st
     value = aggregate(H, how)
     spread = aggregate_spread(H, how)
     _, ph = _log_parts(H)
-    phase = np.median(ph, axis=0) if how == "median" else ph.mean(axis=0)
+    if np.isfinite(ph).all():
+        phase = np.median(ph, axis=0) if how == "median" else ph.mean(axis=0)
+    else:
+        phase = _nan_stat(ph, how)
     se_db, se_deg = spread["se_db"], spread["se_deg"]
     if n == 1:
         se_db = np.mean([r.se_db for r in members], axis=0)
         se_deg = np.mean([r.se_deg for r in members], axis=0)
-    coh = np.nanmean(np.array([r.coherence for r in members]), axis=0)
+    coh = _nan_stat(np.array([r.coherence for r in members]), "mean")
+    flags = _majority_flags([r.flags for r in members])
+    empty = ~np.isfinite(value)
+    if empty.any():  # no member has signal there: NaN, flagged no_signal
+        value = np.where(empty, np.nan + 0j, value)
+        flags = [",".join([NO_SIGNAL, *[x for x in fl.split(",") if x and x != NO_SIGNAL]])
+                 if e else ",".join(x for x in fl.split(",") if x != NO_SIGNAL)
+                 for fl, e in zip(flags, empty, strict=True)]
     return _block(level, None, axis, grip, None, kind, out_axis, method, freq, value, coh,
-                  se_db, se_deg, n, _majority_flags([r.flags for r in members]),
-                  phase_rad=phase, spread=spread)
+                  se_db, se_deg, n, flags, phase_rad=phase, spread=spread)
 
 
 # ---------------------------------------------------------------------------
@@ -981,6 +1108,7 @@ def _estimate_source(source, config: EstimateConfig):
         m = trial.meta
         responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
                                    source=source.label)
+        warnings += no_signal_messages(source.label, m.axis, responses)
     except BadInputError as exc:
         return ("bad", source.label, str(exc), exc.detail)
     tr = TrialResponses(m.subject, m.axis, m.grip_N, m.run, source.label, config.grid(),
@@ -1038,16 +1166,11 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     if on_open is not None:
         on_open(len(sources))
     if jobs > 1 and len(sources) > 1:
-        import concurrent.futures as cf
         import functools
-        import multiprocessing as mp
-        if "forkserver" in mp.get_all_start_methods():
-            ctx = mp.get_context("forkserver")
-            ctx.set_forkserver_preload(["armfit.spectra", "armfit.io.trials"])
-        else:
-            ctx = mp.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=min(jobs, len(sources)),
-                                    mp_context=ctx) as pool:
+
+        from armfit.workers import process_pool
+        with process_pool(min(jobs, len(sources)),
+                          preload=("armfit.spectra", "armfit.io.trials")) as pool:
             try:
                 for res in pool.map(functools.partial(_estimate_source, config=config),
                                     sources, chunksize=2):

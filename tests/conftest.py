@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,12 +15,14 @@ AXES = ("x", "y", "z")
 
 def trial_columns(axis: str = "y", *, fs: float = 100.0, duration_s: float = 25.0,
                   seed: int = 0, t0_s: float = 0.0, pos_unit: str = "m",
-                  all_axes: bool = True, grip: bool = True) -> dict[str, np.ndarray]:
+                  all_axes: bool = True, grip: bool = True,
+                  grip_N: float = 2.0) -> dict[str, np.ndarray]:
     """Columns of a synthetic trial that meets the raw-trial contract.
 
     Gaussian force (N, |F| < 5) on ``axis`` (and small cross-axis forces when
     ``all_axes``), a random-walk position (m, or mm with ``pos_unit="mm"``), uniform time
-    ``t0_s + k / fs`` and a grip signal held between 65 Hz sensor samples.
+    ``t0_s + k / fs`` and a grip signal around ``grip_N`` held between 65 Hz sensor
+    samples.
     """
     rng = np.random.default_rng(seed)
     n = int(round(duration_s * fs))
@@ -33,7 +36,7 @@ def trial_columns(axis: str = "y", *, fs: float = 100.0, duration_s: float = 25.
         cols[f"pos_{a}_{pos_unit}"] = scale * 1e-3 * np.cumsum(rng.standard_normal(n))
     if grip:
         held = np.floor(np.arange(n) / fs * 65.0)
-        cols["grip_N"] = 2.0 + 0.1 * np.sin(held)
+        cols["grip_N"] = grip_N + 0.1 * np.sin(held)
     return cols
 
 
@@ -75,6 +78,9 @@ def write_trial() -> Callable[..., Path]:
         if cols is None:
             if "axis" not in kwargs and "_axis-" in path.name:
                 kwargs["axis"] = path.name.split("_axis-")[1][0]
+            grip = re.search(r"_grip-(\d+(?:\.\d+)?)N", path.name)
+            if "grip_N" not in kwargs and grip is not None:
+                kwargs["grip_N"] = float(grip.group(1))  # the sensor agrees with the name
             cols = trial_columns(**kwargs)
         return write_columns(path, cols)
     return _write

@@ -259,8 +259,9 @@ def test_read_params_errors(tmp_path, spectra_file, runner):
         read_params(missing)
     negative = tmp_path / "negative.csv"
     df.assign(b1=[7.0, -1.0, 7.0]).to_csv(negative, index=False)
-    with pytest.raises(BadInputError, match=r"column 'b1', row 2: parameter must be a "
-                                            r"positive number"):
+    # BASE_PARAMS bounds b1 to [0.05, 1000] N*s/m (armfit.models.arm)
+    with pytest.raises(BadInputError, match=r"column 'b1', row 2: b1 = -1.0 N\*s/m is outside "
+                                            r"its physical range \[0.05, 1000\]"):
         read_params(negative)
 
 

@@ -250,7 +250,7 @@ def test_skip_bad_json(tmp_path, runner, study):
     assert summary["trials"] == 2 and summary["output"] == str(out)
     assert summary["skipped"] == [{
         "file": str(study / "sub-03_axis-y_grip-2N.csv"),
-        "reason": "column 'force_y_N', row 3: blank value; force and position must be "
+        "reason": "column 'force_y_N', row 3: blank value (or NaN); force and position must be "
                   "finite numbers"}]
     items = summary["items"]
     assert [(i["subject"], i["axis"], i["grip_N"], i["run"]) for i in items] == [

@@ -151,7 +151,7 @@ def test_sampling_rate_rules():
 
 
 def test_force_limit_warns_not_raises(tmp_path, write_trial, make_columns):
-    cols = make_columns("z", seed=5)
+    cols = make_columns("z", seed=5, grip_N=1.0)
     cols["force_z_N"][41] = 9.0  # beyond the 8.5 N default limit at 1-based row 42
     path = write_trial(tmp_path / "sub-01_axis-z_grip-1N.parquet", cols)
     warnings = []

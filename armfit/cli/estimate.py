@@ -96,10 +96,11 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
     if fmin >= fmax:
         raise UsageError(f"--fmin {fmin:g} Hz must be below --fmax {fmax:g} Hz")
-    inputs = list(paths) + ([manifest] if manifest else [])
-    check_output(output, overwrite=overwrite, inputs=inputs)
+    inputs = list(paths)
+    check_output(output, overwrite=overwrite, inputs=inputs, manifest=manifest)
     if csv_path is not None:
-        check_output(csv_path, overwrite=overwrite, inputs=inputs + [output])
+        check_output(csv_path, overwrite=overwrite, inputs=inputs + [output],
+                     manifest=manifest)
     config = EstimateConfig(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
                             nperseg=nperseg, overlap=overlap, window=window, mp=mp,
                             coherence_min=coherence_min, force_limit_N=force_limit)

@@ -13,7 +13,7 @@ import sys
 import click
 
 from armfit import __version__
-from armfit.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, ArmfitError
+from armfit.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, ArmfitError, Terminated
 
 log = logging.getLogger("armfit")
 
@@ -27,7 +27,12 @@ class ArmfitGroup(click.Group):
         except ArmfitError as exc:
             _report(ctx, exc)
             ctx.exit(exc.exit_code)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (Terminated)
+            from armfit.workers import stop_workers
+            stop_workers()
+            if isinstance(exc, Terminated):
+                click.echo("armfit: terminated (SIGTERM)", err=True)
+                ctx.exit(Terminated.exit_code)
             click.echo("armfit: interrupted", err=True)
             ctx.exit(EXIT_INTERRUPTED)
         except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
@@ -59,9 +64,10 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
     """armfit — human arm and hand dynamics and variability models from stylus
     haptic-device trials (the method of Fu & Çavuşoğlu, ICRA 2010).
 
-    Exit codes: 0 success, 1 internal error, 2 usage error, 3 fit did not converge,
-    65 bad input data, 66 input not found, 73 output exists or cannot be written,
-    130 interrupted.
+    Exit codes (the same on every command): 0 success, 1 internal error (a bug),
+    2 usage error, 3 fit did not converge, 65 bad input data, 66 input not found or
+    unreadable, 73 output exists, is an input, or cannot be written (path and OS reason
+    given), 130 interrupted (SIGINT), 143 terminated (SIGTERM).
     """
     verbosity = -1 if quiet else verbose
     ctx.ensure_object(dict)
@@ -100,4 +106,5 @@ _register()
 
 
 def main() -> None:  # pragma: no cover - console entry point
-    cli(prog_name="armfit")
+    from armfit.cli.entry import main as entry_main
+    entry_main()

@@ -25,7 +25,7 @@ skip_bad_option = click.option(
     "--skip-bad", is_flag=True,
     help="Go on past bad trials, listing each with its reason (default: stop at the first).")
 manifest_option = click.option(
-    "--manifest", type=click.Path(exists=True, dir_okay=False),
+    "--manifest", type=click.Path(dir_okay=False),
     help="CSV with columns file,subject,axis,grip_N[,run]; paths relative to it.")
 jobs_option = click.option(
     "-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,

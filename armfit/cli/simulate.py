@@ -116,7 +116,7 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
     truth_path = Path(truth) if truth else out.with_name(out.name + ".truth.json")
     if out.resolve() in truth_path.resolve().parents:
         raise UsageError(f"--truth {truth_path}: keep the truth file outside the study folder")
-    check_output(out, overwrite=overwrite)
+    check_output(out, overwrite=overwrite, folder=True)
     check_output(truth_path, overwrite=overwrite)
 
     plans = plan_study(config)
@@ -128,9 +128,8 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
                "truth": str(truth_path)}
     files = []
     with atomic_path(truth_path, overwrite=overwrite) as truth_tmp, \
-            atomic_path(out, overwrite=overwrite) as tmp, \
+            atomic_path(out, overwrite=overwrite, folder=True) as tmp, \
             progress(len(plans), "simulate") as advance:
-        tmp.mkdir()
         for plan in plans:
             trial = simulate_trial(plan, config)
             name = trial_filename(trial.meta, fmt)

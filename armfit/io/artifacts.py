@@ -29,7 +29,11 @@ SPECTRA_COLUMNS: tuple[str, ...] = (
     "se_deg",     # standard error of phase_deg, deg
     "n",          # number of trials behind the value (1 at level "trial")
     "q25_db", "q75_db", "q25_deg", "q75_deg",  # quartiles across trials (aggregates)
-    "flags",      # comma-separated: low_coherence, saturation, drift (empty if none)
+    "flags",      # comma-separated: low_coherence, saturation, drift, no_signal (empty if
+                  # none); no_signal: the cell carries no information (no force or no
+                  # position power there, e.g. an unstimulated axis recorded as constant
+                  # zero): re, im, mag_db, phase_deg, coherence, se_* are NaN, never ±inf,
+                  # and aggregates leave the cell out (NaN and no_signal if no trial has it)
 )
 
 #: Key of armfit's metadata (JSON) in the Parquet file's key-value metadata.
@@ -81,10 +85,11 @@ def read_spectra(path):
     import json
     from pathlib import Path
 
+    import numpy as np
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from armfit.errors import BadInputError, NoInputError
+    from armfit.errors import BadInputError, NoInputError, cell
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such spectra file")
@@ -103,6 +108,11 @@ def read_spectra(path):
     except ValueError:
         meta = {}
     df = table.select(list(SPECTRA_COLUMNS)).to_pandas()
+    for col in ("axis", "out_axis"):  # rows of another axis would be dropped silently
+        bad = np.flatnonzero(~df[col].isin(["x", "y", "z"]).to_numpy())
+        if bad.size:
+            raise BadInputError(f"axis {cell(df[col].iloc[bad[0]])} is not x, y or z",
+                                file=str(p), column=col, row=int(bad[0]) + 1)
     df.attrs["armfit"] = meta
     return df
 
@@ -163,7 +173,7 @@ def read_params(path):
     import numpy as np
     import pandas as pd
 
-    from armfit.errors import BadInputError, NoInputError
+    from armfit.errors import BadInputError, NoInputError, cell
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such params file")
@@ -181,22 +191,65 @@ def read_params(path):
     for col, default in PARAMS_OPTIONAL.items():
         df[col] = df[col].fillna(default).astype(str) if col in df.columns else default
     base_cols = ["axis", *PARAMS_BASE]
-    names = list(PARAMS_BASE) + _effect_param_names(df, p)
+    bounds = _param_bounds(df, p)
+    names = list(bounds)
     expected = base_cols + names[len(PARAMS_BASE):] + [
         f"{n}{sfx}" for n in names for sfx in ("_lo", "_hi")] + list(PARAMS_STATS)
     for col in expected:
         if col not in df.columns:
             raise BadInputError("missing column; expected a file written by fit-grip or "
                                 "fit-nominal", file=str(p), column=col)
-    for col in names:
+    known = set(expected)
+    for col in df.columns:  # an effect parameter the model would silently ignore
+        if "." in str(col) and str(col) not in known:
+            raise BadInputError(_unknown_effect_column(str(col), df),
+                                file=str(p), column=str(col))
+    axes = df["axis"].fillna("").astype(str).str.strip()
+    bad = np.flatnonzero(~axes.isin(["x", "y", "z"]).to_numpy())
+    if bad.size:
+        raise BadInputError(f"axis {cell(df['axis'].iloc[bad[0]])} is not x, y or z",
+                            file=str(p), column="axis", row=int(bad[0]) + 1)
+    for col, par in bounds.items():
         vals = pd.to_numeric(df[col], errors="coerce").to_numpy(float)
-        bad = np.flatnonzero(~(np.isfinite(vals) & (vals > 0)))
+        bad = np.flatnonzero(~np.isfinite(vals))
         if bad.size:
             raise BadInputError(f"parameter must be a positive number, got "
-                                f"{df[col].iloc[bad[0]]!r}", file=str(p), column=col,
+                                f"{cell(df[col].iloc[bad[0]])}", file=str(p), column=col,
                                 row=int(bad[0]) + 1)
+        tol = 1e-9 * max(abs(par.lower), abs(par.upper))  # 10-digit rounding of a bound
+        bad = np.flatnonzero((vals < par.lower - tol) | (vals > par.upper + tol))
+        if bad.size:
+            raise BadInputError(f"{col} = {cell(vals[bad[0]])} {par.unit} is outside its "
+                                f"physical range [{par.lower:g}, {par.upper:g}] {par.unit}",
+                                file=str(p), column=col, row=int(bad[0]) + 1)
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
     return df
+
+
+def _unknown_effect_column(col: str, df) -> str:
+    """Why the column ``<effect>.<param>`` does not belong to the file's model."""
+    from armfit.errors import UsageError
+    from armfit.models.effects import get_effect
+    name = col.split(".", 1)[0]
+    spec = next(iter(set(df["effects"])), "") or "none"
+    try:
+        get_effect(name)
+    except UsageError:
+        return (f"unknown effect '{name}' (not built in, and no loaded effect has that "
+                f"name); the file's model lists effects: {spec}")
+    return (f"parameter of the effect '{name}', which the column 'effects' does not list "
+            f"({spec}); the model would ignore it")
+
+
+def _param_bounds(df, path) -> dict:
+    """{column: Param} of the base parameters, then of each listed effect's parameters."""
+    from armfit.models.arm import BASE_PARAMS
+    from armfit.models.effects import get_effect
+    out = {q.name: q for q in BASE_PARAMS}
+    for name in _effect_param_names(df, path):
+        eff = get_effect(name.split(".", 1)[0])
+        out[name] = next(q for q in eff.params if f"{eff.name}.{q.name}" == name)
+    return out
 
 
 def _effect_param_names(df, path) -> list[str]:
@@ -284,8 +337,11 @@ def write_wu(weights, path, *, overwrite: bool = False):
     return path
 
 
-def read_wu(path):
+def read_wu(path, *, require_stable: bool = True):
     """Read a Wu CSV (the layout of the paper's Table III). Returns {axis: WuWeight}.
+
+    With ``require_stable`` (default) a pole or zero with a real part >= 0 (an unstable
+    or non-minimum-phase weight, eq. 7 requires neither) is refused, naming its row.
 
     Raises NoInputError if the file is missing; BadInputError naming the file, column and
     row (1-based data row) of anything that breaks the layout: a missing column, an axis
@@ -297,7 +353,7 @@ def read_wu(path):
     import numpy as np
     import pandas as pd
 
-    from armfit.errors import BadInputError, NoInputError
+    from armfit.errors import BadInputError, NoInputError, cell
     from armfit.uncertainty import WuWeight
     p = Path(path)
     if not p.is_file():
@@ -322,7 +378,7 @@ def read_wu(path):
         bad = np.flatnonzero(~values.isin(allowed).to_numpy())
         if bad.size:
             raise BadInputError(f"expected one of {', '.join(allowed)}, got "
-                                f"{df[col].iloc[bad[0]]!r}", file=str(p), column=col,
+                                f"{cell(df[col].iloc[bad[0]])}", file=str(p), column=col,
                                 row=int(bad[0]) + 1)
     nums = {}
     for col in ("index", "real", "imag"):
@@ -330,7 +386,7 @@ def read_wu(path):
                           errors="coerce").to_numpy(float)
         bad = np.flatnonzero(~np.isfinite(v))
         if bad.size:
-            raise BadInputError(f"expected a finite number, got {df[col].iloc[bad[0]]!r}",
+            raise BadInputError(f"expected a finite number, got {cell(df[col].iloc[bad[0]])}",
                                 file=str(p), column=col, row=int(bad[0]) + 1)
         nums[col] = v
     out = {}
@@ -351,6 +407,16 @@ def read_wu(path):
             r = rows[kind.to_numpy()[rows] == k]
             r = r[np.argsort(nums["index"][r], kind="stable")]
             reps[k] = nums["real"][r] + 1j * np.abs(nums["imag"][r])
+        for k, what in (("pole", "unstable: a pole"), ("zero", "not minimum phase: a zero")):
+            r = rows[kind.to_numpy()[rows] == k]
+            bad = r[nums["real"][r] >= 0]
+            if require_stable and bad.size:
+                i = int(bad[0])
+                raise BadInputError(
+                    f"Wu of axis {ax} is {what} at {cell(nums['real'][i])} ± "
+                    f"{cell(abs(nums['imag'][i]))}j rad/s is not in the open left half plane; "
+                    "an uncertainty weight must be stable and minimum phase",
+                    file=str(p), column="real", row=i + 1)
         out[ax] = WuWeight(float(nums["real"][gains[0]]), reps["zero"], reps["pole"])
     return out
 

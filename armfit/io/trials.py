@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from armfit.errors import BadInputError, NoInputError
+from armfit.errors import BadInputError, NoInputError, cell
 
 AXES: tuple[str, ...] = ("x", "y", "z")
 
@@ -213,6 +213,8 @@ def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, 
     """
     mpath = Path(path)
     file = str(path)
+    if not mpath.is_file():
+        raise NoInputError(f"{file}: no such manifest file")
     try:
         text = mpath.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
@@ -258,10 +260,25 @@ def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, 
     return entries
 
 
-def _walk(folder: Path) -> Iterator[Path]:
-    """Files under ``folder``, recursively, in sorted (deterministic) order."""
-    for root, dirs, files in os.walk(folder):
+def _walk(folder: Path, problems: list[tuple[str, str]]) -> Iterator[Path]:
+    """Files under ``folder``, recursively, in sorted (deterministic) order.
+
+    Folders that cannot be read and symlinked folders (not followed: a link may point
+    back up the tree) are appended to ``problems`` as (path, reason), never skipped
+    silently.
+    """
+    def onerror(exc: OSError) -> None:
+        problems.append((str(exc.filename or folder),
+                         f"cannot read the folder: {exc.strerror or exc}; its trials "
+                         "would be left out"))
+
+    for root, dirs, files in os.walk(folder, onerror=onerror):
         dirs.sort()
+        for d in list(dirs):
+            sub = Path(root) / d
+            if sub.is_symlink():
+                problems.append((str(sub), "symlinked folder, not followed (its trials "
+                                 "would be left out); give it as an input of its own"))
         for name in sorted(files):
             yield Path(root) / name
 
@@ -310,22 +327,37 @@ def _discover(inputs: Sequence[str | os.PathLike], manifest: str | os.PathLike |
             return
         sources.append(TrialSource(str(path), *ident))
 
+    def missing(row_no: int, target: Path, reason: str) -> None:
+        text = f"{manifest}: column 'file', row {row_no}: {target}: {reason}"
+        if bad is None:
+            raise NoInputError(text)
+        bad.append(Skipped(str(target), f"listed in {manifest} (row {row_no}) but {reason}"))
+
     if not inputs and manifest is not None:
         for row_no, target in enumerate(entries, start=1):
             if not target.is_file():
-                raise NoInputError(f"{manifest}: column 'file', row {row_no}: {target}: "
-                                   "no such file")
+                missing(row_no, target, "no such file")
+                continue
             add(target, explicit=True)
         return sources, ignored
+    problems: list[tuple[str, str]] = []
     for inp in inputs:
         p = Path(inp)
         if p.is_dir():
-            for f in _walk(p):
+            for f in _walk(p, problems):
                 add(f, explicit=False)
         elif p.is_file():
             add(p, explicit=True)
         else:
             raise NoInputError(f"{p}: no such file or folder")
+    for where, reason in problems:
+        if bad is None:
+            raise NoInputError(f"{where}: {reason}; or pass --skip-bad to go on without it")
+        bad.append(Skipped(where, reason))
+    # a manifest row whose file is missing is an error, also when PATHs are given
+    for row_no, target in enumerate(entries, start=1):
+        if not target.is_file():
+            missing(row_no, target, "no such file")
     return sources, ignored
 
 
@@ -412,13 +444,17 @@ def _read_table(path: Path, names: list[str]) -> dict[str, np.ndarray]:
                 out[name] = np.array([np.nan if v is None or not str(v).strip() else float(v)
                                       for v in values], dtype=np.float64)
                 continue
-            raise BadInputError(f"non-numeric value '{bad[1]}' (column type {col.type}); "
-                                "expected a number", file=file, column=name, row=bad[0])
+            raise BadInputError(f"non-numeric value {cell(bad[1])} (column type {col.type}); "
+                                "expected a number" + _MISSING_HINT.get(name, ""),
+                                file=file, column=name, row=bad[0])
         return out
 
     import pyarrow.csv as pcsv
+    # only a blank cell (or NaN) is a missing value: 'n/a', 'NA' or 'null' are text, and
+    # refused as non-numeric rather than guessed
     convert = pcsv.ConvertOptions(include_columns=names,
-                                  column_types={n: pa.float64() for n in names})
+                                  column_types={n: pa.float64() for n in names},
+                                  null_values=[""])
     try:
         table = pcsv.read_csv(path, convert_options=convert)
     except pa.ArrowInvalid as exc:
@@ -431,7 +467,8 @@ def _read_table(path: Path, names: list[str]) -> dict[str, np.ndarray]:
                 include_columns=[col], column_types={col: pa.string()}))
             bad = _first_non_numeric(raw.column(col).to_pylist())
             row, text = bad if bad else (None, "?")
-            raise BadInputError(f"non-numeric value '{text}'; expected a number",
+            raise BadInputError(f"non-numeric value {cell(text)}; expected a number"
+                                + _MISSING_HINT.get(col, ""),
                                 file=file, column=col, row=row) from None
         row = _first_short_row(path, len(_csv_header(path))) if "columns" in msg else None
         raise BadInputError(f"unreadable or truncated CSV file: {msg}", file=file,
@@ -440,6 +477,9 @@ def _read_table(path: Path, names: list[str]) -> dict[str, np.ndarray]:
         raise BadInputError(f"unreadable or truncated file: {_first_line(exc)}",
                             file=file) from None
     return {name: table.column(name).to_numpy() for name in names}
+
+
+_MISSING_HINT = {"grip_N": " (a grip sample that is missing is a blank cell or NaN)"}
 
 
 def _first_line(exc: BaseException) -> str:
@@ -465,8 +505,25 @@ def _column_names(path: Path) -> list[str]:
 
 
 def _select_columns(names: list[str], axis: str, file: str) -> dict[str, str]:
-    """Map canonical names (force_x_N, pos_x_m, grip_N, time_s) to the file's columns."""
+    """Map canonical names (force_x_N, pos_x_m, grip_N, time_s) to the file's columns.
+
+    A recognised column named twice, or a position given both in m and in mm, is
+    refused: which one is meant cannot be known.
+    """
     have = set(names)
+    known = {"time_s", "grip_N"} | {f"{q}_{a}_{u}" for a in AXES
+                                    for q, u in (("force", "N"), ("pos", "m"), ("pos", "mm"))}
+    counts = Counter(names)
+    for name in names:
+        if name in known and counts[name] > 1:
+            cols = [i + 1 for i, n in enumerate(names) if n == name]
+            raise BadInputError(f"duplicate column header (columns {', '.join(map(str, cols))}"
+                                " of the header); which one holds the data is ambiguous",
+                                file=file, column=name)
+    for a in AXES:
+        if f"pos_{a}_m" in have and f"pos_{a}_mm" in have:
+            raise BadInputError(f"both pos_{a}_m and pos_{a}_mm are present; keep one",
+                                file=file, column=f"pos_{a}_mm")
     if "time_s" not in have:
         raise BadInputError("missing required column; expected sample times in s",
                             file=file, column="time_s")
@@ -513,13 +570,13 @@ def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
         raise BadInputError("too short: 1 sample; a trial needs many samples", file=file)
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
-        raise BadInputError(f"non-finite time {t[bad[0]]}; expected a number",
+        raise BadInputError(f"non-finite time {cell(t[bad[0]])}; expected a number",
                             file=file, column="time_s", row=int(bad[0]) + 1)
     dt = np.diff(t)
     back = np.flatnonzero(dt <= 0)
     if back.size:
         i = int(back[0])
-        raise BadInputError(f"non-monotonic time: {t[i + 1]!r} s follows {t[i]!r} s; "
+        raise BadInputError(f"non-monotonic time: {cell(t[i + 1])} s follows {cell(t[i])} s; "
                             "sample times must increase", file=file, column="time_s",
                             row=i + 2)
     period = float(np.median(dt))
@@ -560,15 +617,9 @@ def read_trial(source: TrialSource, *, f_min_hz: float = 0.1, force_limit_N: flo
                 if canon not in pick:
                     continue
                 name = pick[canon]
-                v = cols[name]
-                badv = np.flatnonzero(~np.isfinite(v))
-                if badv.size:
-                    k = int(badv[0])
-                    what = "blank" if np.isnan(v[k]) else repr(float(v[k]))
-                    raise BadInputError(f"{what} value; force and position must be finite "
-                                        "numbers", file=file, column=name, row=k + 1)
+                v = check_values(cols[name], name, file)
                 arr[:, j] = v / scale if name.endswith("_mm") else v
-        grip = cols["grip_N"] if "grip_N" in pick else None
+        grip = check_grip(cols["grip_N"], file) if "grip_N" in pick else None
         fs = sampling_rate(t, file=file)
         meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
                          fs, int(n), float(t[0]), file)
@@ -576,6 +627,68 @@ def read_trial(source: TrialSource, *, f_min_hz: float = 0.1, force_limit_N: flo
     _check_trial(trial, source.label, f_min_hz=f_min_hz, force_limit_N=force_limit_N,
                  warn=warn)
     return trial
+
+
+#: Largest |value| of a force (N) or any sample: squares and sums of the samples in the
+#: spectra overflow float64 (1.8e308) long before 1e150; no instrument records 1e100.
+MAX_ABS_VALUE = 1e100
+#: Largest |position| (m) on a desktop haptic device; larger values in a ``pos_*_m``
+#: column are millimetres (or another unit) by mistake.
+MAX_POSITION_M = 0.5
+
+
+def check_values(v: np.ndarray, name: str, file: str) -> np.ndarray:
+    """Refuse non-finite or absurd samples of a force or position column ``name``.
+
+    Non-finite (blank, NaN, inf) → BadInputError; |value| ≥ :data:`MAX_ABS_VALUE`
+    (would overflow the spectra) → BadInputError; a position beyond
+    :data:`MAX_POSITION_M` (m; a ``pos_*_mm`` column converted) → BadInputError saying it
+    looks like millimetres. Each names the file, column and first offending row.
+    """
+    v = np.asarray(v, dtype=np.float64)
+    badv = np.flatnonzero(~np.isfinite(v))
+    if badv.size:
+        k = int(badv[0])
+        what = "blank value (or NaN)" if np.isnan(v[k]) else cell(float(v[k])) + " value"
+        raise BadInputError(f"{what}; force and position must be finite numbers",
+                            file=file, column=name, row=k + 1)
+    with np.errstate(over="ignore"):
+        big = np.flatnonzero(np.abs(v) >= MAX_ABS_VALUE)
+    if big.size:
+        k = int(big[0])
+        raise BadInputError(f"value {cell(float(v[k]))} is far outside any physical force or "
+                            "position and would overflow the spectra", file=file, column=name,
+                            row=k + 1)
+    if name.startswith("pos_"):
+        scale = 1000.0 if name.endswith("_mm") else 1.0
+        far = np.flatnonzero(np.abs(v) / scale > MAX_POSITION_M)
+        if far.size:
+            k = int(far[0])
+            hint = (f"; the values look like millimetres: name the column "
+                    f"{name[:-2]}_mm" if scale == 1.0 and np.abs(v).max() < 5000 else "")
+            raise BadInputError(f"position {cell(float(v[k]))} {'mm' if scale > 1 else 'm'} "
+                                f"is beyond {MAX_POSITION_M:g} m, outside a desktop "
+                                f"device's workspace{hint}", file=file, column=name,
+                                row=k + 1)
+    return v
+
+
+def check_grip(g: np.ndarray, file: str) -> np.ndarray:
+    """Refuse infinite or absurd grip samples (NaN, a missing sample, is allowed)."""
+    g = np.asarray(g, dtype=np.float64)
+    bad = np.flatnonzero(np.isinf(g) | (np.abs(np.nan_to_num(g)) >= MAX_ABS_VALUE))
+    if bad.size:
+        k = int(bad[0])
+        raise BadInputError(f"grip value {cell(float(g[k]))} is not a physical force",
+                            file=file, column="grip_N", row=k + 1)
+    return g
+
+
+#: A trial's measured grip (median of the grip_N column) may differ from the grip named
+#: by its file name or manifest by this much (N) or this fraction of it, whichever is
+#: larger, before a warning: the subject holds a target, not an exact force.
+GRIP_TOLERANCE_N = 0.5
+GRIP_TOLERANCE_FRACTION = 0.25
 
 
 def _check_trial(trial: Trial, file: str, *, f_min_hz: float, force_limit_N: float,
@@ -593,8 +706,23 @@ def _check_trial(trial: Trial, file: str, *, f_min_hz: float, force_limit_N: flo
         level = "zero" if f[0] == 0 else f"constant ({f[0]:g} N)"
         raise BadInputError(f"force on the stimulated axis is {level} throughout: no "
                             "excitation", file=file, column=col)
+    x = trial.x
+    if x.size and x.max() == x.min():
+        raise BadInputError(f"position on the stimulated axis is constant ({cell(float(x[0]))}"
+                            " m) throughout: no response was recorded", file=file,
+                            column=f"pos_{meta.axis}_m")
     if warn is None:
         return
+    if trial.grip is not None:
+        g = trial.grip[np.isfinite(trial.grip)]
+        if g.size:
+            med = float(np.median(g))
+            tol = max(GRIP_TOLERANCE_N, GRIP_TOLERANCE_FRACTION * meta.grip_N)
+            if abs(med - meta.grip_N) > tol:
+                warn(f"{file}, column 'grip_N': the measured grip ({med:.3g} N, median) "
+                     f"differs from the {meta.grip_N:g} N the file name or manifest gives; "
+                     f"the trial is kept at {meta.grip_N:g} N (if it is mislabelled, rename "
+                     "it or correct the manifest)")
     for j, a in enumerate(AXES):
         v = trial.force[:, j]
         over = np.abs(v) > force_limit_N
@@ -677,6 +805,12 @@ def _read_dataset_trial(source: TrialSource) -> Trial:
     meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
                      float(rec["fs"]), int(rec["n_samples"]), float(rec["t0_s"]),
                      str(rec["source"]))
+    for j, a in enumerate(AXES):  # a dataset may have been written by other software
+        for arr, name in ((force, f"force_{a}_N"), (pos, f"pos_{a}_m")):
+            if not np.isnan(arr[:, j]).all():
+                check_values(arr[:, j], name, source.label)
+    if grip is not None:
+        check_grip(grip, source.label)
     if table.num_rows != meta.n_samples:
         raise BadInputError(f"row group has {table.num_rows} rows, metadata says "
                             f"{meta.n_samples}", file=source.label)
@@ -900,8 +1034,7 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
         from armfit.errors import UsageError
         raise UsageError(f"{out}: the dataset is a Parquet file; give an output ending "
                          "in .parquet")
-    check_output(out, overwrite=overwrite,
-                 inputs=[*inputs, *([manifest] if manifest is not None else [])])
+    check_output(out, overwrite=overwrite, inputs=inputs, manifest=manifest)
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, resample=resample,
                          f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn)
     if on_open is not None:
