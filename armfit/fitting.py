@@ -804,6 +804,138 @@ def exact_response(model: ClosedLoopModel, f_hz, params: Mapping[str, float]) ->
     return model.response(np.asarray(f_hz, float), dict(params))
 
 
+
+# ---------------------------------------------------------------------------
+# One fit per trial (the population of real people, not of means)
+# ---------------------------------------------------------------------------
+
+#: Identity columns of a per-trial params file, before the parameters.
+TRIAL_KEYS: tuple[str, ...] = ("axis", "subject", "grip_N", "run")
+
+
+@dataclass(frozen=True)
+class TrialFit:
+    """The fit of one trial: its identity, the FitResult (None when it failed) and the
+    reason it failed ("" when it did not)."""
+
+    axis: str
+    subject: str
+    grip_N: float
+    run: int | None
+    fit: FitResult | None
+    reason: str = ""
+
+
+def trial_groups(spectra, *, method: str | None = None, source: str | None = None
+                 ) -> list[tuple[tuple[str, str, float, int | None], object]]:
+    """The measured trial responses of a spectra table, one per (axis, subject, grip_N,
+    run), sorted in that order: [(key, rows)]. Raises BadInputError if there are none,
+    UsageError if several estimators are present and ``method`` is not given."""
+    df = spectra[(spectra["kind"] == "measured") & (spectra["level"] == "trial")]
+    if "out_axis" in df.columns:
+        df = df[df["out_axis"].isna() | (df["out_axis"] == df["axis"])]
+    if df.empty:
+        raise BadInputError("no rows with level 'trial' and kind 'measured'; make the file "
+                            "with `armfit estimate`", file=source, column="level")
+    methods = sorted(df["method"].dropna().unique())
+    if method is None and len(methods) > 1:
+        raise UsageError(f"{source or 'spectra'} holds several estimators "
+                         f"({', '.join(methods)}); choose one with --method")
+    if method is not None:
+        if method not in methods:
+            raise UsageError(f"--method {method}: not in {source or 'spectra'} (it has "
+                             f"{', '.join(methods)})")
+        df = df[df["method"] == method]
+    run = df["run"].astype("Float64").fillna(-1).astype(float)
+    out = []
+    for (axis, subject, grip, r), g in df.groupby(
+            [df["axis"].astype(str), df["subject"].astype(str), df["grip_N"].astype(float),
+             run], sort=True):
+        out.append(((axis, subject, float(grip), None if r < 0 else int(r)), g))
+    return out
+
+
+def fit_trial(key: tuple[str, str, float, int | None], rows, *, cost: str = "complex",
+              band: tuple[float, float] | None = None, effects: Sequence = (),
+              max_nfev: int | None = None) -> TrialFit:
+    """Fit H_CL (eq. 4, plus ``effects``) to one trial's measured response with
+    :func:`fit_response`; a fit that fails (no convergence, too few usable bins, repeated
+    frequencies) is returned with ``fit`` None and its reason, not raised."""
+    axis, subject, grip, run = key
+    band = PAPER_BANDS[axis] if band is None else band
+    try:
+        model = ClosedLoopModel.for_axis(axis, effects)
+        f, h, se_db, se_deg = _responses(rows)
+        if np.unique(f).size != f.size:
+            raise BadInputError("repeated frequencies in the trial's response",
+                                column="freq_hz")
+        fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, cost=cost, band=band,
+                           max_nfev=max_nfev)
+    except (ConvergenceError, UsageError, BadInputError) as exc:
+        return TrialFit(axis, subject, grip, run, None, str(exc).splitlines()[0])
+    return TrialFit(axis, subject, grip, run, fit)
+
+
+def _fit_trial_task(args):
+    key, rows, kw = args
+    return fit_trial(key, rows, **kw)
+
+
+def fit_trials(spectra, *, cost: str = "complex",
+               bands: Mapping[str, tuple[float, float]] | None = None,
+               effects: Sequence = (), method: str | None = None,
+               max_nfev: int | None = None, jobs: int = 1, source: str | None = None,
+               on_fit: Callable[[TrialFit], None] | None = None) -> list[TrialFit]:
+    """One fit of H_CL per trial (axis × subject × grip [× run]) of a spectra table, in
+    that order (:func:`trial_groups`). Failed fits are kept, with their reason. ``jobs``
+    > 1 fits in that many worker processes (the results do not depend on it)."""
+    bands = dict(PAPER_BANDS) if bands is None else dict(bands)
+    groups = trial_groups(spectra, method=method, source=source)
+    tasks = [(key, rows, {"cost": cost, "band": bands[key[0]], "effects": tuple(effects),
+                          "max_nfev": max_nfev}) for key, rows in groups]
+    out: list[TrialFit] = []
+    if jobs > 1 and len(tasks) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            for tf in pool.map(_fit_trial_task, tasks, chunksize=1):
+                out.append(tf)
+                if on_fit is not None:
+                    on_fit(tf)
+    else:
+        for task in tasks:
+            tf = _fit_trial_task(task)
+            out.append(tf)
+            if on_fit is not None:
+                on_fit(tf)
+    return out
+
+
+def trial_fits_table(fits: Sequence[TrialFit], effects: Sequence = ()):
+    """The per-trial params table: the layout of a grip fit
+    (:func:`armfit.io.artifacts.params_columns`) with ``subject`` after ``axis``, ``run``
+    after ``grip_N`` and a last column ``reason`` (empty for a fit; for a failed trial its
+    reason, with empty parameters and ``converged`` false)."""
+    import pandas as pd
+
+    from armfit.io.artifacts import params_columns
+    names = ClosedLoopModel.for_axis("x", effects).param_names
+    cols = params_columns(names, grip=True)
+    cols = cols[:1] + ["subject"] + cols[1:2] + ["run"] + cols[2:] + ["reason"]
+    rows = []
+    for tf in fits:
+        row: dict = {"axis": tf.axis, "subject": tf.subject, "grip_N": tf.grip_N,
+                     "run": tf.run, "reason": tf.reason}
+        if tf.fit is not None:
+            row.update(tf.fit.row())
+        else:
+            row.update(converged=False, effects=";".join(e.name for e in effects),
+                       mp_kg=ClosedLoopModel.for_axis(tf.axis).mp, cost="")
+        rows.append(row)
+    df = pd.DataFrame(rows, columns=cols)
+    df["run"] = df["run"].astype("Int64")
+    return df
+
 __all__ = ["COSTS", "PAPER_BANDS", "STUDY_FITS", "FitResult", "StudyFit", "analytic_guess",
            "bootstrap_fit", "exact_response", "fit_response", "fit_study", "log_errors",
-           "parse_bands"]
+           "parse_bands", "TRIAL_KEYS", "TrialFit", "fit_trial", "fit_trials",
+           "trial_fits_table", "trial_groups"]

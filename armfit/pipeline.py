@@ -17,6 +17,10 @@ written into OUTDIR in brackets):
 - compare: :func:`armfit.diagnose.compare` of each nominal model with the medians
   (compare.csv);
 - residuals: :func:`armfit.figures.residual_figure` per axis (figures/residual_<axis>.png);
+- fit-trials: :func:`armfit.fitting.fit_trials`, one fit per trial (trial_params.csv);
+- stability: :func:`armfit.stability.stability_table` of the per-trial fits at the
+  defaults (stability.csv), the certificate of the nominal models against Wu, and
+  :func:`armfit.figures.stability_figure` (figures/stability.png);
 - report: :func:`report_markdown` (report.md).
 
 Every later stage reads the files the earlier ones wrote (as the subcommands do), so
@@ -46,7 +50,7 @@ FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.pn
 #: ``figures`` and ``residuals`` only with figures on). With jobs > 1 the diagnosis runs
 #: in worker processes from the end of fit-grip on, alongside the stages before it.
 STAGES = ("ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty", "figures",
-          "diagnose", "refit", "compare", "residuals", "report")
+          "diagnose", "refit", "compare", "residuals", "fit-trials", "stability", "report")
 
 #: Columns of compare.csv.
 COMPARE_COLUMNS = ("axis", "grip", "level", "model", "band", "rms_db", "rms_deg", "rms_norm")
@@ -354,6 +358,12 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
         res = _residual_figures(folder, spectra, nominal, extended, refitted, doc)
         drawn += res
         clock.done("residuals", f"{len(res)} figure(s)")
+
+    # fit-trials and stability: the per-trial population and the stiffest stable wall
+    wall = _stability_stages(folder, spectra, nominal, weights, summary, options, path,
+                             clock)
+    if wall["figure"]:
+        drawn.append(wall["figure"])
     files += drawn
 
     # report
@@ -362,7 +372,7 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
         inputs=[str(p) for p in inputs], options=options, n_trials=len(est.trials),
         skipped=skipped, grip=grip, nominal=nominal, wu_summary=summary, weights=weights,
         diagnosis=doc, refitted=refitted, extended=extended, compare_rows=comp,
-        figures=drawn, files=sorted(files))
+        figures=drawn, files=sorted(files), stability=wall)
     write_text_atomic(folder / "report.md", text)
     clock.done("report", "report.md")
 
@@ -483,7 +493,7 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
                     skipped: Sequence[tuple[str, str]], grip, nominal, wu_summary, weights,
                     diagnosis: Mapping, refitted: Mapping[str, Sequence[str]],
                     extended: Mapping, compare_rows, figures: Sequence[str],
-                    files: Sequence[str]) -> str:
+                    files: Sequence[str], stability: Mapping | None = None) -> str:
     """The text of report.md: what was done with which options, the tables, the
     diagnosis per axis in words, the figures. No timestamps or timings (re-running gives
     the same text)."""
@@ -611,6 +621,9 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
                     + [cells.get(b, "–") for b in bands])
     L += _md_table(header, rows)
 
+    if stability is not None:
+        L += stability_markdown(stability)
+
     if figures:
         L += ["## Figures", ""]
         captions = {
@@ -620,6 +633,8 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
                                        "W_max and |Wu| (Fig. 6)",
             "figures/literature.png": "H_ARM of the X axis at 1 N grip against the "
                                       "literature models of Table IV (Fig. 7)",
+            STABILITY_FIGURE: "Stiffest stable virtual wall per subject and grip, and "
+                              "against servo rate for d = 0, 1, 2",
         }
         for f in figures:
             cap = captions.get(f)
@@ -644,3 +659,95 @@ def _warn_at_bound(which: str, study, warn: Warn | None) -> None:
             where = axis + ("" if grip is None else f" {grip:g} N")
             warn(f"fit-{which} {where}: {', '.join(fit.at_bound)} at a physical bound "
                  "(within 1 % of its range); the value is a limit, not an estimate")
+
+
+# ---------------------------------------------------------------------------
+# fit-trials and stability stages
+# ---------------------------------------------------------------------------
+
+#: The stability figure written by ``run`` (figures on), relative to OUTDIR.
+STABILITY_FIGURE = "figures/stability.png"
+
+
+def _stability_stages(folder: Path, spectra, nominal, weights, wu_summary,
+                      options: RunOptions, path, clock) -> dict:
+    """fit-trials (trial_params.csv) and stability at the defaults (stability.csv), the
+    certificate of the nominal models against the fitted Wu, and the stability figure.
+    Returns what the report needs."""
+    import warnings
+
+    from armfit.fitting import fit_trials, trial_fits_table
+    from armfit.io.artifacts import write_params
+    from armfit.io.atomic import write_text_atomic
+    from armfit.io.paramsets import read_param_rows
+    from armfit.stability import WallSettings, axis_summary, stability_table
+    fits = fit_trials(spectra, cost=options.cost, jobs=options.jobs,
+                      source="spectra.parquet")
+    write_params(trial_fits_table(fits), path("trial_params.csv"))
+    failed = [(f"{t.axis} {t.subject} {t.grip_N:g} N", t.reason) for t in fits
+              if t.fit is None]
+    clock.done("fit-trials", f"{len(fits) - len(failed)} trial fit(s)"
+               + (f", {len(failed)} failed" if failed else ""))
+    settings = WallSettings()
+    rows = read_param_rows(str(folder / "trial_params.csv"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        table = stability_table(rows.table, settings, source="trial_params.csv")
+    text = table.to_csv(index=False, float_format="%.10g", lineterminator="\n")
+    write_text_atomic(path("stability.csv"), text)
+    summary = axis_summary(table)
+    bands = {}
+    for _, r in wu_summary[(wu_summary["weight"] == "fitted")
+                           & (wu_summary["target"] == "wmax")].iterrows():
+        bands[r["axis"]] = (float(r["band_lo_hz"]), float(r["band_hi_hz"]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        cert = stability_table(nominal, settings, weights=weights, weights_band_hz=bands)
+    figure = None
+    if options.figures:
+        from armfit import figures as F
+        figure = _save(folder, F.stability_figure(rows.table, settings), STABILITY_FIGURE)
+    clock.done("stability", "; ".join(f"{a}: K_max min {s['k_max_min_N_per_m'] / 1e3:.3g} "
+                                      f"kN/m" for a, s in summary.items())
+               + (f"; {figure}" if figure else ""))
+    return {"settings": settings, "summary": summary, "failed": failed, "certificate": cert,
+            "warnings": [str(w.message) for w in caught], "figure": figure,
+            "n_models": len(table)}
+
+
+def stability_markdown(wall: Mapping) -> list[str]:
+    """The report's section on the stiffest stable virtual wall (lines of Markdown)."""
+    st = wall["settings"]
+    rate = 1.0 / st.sample_time_s
+    L = ["## Stiffest stable virtual wall (stability.csv)", "",
+         f"One fit per trial (`trial_params.csv`, {wall['n_models']} fitted), then K_max: "
+         f"the largest wall stiffness K for which the sampled loop F[k] = −(K x[k−d] + "
+         f"B (x[k−d] − x[k−d−1])/T) with each arm is stable for every K′ ≤ K (exact "
+         f"zero-order-hold discretisation; see `armfit stability`). Defaults: "
+         f"{rate:g} Hz servo, B = {st.damping_Ns_per_m:g} N·s/m, d = {st.delay_samples} "
+         "sample(s).", ""]
+    for axis, s in wall["summary"].items():
+        L.append(f"- A {rate / 1e3:g} kHz device with {st.delay_samples} sample(s) of delay "
+                 f"renders walls up to {s['k_max_min_N_per_m'] / 1e3:.3g} kN/m on "
+                 f"{axis.upper()} for every subject and grip ({s['n_models']} trials; "
+                 f"limited by {s['limiting']}); median {s['k_max_median_N_per_m'] / 1e3:.3g}"
+                 f" kN/m, 5th percentile {s['k_max_p05_N_per_m'] / 1e3:.3g} kN/m.")
+    L.append("")
+    for who, why in wall["failed"]:
+        L.append(f"- Trial {who} has no fit ({why}) and is not in the population.")
+    for text in wall["warnings"]:
+        L.append(f"- Warning: {text}.")
+    cert = wall["certificate"]
+    if "k_robust_N_per_m" in cert.columns:
+        L += ["", "Robust certificate of the nominal models against the fitted Wu "
+              "(max |Wu T| < 1, T the complementary sensitivity seen by the arm's "
+              "multiplicative uncertainty):", ""]
+        for _, r in cert.iterrows():
+            if math.isfinite(r["k_robust_N_per_m"]):
+                L.append(f"- {r['axis'].upper()}: holds for K up to "
+                         f"{r['k_robust_N_per_m'] / 1e3:.3g} kN/m (peak at K = 0: "
+                         f"{r['wu_t_peak_k0']:.2f}).")
+            else:
+                L.append(f"- {r['axis'].upper()}: holds for no K at all (max |Wu T| is "
+                         f"{r['wu_t_peak_k0']:.2f} > 1 already at K = 0).")
+    return L + [""]

@@ -980,16 +980,21 @@ def _frame(blocks: list[dict[str, object]]):
     if not blocks:
         return pd.DataFrame({c: [] for c in SPECTRA_COLUMNS})
     sizes = [b["freq_hz"].size for b in blocks]  # type: ignore[union-attr]
+    text = ("level", "subject", "axis", "kind", "out_axis", "method", "flags")
     cols: dict[str, object] = {}
     for c in SPECTRA_COLUMNS:
         vals = [b[c] for b in blocks]
-        if isinstance(vals[0], np.ndarray | list):
-            cols[c] = np.concatenate([np.asarray(v) for v in vals])
+        if isinstance(vals[0], list):  # per-point strings (flags): no fixed-width copy
+            col = np.empty(sum(sizes), dtype=object)
+            col[:] = [v for vs in vals for v in vs]
+        elif isinstance(vals[0], np.ndarray):
+            col = np.concatenate([np.asarray(v) for v in vals])
         else:
-            cols[c] = np.repeat(np.array(vals, dtype=object), sizes)
-    df = pd.DataFrame(cols, columns=list(SPECTRA_COLUMNS))
-    for c in ("level", "subject", "axis", "kind", "out_axis", "method", "flags"):
-        df[c] = df[c].astype("string")
+            col = np.repeat(np.array(vals, dtype=object), sizes)
+        cols[c] = pd.array(col, dtype="string") if c in text else col
+    # the columns are fresh arrays: the frame takes them without another copy
+    df = pd.DataFrame(cols, columns=list(SPECTRA_COLUMNS), copy=False)
+    del cols
     df["grip_N"] = df["grip_N"].astype(float)
     df["run"] = pd.array([None if v is None or v != v else int(v) for v in df["run"]],
                          dtype="Int64")
@@ -1104,7 +1109,7 @@ def _estimate_source(source, config: EstimateConfig):
     warnings: list[str] = []
     try:
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
-                           warn=warnings.append)
+                           warn=warnings.append, grip=False)  # estimate needs no grip
         m = trial.meta
         responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
                                    source=source.label)

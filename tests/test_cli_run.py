@@ -28,11 +28,12 @@ TRUE_DELAY_S = 0.012  # the simulator's --effect delay=0.012 on z (its known tru
 
 #: Every file a run of this study must write (delay named on z only -> one refit file).
 TABLES = ("compare.csv", "grip_params.csv", "nominal_params.csv", "nominal_params_delay.csv",
-          "wu.csv", "wu_summary.csv", "wu_wmax.csv")
+          "wu.csv", "wu_summary.csv", "wu_wmax.csv", "trial_params.csv", "stability.csv")
 EXPECTED = set(TABLES) | {
     "trials.parquet", "spectra.parquet", "grip_params.tex", "nominal_params.tex", "wu.tex",
     "diagnosis.json", "report.md", "figures/bode.png", "figures/uncertainty.png",
-    "figures/literature.png", "figures/residual_x.png", "figures/residual_z.png"}
+    "figures/literature.png", "figures/residual_x.png", "figures/residual_z.png",
+    "figures/stability.png"}
 
 
 def _invoke(*args: str):
@@ -89,7 +90,7 @@ def test_run_writes_every_expected_file(first):
 def test_stage_lines_and_json_timings(first):
     res, _, _ = first
     stages = ["ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty", "figures",
-              "diagnose", "refit", "compare", "residuals", "report"]
+              "diagnose", "refit", "compare", "residuals", "fit-trials", "stability", "report"]
     lines = [ln for ln in res.stderr.splitlines()
              if re.match(r"^[a-z-]+: \d+\.\d s — ", ln)]
     assert [ln.split(":")[0] for ln in lines] == stages
@@ -174,6 +175,26 @@ def test_tables_equal_those_of_the_subcommands(first, tmp_path):
     hand = read_params(tmp_path / "nd.csv")
     pipe = read_params(out / "nominal_params_delay.csv")
     assert hand[hand["axis"] == "z"].reset_index(drop=True).equals(pipe)
+
+
+def test_trial_fits_and_stability_equal_those_of_the_subcommands(first, tmp_path):
+    """trial_params.csv is `armfit fit-trials` on the run's spectra, stability.csv is
+    `armfit stability trial_params.csv` at the defaults (byte for byte), and the report
+    states the population minimum of K_max per axis as a sentence."""
+    _, files, out = first
+    res = _invoke("fit-trials", str(out / "spectra.parquet"), "-o", str(tmp_path / "t.csv"))
+    assert res.exit_code == 0, res.stderr
+    assert (tmp_path / "t.csv").read_bytes() == files["trial_params.csv"]
+    res = _invoke("stability", str(out / "trial_params.csv"), "-o", str(tmp_path / "s.csv"))
+    assert res.exit_code == 0, res.stderr
+    assert (tmp_path / "s.csv").read_bytes() == files["stability.csv"]
+    table = pd.read_csv(io.BytesIO(files["stability.csv"]))
+    assert len(table) == 12
+    report = files["report.md"].decode()
+    for axis in ("x", "z"):
+        kmin = table.loc[table["axis"] == axis, "k_max_N_per_m"].min()
+        assert (f"A 1 kHz device with 1 sample(s) of delay renders walls up to "
+                f"{kmin / 1e3:.3g} kN/m on {axis.upper()} for every subject") in report
 
 
 def test_report_states_every_stage_and_the_diagnosis(first):

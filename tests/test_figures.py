@@ -14,7 +14,7 @@ from importlib import resources
 import numpy as np
 import pandas as pd
 import pytest
-from matplotlib.collections import PolyCollection
+from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 
 from armfit import figures
@@ -128,6 +128,16 @@ def lines(ax, prefix: str) -> list:
     return [ln for ln in ax.get_lines() if (ln.get_gid() or "").startswith(prefix)]
 
 
+def trial_sets(ax, prefix: str = "trial:") -> list[LineCollection]:
+    """The single-trial LineCollections of a panel whose gid starts with ``prefix``."""
+    return [c for c in ax.collections if isinstance(c, LineCollection)
+            and (c.get_gid() or "").startswith(prefix)]
+
+
+def n_trials(ax, prefix: str = "trial:") -> int:
+    return sum(len(c.get_segments()) for c in trial_sets(ax, prefix))
+
+
 def legend_texts(fig: Figure) -> list[str]:
     out = [t.get_text() for lg in fig.legends for t in lg.get_texts()]
     for ax in fig.axes:
@@ -162,12 +172,74 @@ def test_bode_layout_and_labels(bode):
 
 
 def test_bode_line_counts(bode):
-    # 2 subjects x 3 grips trials, 3 grip means and 3 grip fits per panel (Table I rows).
+    # 2 subjects x 3 grips trials (one collection per grip), 3 grip means and 3 grip fits
+    # per panel (Table I rows).
     for ax in bode.axes:
-        assert len(lines(ax, "trial:")) == 6
-        assert len(lines(ax, "trial:x:1N:s01")) == (1 if ax in bode.axes[::3] else 0)
+        assert n_trials(ax) == 6 and len(trial_sets(ax)) == 3
+        assert n_trials(ax, "trial:x:1N") == (2 if ax in bode.axes[::3] else 0)
         assert len(lines(ax, "mean:")) == 3
         assert len(lines(ax, "fit:")) == 3
+
+
+def test_bode_model_lines_on_top_of_the_data(bode):
+    # Every model line is drawn above every data artist (trials, means, bands).
+    for ax in bode.axes:
+        fits = lines(ax, "fit:")
+        data = lines(ax, "mean:") + trial_sets(ax) + [
+            c for c in ax.collections if (c.get_gid() or "").startswith("band:")]
+        assert min(f.get_zorder() for f in fits) > max(d.get_zorder() for d in data)
+
+
+def test_bode_trial_curves_are_the_rows(bode, spectra):
+    # The X 2 N collection holds subject s01's then s02's rows (sorted), as stored.
+    (coll,) = trial_sets(bode.axes[0], "trial:x:2N")
+    rows = spectra[(spectra.level == "trial") & (spectra.kind == "measured")
+                   & (spectra.axis == "x") & (spectra.grip_N == 2)]
+    segs = coll.get_segments()
+    for seg, (_, g) in zip(segs, rows.groupby("subject"), strict=True):
+        np.testing.assert_allclose(seg[:, 0], g.freq_hz.to_numpy())
+        np.testing.assert_allclose(seg[:, 1], g.mag_db.to_numpy(), atol=1e-12)
+
+
+def test_bode_phase_slip_is_moved_by_whole_turns(spectra, grip_params):
+    # One X 1 N trial stored a turn off (its phase starting on the +180 branch, as a
+    # noisy first point gives) and with a second 2 pi slip at 3 Hz: drawn, it is unwrapped
+    # from its low-frequency end and moved by whole turns, so that it ends within 180
+    # deg of the model (eq. 4, Table I X 1 N) and equals the stored curve less 360 deg.
+    slipped = spectra.copy()
+    m = ((slipped.level == "trial") & (slipped.kind == "measured") & (slipped.axis == "x")
+         & (slipped.grip_N == 1) & (slipped.subject == "s01"))
+    stored = slipped.loc[m, "phase_deg"].to_numpy()
+    f = slipped.loc[m, "freq_hz"].to_numpy()
+    bumped = stored + 360.0 + np.where(f > 3.0, 360.0, 0.0)  # 1 turn off, then 2
+    slipped.loc[m, "phase_deg"] = bumped
+    fig = figures.bode_figure(slipped, grip_params, axis="x")
+    ph_ax = fig.axes[1]
+    (coll,) = trial_sets(ph_ax, "trial:x:1N")
+    seg = coll.get_segments()[0]  # s01
+    model = h_cl(f, 0.1925, 85.48, 704.2, 7.410, 2.477, 0.09)
+    model_deg = np.degrees(np.unwrap(np.angle(model)))
+    assert abs(seg[-1, 1] - model_deg[-1]) < 180.0
+    np.testing.assert_allclose(seg[:, 1], stored, atol=1e-9)
+    # The same slip with no model: the curve joins the other trials instead.
+    fig = figures.bode_figure(slipped, None, axis="x")
+    (coll,) = trial_sets(fig.axes[1], "trial:x:1N")
+    np.testing.assert_allclose(coll.get_segments()[0][:, 1], stored, atol=1e-9)
+
+
+def test_bode_mean_band_moves_with_its_curve(spectra, grip_params):
+    # A mean stored a turn off is drawn a turn back, with its quartile band.
+    moved = spectra.copy()
+    m = (moved.level == "mean") & (moved.axis == "z") & (moved.grip_N == 3)
+    rows = moved[m]
+    for c in ("phase_deg", "q25_deg", "q75_deg"):
+        moved.loc[m, c] = moved.loc[m, c] - 360.0
+    fig = figures.bode_figure(moved, grip_params, axis="z", band="quartiles")
+    (line,) = lines(fig.axes[1], "mean:z:3N")
+    np.testing.assert_allclose(line.get_ydata(), rows.phase_deg.to_numpy(), atol=1e-9)
+    (band,) = [c for c in fig.axes[1].collections if c.get_gid() == "band:z:3N"]
+    y = band.get_paths()[0].vertices[:, 1]
+    assert y.max() == pytest.approx(rows.q75_deg.max(), abs=1e-9)
 
 
 def test_bode_fit_line_is_eq4_of_table1(bode):
@@ -345,8 +417,11 @@ def test_uncertainty_figure(unc, spectra):
     assert axs[2, 0].get_ylabel() == "Uncertainty (dB)"
     assert axs[2, 1].get_xlabel() == "Frequency (Hz)"
     for j, a in enumerate("xyz"):
-        assert len(lines(axs[0, j], "trial:")) == 6  # 2 subjects x 3 grips
+        assert n_trials(axs[0, j], f"trial:{a}") == 6  # 2 subjects x 3 grips
         assert len(lines(axs[0, j], f"nominal:{a}")) == 1
+        # the nominal model is drawn over the trials
+        (nom,) = lines(axs[1, j], f"nominal:{a}")
+        assert nom.get_zorder() > trial_sets(axs[1, j])[0].get_zorder()
         assert len(lines(axs[2, j], f"wmax:{a}")) == 1
         assert len(lines(axs[2, j], f"wu:{a}")) == 1
     texts = legend_texts(unc)
@@ -454,7 +529,8 @@ def test_dense_trials_rasterised_and_deterministic(tmp_path, monkeypatch, spectr
     paths = []
     for name in ("a", "b"):
         fig = figures.bode_figure(spectra, axis="x")
-        assert all(ln.get_rasterized() for ln in lines(fig.axes[0], "trial:"))
+        assert trial_sets(fig.axes[0])
+        assert all(c.get_rasterized() for c in trial_sets(fig.axes[0]))
         assert not any(ln.get_rasterized() for ln in lines(fig.axes[0], "mean:"))
         paths.append(figures.save_figure(fig, tmp_path / f"{name}.{ext}"))
     assert paths[0].read_bytes() == paths[1].read_bytes()

@@ -7,6 +7,7 @@ the traceback is shown only with ``-v``.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import sys
 
@@ -19,7 +20,25 @@ log = logging.getLogger("armfit")
 
 
 class ArmfitGroup(click.Group):
-    """A group that turns domain errors into one stderr line and a documented exit code."""
+    """A group that turns domain errors into one stderr line and a documented exit code.
+
+    Subcommands listed in :attr:`lazy` are imported when first used, so that a command
+    starts without importing what only the others need (matplotlib, the fitting stack).
+    """
+
+    #: Subcommands imported on first use: name -> "module:attribute".
+    lazy: dict[str, str] = {}
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted({*super().list_commands(ctx), *self.lazy})
+
+    def get_command(self, ctx: click.Context, cmd_name: str):
+        cmd = super().get_command(ctx, cmd_name)
+        if cmd is None and cmd_name in self.lazy:
+            module, attr = self.lazy[cmd_name].split(":")
+            cmd = getattr(importlib.import_module(module), attr)
+            self.add_command(cmd, cmd_name)
+        return cmd
 
     def invoke(self, ctx: click.Context):
         try:
@@ -79,27 +98,23 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
 
 
 def _register() -> None:
-    # Each subcommand module defines its click command(s); add them here.
-    from armfit.cli import ingest
-    cli.add_command(ingest.command)
-    from armfit.cli import plot
-    cli.add_command(plot.command)
-    from armfit.cli import fit
-    cli.add_command(fit.fit_grip)
-    cli.add_command(fit.fit_nominal)
-    from armfit.cli import simulate
-    cli.add_command(simulate.command)
-    from armfit.cli import estimate
-    cli.add_command(estimate.command)
-    from armfit.cli import diagnose
-    cli.add_command(diagnose.effects_command)
-    cli.add_command(diagnose.compare_command)
-    cli.add_command(diagnose.diagnose_command)
-    from armfit.cli import fit_uncertainty
-    cli.add_command(fit_uncertainty.command)
-    from armfit.cli import run
-    cli.add_command(run.command)
-    pass
+    # Each subcommand module defines its click command(s); name them here (imported when
+    # the command is used).
+    ArmfitGroup.lazy.update({
+        "ingest": "armfit.cli.ingest:command",
+        "plot": "armfit.cli.plot:command",
+        "fit-grip": "armfit.cli.fit:fit_grip",
+        "fit-nominal": "armfit.cli.fit:fit_nominal",
+        "simulate": "armfit.cli.simulate:command",
+        "estimate": "armfit.cli.estimate:command",
+        "effects": "armfit.cli.diagnose:effects_command",
+        "compare": "armfit.cli.diagnose:compare_command",
+        "diagnose": "armfit.cli.diagnose:diagnose_command",
+        "fit-uncertainty": "armfit.cli.fit_uncertainty:command",
+        "run": "armfit.cli.run:command",
+        "stability": "armfit.cli.stability:stability_command",
+        "fit-trials": "armfit.cli.stability:fit_trials_command",
+    })
 
 
 _register()

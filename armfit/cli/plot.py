@@ -65,7 +65,7 @@ def _parse_band(text: str, axes) -> list[tuple[str, float, float]]:
 
 @click.group("plot")
 def command() -> None:
-    """Draw a figure: bode, residual, uncertainty or literature.
+    """Draw a figure: bode, residual, uncertainty, literature or stability.
 
     The format follows the -o extension: .png (300 dpi), .svg or .pdf. Files carry no
     timestamps: the same input gives byte-identical files.
@@ -192,4 +192,31 @@ def literature(model_path, axis, grip, output, overwrite):
     if rows.empty:
         raise UsageError(f"{source}: no row for axis {axis}; choose one with --axis")
     fig = figures.literature_figure(rows.iloc[0])
+    _save(fig, output, overwrite)
+
+
+@command.command("stability")
+@click.argument("params", metavar="PARAMS")
+@click.option("--sample-time", "sample_time", type=float, default=1e-3, show_default=True,
+              metavar="S", help="Servo period T in seconds of the top row.")
+@click.option("--damping", type=float, default=0.0, show_default=True, metavar="B",
+              help="Virtual damping B, N*s/m.")
+@click.option("--delay-samples", "delay", type=int, default=1, show_default=True,
+              metavar="D", help="Computation delay d of the top row, samples.")
+@output_option
+@overwrite_option
+def stability(params, sample_time, damping, delay, output, overwrite):
+    """K_max per subject and grip, and against servo rate for d = 0, 1, 2.
+
+    PARAMS: any parameters file armfit writes (fit-trials for the population), or a
+    paper table by name (nominal, grip).
+    """
+    from armfit.io.paramsets import read_param_rows
+    from armfit.stability import WallSettings
+    settings = WallSettings(sample_time, damping, delay)
+    _prepare(output, overwrite, [params])
+    rows = read_param_rows(params)
+    for r, who, why in rows.skipped:
+        message(f"warning: {rows.label}: row {r} ({who}) has no fit and is left out: {why}")
+    fig = figures.stability_figure(rows.table, settings)
     _save(fig, output, overwrite)

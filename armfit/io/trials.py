@@ -14,6 +14,7 @@ sampling rate Hz. Rows in messages are 1-based data rows (the header is not coun
 from __future__ import annotations
 
 import csv
+import functools
 import gzip
 import io
 import json
@@ -590,7 +591,7 @@ def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
 
 
 def read_trial(source: TrialSource, *, f_min_hz: float = 0.1, force_limit_N: float = 8.5,
-               warn: Warn | None = None) -> Trial:
+               warn: Warn | None = None, grip: bool = True) -> Trial:
     """Read and validate one trial (a raw file, or one row group of a dataset).
 
     Checks, in order: readable file; required columns (``time_s``, the stimulated axis's
@@ -598,14 +599,17 @@ def read_trial(source: TrialSource, *, f_min_hz: float = 0.1, force_limit_N: flo
     uniform time; duration ≥ 2 / ``f_min_hz`` (two periods of the lowest frequency);
     non-constant force on the stimulated axis. |force| above ``force_limit_N`` (N) on any
     axis is reported through ``warn`` (saturation), not raised. Positions in mm are
-    converted to m. Raises BadInputError naming file, column and row.
+    converted to m. ``grip`` False leaves the grip force unread (``Trial.grip`` None).
+    Raises BadInputError naming file, column and row.
     """
     if source.index is not None:
-        trial = _read_dataset_trial(source)
+        trial = _read_dataset_trial(source, grip=grip)
     else:
         path = Path(source.path)
         file = source.path
         pick = _select_columns(_column_names(path), source.axis, file)
+        if not grip:
+            pick.pop("grip_N", None)
         cols = _read_table(path, list(dict.fromkeys(pick.values())))
         t = cols[pick["time_s"]]
         n = t.size
@@ -784,24 +788,50 @@ def dataset_sources(path: str | os.PathLike) -> list[TrialSource]:
                         index=int(r["trial"])) for r in dataset_metadata(path)]
 
 
-def _read_dataset_trial(source: TrialSource) -> Trial:
+@functools.lru_cache(maxsize=4)
+def _open_dataset(path: str, stamp: tuple[int, int, int]):
+    """(ParquetFile, per-trial records) of a dataset, kept while the file is unchanged
+    (``stamp``: inode, size, mtime), so that reading trial after trial parses the footer
+    and the trials' metadata once, not once per trial."""
     import pyarrow as pa
     import pyarrow.parquet as pq
+    records = dataset_metadata(path)
+    try:
+        pf = pq.ParquetFile(path)
+    except (pa.ArrowException, OSError) as exc:
+        raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
+                            file=path) from None
+    return pf, records
+
+
+def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
+    import pyarrow as pa
     idx = int(source.index)  # type: ignore[arg-type]
-    records = dataset_metadata(source.path)
+    try:
+        st = os.stat(source.path)
+    except OSError as exc:
+        raise BadInputError(f"unreadable dataset: {_first_line(exc)}", file=source.path) \
+            from None
+    pf, records = _open_dataset(str(source.path), (st.st_ino, st.st_size, st.st_mtime_ns))
     if not 0 <= idx < len(records):
         raise BadInputError(f"no trial {idx} (the dataset holds {len(records)})",
                             file=source.path)
     rec = records[idx]
+    # only the columns the trial has (the others are NaN throughout), grip if asked
+    present = set(rec.get("columns", DATASET_COLUMNS))
+    names = [c for c in DATASET_COLUMNS if c in present and (grip or c != "grip_N")]
     try:
-        table = pq.ParquetFile(source.path).read_row_group(idx, columns=list(DATASET_COLUMNS))
+        table = pf.read_row_group(idx, columns=names)
     except (pa.ArrowException, OSError) as exc:
         raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
                             file=source.label) from None
-    cols = [table.column(c).to_numpy() for c in DATASET_COLUMNS]
-    force = np.column_stack(cols[0:3])
-    pos = np.column_stack(cols[3:6])
-    grip = cols[6] if "grip_N" in rec.get("columns", ()) else None
+    n = table.num_rows
+    force = np.full((n, 3), np.nan)
+    pos = np.full((n, 3), np.nan)
+    for j, c in enumerate(DATASET_COLUMNS[:6]):
+        if c in names:
+            (force if j < 3 else pos)[:, j % 3] = table.column(c).to_numpy()
+    grip_N = table.column("grip_N").to_numpy() if "grip_N" in names else None
     meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
                      float(rec["fs"]), int(rec["n_samples"]), float(rec["t0_s"]),
                      str(rec["source"]))
@@ -809,12 +839,12 @@ def _read_dataset_trial(source: TrialSource) -> Trial:
         for arr, name in ((force, f"force_{a}_N"), (pos, f"pos_{a}_m")):
             if not np.isnan(arr[:, j]).all():
                 check_values(arr[:, j], name, source.label)
-    if grip is not None:
-        check_grip(grip, source.label)
-    if table.num_rows != meta.n_samples:
-        raise BadInputError(f"row group has {table.num_rows} rows, metadata says "
+    if grip_N is not None:
+        check_grip(grip_N, source.label)
+    if n != meta.n_samples:
+        raise BadInputError(f"row group has {n} rows, metadata says "
                             f"{meta.n_samples}", file=source.label)
-    return Trial(meta, force, pos, grip)
+    return Trial(meta, force, pos, grip_N)
 
 
 def _record(index: int, trial: Trial) -> dict:

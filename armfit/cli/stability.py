@@ -1,0 +1,241 @@
+"""``armfit stability``: the stiffest virtual wall a sampled haptic device renders stably
+with these arms; ``armfit fit-trials``: one fit per trial, the population it needs.
+
+Both check their outputs first, read their inputs, call the library
+(:func:`armfit.stability.stability_table`, :func:`armfit.fitting.fit_trials`) and write
+atomically.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import click
+
+from armfit.cli.options import (
+    effect_option,
+    emit_json,
+    jobs_option,
+    json_option,
+    message,
+    output_option,
+    overwrite_option,
+)
+from armfit.stability import (
+    DEFAULT_DAMPING_NS_PER_M,
+    DEFAULT_DELAY_SAMPLES,
+    DEFAULT_SAMPLE_TIME_S,
+)
+
+
+def _clean(v):
+    if v is None:
+        return None
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    try:
+        import pandas as pd
+        if pd.isna(v):
+            return None
+    except (TypeError, ValueError):
+        pass
+    if hasattr(v, "item"):
+        return v.item()
+    return v
+
+
+def _kn(v: float) -> str:
+    if not math.isfinite(v):
+        return "inf" if v > 0 else "-"
+    return f"{v / 1000:.3g}"
+
+
+def stability_document(table, summary, settings, *, params_label: str,
+                       weights_label: str | None, skipped) -> dict:
+    """The ``--json`` document: settings, models (in PARAMS row order), axes, skipped."""
+    models = []
+    for rec in table.to_dict("records"):
+        models.append({k: _clean(v) for k, v in rec.items()})
+    axes = {a: {k: _clean(v) for k, v in s.items()} for a, s in summary.items()}
+    return {
+        "settings": {**settings.as_dict(), "params": params_label, "weights": weights_label},
+        "models": models,
+        "axes": axes,
+        "skipped": [{"row": r, "trial": who, "reason": why} for r, who, why in skipped],
+    }
+
+
+def human_table(table, summary, settings) -> str:
+    """A fixed-width text table of K_max per row and the per-axis summary."""
+    cert = "k_robust_N_per_m" in table.columns
+    head = f"{'row':>4} {'axis':<4} {'subject':<10} {'grip N':>6} {'K_max kN/m':>10} " \
+           f"{'f Hz':>7}" + (f" {'|Wu T| K=0':>10} {'K_rob kN/m':>10}" if cert else "")
+    lines = [f"virtual wall: T = {settings.sample_time_s * 1e3:g} ms "
+             f"({1 / settings.sample_time_s:g} Hz), B = {settings.damping_Ns_per_m:g} N*s/m, "
+             f"d = {settings.delay_samples} sample(s)", head]
+    for r in table.to_dict("records"):
+        g = r["grip_N"]
+        line = (f"{r['row']:>4} {r['axis']:<4} {str(r['subject'] or '-'):<10} "
+                f"{(f'{g:g}' if math.isfinite(g) else '-'):>6} {_kn(r['k_max_N_per_m']):>10} "
+                f"{r['f_unstable_hz']:>7.1f}")
+        if cert:
+            line += f" {r['wu_t_peak_k0']:>10.3f} {_kn(r['k_robust_N_per_m']):>10}"
+        lines.append(line)
+    lines.append("")
+    for axis, s in summary.items():
+        lines.append(f"axis {axis}: K_max min {_kn(s['k_max_min_N_per_m'])} kN/m "
+                     f"(row {s['limiting_row']}: {s['limiting']}), median "
+                     f"{_kn(s['k_max_median_N_per_m'])}, 5th percentile "
+                     f"{_kn(s['k_max_p05_N_per_m'])} kN/m over {s['n_models']} model(s)")
+    return "\n".join(lines)
+
+
+def certificate_sentences(table, summary) -> list[str]:
+    """Plain sentences on the robust certificate per axis."""
+    out = []
+    for axis, s in summary.items():
+        if "k_robust_min_N_per_m" not in s:
+            continue
+        g = table[table["axis"] == axis]
+        if not g["wu_t_peak_k0"].notna().any():
+            out.append(f"axis {axis}: no uncertainty weight for this axis; no certificate")
+            continue
+        if math.isfinite(s["k_robust_min_N_per_m"]):
+            out.append(f"axis {axis}: the robust certificate max |Wu T| < 1 holds for K up "
+                       f"to {_kn(s['k_robust_min_N_per_m'])} kN/m on every model")
+        else:
+            fails = g[~g["k_robust_N_per_m"].notna()]
+            out.append(f"axis {axis}: the robust certificate holds for no K at all on "
+                       f"{len(fails)} of {len(g)} model(s): max |Wu T| is already "
+                       f"{s['wu_t_peak_k0_max']:.3f} > 1 at K = 0 (the weight allows "
+                       "more than 100 % relative uncertainty where the device's own "
+                       "impedance dominates)")
+    return out
+
+
+@click.command("stability")
+@click.argument("params", metavar="PARAMS")
+@click.option("--sample-time", "sample_time", type=float, default=DEFAULT_SAMPLE_TIME_S,
+              show_default=True, metavar="S", help="Servo period T in seconds (1e-3: 1 kHz).")
+@click.option("--damping", type=float, default=DEFAULT_DAMPING_NS_PER_M, show_default=True,
+              metavar="B", help="Virtual damping B of the wall, N*s/m.")
+@click.option("--delay-samples", "delay", type=int, default=DEFAULT_DELAY_SAMPLES,
+              show_default=True, metavar="D", help="Computation delay d, whole samples.")
+@click.option("--weights", "weights_path", default=None, metavar="WU.csv",
+              help="Also the robust certificate against these uncertainty weights "
+                   "(fit-uncertainty output; 'paper': Table III).")
+@click.option("-o", "--output", "output", default=None, type=click.Path(dir_okay=False),
+              help="Write the per-model table as CSV (atomically).")
+@json_option
+@overwrite_option
+def stability_command(params, sample_time, damping, delay, weights_path, output, as_json,
+                      overwrite):
+    """K_max: the stiffest virtual wall a sampled device renders stably with each arm.
+
+    PARAMS is any parameters file armfit writes (fit-nominal, fit-grip, fit-trials) or a
+    paper table by name (nominal, grip). The wall F[k] = -(K x[k-d] + B (x[k-d] -
+    x[k-d-1])/T), held by a zero-order hold, acts on the measured dynamics of eq. 4 of
+    each row, discretised exactly. Per row: K_max (N/m) and the frequency at which the
+    loop first goes unstable; per axis: minimum, median and 5th percentile.
+    """
+    from armfit.io.atomic import atomic_path, check_output
+    from armfit.io.paramsets import read_param_rows, read_weights
+    from armfit.stability import WallSettings, axis_summary, stability_table
+
+    settings = WallSettings(sample_time, damping, delay)
+    if output is not None:
+        check_output(output, overwrite=overwrite,
+                     inputs=[p for p in (params, weights_path) if p])
+    rows = read_param_rows(params)
+    weights = bands = None
+    weights_label = None
+    if weights_path:
+        weights, bands, weights_label = read_weights(weights_path)
+    for r, who, why in rows.skipped:
+        message(f"warning: {rows.label}: row {r} ({who}) has no fit and is left out: {why}")
+    if len(rows.table) == 0:
+        from armfit.errors import BadInputError
+        raise BadInputError("no row with fitted parameters", file=rows.label)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        table = stability_table(rows.table, settings, weights=weights,
+                                weights_band_hz=bands, source=rows.label)
+    for w in caught:
+        if issubclass(w.category, RuntimeWarning):
+            message(f"warning: {w.message}")
+    summary = axis_summary(table)
+    if weights is not None:
+        for text in certificate_sentences(table, summary):
+            message(text)
+    if output is not None:
+        with atomic_path(output, overwrite=overwrite) as tmp:
+            table.to_csv(tmp, index=False, float_format="%.10g")
+        message(f"wrote {output} ({len(table)} models)")
+    if as_json:
+        emit_json(stability_document(table, summary, settings, params_label=rows.label,
+                                     weights_label=weights_label, skipped=rows.skipped))
+    elif output is None:
+        click.echo(human_table(table, summary, settings))
+
+
+@click.command("fit-trials")
+@click.argument("spectra", type=click.Path(dir_okay=False))
+@output_option
+@click.option("--cost", type=click.Choice(["complex", "paper"]), default="complex",
+              show_default=True,
+              help="complex: log-magnitude and phase errors over their standard errors; "
+                   "paper: dB magnitude error only (eq. 5).")
+@click.option("--band", "band", metavar="AXIS=LO:HI[,...]", default=None,
+              help="Fit band per axis in Hz [default: x=0.1:30,y=0.1:30,z=0.1:10].")
+@effect_option
+@click.option("--method", default=None, metavar="NAME",
+              help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin).")
+@click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",
+              help="Evaluation budget of each final local fit [default: 200 per parameter].")
+@jobs_option
+@json_option
+@overwrite_option
+def fit_trials_command(spectra, output, cost, band, effects, method, max_nfev, jobs,
+                       as_json, overwrite):
+    """Fit the arm model to every trial (subject x axis x grip [x run]).
+
+    SPECTRA is the Parquet file of `armfit estimate`; its rows of level "trial" and kind
+    "measured" are fitted one by one with the closed loop of eq. 4. OUTPUT has the
+    layout of fit-grip plus subject, run and reason columns. A trial whose fit fails is
+    listed (empty parameters, converged false, its reason) and named on stderr; the
+    others are written all the same (exit 0).
+    """
+    from armfit.fitting import fit_trials, parse_bands, trial_fits_table
+    from armfit.io.artifacts import read_spectra, write_params
+    from armfit.io.atomic import check_output
+    from armfit.models.effects import get_effect
+
+    bands = parse_bands(band)
+    effect_objs = [get_effect(n) for n in effects]
+    check_output(output, overwrite=overwrite, inputs=[spectra])
+    table = read_spectra(spectra)
+
+    def report(tf):
+        who = f"{tf.axis} subject {tf.subject} {tf.grip_N:g} N" + (
+            f" run {tf.run}" if tf.run is not None else "")
+        if tf.fit is None:
+            message(f"fit {who}: FAILED: {tf.reason}")
+        else:
+            message(f"fit {who}: rms {tf.fit.rms_db:.3g} dB, {tf.fit.rms_deg:.3g} deg")
+
+    fits = fit_trials(table, cost=cost, bands=bands, effects=effect_objs, method=method,
+                      max_nfev=max_nfev, jobs=jobs, source=spectra, on_fit=report)
+    df = trial_fits_table(fits, effect_objs)
+    write_params(df, output, overwrite=overwrite)
+    failed = [tf for tf in fits if tf.fit is None]
+    message(f"wrote {output} ({len(fits) - len(failed)} fits, {len(failed)} failed)")
+    if as_json:
+        emit_json({"command": "fit-trials", "spectra": spectra, "output": output,
+                   "columns": list(df.columns),
+                   "fits": [{k: _clean(v) for k, v in row.items()}
+                            for row in df.to_dict("records")]})
+    for tf in failed:
+        message(f"warning: trial {tf.axis} subject {tf.subject} {tf.grip_N:g} N"
+                + (f" run {tf.run}" if tf.run is not None else "")
+                + f" has no fit ({tf.reason}); listed in {output} with converged false")

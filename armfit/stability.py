@@ -1,0 +1,718 @@
+"""Stability of a virtual wall rendered by a sampled haptic device held by the modelled arm.
+
+The loop (see ``docs/stability.md`` for the derivation and the choices):
+
+* **Plant** — the measured dynamics of eq. 4 of Fu & Çavuşoğlu 2010 from one parameter
+  row, P(s) = X/F = H_ARM / (1 + Mp s² H_ARM) in m/N, with the row's own device mass
+  ``mp_kg`` and its effects (:func:`plant_from_model`).
+* **Virtual wall** — the sampled controller
+  F[k] = −(K x[k−d] + B (x[k−d] − x[k−d−1]) / T), i.e. C(z) = K + B (1 − z⁻¹)/T with
+  d samples of computation delay, its force held by a zero-order hold (ZOH) over T.
+* **Test** — P is discretised exactly with the ZOH at T (state space and matrix
+  exponential); the loop is stable when every root of 1 + P_zoh(z) C(z) z^(−d) lies
+  inside the unit circle (eigenvalues of the closed-loop state matrix).
+* **K_max** — the largest wall stiffness K (N/m) such that the loop is stable for every
+  K′ in [0, K]. The characteristic polynomial is affine in K, so a root can only cross
+  |z| = 1 at a frequency where the open loop is real; every such crossing is found at
+  once as a generalised eigenvalue of a symplectic-like pencil (:func:`crossing_gains`),
+  which cannot step over a narrow stable or unstable gap. The gains between crossings
+  are tested by closed-loop eigenvalues; the first loss of stability is verified to
+  0.1 % (:data:`K_REL_TOL`) and refined by bisection if the check fails.
+
+Effects that are not rational: an output ``delay`` τ is exact — τ = m T + φ T with m
+whole samples added to d and the fraction φ ∈ [0, 1) handled by the modified z-transform
+(the held force enters the plant partly from the previous sample). The ``reflex`` delay
+sits inside the arm's impedance (a delayed feedback in continuous time), which has no
+finite sampled form: it is replaced by its [n/n] Padé approximant,
+n = :data:`REFLEX_PADE_ORDER` (exact magnitude, phase error below 1° up to ω·τ ≈ 7.7).
+
+Robust certificate (:func:`robust_certificate`): the arm's multiplicative uncertainty
+H_ARM (1 + Wu Δ), ‖Δ‖∞ ≤ 1, sees the complementary sensitivity
+T = Z_env / (Z_ARM + Z_env), Z_env = Mp s² + C_eq(jω) the impedance the device presents
+to the hand; the sampler, controller, delay and hold enter as
+C_eq(jω) = (1 − e^(−jωT))/(jωT) · C(e^(jωT)) · e^(−jωdT) (the base band of the sampled
+loop; aliased terms are neglected, which is accurate in the band of the weight, far
+below the Nyquist frequency). The loop is robustly stable if it is nominally stable and
+max over the band of |Wu T| < 1.
+
+Units: K in N/m, B in N·s/m, T in s, frequencies in Hz unless named ``_rad``.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg
+
+from armfit.errors import UsageError
+from armfit.models.arm import ClosedLoopModel
+
+#: Defaults of the wall: a 1 kHz servo, no virtual damping, one sample of delay.
+DEFAULT_SAMPLE_TIME_S = 1.0e-3
+DEFAULT_DAMPING_NS_PER_M = 0.0
+DEFAULT_DELAY_SAMPLES = 1
+
+#: Order n of the [n/n] Padé approximant of the reflex delay inside the arm impedance.
+REFLEX_PADE_ORDER = 6
+
+#: Relative accuracy to which K_max is verified (and refined when needed): 0.1 %.
+K_REL_TOL = 1.0e-3
+
+#: Points per decade of the frequency grid of the robust certificate.
+CERT_POINTS_PER_DECADE = 400
+
+
+@dataclass(frozen=True)
+class WallSettings:
+    """The sampled virtual wall: servo period ``sample_time_s`` (s), virtual damping
+    ``damping_Ns_per_m`` (N·s/m) and computation delay ``delay_samples`` (whole samples).
+
+    Raises UsageError (exit 2) for T ≤ 0 (or not finite), B < 0 (or not finite), d < 0 or
+    a fractional d.
+    """
+
+    sample_time_s: float = DEFAULT_SAMPLE_TIME_S
+    damping_Ns_per_m: float = DEFAULT_DAMPING_NS_PER_M
+    delay_samples: int = DEFAULT_DELAY_SAMPLES
+
+    def __post_init__(self) -> None:
+        T, B, d = self.sample_time_s, self.damping_Ns_per_m, self.delay_samples
+        if not (isinstance(T, (int, float)) and math.isfinite(T) and T > 0):
+            raise UsageError(f"--sample-time must be a period > 0 s, got {T!r}")
+        if not (isinstance(B, (int, float)) and math.isfinite(B) and B >= 0):
+            raise UsageError(f"--damping must be >= 0 N*s/m (a virtual damper), got {B!r}")
+        if isinstance(d, bool) or not isinstance(d, (int, np.integer)):
+            if isinstance(d, float) and d.is_integer():
+                object.__setattr__(self, "delay_samples", int(d))
+                d = int(d)
+            else:
+                raise UsageError(f"--delay-samples must be a whole number of samples, "
+                                 f"got {d!r}")
+        if d < 0:
+            raise UsageError(f"--delay-samples must be >= 0, got {d}")
+        object.__setattr__(self, "sample_time_s", float(T))
+        object.__setattr__(self, "damping_Ns_per_m", float(B))
+        object.__setattr__(self, "delay_samples", int(d))
+
+    def as_dict(self) -> dict[str, float | int]:
+        """The settings with their units in the names (the JSON ``settings``)."""
+        return {"sample_time_s": self.sample_time_s, "servo_rate_hz": 1.0 / self.sample_time_s,
+                "damping_Ns_per_m": self.damping_Ns_per_m, "delay_samples": self.delay_samples}
+
+
+# ---------------------------------------------------------------------------
+# The plant as a rational function (plus an output delay)
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RationalPlant:
+    """P(s) = num(s)/den(s) · e^(−s·delay_s): coefficients highest power first, s in
+    rad/s, P in m/N. Strictly proper (deg num < deg den)."""
+
+    num: np.ndarray
+    den: np.ndarray
+    delay_s: float = 0.0
+
+    def response(self, f_hz) -> np.ndarray:
+        """P(j2πf) in m/N."""
+        s = 2j * np.pi * np.asarray(f_hz, float)
+        return np.polyval(self.num, s) / np.polyval(self.den, s) * np.exp(-s * self.delay_s)
+
+
+def pade_delay(delay_s: float, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """[n/n] Padé approximant of e^(−s·delay_s): (num, den), s in rad/s, highest first.
+
+    c_k = (2n − k)! n! / ((2n)! k! (n − k)!); num = Σ c_k (−τ s)^k, den = Σ c_k (τ s)^k.
+    """
+    n = int(order)
+    c = np.array([math.factorial(2 * n - k) * math.factorial(n)
+                  / (math.factorial(2 * n) * math.factorial(k) * math.factorial(n - k))
+                  for k in range(n + 1)])
+    tk = c * delay_s ** np.arange(n + 1)
+    num = (tk * (-1.0) ** np.arange(n + 1))[::-1]
+    return num, tk[::-1].copy()
+
+
+def _add(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
+         ) -> tuple[np.ndarray, np.ndarray]:
+    return (np.polyadd(np.polymul(a[0], b[1]), np.polymul(b[0], a[1])),
+            np.polymul(a[1], b[1]))
+
+
+def _effect_terms(name: str, v: Mapping[str, float], mp: float, pade_order: int
+                  ) -> tuple[tuple[np.ndarray, np.ndarray] | None, float]:
+    """(rational term (num, den) or None, output delay s) of one library effect, the same
+    functions of s as :mod:`armfit.models.effects` (impedance in N/m or output factor)."""
+    if name == "delay":
+        return None, float(v["delay_s"])
+    if name == "lowpass":
+        return (np.array([1.0]), np.array([1.0 / (2 * np.pi * v["cutoff_hz"]), 1.0])), 0.0
+    if name == "device-damping":
+        return (np.array([v["damping_Ns_per_m"], 0.0]), np.array([1.0])), 0.0
+    if name == "device-mass":
+        return (np.array([v["mass_kg"] - mp, 0.0, 0.0]), np.array([1.0])), 0.0
+    if name == "resonance":
+        wn = 2 * np.pi * v["freq_hz"]
+        den = np.array([1.0, 2 * v["zeta"] * wn, wn * wn])
+        w = v["weight"]
+        return (np.polyadd((1 - w) * den, [w * wn * wn]), den), 0.0
+    if name == "reflex":
+        pn, pd = pade_delay(v["delay_s"], pade_order)
+        return (v["gain_N_per_m"] * pn, pd), 0.0
+    raise UsageError(f"stability: effect {name!r} has no rational form known to armfit; "
+                     "fit the model without it to analyse the wall")
+
+
+def plant_from_model(model: ClosedLoopModel, theta: Mapping[str, float], *,
+                     pade_order: int = REFLEX_PADE_ORDER) -> RationalPlant:
+    """The measured dynamics X/F (eq. 4, with the model's effects) as a
+    :class:`RationalPlant`.
+
+    X/F = Π R_out / (Z_ARM + ΔZ_arm + Mp s² + ΔZ_dev) with Z_ARM = C1 (Ma s² + C2) /
+    (Ma s² + C1 + C2) (eq. 3), exactly as :meth:`ClosedLoopModel.response`; output
+    delays are kept apart as ``delay_s`` and a reflex delay is replaced by its Padé
+    approximant of order ``pade_order``.
+    """
+    values = {n: float(theta[n]) for n in model.param_names}
+    Ma, k1, k2, b1, b2 = (values[n] for n in ("Ma", "k1", "k2", "b1", "b2"))
+    z = (np.polymul([b1, k1], [Ma, b2, k2]), np.array([Ma, b1 + b2, k1 + k2]))
+    z = _add(z, (np.array([model.mp, 0.0, 0.0]), np.array([1.0])))
+    out = (np.array([1.0]), np.array([1.0]))
+    delay = 0.0
+    for e in model.effects:
+        v = {p.name: values[f"{e.name}.{p.name}"] for p in e.params}
+        term, tau = _effect_terms(e.name, v, model.mp, pade_order)
+        delay += tau
+        if term is None:
+            continue
+        if e.stage == "output":
+            out = (np.polymul(out[0], term[0]), np.polymul(out[1], term[1]))
+        else:
+            z = _add(z, term)
+    num = np.polymul(out[0], z[1])
+    den = np.polymul(out[1], z[0])
+    num = np.trim_zeros(num, "f")
+    den = np.trim_zeros(den, "f")
+    if num.size >= den.size:
+        raise UsageError("stability: the plant X/F must be strictly proper")
+    return RationalPlant(num, den, delay)
+
+
+# ---------------------------------------------------------------------------
+# Exact ZOH discretisation and the closed-loop state matrix
+# ---------------------------------------------------------------------------
+
+def _companion(num: np.ndarray, den: np.ndarray, T: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Controllable canonical form of num/den in normalised time t/T (ŝ = sT):
+    (A, B, C) with P(s) = C (ŝ I − A)⁻¹ B."""
+    n = den.size - 1
+    numf = np.concatenate([np.zeros(n + 1 - num.size), num])
+    scale = T ** np.arange(n + 1)            # coefficient of s^(n−k) times T^k
+    a = den * scale
+    bnum = numf * scale
+    a, bnum = a / a[0], bnum / a[0]
+    A = np.zeros((n, n))
+    A[0, :] = -a[1:]
+    A[1:, :-1] = np.eye(n - 1)
+    B = np.zeros(n)
+    B[0] = 1.0
+    return A, B, bnum[1:].copy()
+
+
+def expm_batch(M: np.ndarray) -> np.ndarray:
+    """e^M for a stack of square matrices (..., n, n): scaling and squaring with a
+    degree-18 Taylor polynomial after scaling to ‖M/2^s‖₁ ≤ 1/2 (truncation error below
+    (1/2)^19/19! ≈ 2e-23, i.e. at rounding level), batched over the stack."""
+    M = np.asarray(M, float)
+    norm = np.max(np.sum(np.abs(M), axis=-2), axis=-1)
+    sq = np.maximum(0, np.ceil(np.log2(np.maximum(norm, 1e-300) / 0.5))).astype(int)
+    X = M / (2.0 ** sq)[..., None, None]
+    eye = np.broadcast_to(np.eye(M.shape[-1]), M.shape)
+    out = eye.copy()
+    for k in range(18, 0, -1):           # Horner: I + X/1 (I + X/2 (I + ...))
+        out = eye + (X @ out) / k
+    for i in range(int(sq.max()) if sq.size else 0):
+        more = sq > i
+        out = np.where(more[..., None, None], out @ out, out)
+    return out
+
+
+@dataclass(frozen=True)
+class _Group:
+    """Loops of equal shape, stacked: A_cl(K) = M0 + K b cᵀ (R, N, N)."""
+
+    rows: np.ndarray          # indices into the caller's list
+    M0: np.ndarray            # (R, N, N)
+    b: np.ndarray             # (R, N)
+    c: np.ndarray             # (R, N)
+
+
+def _loops(plants: Sequence[RationalPlant], settings: WallSettings) -> list[_Group]:
+    """The closed-loop state matrices of every plant, grouped by shape and batched.
+
+    Discrete plant (exact ZOH, modified z-transform for the fractional delay φ):
+    x[k+1] = Φ x[k] + Γ0 u[k] + Γ1 u[k−1], y = C x, Φ = e^(A), Γ0 = Γ(1−φ),
+    Γ1 = e^(A(1−φ)) Γ(φ), Γ(h) = ∫₀ʰ e^(Aη) dη B (normalised time), via the exponential
+    of [[A, B], [0, 0]]. Controller state: q_i[k] = y[k−i], i = 1..D+1, D = d + m.
+    """
+    T = settings.sample_time_s
+    BT = settings.damping_Ns_per_m / T
+    items = []
+    for i, p in enumerate(plants):
+        tau = p.delay_s / T
+        m = int(math.floor(tau + 1e-12))
+        phi = tau - m
+        if phi < 1e-9:
+            phi = 0.0
+        A, B, C = _companion(np.asarray(p.num, float), np.asarray(p.den, float), T)
+        items.append((i, A, B, C, m, phi))
+    keys: dict[tuple, list] = {}
+    for it in items:
+        keys.setdefault((it[1].shape[0], it[5] > 0, it[4]), []).append(it)
+    groups = []
+    for (n, frac, m), its in keys.items():
+        R = len(its)
+        A = np.stack([it[1] for it in its])
+        Bv = np.stack([it[2] for it in its])
+        C = np.stack([it[3] for it in its])
+        phi = np.array([it[5] for it in its])
+        E = np.zeros((R, n + 1, n + 1))
+        E[:, :n, :n] = A
+        E[:, :n, n] = Bv
+        e_lo = expm_batch(E * (1.0 - phi)[:, None, None])
+        Phi_hi = e_lo[:, :n, :n]
+        G0 = e_lo[:, :n, n]
+        if frac:
+            e_phi = expm_batch(E * phi[:, None, None])
+            Phi = Phi_hi @ e_phi[:, :n, :n]
+            G1 = np.einsum("rij,rj->ri", Phi_hi, e_phi[:, :n, n])
+            nd = n + 1
+            Pd = np.zeros((R, nd, nd))
+            Pd[:, :n, :n] = Phi
+            Pd[:, :n, n] = G1
+            Gd = np.concatenate([G0, np.ones((R, 1))], axis=1)
+            Cd = np.concatenate([C, np.zeros((R, 1))], axis=1)
+        else:
+            nd, Pd, Gd, Cd = n, Phi_hi, G0, C
+        D = settings.delay_samples + m
+        N = nd + D + 1
+        M0 = np.zeros((R, N, N))
+        M0[:, :nd, :nd] = Pd
+        M0[:, nd, :nd] = Cd
+        for k in range(1, D + 1):
+            M0[:, nd + k, nd + k - 1] = 1.0
+        rD = np.zeros((R, N))
+        if D == 0:
+            rD[:, :nd] = Cd
+        else:
+            rD[:, nd + D - 1] = 1.0
+        rD1 = np.zeros((R, N))
+        rD1[:, nd + D] = 1.0
+        M0[:, :nd, :] += BT * Gd[:, :, None] * (rD1 - rD)[:, None, :]
+        b = np.concatenate([-Gd, np.zeros((R, D + 1))], axis=1)
+        groups.append(_Group(np.array([it[0] for it in its]), M0, b, rD))
+    return groups
+
+
+def _spectral_radius(g: _Group, idx: np.ndarray, K: np.ndarray) -> tuple[np.ndarray,
+                                                                           np.ndarray]:
+    """Largest |eigenvalue| of A_cl(K) and that eigenvalue, for loops ``idx`` at ``K``."""
+    mats = g.M0[idx] + K[:, None, None] * g.b[idx][:, :, None] * g.c[idx][:, None, :]
+    ev = np.linalg.eigvals(mats)
+    j = np.argmax(np.abs(ev), axis=1)
+    top = ev[np.arange(ev.shape[0]), j]
+    return np.abs(top), top
+
+
+def crossing_gains(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *, tol: float = 1e-6
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Every gain K > 0 at which an eigenvalue of M0 + K b cᵀ lies on the unit circle.
+
+    An eigenvalue z = e^(jθ) needs 1 = K g(z), g(z) = cᵀ (zI − M0)⁻¹ b, so g(e^(jθ))
+    must be real: g(z) − g(1/z) = 0 (on |z| = 1, g(1/z) is g's conjugate). Its zeros are
+    the finite generalised eigenvalues of the pencil z Ē − Ā with
+    Ā = [[M0, 0, b], [0, −I, 0], [−cᵀ, cᵀ, 0]] and Ē = [[I, 0, 0], [0, −M0, −b], [0, 0, 0]]
+    (rows: (zI − M0) x − b u = 0, (I − z M0) ξ − z b u = 0, cᵀx − cᵀξ = 0): all of them
+    at once, so no crossing can be stepped over. Those within ``tol`` of the circle, and
+    z = ±1 always, give K = 1/Re g(e^(jθ)). Returns (K, θ in rad per sample), K > 0.
+    """
+    N = M0.shape[0]
+    Z = np.zeros((N, N))
+    zc = np.zeros((N, 1))
+    Abar = np.block([[M0, Z, b[:, None]], [Z, -np.eye(N), zc], [-c[None, :], c[None, :],
+                                                               np.zeros((1, 1))]])
+    Ebar = np.block([[np.eye(N), Z, zc], [Z, -M0, -b[:, None]], [np.zeros((1, 2 * N + 1))]])
+    with np.errstate(all="ignore"):
+        ev = linalg.eigvals(Abar, Ebar)
+    ev = ev[np.isfinite(ev)]
+    on = ev[np.abs(np.abs(ev) - 1.0) < tol]
+    theta = np.concatenate([np.abs(np.angle(on)), [0.0, np.pi]])
+    z = np.exp(1j * theta)
+    g = _g_of(M0, b, c, z)
+    with np.errstate(all="ignore"):
+        K = 1.0 / g.real
+    ok = np.isfinite(K) & (K > 0) & (np.abs(g.imag) <= 1e-6 * np.abs(g) + 1e-300)
+    return K[ok], theta[ok]
+
+
+def _g_of(M0, b, c, z):
+    N = M0.shape[0]
+    mats = z[:, None, None] * np.eye(N) - M0
+    with np.errstate(all="ignore"):
+        try:
+            sol = np.linalg.solve(mats, np.broadcast_to(b, (z.size, N))[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            sol = np.stack([np.linalg.lstsq(m, b, rcond=None)[0] for m in mats])
+    return sol @ c
+
+
+@dataclass(frozen=True)
+class WallStability:
+    """K_max of one loop: ``k_max_N_per_m`` (0 if unstable at K = 0; inf if never lost),
+    ``f_unstable_hz`` (frequency of the root that leaves the unit circle at K_max, Hz;
+    at K = 0 that of the outermost unstable root), ``unstable_at_zero``."""
+
+    k_max_N_per_m: float
+    f_unstable_hz: float
+    unstable_at_zero: bool
+
+
+def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
+                   ) -> list[WallStability]:
+    """K_max (N/m) and the frequency of the first instability for each plant.
+
+    Stacked by shape: the closed-loop matrices of a group are built and tested together
+    (batched matrix exponentials and eigenvalues). See the module docstring.
+    """
+    out: list[WallStability | None] = [None] * len(plants)
+    T = settings.sample_time_s
+    for g in _loops(plants, settings):
+        R = g.M0.shape[0]
+        cands = []
+        thetas = []
+        for r in range(R):
+            K, th = crossing_gains(g.M0[r], g.b[r], g.c[r])
+            order = np.argsort(K)
+            K, th = K[order], th[order]
+            keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
+            cands.append(K[keep])
+            thetas.append(th[keep])
+        # test one gain inside each interval between crossings (and beyond the last)
+        idx, Ks, pos = [], [], []
+        for r in range(R):
+            K = cands[r]
+            edges = np.concatenate([[0.0], K])
+            mids = np.concatenate([0.5 * (edges[:-1] + edges[1:]), [2.0 * K[-1]]]) \
+                if K.size else np.array([1.0])
+            idx += [r] * mids.size
+            Ks += list(mids)
+            pos += list(range(mids.size))
+        idx_a = np.array(idx)
+        rho, top = _spectral_radius(g, idx_a, np.array(Ks))
+        for r in range(R):
+            sel = np.flatnonzero(idx_a == r)
+            unstable = rho[sel] >= 1.0
+            K = cands[r]
+            if not unstable.any():
+                out[g.rows[r]] = WallStability(math.inf, math.nan, False)
+                continue
+            j = int(np.argmax(unstable))
+            if j == 0:
+                rho0, top0 = _spectral_radius(g, np.array([r]), np.array([0.0]))
+                z0 = top0[0] if rho0[0] >= 1.0 else top[sel[0]]
+                out[g.rows[r]] = WallStability(0.0, abs(float(np.angle(z0))) / (2 * np.pi * T),
+                                               True)
+                continue
+            k_lo, k_hi = float(Ks[sel[j - 1]]), float(Ks[sel[j]])
+            k_star, th = float(K[j - 1]), float(thetas[r][j - 1])
+            out[g.rows[r]] = _verify(g, r, k_star, th, k_lo, k_hi, T)
+    return out  # type: ignore[return-value]
+
+
+def _verify(g: _Group, r: int, k_star: float, theta: float, k_lo: float, k_hi: float,
+            T: float) -> WallStability:
+    """Check stability just below and loss just above ``k_star`` (± K_REL_TOL/2); if the
+    check fails, bisect between the stable ``k_lo`` and the unstable ``k_hi``."""
+    probe = np.array([k_star * (1 - K_REL_TOL / 2), k_star * (1 + K_REL_TOL / 2)])
+    rho, top = _spectral_radius(g, np.array([r, r]), probe)
+    if rho[0] < 1.0 <= rho[1]:
+        return WallStability(k_star, theta / (2 * np.pi * T), False)
+    while k_hi - k_lo > K_REL_TOL * k_lo:
+        mid = 0.5 * (k_lo + k_hi)
+        rm, _ = _spectral_radius(g, np.array([r]), np.array([mid]))
+        if rm[0] < 1.0:
+            k_lo = mid
+        else:
+            k_hi = mid
+    _, top = _spectral_radius(g, np.array([r]), np.array([k_hi]))
+    return WallStability(k_lo, abs(float(np.angle(top[0]))) / (2 * np.pi * T), False)
+
+
+def closed_loop_stable(plant: RationalPlant, settings: WallSettings, k_N_per_m: float
+                       ) -> bool:
+    """Whether the sampled loop with wall stiffness ``k_N_per_m`` is stable."""
+    g = _loops([plant], settings)[0]
+    rho, _ = _spectral_radius(g, np.array([0]), np.array([float(k_N_per_m)]))
+    return bool(rho[0] < 1.0)
+
+
+# ---------------------------------------------------------------------------
+# The robust certificate
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Certificate:
+    """Robust stability of the wall against the arm's multiplicative uncertainty Wu.
+
+    ``peak_k0``: max over the band of |Wu T| at K = 0 (with the settings' B and d);
+    ``f_peak_k0_hz``: where; ``k_robust_N_per_m``: the largest K with the loop
+    nominally stable and max |Wu T| < 1 for every K′ in [0, K] (NaN when it holds for no
+    K); ``band_hz``: the band evaluated (the weight's).
+    """
+
+    peak_k0: float
+    f_peak_k0_hz: float
+    k_robust_N_per_m: float
+    band_hz: tuple[float, float]
+
+    @property
+    def holds(self) -> bool:
+        """Whether the certificate holds for some K ≥ 0."""
+        return bool(np.isfinite(self.k_robust_N_per_m))
+
+
+def environment_terms(f_hz, model: ClosedLoopModel, theta: Mapping[str, float],
+                      settings: WallSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Z_ARM, a, c) in N/m at f_hz with Z_env(K) = a + K c the impedance the device and
+    the wall present to the hand.
+
+    a = Mp s² + ΔZ_dev + R · H_zoh · (B/T)(1 − e^(−jωT)) e^(−jωdT), c = R · H_zoh ·
+    e^(−jωdT), H_zoh = (1 − e^(−jωT))/(jωT), R the output factors of the model's effects;
+    Z_ARM = 1/H_ARM with arm-stage effects (:meth:`ClosedLoopModel.arm_response`).
+    """
+    f = np.asarray(f_hz, float)
+    s = 2j * np.pi * f
+    T, B, d = settings.sample_time_s, settings.damping_Ns_per_m, settings.delay_samples
+    z_arm = 1.0 / model.arm_response(f, theta)
+    z_all_inv = model.response(f, theta)          # R / (Z_arm + Z_dev)
+    # R and Z_dev from the model's own response: R/(Z_arm + Z_dev) with no output effect
+    base = ClosedLoopModel(mp=model.mp, effects=tuple(e for e in model.effects
+                                                      if e.stage != "output"))
+    theta_base = {n: theta[n] for n in base.param_names}
+    z_total = 1.0 / base.response(f, theta_base)   # Z_arm + Z_dev
+    R = z_all_inv * z_total
+    z_dev = z_total - z_arm
+    eT = np.exp(-s * T)
+    hold = np.where(f > 0, (1 - eT) / np.where(f > 0, s * T, 1.0), 1.0)
+    delay = np.exp(-s * d * T)
+    c = R * hold * delay
+    a = z_dev + c * (B / T) * (1 - eT)
+    return z_arm, a, c
+
+
+def robust_certificate(model: ClosedLoopModel, theta: Mapping[str, float], weight,
+                       settings: WallSettings, *, band_hz: tuple[float, float],
+                       k_max_N_per_m: float) -> Certificate:
+    """The small-gain certificate max |Wu T| < 1 over ``band_hz`` (Hz).
+
+    T = Z_env/(Z_ARM + Z_env) (see the module docstring), Z_env = a + K c
+    (:func:`environment_terms`). At each frequency, |Wu| |a + Kc| < |Z_ARM + a + Kc| is
+    a quadratic inequality α K² + β K + γ < 0 in K, solved exactly; K_robust is the
+    smallest K ≥ 0 that violates it anywhere on the grid (:data:`CERT_POINTS_PER_DECADE`
+    log-spaced points), capped at the nominal ``k_max_N_per_m``. ``weight``: a
+    :class:`armfit.uncertainty.WuWeight`.
+    """
+    lo, hi = map(float, band_hz)
+    n = max(int(CERT_POINTS_PER_DECADE * np.log10(hi / lo)) + 1, 2)
+    f = np.geomspace(lo, hi, n)
+    z, a, c = environment_terms(f, model, theta, settings)
+    w2 = np.abs(weight.response(f)) ** 2
+    ratio0 = np.sqrt(w2) * np.abs(a) / np.abs(z + a)
+    i0 = int(np.argmax(ratio0))
+    peak0 = float(ratio0[i0])
+    alpha = (w2 - 1.0) * np.abs(c) ** 2
+    beta = 2.0 * np.real((w2 * np.conj(a) - np.conj(z + a)) * c)
+    gamma = w2 * np.abs(a) ** 2 - np.abs(z + a) ** 2
+    k_first = _first_violation(alpha, beta, gamma)
+    k_rob = float(np.min(k_first))
+    if not (k_max_N_per_m > 0) or peak0 >= 1.0:
+        k_rob = math.nan
+    else:
+        k_rob = min(k_rob, float(k_max_N_per_m))
+    return Certificate(peak0, float(f[i0]), k_rob, (lo, hi))
+
+
+def _first_violation(alpha, beta, gamma) -> np.ndarray:
+    """Per frequency, the smallest K ≥ 0 with α K² + β K + γ ≥ 0 (inf if none)."""
+    out = np.full(np.shape(alpha), math.inf)
+    out[gamma >= 0] = 0.0
+    neg = gamma < 0
+    scale = np.abs(alpha) + np.abs(beta) + np.abs(gamma)
+    lin = neg & (np.abs(alpha) <= 1e-14 * scale)
+    with np.errstate(all="ignore"):
+        kl = -gamma / beta
+    out[lin & (beta > 0)] = kl[lin & (beta > 0)]
+    quad = neg & ~lin
+    disc = beta * beta - 4 * alpha * gamma
+    with np.errstate(all="ignore"):
+        sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
+        r1 = (-beta - sq) / (2 * alpha)
+        r2 = (-beta + sq) / (2 * alpha)
+    roots = np.stack([r1, r2])
+    roots = np.where(np.isfinite(roots) & (roots >= 0), roots, np.inf)
+    first = np.min(roots, axis=0)
+    out[quad & (disc >= 0)] = first[quad & (disc >= 0)]
+    return out
+
+
+# ---------------------------------------------------------------------------
+# A parameters table in, a stability table out
+# ---------------------------------------------------------------------------
+
+#: Columns of the stability table (CSV of ``armfit stability -o``), in order; the last two
+#: only with weights.
+STABILITY_COLUMNS: tuple[str, ...] = (
+    "row", "axis", "grip_N", "subject", "run", "k_max_N_per_m", "f_unstable_hz",
+    "unstable_at_zero", "wu_t_peak_k0", "k_robust_N_per_m")
+
+
+def stability_table(params, settings: WallSettings, *, weights=None,
+                    weights_band_hz: Mapping[str, tuple[float, float]] | None = None,
+                    source: str | None = None):
+    """K_max for every row of a parameters table (DataFrame as
+    :func:`armfit.io.artifacts.read_params` returns, optionally with ``subject``, ``run``
+    and ``row`` columns), in row order.
+
+    ``weights``: {axis: WuWeight} adds the robust certificate (``wu_t_peak_k0``,
+    ``k_robust_N_per_m``; NaN for an axis without a weight), evaluated over
+    ``weights_band_hz[axis]`` (default the paper's 0.01–30 Hz). A row unstable at K = 0
+    gets K_max = 0 and a ``RuntimeWarning`` naming it. Returns a DataFrame with
+    :data:`STABILITY_COLUMNS` (the certificate columns only with weights).
+    """
+    import pandas as pd
+
+    from armfit.io.artifacts import model_from_params
+    from armfit.uncertainty import PAPER_BAND_HZ
+    models, plants = [], []
+    for _, row in params.iterrows():
+        model, theta = model_from_params(row)
+        models.append((model, theta))
+        plants.append(plant_from_model(model, theta))
+    res = wall_stability(plants, settings)
+    recs = []
+    for i, ((model, theta), r) in enumerate(zip(models, res, strict=True)):
+        row = params.iloc[i]
+        rec = {"row": int(row["row"]) if "row" in params.columns else i + 1,
+               "axis": str(row["axis"]),
+               "grip_N": _num(row.get("grip_N")), "subject": _text(row.get("subject")),
+               "run": _num(row.get("run")), "k_max_N_per_m": r.k_max_N_per_m,
+               "f_unstable_hz": r.f_unstable_hz, "unstable_at_zero": r.unstable_at_zero}
+        if r.unstable_at_zero:
+            warnings.warn(f"{source + ': ' if source else ''}row {rec['row']} "
+                          f"({describe(rec)}): the loop is unstable already at K = 0 "
+                          f"(B = {settings.damping_Ns_per_m:g} N*s/m, d = "
+                          f"{settings.delay_samples}); K_max = 0", RuntimeWarning,
+                          stacklevel=2)
+        if weights is not None:
+            w = weights.get(rec["axis"])
+            if w is None:
+                rec.update(wu_t_peak_k0=math.nan, k_robust_N_per_m=math.nan)
+            else:
+                band = (weights_band_hz or {}).get(rec["axis"], PAPER_BAND_HZ)
+                cert = robust_certificate(model, theta, w, settings, band_hz=band,
+                                          k_max_N_per_m=r.k_max_N_per_m)
+                rec.update(wu_t_peak_k0=cert.peak_k0, k_robust_N_per_m=cert.k_robust_N_per_m)
+        recs.append(rec)
+    cols = list(STABILITY_COLUMNS) if weights is not None else list(STABILITY_COLUMNS[:-2])
+    return pd.DataFrame(recs, columns=cols)
+
+
+def describe(rec: Mapping) -> str:
+    """'axis x, subject S1, grip 2 N, run 1' from a stability record (parts present)."""
+    parts = [f"axis {rec['axis']}"]
+    if rec.get("subject") is not None:
+        parts.append(f"subject {rec['subject']}")
+    g = rec.get("grip_N")
+    if g is not None and np.isfinite(g):
+        parts.append(f"grip {g:g} N")
+    run = rec.get("run")
+    if run is not None and np.isfinite(run):
+        parts.append(f"run {int(run)}")
+    return ", ".join(parts)
+
+
+def _num(v) -> float:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        return math.nan
+    return x
+
+
+def _text(v) -> str | None:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return None
+    try:
+        import pandas as pd
+        if pd.isna(v):
+            return None
+    except (TypeError, ValueError):
+        pass
+    return str(v)
+
+
+def axis_summary(table) -> dict[str, dict]:
+    """Per axis (x, y, z order): minimum, median and 5th percentile (linear
+    interpolation) of K_max over the rows, their number, and the row that limits it
+    (the minimum; first in file order on ties). With certificate columns also the
+    smallest K_robust (NaN when it holds for no row) and the largest peak at K = 0."""
+    out = {}
+    for axis in ("x", "y", "z"):
+        g = table[table["axis"] == axis]
+        if g.empty:
+            continue
+        k = g["k_max_N_per_m"].to_numpy(float)
+        i = int(np.argmin(k))
+        lim = g.iloc[i]
+        entry = {"k_max_min_N_per_m": float(k.min()),
+                 "k_max_median_N_per_m": float(np.median(k)),
+                 "k_max_p05_N_per_m": float(np.percentile(k, 5)),
+                 "n_models": int(k.size),
+                 "limiting_row": int(lim["row"]),
+                 "limiting": describe(lim)}
+        if "k_robust_N_per_m" in g.columns:
+            kr = g["k_robust_N_per_m"].to_numpy(float)
+            entry["k_robust_min_N_per_m"] = float(np.min(kr)) if np.all(np.isfinite(kr)) \
+                else math.nan
+            entry["wu_t_peak_k0_max"] = float(np.nanmax(g["wu_t_peak_k0"].to_numpy(float))) \
+                if np.isfinite(g["wu_t_peak_k0"].to_numpy(float)).any() else math.nan
+        out[axis] = entry
+    return out
+
+
+def k_max_sweep(plants: Sequence[RationalPlant], rates_hz: Sequence[float],
+                delays: Sequence[int], *, damping_Ns_per_m: float = 0.0) -> np.ndarray:
+    """K_max (N/m) of each plant at each servo rate (Hz) and delay (samples):
+    array (n_delays, n_rates, n_plants)."""
+    out = np.empty((len(delays), len(rates_hz), len(plants)))
+    for i, d in enumerate(delays):
+        for j, rate in enumerate(rates_hz):
+            st = WallSettings(1.0 / float(rate), damping_Ns_per_m, int(d))
+            out[i, j] = [r.k_max_N_per_m for r in wall_stability(plants, st)]
+    return out
+
+
+__all__ = [
+    "CERT_POINTS_PER_DECADE", "Certificate", "DEFAULT_DAMPING_NS_PER_M",
+    "DEFAULT_DELAY_SAMPLES", "DEFAULT_SAMPLE_TIME_S", "K_REL_TOL", "REFLEX_PADE_ORDER",
+    "RationalPlant", "STABILITY_COLUMNS", "WallSettings", "WallStability", "axis_summary",
+    "closed_loop_stable", "crossing_gains", "describe", "environment_terms", "expm_batch",
+    "k_max_sweep",
+    "pade_delay", "plant_from_model", "robust_certificate", "stability_table",
+    "wall_stability",
+]

@@ -1,0 +1,298 @@
+"""Stability of the sampled virtual wall (armfit.stability) against analytic results and an
+independent computation."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from armfit.data import paper_table
+from armfit.errors import UsageError
+from armfit.io.paramsets import paper_params, read_weights
+from armfit.models.arm import ClosedLoopModel
+from armfit.models.effects import get_effect
+from armfit.stability import (
+    RationalPlant,
+    WallSettings,
+    closed_loop_stable,
+    pade_delay,
+    plant_from_model,
+    robust_certificate,
+    stability_table,
+    wall_stability,
+)
+
+NAMES = ("Ma", "k1", "k2", "b1", "b2")
+
+
+def _table2_models():
+    out = {}
+    for _, r in paper_params("nominal").iterrows():
+        model = ClosedLoopModel.for_axis(r["axis"])
+        out[r["axis"]] = (model, {n: float(r[n]) for n in NAMES})
+    return out
+
+
+TABLE2 = _table2_models()
+
+
+def _independent_k_max(num, den, T, B, d, k_top=1e7):
+    """K_max by another route: scipy.signal.cont2discrete (ZOH) to a z-domain transfer
+    function, the characteristic polynomial den_z(z) z^(d+1) + num_z(z) ((K + B/T) z - B/T)
+    built with numpy polynomials, its roots on a log scan of K (60 points per decade from
+    10 N/m), then bisection of the first unstable scan step to 1e-6 relative."""
+    numd, dend, _ = signal.cont2discrete((num, den), T, method="zoh")
+    numd = np.trim_zeros(np.atleast_1d(np.squeeze(numd)), "f")
+    dend = np.atleast_1d(np.squeeze(dend))
+    base = np.polymul(dend, np.r_[1.0, np.zeros(d + 1)])
+
+    def stable(K):
+        ch = np.polyadd(base, np.polymul(numd, [K + B / T, -B / T]))
+        return np.max(np.abs(np.roots(ch))) < 1.0
+
+    ks = np.geomspace(10.0, k_top, 60 * 6)
+    lo = 0.0
+    for k in ks:
+        if not stable(k):
+            hi = k
+            break
+        lo = k
+    else:
+        return math.inf
+    while hi - lo > 1e-6 * hi:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if stable(mid) else (lo, mid)
+    return lo
+
+
+# ---------------------------------------------------------------------------
+# Analytic anchors
+# ---------------------------------------------------------------------------
+
+def test_mass_damper_d0_meets_colgate_bound_and_exact_jury_limit():
+    """P = 1/(m s² + b s), T = 1 ms, B = 0, d = 0. Jury's test on the second-order
+    characteristic polynomial z² − (1 + γ − Kα/b) z + γ + Kβ/b (ZOH, γ = e^(−bT/m),
+    α = T − (1−γ)m/b, β = (1−γ)m/b − Tγ) gives exactly K_max = b(1 − γ)/β, which tends
+    to Colgate & Schenkel's 2b/T as bT/m → 0 (≈ (2b/T)(1 + bT/6m))."""
+    T, b = 1e-3, 5.514
+    for m, tol_colgate in ((1.0, 0.01), (0.09, 0.02)):
+        res = wall_stability([RationalPlant(np.array([1.0]), np.array([m, b, 0.0]))],
+                             WallSettings(T, 0.0, 0))[0]
+        g = math.exp(-b * T / m)
+        beta = (1 - g) * m / b - T * g
+        assert res.k_max_N_per_m == pytest.approx(b * (1 - g) / beta, rel=1e-3)
+        assert res.k_max_N_per_m == pytest.approx(2 * b / T, rel=tol_colgate)
+        assert not res.unstable_at_zero
+
+
+def test_table2_anchors():
+    """Table II, T = 1 ms, B = 0. d = 0: X ≈ 2 b1/T = 11.03 kN/m (Colgate & Schenkel; the
+    arm's high-frequency damping is b1 — the arm mass moves little above the crossover —
+    the mass-damper correction (1 + b1 T/6Mp) is 1 %); d = 1: about a third, X 3.6,
+    Y 3.9, Z 27 kN/m as quoted to 2 significant figures (tolerance: half a unit of the
+    last quoted digit)."""
+    plants = {a: plant_from_model(*TABLE2[a]) for a in "xyz"}
+    d0 = wall_stability([plants["x"]], WallSettings(1e-3, 0.0, 0))[0]
+    assert d0.k_max_N_per_m == pytest.approx(2 * 5.514 / 1e-3, rel=0.01)
+    d1 = wall_stability([plants[a] for a in "xyz"], WallSettings(1e-3, 0.0, 1))
+    for r, quoted, half in zip(d1, (3600, 3900, 27000), (50, 50, 500), strict=True):
+        assert abs(r.k_max_N_per_m - quoted) <= half
+        assert 0 < r.f_unstable_hz < 500
+
+
+@pytest.mark.parametrize("settings", [WallSettings(1e-3, 0.0, 1), WallSettings(5e-4, 5.0, 0),
+                                      WallSettings(1e-3, 2.0, 2)])
+def test_agrees_with_independent_computation(settings):
+    """Every row of Tables I and II within 1 % of :func:`_independent_k_max`."""
+    rows = list(paper_params("grip").iterrows()) + list(paper_params("nominal").iterrows())
+    plants, indep = [], []
+    for _, r in rows:
+        model = ClosedLoopModel.for_axis(r["axis"])
+        theta = {n: float(r[n]) for n in NAMES}
+        p = plant_from_model(model, theta)
+        plants.append(p)
+        indep.append(_independent_k_max(p.num, p.den, settings.sample_time_s,
+                                        settings.damping_Ns_per_m, settings.delay_samples))
+    got = [r.k_max_N_per_m for r in wall_stability(plants, settings)]
+    np.testing.assert_allclose(got, indep, rtol=0.01)
+
+
+def test_k_max_is_the_first_loss_and_refined_to_a_tenth_of_a_percent():
+    """Stable at 0.999 K_max, unstable at 1.001 K_max (closed-loop eigenvalues)."""
+    p = plant_from_model(*TABLE2["y"])
+    st = WallSettings(1e-3, 1.0, 1)
+    k = wall_stability([p], st)[0].k_max_N_per_m
+    assert closed_loop_stable(p, st, 0.999 * k)
+    assert not closed_loop_stable(p, st, 1.001 * k)
+    for frac in np.linspace(0.01, 0.99, 25):
+        assert closed_loop_stable(p, st, frac * k)
+
+
+def test_narrow_unstable_window_is_not_stepped_over():
+    """Table II's X plant times a lightly damped pole/zero pair (poles at 30 Hz, zeros
+    0.5 % higher, ζ = 0.02): its Nyquist curve makes a small loop across the negative
+    real axis, so at T = 1 ms, d = 0 the loop is unstable only for K in a narrow window
+    (about 3.1–3.9 kN/m, found by closed-loop eigenvalues on a fine scan) and stable
+    again up to about 11 kN/m. A scan stepping from inside the first stable range to
+    past the window would report ~11 kN/m; K_max must be the window's start."""
+    base = plant_from_model(*TABLE2["x"])
+    zeta, wp = 0.02, 2 * np.pi * 30
+    wz = 1.005 * wp
+    p = RationalPlant(np.polymul(base.num, np.array([1, 2 * zeta * wz, wz * wz]) * (wp / wz) ** 2),
+                      np.polymul(base.den, [1, 2 * zeta * wp, wp * wp]))
+    st = WallSettings(1e-3, 0.0, 0)
+    k = wall_stability([p], st)[0].k_max_N_per_m
+    assert 3000 < k < 3200
+    assert closed_loop_stable(p, st, 0.999 * k)
+    assert not closed_loop_stable(p, st, 1.001 * k)
+    assert not closed_loop_stable(p, st, 3500.0)
+    assert closed_loop_stable(p, st, 5000.0)           # stable again past the window
+    assert all(closed_loop_stable(p, st, f * k) for f in np.linspace(0.02, 0.98, 40))
+
+
+def test_effects_rational_forms_match_the_model_response():
+    """The rational plant equals ClosedLoopModel.response with each library effect (the
+    reflex through its Padé approximant: exact magnitude, phase within 1° where
+    ωτ ≤ 7.7)."""
+    f = np.geomspace(0.1, 60, 50)
+    base = TABLE2["x"][1]
+    cases = {"lowpass": {"cutoff_hz": 40.0}, "device-damping": {"damping_Ns_per_m": 2.0},
+             "device-mass": {"mass_kg": 0.12},
+             "resonance": {"freq_hz": 45.0, "zeta": 0.1, "weight": 0.3},
+             "delay": {"delay_s": 0.0123}}
+    for name, v in cases.items():
+        model = ClosedLoopModel.for_axis("x", [get_effect(name)])
+        theta = {**base, **{f"{name}.{k}": x for k, x in v.items()}}
+        p = plant_from_model(model, theta)
+        np.testing.assert_allclose(p.response(f), model.response(f, theta), rtol=1e-9)
+    num, den = pade_delay(0.04, 6)
+    s = 2j * np.pi * np.geomspace(0.1, 7.7 / 0.04 / (2 * np.pi), 30)
+    ph = np.angle(np.polyval(num, s) / np.polyval(den, s) / np.exp(-s * 0.04), deg=True)
+    assert np.max(np.abs(ph)) < 1.0
+
+
+def test_output_delay_is_exact_samples_plus_fraction():
+    """An output delay of 1.5 samples: K_max between that of d = 1 and d = 2 without the
+    delay, and with a whole 1.0-sample delay equal to the d = 2 result (1 + 1 samples)."""
+    model = ClosedLoopModel.for_axis("x", [get_effect("delay")])
+    theta = {**TABLE2["x"][1], "delay.delay_s": 1.0e-3}
+    k_whole = wall_stability([plant_from_model(model, theta)], WallSettings(1e-3, 0, 1))[0]
+    base = plant_from_model(*TABLE2["x"])
+    k1, k2 = (wall_stability([base], WallSettings(1e-3, 0, d))[0].k_max_N_per_m
+              for d in (1, 2))
+    assert k_whole.k_max_N_per_m == pytest.approx(k2, rel=1e-6)
+    theta["delay.delay_s"] = 1.5e-3
+    k_half = wall_stability([plant_from_model(model, theta)],
+                            WallSettings(1e-3, 0, 0))[0].k_max_N_per_m
+    assert k2 < k_half < k1
+
+
+# ---------------------------------------------------------------------------
+# Bad settings and unstable rows
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kw,text", [({"sample_time_s": 0.0}, "sample-time"),
+                                     ({"sample_time_s": -1e-3}, "sample-time"),
+                                     ({"delay_samples": -1}, "delay-samples"),
+                                     ({"delay_samples": 1.5}, "delay-samples"),
+                                     ({"damping_Ns_per_m": -0.1}, "damping")])
+def test_bad_settings_refused(kw, text):
+    with pytest.raises(UsageError, match=text):
+        WallSettings(**kw)
+
+
+def test_row_unstable_at_zero_reported_with_zero_and_named():
+    """B = 500 N·s/m at 1 kHz with one sample of delay: the virtual damper alone
+    destabilises the device mass (B T ≫ Mp), so every row has K_max = 0 and a warning."""
+    table = paper_params("nominal")
+    table.insert(0, "row", [1, 2, 3])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = stability_table(table, WallSettings(1e-3, 500.0, 1), source="t.csv")
+    assert (out["k_max_N_per_m"] == 0).all() and out["unstable_at_zero"].all()
+    texts = [str(w.message) for w in caught]
+    assert any("t.csv: row 2 (axis y)" in t and "unstable" in t for t in texts)
+
+
+# ---------------------------------------------------------------------------
+# Robust certificate
+# ---------------------------------------------------------------------------
+
+def test_table3_certificate_fails_at_k0_on_x_and_y():
+    """Table III around Table II over 0.01–30 Hz: at K = 0, T = Mp s² H_CL (the device's
+    share of the impedance) and max |Wu T| = 1.11 (X) and 1.15 (Y) — above 1, so no K is
+    certified — while Z (0.77) is certified up to a positive K below its K_max."""
+    weights, bands, _ = read_weights("paper")
+    st = WallSettings()
+    expect = {"x": 1.11, "y": 1.15}
+    for axis in "xyz":
+        model, theta = TABLE2[axis]
+        kmax = wall_stability([plant_from_model(model, theta)], st)[0].k_max_N_per_m
+        cert = robust_certificate(model, theta, weights[axis], st, band_hz=bands[axis],
+                                  k_max_N_per_m=kmax)
+        if axis in expect:
+            assert cert.peak_k0 == pytest.approx(expect[axis], abs=0.005)
+            assert not cert.holds
+        else:
+            assert cert.peak_k0 < 1 and cert.holds and 0 < cert.k_robust_N_per_m <= kmax
+
+
+def test_certificate_k_robust_is_where_the_peak_reaches_one():
+    """For Z: the peak of |Wu T| evaluated directly (T = Z_env/(Z_ARM + Z_env)) is < 1
+    just below K_robust and ≥ 1 just above it (a brute-force evaluation on a finer
+    grid)."""
+    from armfit.stability import environment_terms
+    weights, bands, _ = read_weights("paper")
+    st = WallSettings()
+    model, theta = TABLE2["z"]
+    kmax = wall_stability([plant_from_model(model, theta)], st)[0].k_max_N_per_m
+    cert = robust_certificate(model, theta, weights["z"], st, band_hz=bands["z"],
+                              k_max_N_per_m=kmax)
+    f = np.geomspace(0.01, 30, 20000)
+    z, a, c = environment_terms(f, model, theta, st)
+    w = np.abs(weights["z"].response(f))
+
+    def peak(K):
+        return np.max(w * np.abs(a + K * c) / np.abs(z + a + K * c))
+    k = cert.k_robust_N_per_m
+    assert peak(0.99 * k) < 1.0 < peak(1.02 * k)
+
+
+def test_paper_tables_by_name_match_the_shipped_csv():
+    t = paper_table("nominal")
+    p = paper_params("nominal")
+    np.testing.assert_allclose(p["b1"], t["b1_Ns_per_m"])
+    assert list(p["mp_kg"]) == [0.09, 0.095, 0.091]
+
+
+def test_expm_batch_matches_scipy():
+    """The batched scaling-and-squaring exponential against scipy.linalg.expm (Al-Mohy &
+    Higham's Padé method) on random matrices of entries up to ~3 (the loops' are < 1)."""
+    from scipy import linalg
+
+    from armfit.stability import expm_batch
+    rng = np.random.default_rng(0)
+    M = rng.standard_normal((12, 6, 6)) * np.geomspace(0.01, 3, 12)[:, None, None]
+    got = expm_batch(M)
+    for i in range(12):
+        ref = linalg.expm(M[i])
+        assert np.max(np.abs(got[i] - ref)) <= 1e-12 * np.max(np.abs(ref))
+
+
+def test_reflex_at_null_gain_gives_the_base_k_max():
+    """The reflex (through its Padé approximant) at its null gain 0.01 N/m, τ = 40 ms,
+    changes Table II's X K_max (3.62 kN/m) by less than 0.01 %: the term is 10⁻⁴ of the
+    arm's smallest stiffness; a strong reflex (1000 N/m, τ = 5 ms, where the Padé
+    approximant is exact to 0.1°) makes the arm itself unstable: K_max = 0."""
+    model = ClosedLoopModel.for_axis("x", [get_effect("reflex")])
+    base = wall_stability([plant_from_model(*TABLE2["x"])], WallSettings())[0]
+    theta = {**TABLE2["x"][1], "reflex.gain_N_per_m": 0.01, "reflex.delay_s": 0.04}
+    got = wall_stability([plant_from_model(model, theta)], WallSettings())[0]
+    assert got.k_max_N_per_m == pytest.approx(base.k_max_N_per_m, rel=1e-4)
+    theta.update({"reflex.gain_N_per_m": 1000.0, "reflex.delay_s": 0.005})
+    strong = wall_stability([plant_from_model(model, theta)], WallSettings())[0]
+    assert strong.unstable_at_zero and strong.k_max_N_per_m == 0.0
