@@ -359,14 +359,21 @@ def _cli_sections() -> dict[str, str]:
     return {p.split("\n", 1)[0].strip(): p for p in parts}
 
 
+def _subcommands(group):
+    """A group's subcommands by name, those loaded on first use included."""
+    import click
+    ctx = click.Context(group)
+    return {n: group.get_command(ctx, n) for n in group.list_commands(ctx)}
+
+
 def _commands():
     """(name, click command, its section's heading word) for every subcommand; the plot
     subcommands belong to the plot section."""
     import click
-    for name, cmd in sorted(cli.commands.items()):
+    for name, cmd in sorted(_subcommands(cli).items()):
         if isinstance(cmd, click.Group):
-            for sub in sorted(cmd.commands.values(), key=lambda c: c.name):
-                yield f"{name} {sub.name}", sub, name
+            for sub_name, sub in sorted(_subcommands(cmd).items()):
+                yield f"{name} {sub_name}", sub, name
         else:
             yield name, cmd, name
 
@@ -428,8 +435,9 @@ def test_illustrations_use_real_options(doc: Path) -> None:
         known = {o for p in cli.params for o in getattr(p, "opts", [])}
         args = [a for a in argv if not a.startswith("-") or a in ("-v", "-q")]
         for a in args:
-            if isinstance(cmd, click.Group) and a in cmd.commands:
-                cmd = cmd.commands[a]
+            subs = _subcommands(cmd) if isinstance(cmd, click.Group) else {}
+            if a in subs:
+                cmd = subs[a]
                 known |= {o for p in cmd.params for o in getattr(p, "opts", [])}
         if isinstance(cmd, click.Group):
             bad.append(f"{where}: no subcommand")
