@@ -33,6 +33,12 @@ effect worth modelling explains a good part of the misfit. Two candidates whose 
 by less than :data:`TIE_BIC` (or :data:`TIE_FRACTION` of the best) "explain the data about
 equally well".
 
+Stepwise search and verdict: :func:`diagnose` adds effects one at a time while the model
+is not adequate (:func:`adequacy`: every band within the noise, no band failing), each
+significant both statistically (the criterion above) and practically (:func:`practical`:
+it changes the response by more than the noise and a floor); standard errors are bounded
+by :func:`effective_se`. The statistics and choices are documented in docs/diagnose.md.
+
 Failing bands: per frequency, the mean over trials of the normalised residual of the base
 fit, divided by its standard error across trials (a t statistic); runs of at least
 :data:`MIN_RUN` grid points with |t| > :data:`T_FAIL` and a mean normalised residual above 1
@@ -41,14 +47,15 @@ fit, divided by its standard error across trials (a t statistic); runs of at lea
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy import optimize, sparse, stats
 
 from armfit.fitting import ParamSpace, log_errors
-from armfit.models.arm import PARAM_NAMES, ClosedLoopModel
+from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
 
 #: Standard error bands of the compare table (Hz).
@@ -59,6 +66,15 @@ SIGNIFICANT_BIC = 10.0
 #: many trials a consistent estimator bias of a few hundredths of a dB reaches any ΔBIC,
 #: but explains almost nothing.
 MIN_REDUCTION = 0.05
+#: A band is within the noise when its RMS normalised error is at most this (its
+#: noise-weighted cost at most 2.25 times the expected value); see :func:`adequacy`.
+NOISE_TOL = 1.5
+#: Practical-significance floors: an effect must change the fitted response by more
+#: than this much (and more than the noise) somewhere in the band; see :func:`practical`.
+MIN_EFFECT_DB = 0.5
+MIN_EFFECT_DEG = 3.0
+#: Default maximum number of effects the stepwise search adds.
+MAX_STEPS = 3
 #: ΔBIC difference below which two candidates are reported as explaining the data alike
 #: (absolute, or as a fraction of the best candidate's ΔBIC, whichever is larger).
 TIE_BIC = 6.0
@@ -72,6 +88,10 @@ DROP_POINTS = 2
 #: Floors for standard errors (dB, deg), so a near-noiseless bin cannot dominate.
 SE_FLOOR_DB = 0.01
 SE_FLOOR_DEG = 0.06
+#: Largest standard errors of a trial's response (dB, deg): those of an estimate that is
+#: pure noise (Rayleigh magnitude: π/√6 · 20/ln 10 / 2 ≈ 5.57 dB; uniform phase: 180/√3).
+SE_CAP_DB = 5.57
+SE_CAP_DEG = 103.9
 #: Degrees weighted like 1 dB in unweighted comparisons (1 neper ↔ 1 rad).
 UNIT_DEG = float(np.degrees(1.0) / (20.0 / np.log(10.0)))
 
@@ -84,6 +104,44 @@ def residuals(h_meas: np.ndarray, h_model: np.ndarray) -> tuple[np.ndarray, np.n
     """Measured relative to model: (20 log10|Hm/Hmod| in dB, angle(Hm/Hmod) in deg)."""
     db, deg = log_errors(h_model, h_meas)
     return -db, -deg
+
+
+def effective_se(h: np.ndarray, se_db: np.ndarray, se_deg: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Standard errors (dB, deg) of trial responses ``h`` (T, n) that a fit can trust.
+
+    Bendat & Piersol's formula, ε = sqrt(1 − γ²)/(|γ| sqrt(2 n_d)), is a large-sample
+    result: where the (debiased) coherence is near 0 — little input power, as with
+    pseudo-random steps above a few Hz — it gives hundreds or thousands of dB, and a point
+    with such an error hides any misfit (its normalised residual is 0). Two bounds apply:
+
+    * no more than the spread of an estimate that is pure noise: a Rayleigh magnitude has
+      a standard deviation of :data:`SE_CAP_DB` (5.57 dB) in dB, a uniform phase
+      :data:`SE_CAP_DEG` (180/√3 = 103.9 deg);
+    * with three or more trials, no more than the trials' own scatter at that frequency
+      (1.4826 × the median absolute deviation across trials of 20 log10|H| and of the
+      phase about its circular mean): the measured scatter, which holds the noise plus
+      the differences between subjects, bounds the noise of one trial.
+
+    Non-finite entries stay NaN (no information; left out of the error summaries)."""
+    h = np.asarray(h, complex)
+    sdb = np.asarray(se_db, float).copy()
+    sdeg = np.asarray(se_deg, float).copy()
+    with np.errstate(all="ignore"):
+        sdb = np.minimum(sdb, SE_CAP_DB)
+        sdeg = np.minimum(sdeg, SE_CAP_DEG)
+        if h.ndim == 2 and h.shape[0] >= 3:
+            mag = 20 * np.log10(np.abs(h))
+            s_db = 1.4826 * np.nanmedian(np.abs(mag - np.nanmedian(mag, axis=0)), axis=0)
+            unit = h / np.abs(h)
+            ref = np.nansum(unit, axis=0)
+            dev = np.degrees(np.angle(unit * np.conj(ref / np.abs(ref))))
+            s_deg = 1.4826 * np.nanmedian(np.abs(dev), axis=0)
+            sdb = np.where(np.isfinite(s_db), np.minimum(sdb, np.maximum(s_db, SE_FLOOR_DB)),
+                           sdb)
+            sdeg = np.where(np.isfinite(s_deg),
+                            np.minimum(sdeg, np.maximum(s_deg, SE_FLOOR_DEG)), sdeg)
+    return sdb, sdeg
 
 
 def _floor(se_db, se_deg) -> tuple[np.ndarray, np.ndarray]:
@@ -120,14 +178,25 @@ def band_error(f_hz, r_db, r_deg, se_db, se_deg, lo: float, hi: float) -> BandEr
     if rdb.size == 0:
         nan = float("nan")
         return BandError(lo, hi, nan, nan, nan, 0)
+    # a point without a finite standard error carries no information: it is left out
+    # of the normalised error (not counted as a zero residual)
     zdb = rdb / np.broadcast_to(sdb, np.shape(r_db))[..., sel]
     zdeg = rdeg / np.broadcast_to(sdeg, np.shape(r_deg))[..., sel]
-    mdb, mdeg = np.atleast_2d(zdb).mean(axis=0), np.atleast_2d(zdeg).mean(axis=0)
+    zdb = np.where(np.isfinite(np.broadcast_to(sdb, np.shape(r_db))[..., sel]), zdb, np.nan)
+    zdeg = np.where(np.isfinite(np.broadcast_to(sdeg, np.shape(r_deg))[..., sel]), zdeg,
+                    np.nan)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mdb = np.nanmean(np.atleast_2d(zdb), axis=0)
+        mdeg = np.nanmean(np.atleast_2d(zdeg), axis=0)
+        zall = np.concatenate([zdb.ravel(), zdeg.ravel()])
+        rms_norm = float(np.sqrt(np.nanmean(zall ** 2))) if np.isfinite(zall).any() \
+            else float("nan")
+        mall = np.concatenate([mdb, mdeg])
+        bias = float(np.sqrt(np.nanmean(mall ** 2))) if np.isfinite(mall).any() \
+            else float("nan")
     return BandError(lo, hi, float(np.sqrt(np.mean(rdb ** 2))),
-                     float(np.sqrt(np.mean(rdeg ** 2))),
-                     float(np.sqrt(np.mean(np.concatenate([zdb.ravel(), zdeg.ravel()]) ** 2))),
-                     int(sel.sum()),
-                     float(np.sqrt(np.mean(np.concatenate([mdb, mdeg]) ** 2))))
+                     float(np.sqrt(np.mean(rdeg ** 2))), rms_norm, int(sel.sum()), bias)
 
 
 @dataclass(frozen=True)
@@ -614,6 +683,15 @@ class AxisDiagnosis:
     base_error: BandError
     verdict: str
     coupling: dict[str, float] = field(default_factory=dict)
+    missing_effects: tuple = ()
+    error_steps: tuple[float, ...] = ()
+    adequate: bool = False
+    steps: tuple = ()
+    final_error: BandError | None = None
+    final_bands: tuple[BandError, ...] = ()
+    final_failing: tuple[FailingBand, ...] = ()
+    stop: str = ""
+    shared: dict = field(default_factory=dict)
 
 
 def _point_ss(fit: JointFit, se_db, se_deg) -> np.ndarray:
@@ -743,16 +821,24 @@ def assess(data: AxisData, band: tuple[float, float], base: JointFit,
 
 
 def diagnose_axis(data: AxisData, *, band: tuple[float, float],
-                  effects: Sequence[Effect] | None = None) -> AxisDiagnosis:
-    """Fit the base model and each candidate effect to every trial of one axis, rank.
+                  effects: Sequence[Effect] | None = None, max_steps: int = MAX_STEPS,
+                  min_effect_db: float = MIN_EFFECT_DB,
+                  min_effect_deg: float = MIN_EFFECT_DEG) -> AxisDiagnosis:
+    """The stepwise search of :func:`diagnose` on one axis.
 
     data: the axis's trial responses with per-trial base starts; band: (lo, hi) Hz;
     effects: candidates (default: the whole library). See the module docstring for the
-    criterion.
+    criteria.
     """
     effects = list(EFFECTS.values()) if effects is None else list(effects)
-    base = fit_base(data, band)
-    return assess(data, band, base, [(e, fit_candidate(data, band, base, e)) for e in effects])
+    search = _Search(data, band, effects, max_steps, min_effect_db, min_effect_deg)
+    search.start(fit_base(data, band))
+    while not search.done:
+        screened = search.screen()
+        keep = _keep(screened)
+        search.take([(e, fit_extend(data, band, search.fits[-1], e, sc)) for e, sc in keep],
+                    screened=screened[len(keep):])
+    return search.result()
 
 
 # ---------------------------------------------------------------------------
@@ -813,6 +899,7 @@ def axis_data(spectra, params, axis: str) -> AxisData | None:
     import pandas as pd
     names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if pd.isna(run) else f"_run-{run}")
                   for s, g, run in labels)
+    sdb, sdeg = effective_se(H, sdb, sdeg)
     return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names)
 
 
@@ -843,34 +930,522 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
     return out
 
 
+# ---------------------------------------------------------------------------
+# Adequacy, practical significance and the stepwise search
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Adequacy:
+    """Whether a fit is within the noise: per-band errors (:data:`BANDS` within the
+    diagnosis band), the bands whose normalised error exceeds :data:`NOISE_TOL`
+    (``over``), the failing bands of the t test (``failing``, with words), and the
+    noise-weighted cost against its expected value (``cost``, ``cost_expected`` = ν,
+    ``cost_sd`` = √(2ν), ν = residuals − parameters)."""
+
+    adequate: bool
+    overall: BandError
+    bands: tuple[BandError, ...]
+    over: tuple[BandError, ...]
+    failing: tuple[FailingBand, ...]
+    cost: float
+    cost_expected: float
+    cost_sd: float
+
+
+def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray,
+             band: tuple[float, float], n_params: int, min_db: float = MIN_EFFECT_DB,
+             min_deg: float = MIN_EFFECT_DEG) -> Adequacy:
+    """Judge ``fit`` (residuals (T, n) on ``f``) against the noise ``se_db``, ``se_deg``
+    (floored, (T, n)). Adequate when no band fails and every band is within the noise:
+    its RMS normalised error is at most :data:`NOISE_TOL`, or its systematic part
+    (``bias_norm``) at most 1. A band fails (:func:`failing_bands`) where the trials'
+    t statistic exceeds :data:`T_FAIL` on :data:`MIN_RUN` consecutive points and the mean
+    residual exceeds both one trial's noise and the practical floor ``min_db`` (dB) or
+    ``min_deg`` (deg): a bias of a few hundredths of a dB is detectable with many
+    trials but is no failure of the model."""
+    zdb, zdeg = fit.r_db / se_db, fit.r_deg / se_deg
+    with np.errstate(all="ignore"):
+        t_db, t_deg = trial_statistics(np.nan_to_num(zdb), np.nan_to_num(zdeg))
+    m_db, m_deg = fit.r_db.mean(axis=0), fit.r_deg.mean(axis=0)
+    fails = failing_bands(f, t_db, t_deg, m_db, m_deg,
+                          size_db=np.where(np.abs(m_db) > min_db,
+                                           np.nan_to_num(zdb).mean(axis=0), 0.0),
+                          size_deg=np.where(np.abs(m_deg) > min_deg,
+                                            np.nan_to_num(zdeg).mean(axis=0), 0.0))
+    overall = band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, band[0], band[1])
+    bands = tuple(b for b in (band_error(f, fit.r_db, fit.r_deg, se_db, se_deg,
+                                         max(lo, band[0]), min(hi, band[1]))
+                              for lo, hi in BANDS if hi > band[0] and lo < band[1])
+                  if b.n_points >= MIN_RUN)
+    # a band is within the noise when its RMS normalised error is at most NOISE_TOL, or
+    # when its systematic part (bias_norm: RMS of the trials' mean normalised residual,
+    # the only part a missing effect leaves) is within one trial's noise — there the
+    # excess is noise that the standard errors underestimate, not a model error
+    over = tuple(b for b in bands if np.isfinite(b.rms_norm) and b.rms_norm > NOISE_TOL
+                 and not (np.isfinite(b.bias_norm) and b.bias_norm <= 1.0))
+    z = np.concatenate([zdb.ravel(), zdeg.ravel()])
+    n_res = int(np.isfinite(z).sum())
+    nu = max(n_res - n_params, 1)
+    return Adequacy(adequate=not fails and not over, overall=overall, bands=bands,
+                    over=over, failing=tuple(fails), cost=float(np.nansum(z * z)),
+                    cost_expected=float(nu), cost_sd=float(np.sqrt(2.0 * nu)))
+
+
+def effect_size(fit: JointFit, effect: Effect, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How much ``effect`` at its fitted values changes the fitted response: per grid
+    point, the median over trials of |20 log10|H/H₀|| (dB) and |angle(H/H₀)| (deg), H₀
+    the same fit with the effect at its null values (every other parameter unchanged)."""
+    model = fit.model
+    names = model.param_names
+    T = fit.base.shape[0]
+    theta = {n: fit.base[:, i:i + 1] for i, n in enumerate(PARAM_NAMES)}
+    theta.update({n: np.full((T, 1), fit.shared[n]) for n in names if n not in theta})
+    null = dict(theta)
+    null.update({f"{effect.name}.{k}": np.full((T, 1), v)
+                 for k, v in effect.null_values(model.mp).items()})
+    with np.errstate(all="ignore"):
+        d_db, d_deg = residuals(model.response(f, theta), model.response(f, null))
+    return np.nanmedian(np.abs(d_db), axis=0), np.nanmedian(np.abs(d_deg), axis=0)
+
+
+def practical(f, size_db, size_deg, se_db, se_deg, min_db: float, min_deg: float
+              ) -> tuple[bool, float]:
+    """Practical significance of an effect whose change of the response is ``size_db``,
+    ``size_deg`` (n,): the change exceeds both the measurement noise (median over trials
+    of the standard error) and the floor ``min_db`` / ``min_deg`` on at least
+    :data:`MIN_RUN` consecutive grid points, in magnitude or in phase. Returns (holds,
+    the largest ratio of change to threshold)."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        thr_db = np.maximum(min_db, np.nanmedian(np.where(np.isfinite(se_db), se_db, np.nan),
+                                                 axis=0))
+        thr_deg = np.maximum(min_deg, np.nanmedian(np.where(np.isfinite(se_deg), se_deg,
+                                                            np.nan), axis=0))
+        r_db = np.nan_to_num(size_db / thr_db)
+        r_deg = np.nan_to_num(size_deg / thr_deg)
+    mask = (r_db > 1.0) | (r_deg > 1.0)
+    return bool(_runs(mask, MIN_RUN)), float(np.max(np.maximum(r_db, r_deg), initial=0.0))
+
+
+@dataclass(frozen=True)
+class Step:
+    """One row of the stepwise search: the effect added (None for the base model), its
+    parameters as fitted at this step (with 95 % intervals; ``at_bound``: those within
+    1 % of a physical bound), the errors of the model after the step (RMS dB, deg and
+    normalised), ΔBIC against the previous step and the change the effect makes
+    (largest over the band, dB and deg)."""
+
+    effect: str | None
+    params: dict[str, float]
+    params_lo: dict[str, float]
+    params_hi: dict[str, float]
+    at_bound: tuple[str, ...]
+    rms_db: float
+    rms_deg: float
+    rms_norm: float
+    delta_bic: float
+    change_db: float = float("nan")
+    change_deg: float = float("nan")
+
+
+def _short(d: Mapping[str, float], effect: str) -> dict[str, float]:
+    pre = effect + "."
+    return {k[len(pre):]: float(v) for k, v in d.items() if k.startswith(pre)}
+
+
+def fit_extend(data: AxisData, band: tuple[float, float], current: JointFit,
+               effect: Effect, screened: JointFit | None = None) -> JointFit:
+    """``current``'s model plus ``effect``, all effects refitted jointly (shared across
+    the trials), warm-started from ``current`` with the new effect at its null point and
+    at the screening's values (:func:`screen`; or, without one, at the effect's starting
+    points); never worse than ``current``."""
+    start = _start_array(data)
+    model = current.model.with_effect(effect)
+    null = {**current.shared, **{f"{effect.name}.{k}": v
+                                 for k, v in effect.null_values(model.mp).items()}}
+    if screened is not None:
+        starts = [null, dict(screened.shared)]
+    else:
+        starts = [{**current.shared, **{f"{effect.name}.{k}": v for k, v in st.items()}}
+                  for st in effect.start_points(model.mp)]
+    # from the current fit and from Levy starts with the effects removed: a strong
+    # missing effect can pull the arm parameters far from those the extended model needs
+    pairs = [(_start_rows(model, data, band, st, [start, current.base]), st)
+             for st in starts[1:]]
+    fit = joint_fit(model, data, band, [current.base], starts, pairs=pairs)
+    if fit.rss > current.rss:  # nested: never worse than the current fit
+        fit = JointFit(model, current.base, null, {}, {}, current.r_db, current.r_deg,
+                       current.rss, current.n_res, current.rho, current.converged)
+    return fit
+
+
+#: Candidates per step that get the full joint fit after screening (see :func:`screen`).
+SCREEN_KEEP = 2
+#: Trials in the screening fits.
+SCREEN_SUBSET = 3
+
+
+#: A screened candidate whose subset cost exceeds the best one's by more than this factor
+#: gets no joint fit on all trials (it cannot win: the joint fits rank as the screening
+#: does when the gap is this large).
+SCREEN_GAP = 2.0
+
+
+def _keep(screened: Sequence[tuple[Effect, JointFit]]) -> list[tuple[Effect, JointFit]]:
+    """The screened candidates (lowest subset cost first) that get the joint fit on all
+    trials: at most :data:`SCREEN_KEEP`, within :data:`SCREEN_GAP` of the best."""
+    if not screened:
+        return []
+    best = screened[0][1].rss
+    return [c for c in screened[:SCREEN_KEEP] if c[1].rss <= SCREEN_GAP * best]
+
+
+def _subset(data: AxisData, fit: JointFit, idx: np.ndarray) -> tuple[AxisData, JointFit]:
+    """The trials ``idx`` of ``data`` and of ``fit``."""
+    sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
+                   tuple(data.starts[i] for i in idx))
+    z = np.concatenate([fit.r_db[idx], fit.r_deg[idx]], axis=1)
+    return sub, JointFit(fit.model, fit.base[idx], fit.shared, fit.shared_lo, fit.shared_hi,
+                         fit.r_db[idx], fit.r_deg[idx], float(np.nansum(z * z)), int(z.size),
+                         fit.rho, fit.converged)
+
+
+def screen(data: AxisData, band: tuple[float, float], current: JointFit,
+           effect: Effect) -> JointFit:
+    """A cheap fit of ``current``'s model plus ``effect``: the same joint fit as
+    :func:`fit_extend` (arm parameters per trial, effects shared, from the effect's null
+    and starting points) on :data:`SCREEN_SUBSET` trials spread over the axis (one per
+    grip in the paper's design) instead of all. Candidates are ranked by the fraction of
+    the subset's cost they remove; the best :data:`SCREEN_KEEP` get the joint fit on all
+    trials, started from the screening's effect values. Returns the subset's fit."""
+    T = data.h.shape[0]
+    if T <= SCREEN_SUBSET:
+        return fit_extend(data, band, current, effect)
+    idx = np.unique(np.linspace(0, T - 1, SCREEN_SUBSET).round().astype(int))
+    sub, cur = _subset(data, current, idx)
+    return fit_extend(sub, band, cur, effect)
+
+
+def _effect_params(model: ClosedLoopModel, name: str):
+    for e in model.effects:
+        if e.name == name:
+            return e.params
+    return ()
+
+
+class _Search:
+    """The state of the stepwise search on one axis (see :func:`diagnose`)."""
+
+    def __init__(self, data: AxisData, band, effects, max_steps, min_db, min_deg):
+        self.data, self.band, self.effects = data, band, list(effects)
+        self.max_steps, self.min_db, self.min_deg = max_steps, min_db, min_deg
+        self.sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+        self.f = data.f_hz[self.sel]
+        self.se_db, self.se_deg = _floor(data.se_db[:, self.sel], data.se_deg[:, self.sel])
+        self.fits: list[JointFit] = []
+        self.added: list[Effect] = []
+        self.steps: list[Step] = []
+        self.adequacies: list[Adequacy] = []
+        self.first_candidates: tuple[Candidate, ...] = ()
+        self.tied: tuple[str, ...] = ()
+        self.stop = ""
+        self.done = False
+
+    def n_params(self, fit: JointFit) -> int:
+        return fit.base.size + len(fit.shared)
+
+    def start(self, base: JointFit) -> None:
+        ad = adequacy(self.f, base, self.se_db, self.se_deg, self.band, self.n_params(base),
+                      self.min_db, self.min_deg)
+        self.fits.append(base)
+        self.adequacies.append(ad)
+        self.steps.append(Step(None, {}, {}, {}, (), ad.overall.rms_db, ad.overall.rms_deg,
+                               ad.overall.rms_norm, float("nan")))
+        self._check_stop()
+
+    def _check_stop(self) -> None:
+        if self.adequacies[-1].adequate:
+            self.done, self.stop = True, "adequate"
+        elif len(self.added) >= self.max_steps:
+            self.done, self.stop = True, "max-steps"
+        elif not self.remaining():
+            self.done, self.stop = True, "no-more-effects"
+
+    def remaining(self) -> list[Effect]:
+        # no effect twice: a second delay, lag or mass adds nothing a single one's
+        # parameters cannot, and two copies of a resonance or reflex are not identifiable
+        # from these responses (their order is arbitrary)
+        names = {e.name for e in self.added}
+        return [e for e in self.effects if e.name not in names]
+
+    def screen(self) -> list[tuple[Effect, JointFit]]:
+        """Screening fits (:func:`screen`) of the remaining effects, lowest cost first."""
+        out = [(e, screen(self.data, self.band, self.fits[-1], e)) for e in self.remaining()]
+        out.sort(key=lambda t: t[1].rss)   # the same subset for every candidate
+        return out
+
+    def take(self, fits: Sequence[tuple[Effect, JointFit]],
+             screened: Sequence[tuple[Effect, JointFit]] = ()) -> None:
+        """Evaluate this step's candidate fits (on all trials); add the best significant
+        one or stop. ``screened``: candidates left at their screening fit (reported
+        among the candidates of the first step, never added)."""
+        cur = self.fits[-1]
+        cands = []
+        self._screened = list(screened)
+        for eff, fit in fits:
+            lr, n_eff, reduction = _robust_lr(cur, fit, self.se_db, self.se_deg)
+            score = float(lr - len(eff.params) * np.log(max(n_eff, 2.0)))
+            err = band_error(self.f, fit.r_db, fit.r_deg, self.se_db, self.se_deg,
+                             *self.band)
+            size_db, size_deg = effect_size(fit, eff, self.f)
+            prac, _ = practical(self.f, size_db, size_deg, self.se_db, self.se_deg,
+                                self.min_db, self.min_deg)
+            stat = bool(score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION)
+            cands.append((score, stat and prac, eff, fit, err, reduction, lr,
+                          float(np.nanmax(size_db, initial=0.0)),
+                          float(np.nanmax(size_deg, initial=0.0))))
+        cands.sort(key=lambda c: c[0], reverse=True)
+        if not self.added:
+            self.first_candidates = tuple(self._candidate(c) for c in cands) + tuple(
+                self._screened_candidate(e, sc) for e, sc in self._screened)
+        # an effect with a parameter at a physical bound is only the library's nearest
+        # approximation: take it only when no significant candidate is free of bounds
+        free = [c for c in cands if c[1]
+                and not at_bound(c[2].params, _short(c[3].shared, c[2].name))]
+        best = free[0] if free else next((c for c in cands if c[1]), None)
+        if not self.added and best is not None:
+            self.tied = tuple(c[2].name for c in cands
+                              if c[1] and c[2] is not best[2]
+                              and best[0] - c[0] < max(TIE_BIC, TIE_FRACTION * best[0]))
+        if best is None:
+            self.done, self.stop = True, "nothing-significant"
+            return
+        score, _, eff, fit, err, _, _, cdb, cdeg = best
+        self.added.append(eff)
+        self.fits.append(fit)
+        ad = adequacy(self.f, fit, self.se_db, self.se_deg, self.band, self.n_params(fit),
+                      self.min_db, self.min_deg)
+        self.adequacies.append(ad)
+        p = _short(fit.shared, eff.name)
+        self.steps.append(Step(eff.name, p, _short(fit.shared_lo, eff.name),
+                               _short(fit.shared_hi, eff.name),
+                               tuple(at_bound(eff.params, p)), err.rms_db, err.rms_deg,
+                               err.rms_norm, float(score), cdb, cdeg))
+        self._check_stop()
+
+    def _candidate(self, c) -> Candidate:
+        score, ok, eff, fit, err, reduction, lr, _, _ = c
+        base = self.fits[0]
+        fail_ranges = [(fb.lo_hz, fb.hi_hz) for fb in self.adequacies[0].failing]
+        be = self.adequacies[0].overall
+        return Candidate(
+            effect=eff.name, params=_short(fit.shared, eff.name),
+            params_lo=_short(fit.shared_lo, eff.name),
+            params_hi=_short(fit.shared_hi, eff.name),
+            rms_db_before=be.rms_db, rms_db_after=err.rms_db,
+            rms_deg_before=be.rms_deg, rms_deg_after=err.rms_deg,
+            rms_norm_before=be.rms_norm, rms_norm_after=err.rms_norm,
+            failing_before=_errors(self.f, base, self.data, self.sel, fail_ranges),
+            failing_after=_errors(self.f, fit, self.data, self.sel, fail_ranges),
+            failing_bias_before=_union_bias(self.f, base, self.se_db, self.se_deg,
+                                            fail_ranges),
+            failing_bias_after=_union_bias(self.f, fit, self.se_db, self.se_deg,
+                                           fail_ranges),
+            lr=float(lr), score=float(score), rss_reduction=float(reduction),
+            significant=bool(ok))
+
+    def borrow_model(self, agreement: Mapping[str, dict]) -> ClosedLoopModel | None:
+        """The model to refit from the axes' common values, or None: for an axis that is
+        not adequate, or that lacks a shared effect named on other axes."""
+        have = {e.name for e in self.added}
+        lack = [n for n in agreement if n not in have and n in EFFECTS
+                and len(self.added) < self.max_steps]
+        if self.adequacies[-1].adequate and not lack:
+            return None
+        if not agreement or (not lack and not any(n in have for n in agreement)):
+            return None
+        model = self.fits[-1].model
+        for n in lack:
+            if len(model.effects) < self.max_steps:
+                model = model.with_effect(EFFECTS[n])
+        return model
+
+    def borrow(self, fit: JointFit) -> None:
+        """Take the refit from the common values when it helps: same effects and a lower
+        cost (the last step's errors improve), or new effects that are significant in both
+        senses (each becomes a step)."""
+        cur = self.fits[-1]
+        new = [e for e in fit.model.effects if e.name not in {a.name for a in self.added}]
+        if fit.rss >= cur.rss:
+            return
+        if new:
+            lr, n_eff, reduction = _robust_lr(cur, fit, self.se_db, self.se_deg)
+            k = sum(len(e.params) for e in new)
+            score = float(lr - k * np.log(max(n_eff, 2.0)))
+            prac = all(practical(self.f, *effect_size(fit, e, self.f), self.se_db,
+                                 self.se_deg, self.min_db, self.min_deg)[0] for e in new)
+            if not (score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION and prac):
+                return
+        ad = adequacy(self.f, fit, self.se_db, self.se_deg, self.band, self.n_params(fit),
+                      self.min_db, self.min_deg)
+        err = ad.overall
+        if new:
+            for e in new:
+                self.added.append(e)
+                p = _short(fit.shared, e.name)
+                self.steps.append(Step(e.name, p, _short(fit.shared_lo, e.name),
+                                       _short(fit.shared_hi, e.name),
+                                       tuple(at_bound(e.params, p)), err.rms_db,
+                                       err.rms_deg, err.rms_norm, float(score)))
+                self.fits.append(fit)
+                self.adequacies.append(ad)
+        else:
+            last = self.steps[-1]
+            p = _short(fit.shared, last.effect) if last.effect else {}
+            self.steps[-1] = replace(last, params=p or last.params,
+                                     params_lo=_short(fit.shared_lo, last.effect or ""),
+                                     params_hi=_short(fit.shared_hi, last.effect or ""),
+                                     rms_db=err.rms_db, rms_deg=err.rms_deg,
+                                     rms_norm=err.rms_norm)
+            self.fits[-1] = fit
+            self.adequacies[-1] = ad
+        self.stop = "adequate" if ad.adequate else self.stop
+        self.borrowed = True
+
+    def _screened_candidate(self, eff: Effect, fit: JointFit) -> Candidate:
+        """A candidate that the screening ranked below the joint fits: its subset fit's
+        parameters, not significant (its error fields are NaN: not fitted on all)."""
+        nan = float("nan")
+        be = self.adequacies[0].overall
+        return Candidate(eff.name, _short(fit.shared, eff.name), {}, {}, be.rms_db, nan,
+                         be.rms_deg, nan, be.rms_norm, nan, (), (), nan, nan, 0.0, nan,
+                         False, nan)
+
+    def result(self) -> AxisDiagnosis:
+        final = self.fits[-1]
+        ad = self.adequacies[-1]
+        missing = []
+        for i, eff in enumerate(self.added):
+            p = _short(final.shared, eff.name)
+            missing.append(MissingEffect(
+                eff.name, p, _short(final.shared_lo, eff.name),
+                _short(final.shared_hi, eff.name), tuple(at_bound(eff.params, p)),
+                self.steps[i + 1].rms_norm))
+        errors = [s.rms_norm for s in self.steps]
+        for i in range(1, len(errors)):      # nested fits: never rises (guard rounding)
+            errors[i] = min(errors[i], errors[i - 1])
+        return AxisDiagnosis(
+            axis=self.data.axis, band=(float(self.f[0]), float(self.f[-1])),
+            n_trials=int(self.data.h.shape[0]),
+            missing_effect=missing[0].effect if missing else None, tied_with=self.tied,
+            candidates=self.first_candidates, failing=self.adequacies[0].failing,
+            base_error=self.adequacies[0].overall,
+            verdict=verdict_text(self.adequacies[0], ad, missing, errors, self.stop),
+            missing_effects=tuple(missing), error_steps=tuple(errors),
+            adequate=bool(ad.adequate), steps=tuple(self.steps),
+            final_error=ad.overall, final_bands=ad.bands, final_failing=ad.failing,
+            stop=self.stop)
+
+
+@dataclass(frozen=True)
+class MissingEffect:
+    """An effect the stepwise search added: its parameters in the final joint fit with
+    95 % intervals, those at a bound, and the error/noise after the step that added it."""
+
+    effect: str
+    params: dict[str, float]
+    params_lo: dict[str, float]
+    params_hi: dict[str, float]
+    at_bound: tuple[str, ...]
+    rms_norm_after: float
+
+
+def _where(bands: Sequence[BandError], failing: Sequence[FailingBand]) -> str:
+    parts = [f"{fb.lo_hz:.3g}–{fb.hi_hz:.3g} Hz ({fb.description})" for fb in failing]
+    covered = [(fb.lo_hz, fb.hi_hz) for fb in failing]
+    for b in bands:
+        if not any(lo <= b.hi_hz and hi >= b.lo_hz for lo, hi in covered):
+            parts.append(f"{b.lo_hz:g}–{b.hi_hz:g} Hz ({b.rms_norm:.1f}× noise, "
+                         f"{b.rms_db:.2f} dB / {b.rms_deg:.1f} deg RMS)")
+    return "; ".join(parts)
+
+
+def verdict_text(base: Adequacy, final: Adequacy, missing: Sequence[MissingEffect],
+                 errors: Sequence[float], stop: str) -> str:
+    """The verdict of one axis in words (see :func:`diagnose`)."""
+    def eff_words(m: MissingEffect) -> str:
+        return m.effect + " (" + ", ".join(f"{k}={v:.4g}" for k, v in m.params.items()) + ")"
+    bounded = [m for m in missing if m.at_bound]
+    if final.adequate and not missing:
+        return (f"adequate: nothing missing — the 5-parameter model fits within the noise "
+                f"in every band (error {errors[0]:.2f}× noise)")
+    chain = " → ".join(f"{e:.3g}" for e in errors)
+    if final.adequate and not bounded:
+        return (f"adequate after adding {', '.join(eff_words(m) for m in missing)}: "
+                f"error/noise {chain}, within the noise in every band")
+    text = ("still inadequate" if not final.adequate else "within the noise, but")
+    if missing:
+        text += f" after adding {', '.join(eff_words(m) for m in missing)} (error/noise {chain})"
+    else:
+        text += (f": error {errors[0]:.2f}× noise and no library effect improves it "
+                 "significantly")
+    if not final.adequate:
+        where = _where(final.over, final.failing)
+        text += f"; misfit remains in {where}" if where else ""
+    for m in bounded:
+        text += (f"; {m.effect} has {', '.join(m.at_bound)} at a physical bound, so it is "
+                 f"only the library's nearest approximation, not the answer")
+    if not final.adequate or bounded:
+        text += ("; the missing physics may lie outside the effect library (write it as "
+                 "an effect file and rerun with --effects FILE)")
+        if stop == "max-steps":
+            text += "; the search stopped at --max-steps"
+    return text
+
+
 def _base_task(args):
     data, band = args
     return fit_base(data, band)
 
 
-def _candidate_task(args):
-    data, band, base, effect = args
-    return fit_candidate(data, band, base, effect)
+def _extend_task(args):
+    data, band, current, effect, screened = args
+    return fit_extend(data, band, current, effect, screened)
 
 
 def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
              axes: Sequence[str] = ("x", "y", "z"),
-             effects: Sequence[Effect] | None = None, jobs: int = 1) -> list[AxisDiagnosis]:
+             effects: Sequence[Effect] | None = None, jobs: int = 1,
+             max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
+             min_effect_deg: float = MIN_EFFECT_DEG,
+             share: Sequence[str] | None = None) -> list[AxisDiagnosis]:
     """Diagnose every axis present in both ``spectra`` (a spectra DataFrame) and
-    ``params`` (a params DataFrame, grip or nominal fits): see :func:`diagnose_axis`.
-    ``band`` defaults to the whole grid of the spectra (the point is to look beyond the
-    paper's fit bands); ``jobs`` > 1 runs the base fits (one per axis), then the candidate
-    fits (one per axis and effect) in parallel processes — the results do not depend on
-    ``jobs``."""
+    ``params`` (a params DataFrame, grip or nominal fits) by a stepwise search.
+
+    Per axis: fit the base model to every trial (arm parameters per trial); while the
+    model is not adequate (:func:`adequacy`), fit the current model plus each remaining
+    effect (all effects refitted jointly, shared by the trials, warm-started), add the
+    candidate with the highest ΔBIC among those significant in both senses — ΔBIC >
+    :data:`SIGNIFICANT_BIC` with at least :data:`MIN_REDUCTION` of the cost removed, and
+    a change of the response larger than the noise and than ``min_effect_db`` /
+    ``min_effect_deg`` (:func:`practical`) — and repeat, at most ``max_steps`` times. No
+    effect is added twice. ``share``: effects whose parameters the axes' fits are
+    compared for agreement (default :data:`SHARED_EFFECTS`), see
+    :func:`cross_axis_agreement`.
+
+    ``band`` defaults to the whole grid of the spectra; ``jobs`` > 1 runs the fits of a
+    step (one per axis and candidate) in parallel processes — the results do not depend
+    on ``jobs``.
+    """
     effects = list(EFFECTS.values()) if effects is None else list(effects)
-    tasks = []
+    searches: list[_Search] = []
     for axis in axes:
         data = axis_data(spectra, params, axis)
         if data is None:
             continue
         b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
-        tasks.append((data, b))
-    if not tasks:
+        searches.append(_Search(data, b, effects, max_steps, min_effect_db, min_effect_deg))
+    if not searches:
         return []
     pool = None
     if jobs > 1:
@@ -883,23 +1458,127 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
                                    initializer=ignore_sigint)
     try:
         run = pool.map if pool is not None else map
-        bases = list(run(_base_task, tasks))
-        cand_tasks = [(data, b, base, e) for (data, b), base in zip(tasks, bases, strict=True)
-                      for e in effects]
-        fits = list(run(_candidate_task, cand_tasks))
+        bases = list(run(_base_task, [(s.data, s.band) for s in searches]))
+        for s, base in zip(searches, bases, strict=True):
+            s.start(base)
+        while True:
+            live = [s for s in searches if not s.done]
+            if not live:
+                break
+            # cheap screening of every remaining effect, then joint fits of the best
+            screened = {id(s): s.screen() for s in live}
+            tasks = [(s, e, sc) for s in live for e, sc in _keep(screened[id(s)])]
+            fits = list(run(_extend_task, [(s.data, s.band, s.fits[-1], e, sc)
+                                           for s, e, sc in tasks]))
+            for s in live:
+                full = {e.name: fit for (t, e, _), fit in zip(tasks, fits, strict=True)
+                        if t is s}
+                s.take([(e, full[e.name]) for e, _ in screened[id(s)] if e.name in full],
+                       screened=[(e, sc) for e, sc in screened[id(s)]
+                                 if e.name not in full])
+        share = SHARED_EFFECTS if share is None else tuple(share)
+        agreement = cross_axis_agreement([s.result() for s in searches], share)
+        # an axis whose search ended inadequate, or without a shared effect the other
+        # axes name, tries the axes' common values as a start (one joint fit each)
+        tasks = [(s, s.borrow_model(agreement)) for s in searches]
+        tasks = [(s, m) for s, m in tasks if m is not None]
+        if tasks:
+            fits = list(run(_borrow_task, [(s.data, s.band, s.fits[-1], m, agreement)
+                                           for s, m in tasks]))
+            for (s, _), fit in zip(tasks, fits, strict=True):
+                s.borrow(fit)
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
     out = []
-    n = len(effects)
-    for i, ((data, b), base) in enumerate(zip(tasks, bases, strict=True)):
-        d = assess(data, b, base, list(zip(effects, fits[i * n:(i + 1) * n], strict=True)))
-        out.append(AxisDiagnosis(**{**d.__dict__,
-                                    "coupling": cross_coupling(spectra, data, b)}))
+    for s in searches:
+        d = s.result()
+        out.append(replace(d, coupling=cross_coupling(spectra, s.data, s.band)))
+    agreement = cross_axis_agreement(out, share)
+    if agreement:
+        out = [replace(d, shared=agreement) for d in out]
     return out
 
 
-# ---------------------------------------------------------------------------
+def _borrow_task(args):
+    data, band, current, model, agreement = args
+    return fit_borrowed(data, band, current, model, agreement)
+
+
+def fit_borrowed(data: AxisData, band: tuple[float, float], current: JointFit,
+                 model: ClosedLoopModel, agreement: Mapping[str, dict]) -> JointFit:
+    """``model`` (``current``'s effects plus any shared effect it lacks) fitted jointly
+    to the axis, started from the common values of the shared effects across axes
+    (``agreement``, see :func:`cross_axis_agreement`) and from ``current``; all
+    parameters free. Never worse than ``current`` on its own effects."""
+    common = {f"{name}.{p}": v["common"] for name, e in agreement.items()
+              for p, v in e["params"].items() if f"{name}.{p}" in model.param_names}
+    null = {}
+    for e in model.effects:
+        null.update({f"{e.name}.{k}": v for k, v in e.null_values(model.mp).items()})
+    st_common = {**null, **current.shared, **common}
+    st_current = {**null, **current.shared}
+    start = _start_array(data)
+    pairs = [(_start_rows(model, data, band, st_common, [start, current.base]), st_common)]
+    return joint_fit(model, data, band, [current.base], [st_common, st_current], pairs=pairs)
+
+
+#: Apparatus effects (latency, sensor lag) that act alike on every axis: their fitted
+#: parameters are compared across axes by default.
+SHARED_EFFECTS: tuple[str, ...] = ("delay", "lowpass")
+
+
+def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]
+                         ) -> dict[str, dict]:
+    """For each effect of ``share`` named on two or more axes: the precision-weighted
+    common value of each parameter (weights from the 95 % intervals, in the fitter's
+    search coordinate: log for log parameters), the χ² of the axes' values about it
+    (degrees of freedom: axes − 1) and whether the axes disagree (p < 0.01). The common
+    value is the one-step joint estimate: where each axis's cost is quadratic in the
+    parameter, the joint minimum of the summed costs is this weighted mean."""
+    out: dict[str, dict] = {}
+    for name in share:
+        named = [(d.axis, m) for d in results for m in d.missing_effects if m.effect == name]
+        if len(named) < 2:
+            continue
+        try:
+            eff = EFFECTS[name]
+        except KeyError:
+            continue
+        entry: dict = {"axes": [a for a, _ in named], "params": {}, "disagree": False}
+        for p in eff.params:
+            vals, ws = [], []
+            for _, m in named:
+                v, lo, hi = (m.params.get(p.name), m.params_lo.get(p.name),
+                             m.params_hi.get(p.name))
+                if v is None or lo is None or hi is None:
+                    continue
+                tr = (lambda x: np.log(max(x, 1e-300))) if p.log else (lambda x: x)
+                half = (tr(hi) - tr(lo)) / 2.0
+                if not (np.isfinite(half) and half > 0):
+                    continue
+                sd = half / stats.norm.ppf(0.975)
+                vals.append(tr(v))
+                ws.append(1.0 / sd ** 2)
+            if len(vals) < 2:
+                continue
+            vals, ws = np.array(vals), np.array(ws)
+            common = float(np.sum(ws * vals) / np.sum(ws))
+            chi2 = float(np.sum(ws * (vals - common) ** 2))
+            pval = float(stats.chi2.sf(chi2, len(vals) - 1))
+            value = float(np.exp(common)) if p.log else common
+            # practically different: the values spread by more than 10 % of the value
+            # (log parameters) or than 10 % of the common value (linear ones)
+            spread = float(np.max(vals) - np.min(vals))
+            big = spread > (np.log(1.1) if p.log else 0.1 * abs(common))
+            entry["params"][p.name] = {"common": value, "chi2": chi2,
+                                       "dof": len(vals) - 1, "p": pval}
+            entry["disagree"] = bool(entry["disagree"] or (pval < 0.01 and big))
+        if entry["params"]:
+            out[name] = entry
+    return out
+
+
 # compare: model against measurements, overall and per band
 # ---------------------------------------------------------------------------
 
@@ -1061,6 +1740,11 @@ def band_to_dict(b: BandError) -> dict:
             "rms_norm": b.rms_norm, "bias_norm": b.bias_norm, "n_points": b.n_points}
 
 
+def _finite(v: float) -> float | None:
+    """``v``, or None (JSON null) when it is NaN or infinite."""
+    return float(v) if np.isfinite(v) else None
+
+
 def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
     """The JSON document of ``armfit diagnose`` (schema in docs/formats.md, "Diagnosis JSON")."""
     axes = {}
@@ -1074,17 +1758,39 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
             "base_error": band_to_dict(d.base_error),
             "failing_bands": [asdict(fb) for fb in d.failing],
             "cross_coupling_db": d.coupling,
+            # a candidate the screening left out has no errors on all trials: null
             "candidates": [{
                 "effect": c.effect, "params": c.params, "params_lo": c.params_lo,
                 "params_hi": c.params_hi,
-                "rms_db_before": c.rms_db_before, "rms_db_after": c.rms_db_after,
-                "rms_deg_before": c.rms_deg_before, "rms_deg_after": c.rms_deg_after,
-                "rms_norm_before": c.rms_norm_before, "rms_norm_after": c.rms_norm_after,
-                "failing_bias_before": c.failing_bias_before,
-                "failing_bias_after": c.failing_bias_after,
+                "rms_db_before": c.rms_db_before, "rms_db_after": _finite(c.rms_db_after),
+                "rms_deg_before": c.rms_deg_before,
+                "rms_deg_after": _finite(c.rms_deg_after),
+                "rms_norm_before": c.rms_norm_before,
+                "rms_norm_after": _finite(c.rms_norm_after),
+                "failing_bias_before": _finite(c.failing_bias_before),
+                "failing_bias_after": _finite(c.failing_bias_after),
                 "failing_before": [band_to_dict(b) for b in c.failing_before],
                 "failing_after": [band_to_dict(b) for b in c.failing_after],
-                "lr": c.lr, "score": c.score, "rss_reduction": c.rss_reduction,
-                "significant": c.significant,
-            } for c in d.candidates]}
-    return {"axes": axes}
+                "lr": c.lr, "score": _finite(c.score),
+                "rss_reduction": _finite(c.rss_reduction), "significant": c.significant,
+            } for c in d.candidates],
+            "missing_effects": [{
+                "effect": m.effect, "params": m.params, "params_lo": m.params_lo,
+                "params_hi": m.params_hi, "at_bound": list(m.at_bound),
+                "rms_norm_after": m.rms_norm_after} for m in d.missing_effects],
+            "error_steps": list(d.error_steps),
+            "adequate": bool(d.adequate),
+            "stop": d.stop,
+            "steps": [{
+                "effect": s.effect, "params": s.params, "params_lo": s.params_lo,
+                "params_hi": s.params_hi, "at_bound": list(s.at_bound), "rms_db": s.rms_db,
+                "rms_deg": s.rms_deg, "rms_norm": s.rms_norm,
+                "delta_bic": None if not np.isfinite(s.delta_bic) else s.delta_bic,
+                "change_db": None if not np.isfinite(s.change_db) else s.change_db,
+                "change_deg": None if not np.isfinite(s.change_deg) else s.change_deg,
+            } for s in d.steps],
+            "final_error": None if d.final_error is None else band_to_dict(d.final_error),
+            "final_bands": [band_to_dict(b) for b in d.final_bands],
+            "final_failing_bands": [asdict(fb) for fb in d.final_failing]}
+    shared = next((d.shared for d in results if d.shared), {})
+    return {"axes": axes, "shared_effects": shared}

@@ -321,7 +321,9 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
     results = diag.results()
     doc = diagnosis_to_dict(results)
     write_text_atomic(path("diagnosis.json"), json.dumps(doc, indent=2) + "\n")
-    missing = {a: d["missing_effect"] for a, d in doc["axes"].items()}
+    # every effect the stepwise search named on an axis, in order ("delay+lowpass")
+    missing = {a: "+".join(m["effect"] for m in d.get("missing_effects", []))
+               or d["missing_effect"] for a, d in doc["axes"].items()}
     clock.done("diagnose", "; ".join(f"{a}: {e or 'no missing effect'}"
                                      for a, e in missing.items()), since=diag.started)
 
@@ -336,7 +338,8 @@ def _stages(inputs: list, folder: Path, options: RunOptions, *, on_stage: OnStag
     for eff, axes in refitted.items():
         sub = spectra[spectra["axis"].isin(axes)]
         bands = {a: tuple(doc["axes"][a]["band_hz"]) for a in axes}
-        study = fit_study(sub, which="nominal", cost=options.cost, effects=[get_effect(eff)],
+        study = fit_study(sub, which="nominal", cost=options.cost,
+                          effects=[get_effect(e) for e in eff.split("+")],
                           bands=bands, source="spectra.parquet")
         name = f"nominal_params_{eff}.csv"
         write_params(study.table(), path(name))
@@ -462,6 +465,8 @@ def _md_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> list[s
 
 
 def _num(v, fmt: str = ".3g") -> str:
+    if v is None:
+        return "–"
     try:
         x = float(v)
     except (TypeError, ValueError):
@@ -532,8 +537,9 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
         f"**fit-uncertainty** — W_max (eq. 6) of every trial's derived dynamics against "
         f"the nominal H_ARM, Wu (eq. 7) fitted with cost `{options.wu_cost}` → `wu.csv`, "
         "`wu_summary.csv`, `wu_wmax.csv`, `wu.tex`.",
-        "**diagnose** — per-trial fits of the base model and of each candidate effect "
-        "over the whole grid, started from the grip fits → `diagnosis.json`.",
+        "**diagnose** — stepwise search over the whole grid, started from the grip fits: "
+        "the base model and the effects added one at a time, fitted to every trial, "
+        "until the model is within the noise → `diagnosis.json`.",
         f"**refit** — the nominal fit again with the named effect, over the band of the "
         f"diagnosis: {refit_text}.",
         "**compare** — each nominal model against the axis medians, overall and per band "
@@ -571,9 +577,10 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
                    rows)
 
     L += ["## Diagnosis", "",
-          "Per axis: the base model and each candidate effect fitted to every trial (arm "
-          "parameters per trial, effect parameters shared); an effect is named when its "
-          "ΔBIC is significant (see `diagnosis.json`).", ""]
+          "Per axis: the base model fitted to every trial (arm parameters per trial), then "
+          "effects added one at a time (parameters shared by the trials) while the model "
+          "is not within the noise; an effect is named when its ΔBIC is significant and it "
+          "changes the response by more than the noise (see `diagnosis.json`).", ""]
     for axis, d in diagnosis["axes"].items():
         L += [f"### Axis {axis.upper()}", "",
               f"**Verdict:** {d['verdict']}.", "",
@@ -588,21 +595,29 @@ def report_markdown(*, inputs: Sequence[str], options: RunOptions, n_trials: int
                   f"{fb['description']}" for fb in d["failing_bands"]] + [""]
         else:
             L += ["The base model fails in no band (it fits within the noise).", ""]
-        best = next((c for c in d["candidates"] if c["effect"] == d["missing_effect"]), None)
-        if best is not None:
-            p = ", ".join(f"{k} = {v:.4g}" for k, v in best["params"].items())
-            L += [f"With `{best['effect']}` ({p}) the error falls from "
-                  f"{best['rms_db_before']:.2f} dB / {best['rms_deg_before']:.1f} deg / "
-                  f"{best['rms_norm_before']:.2f} × noise to {best['rms_db_after']:.2f} dB / "
-                  f"{best['rms_deg_after']:.1f} deg / {best['rms_norm_after']:.2f} × noise "
-                  f"(ΔBIC {best['score']:.1f}).", ""]
-            if d["tied_with"]:
-                L += ["About as good: " + ", ".join(f"`{t}`" for t in d["tied_with"])
-                      + ".", ""]
+        steps = d.get("steps", [])
+        if len(steps) > 1:
+            L += ["Stepwise search (one effect added per step, all added effects refitted "
+                  "jointly); the error falls step by step:", ""]
+            L += _md_table(["step", "effect added", "parameters", "RMS dB", "RMS deg",
+                            "× noise", "ΔBIC"], [
+                [str(i), st["effect"] or "base model",
+                 ", ".join(f"{k}={v:.4g}" + (" (at bound)" if k in st["at_bound"] else "")
+                           for k, v in st["params"].items()),
+                 f"{st['rms_db']:.2f}", f"{st['rms_deg']:.1f}", f"{st['rms_norm']:.2f}",
+                 "" if st["delta_bic"] is None else f"{st['delta_bic']:.1f}"]
+                for i, st in enumerate(steps)])
+        if "adequate" in d:
+            L += [f"Adequate (within the noise in every band): "
+                  f"{'yes' if d['adequate'] else 'no'}.", ""]
+        if d["tied_with"]:
+            L += ["About as good as the first effect: "
+                  + ", ".join(f"`{t}`" for t in d["tied_with"]) + ".", ""]
+        # candidates of the first step; those the screening left out have null errors
         cands = [[c["effect"], ", ".join(f"{k}={v:.4g}" for k, v in c["params"].items()),
-                  f"{c['rms_db_before']:.2f} → {c['rms_db_after']:.2f}",
-                  f"{c['rms_deg_before']:.1f} → {c['rms_deg_after']:.1f}",
-                  f"{c['score']:.1f}", "yes" if c["significant"] else "no"]
+                  f"{c['rms_db_before']:.2f} → {_num(c['rms_db_after'], '.2f')}",
+                  f"{c['rms_deg_before']:.1f} → {_num(c['rms_deg_after'], '.1f')}",
+                  _num(c["score"], ".1f"), "yes" if c["significant"] else "no"]
                  for c in d["candidates"]]
         if cands:
             L += _md_table(["candidate", "parameters", "RMS dB", "RMS deg", "ΔBIC",

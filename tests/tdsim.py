@@ -22,10 +22,14 @@ How a trial is made
 
    X/F = R(s) / (Z_A + ΔZ_arm + Z_dev).
 2. Discretisation with :func:`scipy.signal.cont2discrete` (``bilinear`` by default — a
-   frequency warp of 0.3 % at 30 Hz — or ``zoh``, the force held between samples, which
-   adds the half-sample lag a real servo loop has), as zeros/poles/gain, run as
-   second-order sections (:func:`scipy.signal.sosfilt`, the numerically safe form of
-   ``lfilter``) on the sampled force, after a discarded lead-in of :data:`LEAD_S`.
+   frequency warp of 0.3 % at 30 Hz), as zeros/poles/gain, run as second-order sections
+   (:func:`scipy.signal.sosfilt`, the numerically safe form of ``lfilter``) on the
+   sampled force, after a discarded lead-in of :data:`LEAD_S`. ``method="zoh"``: the
+   force held constant over each sample period, as a servo loop holds its command (the
+   half-sample lag a real device has); simulated by holding each force sample for
+   :data:`ZOH_UPSAMPLE` sub-samples, filtering at that rate and sampling the position at
+   the original instants (``cont2discrete(..., "zoh")`` of the whole loop is numerically
+   ill-conditioned at this order).
 3. An output delay (``delay``) as an integer number of samples plus a first-order Thiran
    all-pass for the fraction (fraction kept in [0.5, 1.5) samples so the all-pass is
    stable), not as exp(−sτ).
@@ -58,6 +62,8 @@ from scipy import signal
 MP_KG = {"x": 0.09, "y": 0.095, "z": 0.091}
 #: Order of the Padé approximant of the reflex delay.
 PADE_ORDER = 6
+#: Rate multiple at which the zero-order hold is simulated (``method="zoh"``).
+ZOH_UPSAMPLE = 8
 #: Discarded lead-in before the recorded window (s), so the filters' start-up is gone.
 LEAD_S = 8.0
 #: Table I (Fu & Çavuşoğlu 2010): (axis, grip N) -> (Ma kg, k1, k2 N/m, b1, b2 N·s/m).
@@ -227,9 +233,14 @@ def simulate_trial(study: Study, subject: int, axis: str, grip: float
     effects = {k: dict(v) for k, v in study.effects.items()} if axis in study.effect_axes \
         else {}
     num, den = closed_loop_tf(arm, MP_KG[axis], effects)
-    sos = discrete_sos(num, den, fs, study.method)
     force = force_signal(rng, n + lead, study)
-    x = signal.sosfilt(sos, force)
+    if study.method == "zoh":
+        # the force held over each sample period, simulated at ZOH_UPSAMPLE times the
+        # rate (bilinear there: warp negligible) and sampled at the original instants
+        sos = discrete_sos(num, den, fs * ZOH_UPSAMPLE, "bilinear")
+        x = signal.sosfilt(sos, np.repeat(force, ZOH_UPSAMPLE))[::ZOH_UPSAMPLE]
+    else:
+        x = signal.sosfilt(discrete_sos(num, den, fs, study.method), force)
     if "delay" in effects:
         x = fractional_delay(x, effects["delay"]["delay_s"] * fs)
     x, force = x[lead:], force[lead:]

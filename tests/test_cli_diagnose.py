@@ -57,8 +57,13 @@ def test_diagnose_json_schema_and_verdict(runner, study):
     assert first["rms_db_after"] <= first["rms_db_before"]
     for key in ("effect", "params", "rms_db_before", "rms_db_after", "score", "significant"):
         assert all(key in c for c in x["candidates"])
-    scores = [c["score"] for c in x["candidates"]]
+    scores = [c["score"] for c in x["candidates"] if c["rms_norm_after"] is not None]
     assert scores == sorted(scores, reverse=True)             # best first
+    # the stepwise keys: delay found, the error falls to within the noise
+    assert x["missing_effects"][0]["effect"] == "delay"
+    assert len(x["error_steps"]) == 1 + len(x["missing_effects"])
+    assert x["adequate"] is True and x["error_steps"][-1] <= 1.5
+    assert x["error_steps"][0] > x["error_steps"][-1]
 
 
 def test_diagnose_writes_json_file_and_refuses_overwrite(runner, study):
@@ -68,7 +73,8 @@ def test_diagnose_writes_json_file_and_refuses_overwrite(runner, study):
     res = runner.invoke(cli, args)
     assert res.exit_code == 0, res.output
     assert json.loads(out.read_text())["axes"]["x"]["missing_effect"] == "delay"
-    assert "verdict: missing effect: delay" in res.stdout
+    assert "verdict: adequate after adding delay" in res.stdout
+    assert "stepwise search" in res.stdout
     again = runner.invoke(cli, args)
     assert again.exit_code == 73 and "--overwrite" in again.stderr
 

@@ -212,10 +212,12 @@ def test_report_states_every_stage_and_the_diagnosis(first):
         assert f"**Verdict:** {d['verdict']}." in report
         for fb in d["failing_bands"]:
             assert fb["description"] in report
+    # the stepwise table: the base model's row, then the delay's, with their errors
     z = diag["axes"]["z"]
-    best = next(c for c in z["candidates"] if c["effect"] == "delay")
-    assert (f"the error falls from {best['rms_db_before']:.2f} dB / "
-            f"{best['rms_deg_before']:.1f} deg") in report
+    assert "Stepwise search" in report
+    for i, st in enumerate(z["steps"]):
+        assert (f"| {i} | {st['effect'] or 'base model'} |") in report
+        assert f"| {st['rms_db']:.2f} | {st['rms_deg']:.1f} | {st['rms_norm']:.2f} |" in report
     for fig in (f for f in EXPECTED if f.startswith("figures/")):
         assert f"]({fig})" in report
     assert "`nominal_params_delay.csv`" in report

@@ -174,10 +174,17 @@ def test_diagnose_names_the_hidden_effect(tmp_path, runner, name, spec, axis, se
             assert best.params[p] == pytest.approx(truth, rel=tol), p
     # the model fails somewhere, and adding the effect at least halves the systematic
     # error there (noise-normalised bias pooled over the failing bands)
-    assert d.failing, "a hidden effect of this size must make the base model fail"
-    assert best.failing_bias_after <= 0.5 * best.failing_bias_before
-    # nested fits: no candidate is worse than the base model
-    assert all(c.rms_norm_after <= c.rms_norm_before + 1e-9 for c in d.candidates)
+    # the base model is not within the noise: the search made at least one step
+    assert len(d.error_steps) >= 2 and d.error_steps[0] > 1.5, d.error_steps
+    if d.failing:   # bands that fail by more than the practical floors (0.5 dB, 3 deg)
+        assert best.failing_bias_after <= 0.5 * best.failing_bias_before
+    # nested fits: no candidate fitted on all trials is worse than the base model (those
+    # the screening left out carry NaN errors)
+    assert all(c.rms_norm_after <= c.rms_norm_before + 1e-9 for c in d.candidates
+               if np.isfinite(c.rms_norm_after))
+    # the search stops once the model is within the noise; the error never rises
+    assert d.adequate and d.error_steps[-1] <= 1.5, d.verdict
+    assert all(b <= a for a, b in zip(d.error_steps, d.error_steps[1:], strict=False))
 
 
 @pytest.mark.parametrize("seed", [21, 22])
@@ -195,6 +202,7 @@ def test_diagnose_reports_none_without_a_hidden_effect(tmp_path, runner, seed):
     assert [d.axis for d in results] == ["x", "y", "z"]
     for d in results:
         assert d.missing_effect is None, (d.axis, d.verdict)
+        assert d.adequate and d.verdict.startswith("adequate: nothing missing")
         assert not any(c.significant for c in d.candidates)
     doc = diagnosis_to_dict(results)
     assert set(doc["axes"]) == {"x", "y", "z"}
@@ -230,4 +238,5 @@ def test_diagnose_from_a_params_file(tmp_path, runner):
     path = write_params(params, tmp_path / "grip.csv")
     (d,) = diagnose(spectra, read_params(path), effects=[EFFECTS["delay"]])
     assert d.axis == "y" and d.n_trials == 6
-    assert [c.effect for c in d.candidates] == ["delay"]
+    # no hidden effect: the base model is adequate, so no candidate is fitted
+    assert d.adequate and d.candidates == () and len(d.error_steps) == 1

@@ -14,6 +14,7 @@ from armfit.cli.options import (
     json_option,
     message,
     overwrite_option,
+    verbosity,
 )
 from armfit.errors import UsageError
 from armfit.models.effects import EFFECTS, get_effect
@@ -32,9 +33,9 @@ def _effects(names) -> list:
     return [get_effect(n) for n in names]
 
 
-def _console():
+def _console(stderr: bool = False):
     from rich.console import Console
-    return Console(soft_wrap=False, width=120)
+    return Console(soft_wrap=False, width=120, stderr=stderr)
 
 
 @click.command("effects")
@@ -142,16 +143,29 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="Also write the JSON document to this file (atomically).")
 @click.option("-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
-              help="Worker processes (one axis each).")
+              help="Worker processes (the fits of one search step in parallel).")
+@click.option("--max-steps", type=click.IntRange(0, 10), default=3, show_default=True,
+              help="At most this many effects added, one per step.")
+@click.option("--min-effect-db", type=click.FloatRange(0.0), default=0.5, show_default=True,
+              help="Practical floor: an effect must change the response by more than this "
+                   "(dB, and more than the noise) somewhere in the band, or ...")
+@click.option("--min-effect-deg", type=click.FloatRange(0.0), default=3.0, show_default=True,
+              help="... by more than this in phase (deg).")
+@click.option("--share", "share", multiple=True, metavar="NAME",
+              help="Effects whose parameters are compared across axes (repeatable; default: "
+                   "delay and lowpass, the apparatus effects).")
+@click.option("--no-share", is_flag=True, help="Compare no effect across axes.")
 @overwrite_option
 @json_option
-def diagnose_command(spectra, model_path, band, effect_names, output, jobs, overwrite,
-                     as_json):
-    """Name the physical effect the 5-parameter model is missing, per axis.
+def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_steps,
+                     min_effect_db, min_effect_deg, share, no_share, overwrite, as_json):
+    """Find the physical effects the 5-parameter model is missing, per axis, step by step.
 
-    Fits the base model and base + each candidate effect to every trial (arm parameters
-    per trial, effect parameters shared), ranks candidates by ΔBIC on noise-normalised
-    residuals, and says which one is significant. Example:
+    Fits the base model to every trial (arm parameters per trial); while the model is not
+    within the noise, adds the library effect with the best ΔBIC that is significant and
+    changes the response by more than the noise and the floors, refitting all added
+    effects jointly (parameters shared by the trials). Prints one row per step and the
+    verdict: adequate, or how much misfit remains and where. Example:
     ``armfit diagnose spectra.parquet --model grip_params.csv``
     """
     from armfit.diagnose import diagnose, diagnosis_to_dict
@@ -159,10 +173,16 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, over
     from armfit.io.atomic import check_output, write_text_atomic
     if output:
         check_output(output, overwrite=overwrite, inputs=[spectra, model_path])
+    if no_share and share:
+        raise UsageError("give --share or --no-share, not both")
     params = read_params(model_path)
     df = read_spectra(spectra)
     results = diagnose(df, params, band=_band(band),
-                       effects=_effects(effect_names) if effect_names else None, jobs=jobs)
+                       effects=_effects(effect_names) if effect_names else None, jobs=jobs,
+                       max_steps=max_steps, min_effect_db=min_effect_db,
+                       min_effect_deg=min_effect_deg,
+                       share=() if no_share else ([get_effect(n).name for n in share]
+                                                  if share else None))
     if not results:
         raise UsageError(f"{spectra}: holds no trial-level measured responses for the axes "
                          f"of {model_path}")
@@ -171,27 +191,43 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, over
         write_text_atomic(output, json.dumps(doc, indent=2) + "\n", overwrite=overwrite)
     if as_json:
         emit_json(doc)
+        # the steps still reach the user, on stderr (stdout holds the JSON)
+        if verbosity() >= 0:
+            _print_steps(results, doc, _console(stderr=True))
         return
+    _print_steps(results, doc, _console())
+    message("diagnosis done")
+
+
+def _print_steps(results, doc, con) -> None:
+    """One table per axis, one row per step, then the failing bands and the verdict."""
     from rich.table import Table
-    con = _console()
     for d in results:
         t = Table(title=f"axis {d.axis}: {d.n_trials} trials, "
-                        f"{d.band[0]:.3g}–{d.band[1]:.3g} Hz")
-        for c in ("effect", "parameters", "RMS dB before→after", "RMS deg before→after",
-                  "× noise before→after", "ΔBIC", "significant"):
+                        f"{d.band[0]:.3g}–{d.band[1]:.3g} Hz — stepwise search")
+        for c in ("step", "effect added", "parameters (95 % interval)", "RMS dB",
+                  "RMS deg", "× noise", "ΔBIC"):
             t.add_column(c)
-        for c in d.candidates:
-            t.add_row(c.effect, ", ".join(f"{k}={v:.4g}" for k, v in c.params.items()),
-                      f"{c.rms_db_before:.2f}→{c.rms_db_after:.2f}",
-                      f"{c.rms_deg_before:.1f}→{c.rms_deg_after:.1f}",
-                      f"{c.rms_norm_before:.2f}→{c.rms_norm_after:.2f}",
-                      f"{c.score:.1f}", "yes" if c.significant else "no")
+        for i, st in enumerate(d.steps):
+            ps = ", ".join(
+                f"{k}={v:.4g}" + (f" ({st.params_lo[k]:.4g}…{st.params_hi[k]:.4g})"
+                                  if k in st.params_lo and k in st.params_hi else "")
+                + (" [at bound]" if k in st.at_bound else "")
+                for k, v in st.params.items())
+            t.add_row(str(i), st.effect or "base model", ps, f"{st.rms_db:.2f}",
+                      f"{st.rms_deg:.1f}", f"{st.rms_norm:.2f}",
+                      "" if st.effect is None else f"{st.delta_bic:.1f}")
         con.print(t)
         for fb in d.failing:
-            con.print(f"  fails {fb.lo_hz:.3g}–{fb.hi_hz:.3g} Hz: {fb.description}",
-                      highlight=False)
+            con.print(f"  base model fails {fb.lo_hz:.3g}–{fb.hi_hz:.3g} Hz: "
+                      f"{fb.description}", highlight=False)
         if d.coupling:
             con.print("  cross-axis motion (off-axis / on-axis, median): " + ", ".join(
                 f"{k} {v:+.1f} dB" for k, v in d.coupling.items()), highlight=False)
         con.print(f"  verdict: {d.verdict}", highlight=False)
-    message("diagnosis done")
+    for name, e in doc.get("shared_effects", {}).items():
+        vals = ", ".join(f"{p} {v['common']:.4g} (χ² {v['chi2']:.1f}, p {v['p']:.2g})"
+                         for p, v in e["params"].items())
+        word = "disagree" if e["disagree"] else "agree"
+        con.print(f"{name} on axes {', '.join(e['axes'])}: the axes {word}; common value "
+                  f"{vals}", highlight=False)
