@@ -37,7 +37,7 @@ Stepwise search and verdict: :func:`diagnose` adds effects one at a time while t
 is not adequate (:func:`adequacy`: every band within the noise, no band failing), each
 significant both statistically (the criterion above) and practically (:func:`practical`:
 it changes the response by more than the noise and a floor); standard errors are bounded
-by :func:`effective_se`. The statistics and choices are documented in docs/diagnose.md.
+by :func:`effective_se`. The statistics and choices are documented in docs/methods.md, "Diagnosis".
 
 Failing bands: per frequency, the mean over trials of the normalised residual of the base
 fit, divided by its standard error across trials (a t statistic); runs of at least
@@ -1765,7 +1765,7 @@ def _finite(v: float) -> float | None:
 
 
 def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
-    """The JSON document of ``armfit diagnose`` (schema in the README)."""
+    """The JSON document of ``armfit diagnose`` (schema in docs/formats.md, "Diagnosis JSON")."""
     axes = {}
     for d in results:
         axes[d.axis] = {

@@ -3,7 +3,7 @@
 Every exception a user can cause subclasses :class:`ArmfitError` (itself a ValueError).
 The CLI prints ``str(exc)`` as one line on stderr and exits with ``exc.exit_code``.
 
-Exit codes (documented in the README):
+Exit codes (documented in docs/cli.md, "Conventions"):
 
 ==== =========================================================
 0    success

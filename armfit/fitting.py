@@ -46,7 +46,7 @@ Confidence intervals (95 %) are formed in log-parameter space and are the wider 
   about as much as leaving out part of the band does. On five time-domain simulated
   studies with no between-subject variability (225 true values, rms_norm 0.96–2.2) the
   noise intervals alone covered 68 % of the true values, the wider of the two 97 %
-  (benchmarks/interval_coverage.py, docs/intervals.md).
+  (benchmarks/interval_coverage.py; docs/methods.md, "Intervals").
 
 Transformed back: lo = θ·exp(−h), hi = θ·exp(+h) (asymmetric in θ, never negative).
 Parameters declared ``log=False`` (e.g. a delay that may be 0) are searched, and their
@@ -123,7 +123,8 @@ class FitResult:
     at_bound: tuple[str, ...] = ()
 
     def row(self) -> dict[str, float | str | bool]:
-        """Parameters, intervals and statistics as one flat dict (the params-file columns)."""
+        """Parameters, intervals and statistics as one flat dict (the params CSV column names,
+        docs/formats.md "Params CSV")."""
         out: dict[str, float | str | bool] = dict(self.params)
         for n in self.params:
             out[f"{n}_lo"] = self.ci_lo[n]
@@ -637,7 +638,8 @@ class StudyFit:
     fits: tuple[FitResult, ...]
 
     def table(self):
-        """The params table (columns of :func:`armfit.io.schema.params_columns`)."""
+        """The params table (columns of :func:`armfit.io.schema.params_columns`;
+        docs/formats.md, "Params CSV")."""
         rows = []
         for (axis, grip), fit in zip(self.keys, self.fits, strict=True):
             row = {"axis": axis, **fit.row()}

@@ -5,7 +5,8 @@ force in N, position in m, sampling rate ``fs`` in Hz, frequencies in Hz, respon
 position/force in m/N, power spectral densities in unit²/Hz (one-sided, ``scaling=
 "density"`` as in :func:`scipy.signal.welch`).
 
-Estimators (Fu & Çavuşoğlu 2010, section III; docs/methods.md):
+Estimators (Fu & Çavuşoğlu 2010, section III; docs/methods.md, "Estimating frequency
+responses"):
 
 ``chebwin``     the paper's ratio H = FFT(w·x) / FFT(w·F) of the whole record, both
                 signals weighted by a 100 dB Chebyshev window (MATLAB/Octave
@@ -262,7 +263,8 @@ def tfestimate_segment(n: int, segments: int = 4) -> tuple[int, int, int]:
 
 
 def derived_arm_signals(force, pos, fs: float, mp: float) -> tuple[np.ndarray, np.ndarray]:
-    """Arm-side force and position, Fu & Çavuşoğlu 2010, eqs. 1–2 (docs/methods.md).
+    """Arm-side force and position, Fu & Çavuşoğlu 2010, eqs. 1–2 (docs/methods.md, "Arm,
+    device and closed loop").
 
     Fa[n] = F[n] − Mp·ẍ[n], ẍ[n] = (x[n+1] − 2x[n] + x[n−1])·fs² (m/s²); returns
     (Fa, xa) for n = 1…N−2 (first and last samples dropped), N and m; ``mp`` in kg.

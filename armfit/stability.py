@@ -1,6 +1,6 @@
 """Stability of a virtual wall rendered by a sampled haptic device held by the modelled arm.
 
-The loop (see ``docs/stability.md`` for the derivation and the choices):
+The loop (see docs/methods.md, "Stability", for the derivation and the choices):
 
 * **Plant** — the measured dynamics of eq. 4 of Fu & Çavuşoğlu 2010 from one parameter
   row, P(s) = X/F = H_ARM / (1 + Mp s² H_ARM) in m/N, with the row's own device mass

@@ -2,7 +2,8 @@
 2010, eqs. 6–7).
 
 Conventions: frequencies ``f_hz`` in Hz; Wu's zeros, poles and the Laplace variable
-``s = j 2π f`` in rad/s (the paper's Table III is read in rad/s, docs/methods.md); magnitudes of
+``s = j 2π f`` in rad/s (the paper's Table III is read in rad/s: docs/methods.md, "Choices
+where the paper is ambiguous"); magnitudes of
 W_max and Wu are dimensionless (a relative error: 0 dB = 100 %).
 
 The pieces:

@@ -4,7 +4,8 @@ Simulates a study (seed 11, 3 subjects x 3 axes x 3 grips, 50-100 s trials, the 
 noise, drift and variability), estimates it with each method, and compares every trial's
 measured response, and each axis x grip mean, with the simulator's true H_CL (eq. 4) over
 0.1-30 Hz: rms error (dB, deg), median absolute error (dB), and the share of points
-within 2 standard errors. The README's table comes from this script.
+within 2 standard errors. The table in docs/methods.md ("Why H1 is the default") comes
+from this script.
 
 Run: .venv/bin/python benchmarks/compare_methods.py
 """

@@ -87,7 +87,7 @@ def test_fit_grip_recovers_table_one(grip_run):
     res, out = grip_run
     assert res.exit_code == 0, res.output
     df = pd.read_csv(out / "g.csv")
-    # interface C columns, in order
+    # the params CSV columns of docs/formats.md, in order
     assert list(df.columns) == params_columns(PARAM_NAMES, grip=True)
     assert len(df) == 9
     for _, row in df.iterrows():

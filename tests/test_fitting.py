@@ -20,7 +20,7 @@ from armfit.models.effects import get_effect
 from armfit.spectra import aggregate
 
 PAPER_COLS = ["Ma_kg", "k1_N_per_m", "k2_N_per_m", "b1_Ns_per_m", "b2_Ns_per_m"]
-#: The paper's bins: 0.01 Hz apart up to 30 Hz (NOTES.md, N = 1e5 samples at 1 kHz).
+#: The paper's bins: 0.01 Hz apart up to 30 Hz (N = 1e5 samples at 1 kHz: 100 s records).
 PAPER_GRID = np.arange(1, 3001) * 0.01
 #: Table I, X axis, 1 N grip (paper).
 X1 = dict(zip(PARAM_NAMES, (0.1925, 85.48, 704.2, 7.410, 2.477), strict=True))

@@ -21,7 +21,7 @@ from armfit.io.trials import (
 )
 
 # ---------------------------------------------------------------------------
-# File names (expected identities are the DATA_CONTRACT.md naming rule)
+# File names (expected identities follow the naming rule of docs/formats.md, "Raw trial files")
 # ---------------------------------------------------------------------------
 
 

@@ -33,7 +33,8 @@ def test_arm_dc_is_series_springs():
 
 
 def test_arm_high_frequency_is_hand_damper():
-    # Relative degree 1 (NOTES.md): H_ARM -> 1/(b1 s) as s -> inf.
+    # Relative degree 1 (docs/methods.md, "Arm, device and closed loop"):
+    # H_ARM -> 1/(b1 s) as s -> inf.
     f = 1e6
     s = 2j * np.pi * f
     assert h_arm(f, **X1) * (X1["b1"] * s) == pytest.approx(1.0, rel=1e-4)
@@ -47,13 +48,13 @@ def test_closed_loop_high_frequency_is_device_plus_hand_mass_line():
 
 
 def test_polynomials_match_the_rational_forms_of_eqs_3_and_4():
-    # eq. 3 written out as a ratio of polynomials (NOTES.md) against the C1/C2 form.
+    # eq. 3 written out as a ratio of polynomials (docs/methods.md) against the C1/C2 form.
     s = 2j * np.pi * F
     num, den = arm_tf(**X1)
     np.testing.assert_allclose(np.polyval(num, s) / np.polyval(den, s), h_arm(F, **X1),
                                rtol=1e-12)
     num, den = cl_tf(**X1, mp=0.09)
-    assert len(den) == 5  # H_CL is fourth order (NOTES.md)
+    assert len(den) == 5  # H_CL is fourth order (docs/methods.md)
     np.testing.assert_allclose(np.polyval(num, s) / np.polyval(den, s),
                                h_cl(F, **X1, mp=0.09), rtol=1e-12)
 

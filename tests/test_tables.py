@@ -17,7 +17,8 @@ PAPER_COLS = ["Ma_kg", "k1_N_per_m", "k2_N_per_m", "b1_Ns_per_m", "b2_Ns_per_m"]
 
 
 def _params_from_paper(name: str, effects: str = "") -> pd.DataFrame:
-    """A params DataFrame (interface C) holding the paper's table values, with intervals
+    """A params DataFrame (docs/formats.md, "Params CSV") holding the paper's table values,
+    with intervals
     +-10 % and placeholder statistics."""
     rows = []
     for _, r in paper_table(name).iterrows():

@@ -1,7 +1,7 @@
 """Tests of armfit.uncertainty: W_max (eq. 6), the weight Wu (eq. 7) and its fits, and the
 Wu CSV of armfit.io.artifacts.
 
-Reference values: the paper's Table III and the magnitudes NOTES.md states for it;
+Reference values: the paper's Table III and its magnitudes as docs/methods.md states them;
 scipy.signal.freqs_zpk (scipy's definition of a zero-pole-gain response); analytic
 constructions whose W_max is known exactly; weights of known order used as W_max (their
 own magnitude is the answer a fit must recover).
@@ -35,7 +35,7 @@ from armfit.uncertainty import (
 TABLE3 = paper_table("uncertainty")
 TABLE2 = paper_table("nominal")
 BAND = (0.01, 30.0)
-# The paper's grid: 0.01 Hz bins up to 30 Hz (NOTES.md, k = 3000 bins).
+# The paper's grid: 0.01 Hz bins up to 30 Hz (k = 3000 bins of a 100 s record).
 F_LIN = np.arange(1, 3001) * 0.01
 # A log grid like `armfit estimate` writes (40 points per decade).
 F_LOG = np.logspace(-2, np.log10(30.0), 140)
@@ -89,8 +89,8 @@ def test_response_matches_scipy_zpk():
 
 @pytest.mark.parametrize("axis, lo_db, hi_db", [("x", -4.4, 2.2), ("z", 0.6, 5.6)])
 def test_table3_magnitude_span(axis, lo_db, hi_db):
-    # NOTES.md: with s in rad/s the X weight spans about −4.4…+2.2 dB and Z about
-    # +0.6…+5.6 dB over 0.01–30 Hz. NOTES.md rounds to 0.1 dB: tolerance 0.05 dB.
+    # docs/methods.md: with s in rad/s the X weight spans about −4.4…+2.2 dB and Z about
+    # +0.6…+5.6 dB over 0.01–30 Hz, rounded to 0.1 dB: tolerance 0.05 dB.
     mag = table3_weight(axis).magnitude_db(np.logspace(-2, np.log10(30.0), 4000))
     assert mag.min() == pytest.approx(lo_db, abs=0.05)
     assert mag.max() == pytest.approx(hi_db, abs=0.05)
@@ -215,7 +215,7 @@ def test_order_one_for_one_pair():
 def test_paper_cost_is_least_squares(noisy_wmax):
     # On a target it can represent exactly (Table III Z, 3 pairs) the dB least squares
     # reaches ~0 RMS; on noisy W_max its residuals straddle zero, so it does NOT
-    # envelope (NOTES.md: least squares gives no guarantee).
+    # envelope (docs/methods.md: least squares gives no guarantee).
     truth = table3_weight("z")
     exact = fit_wu(F_LIN, np.abs(truth.response(F_LIN)), n_pairs=3, cost="paper")
     assert exact.rms_db < 0.01

@@ -89,7 +89,7 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
     Per trial: measured dynamics X/F (and cross-axis responses), derived arm dynamics
     Xa/Fa with Fa = F - Mp*x'' (tfestimate semantics); on a log grid fmin..fmax, with
     coherence, standard errors and flags. Aggregates: mean per axis x grip over subjects,
-    median per axis over all trials. Output: one Parquet table (see the README).
+    median per axis over all trials. Output: one Parquet table (see docs/formats.md).
     """
     if not paths and manifest is None:
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")

@@ -303,7 +303,8 @@ class ClosedLoopModel:
         """What the derived-arm estimate Xa/Fa, Fa = F − Mp ẍ, converges to (m/N).
 
         With H the measured X/F of :meth:`response`, Xa/Fa = H / (1 − Mp_assumed s² H)
-        (docs/methods.md, variability model). Without effects this equals H_ARM exactly.
+        (docs/methods.md, "Arm, device and closed loop"). Without effects this equals H_ARM
+        exactly.
         """
         h = self.response(f_hz, theta)
         mp = self.mp if mp_assumed is None else mp_assumed
