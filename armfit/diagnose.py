@@ -509,20 +509,24 @@ def _start_rows(model, data, band, effect_values, given: Sequence[np.ndarray]) -
 
 def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
               base: np.ndarray, starts: Sequence[Mapping[str, float]] = ({},),
-              max_nfev: int = 200, pairs: Sequence[tuple[np.ndarray, Mapping]] = ()
-              ) -> JointFit:
+              max_nfev: int = 200, pairs: Sequence[tuple[np.ndarray, Mapping]] = (),
+              refine_best: int | None = None, screen_nfev: int | None = None) -> JointFit:
     """Fit ``model`` to every trial of ``data`` at once: arm parameters per trial, effect
     parameters shared (see the module docstring). ``base`` (T, 5), or a list of such:
     starting arm parameters (SI units); ``starts``: candidate starting values of the shared
     effect parameters; ``pairs``: further (base, start) combinations. Every combination is
-    tried briefly on a subset of trials, the best refined on all.
+    tried briefly on a subset of trials, the best ``refine_best`` (default
+    :data:`_REFINE_BEST`) refined on all, at most ``max_nfev`` evaluations each (the brief
+    tries: ``screen_nfev``, default :data:`_SCREEN_NFEV`).
     """
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
     prob = _Joint(model, data, sel)
     bases = [base] if isinstance(base, np.ndarray) else list(base)
     combos = [(b, st) for b in bases for st in starts] + list(pairs)
     if len(combos) > 1:
-        x0s = _screen(model, data, sel, combos, prob)
+        x0s = _screen(model, data, sel, combos, prob,
+                      _REFINE_BEST if refine_best is None else refine_best,
+                      _SCREEN_NFEV if screen_nfev is None else screen_nfev)
     else:
         x0s = [prob.pack(*combos[0])]
     res = None
@@ -585,9 +589,10 @@ _REFINE_BEST = 2
 _LSMR_ITER = 25
 
 
-def _screen(model, data: AxisData, sel, combos, prob: _Joint) -> np.ndarray:
+def _screen(model, data: AxisData, sel, combos, prob: _Joint, keep: int = _REFINE_BEST,
+            nfev: int = _SCREEN_NFEV) -> np.ndarray:
     """Short fits of every (base, start) pair on a spread-out subset of the trials;
-    returns the full starting vectors built from the :data:`_REFINE_BEST` best."""
+    returns the full starting vectors built from the ``keep`` best."""
     T = data.h.shape[0]
     idx = np.unique(np.linspace(0, T - 1, min(T, _SCREEN_TRIALS)).round().astype(int))
     sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
@@ -598,12 +603,12 @@ def _screen(model, data: AxisData, sel, combos, prob: _Joint) -> np.ndarray:
     for b, st in combos:
         r = optimize.least_squares(sprob.fun, sprob.pack(b[idx], st), bounds=(slo, shi),
                                    jac=sprob.jac, method="trf", x_scale=1.0,
-                                   max_nfev=_SCREEN_NFEV, tr_solver="lsmr",
+                                   max_nfev=nfev, tr_solver="lsmr",
                                    tr_options={"maxiter": _LSMR_ITER})
         scored.append((r.cost, b, st, r.x))
     scored.sort(key=lambda t: t[0])
     out = []
-    for _, b, st, xs in scored[:_REFINE_BEST]:
+    for _, b, st, xs in scored[:keep]:
         x0 = prob.pack(b, st)
         if prob.k:
             x0[-prob.k:] = xs[-prob.k:]
@@ -1054,7 +1059,8 @@ def _short(d: Mapping[str, float], effect: str) -> dict[str, float]:
 
 
 def fit_extend(data: AxisData, band: tuple[float, float], current: JointFit,
-               effect: Effect, screened: JointFit | None = None) -> JointFit:
+               effect: Effect, screened: JointFit | None = None, *,
+               quick: bool = False) -> JointFit:
     """``current``'s model plus ``effect``, all effects refitted jointly (shared across
     the trials), warm-started from ``current`` with the new effect at its null point and
     at the screening's values (:func:`screen`; or, without one, at the effect's starting
@@ -1072,12 +1078,22 @@ def fit_extend(data: AxisData, band: tuple[float, float], current: JointFit,
     # missing effect can pull the arm parameters far from those the extended model needs
     pairs = [(_start_rows(model, data, band, st, [start, current.base]), st)
              for st in starts[1:]]
-    fit = joint_fit(model, data, band, [current.base], starts, pairs=pairs)
+    opts = {"refine_best": _QUICK_BEST, "max_nfev": _QUICK_NFEV,
+            "screen_nfev": _QUICK_SCREEN_NFEV} if quick else {}
+    fit = joint_fit(model, data, band, [current.base], starts, pairs=pairs, **opts)
     if fit.rss > current.rss:  # nested: never worse than the current fit
         fit = JointFit(model, current.base, null, {}, {}, current.r_db, current.r_deg,
                        current.rss, current.n_res, current.rho, current.converged)
     return fit
 
+
+#: Evaluations of the screening's refinement (``quick`` fits of :func:`fit_extend`): the
+#: screening ranks candidates and gives the joint fit on all trials a start, which that
+#: fit refines: every starting combination gets a few iterations, the best
+#: :data:`_QUICK_BEST` are refined.
+_QUICK_NFEV = 60
+_QUICK_SCREEN_NFEV = 4
+_QUICK_BEST = 2
 
 #: Candidates per step that get the full joint fit after screening (see :func:`screen`).
 SCREEN_KEEP = 2
@@ -1123,7 +1139,13 @@ def screen(data: AxisData, band: tuple[float, float], current: JointFit,
         return fit_extend(data, band, current, effect)
     idx = np.unique(np.linspace(0, T - 1, SCREEN_SUBSET).round().astype(int))
     sub, cur = _subset(data, current, idx)
-    return fit_extend(sub, band, cur, effect)
+    return fit_extend(sub, band, cur, effect, quick=True)
+
+
+def _rank(screened: list[tuple[Effect, JointFit]]) -> list[tuple[Effect, JointFit]]:
+    """Screening fits lowest subset cost first (the same subset for every candidate;
+    ties keep the library's order)."""
+    return sorted(screened, key=lambda t: t[1].rss)
 
 
 def _effect_params(model: ClosedLoopModel, name: str):
@@ -1180,9 +1202,8 @@ class _Search:
 
     def screen(self) -> list[tuple[Effect, JointFit]]:
         """Screening fits (:func:`screen`) of the remaining effects, lowest cost first."""
-        out = [(e, screen(self.data, self.band, self.fits[-1], e)) for e in self.remaining()]
-        out.sort(key=lambda t: t[1].rss)   # the same subset for every candidate
-        return out
+        return _rank([(e, screen(self.data, self.band, self.fits[-1], e))
+                      for e in self.remaining()])
 
     def take(self, fits: Sequence[tuple[Effect, JointFit]],
              screened: Sequence[tuple[Effect, JointFit]] = ()) -> None:
@@ -1408,6 +1429,11 @@ def _base_task(args):
     return fit_base(data, band)
 
 
+def _screen_task(args):
+    data, band, current, effect = args
+    return screen(data, band, current, effect)
+
+
 def _extend_task(args):
     data, band, current, effect, screened = args
     return fit_extend(data, band, current, effect, screened)
@@ -1465,8 +1491,14 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
             live = [s for s in searches if not s.done]
             if not live:
                 break
-            # cheap screening of every remaining effect, then joint fits of the best
-            screened = {id(s): s.screen() for s in live}
+            # cheap screening of every remaining effect (one task per axis and effect,
+            # in parallel with jobs > 1), then joint fits of the best
+            stasks = [(s, e) for s in live for e in s.remaining()]
+            sfits = list(run(_screen_task, [(s.data, s.band, s.fits[-1], e)
+                                            for s, e in stasks]))
+            screened = {id(s): _rank([(e, sc) for (t, e), sc
+                                      in zip(stasks, sfits, strict=True) if t is s])
+                        for s in live}
             tasks = [(s, e, sc) for s in live for e, sc in _keep(screened[id(s)])]
             fits = list(run(_extend_task, [(s.data, s.band, s.fits[-1], e, sc)
                                            for s, e, sc in tasks]))

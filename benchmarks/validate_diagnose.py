@@ -18,7 +18,9 @@ Writes a confusion table (truth vs effects named per axis, adequate yes/no, erro
 steps, the acceptance checks) to ``benchmarks/diagnose_validation.md`` and prints it.
 Takes ~10–15 min on 2 idle cores.
 
-Run: .venv/bin/python benchmarks/validate_diagnose.py [--quick]
+Run: .venv/bin/python benchmarks/validate_diagnose.py [--quick] [--only TEXT,...]
+(``--only``: the studies whose label contains one of the texts, plus the non-white one
+when ``steps`` is among them; the table is printed, not written.)
 """
 
 from __future__ import annotations
@@ -91,11 +93,36 @@ def _check(truth: dict, d, inside: bool) -> str:
     return "MISS"
 
 
+def _nonwhite(tmp: str) -> str:
+    """Non-white input: diagnose and compare on the same data, in words."""
+    kw = dict(subjects=3, seed=141, axes=("x",), input="steps", hold_s=(0.3, 1.5),
+              noise_m=5e-3, quantum_m=1e-4, effects={"lowpass": {"cutoff_hz": 4.0}})
+    folder = tdsim.write_study(tdsim.Study(**kw), Path(tmp) / "steps")
+    spectra, nominal = tdsim.estimate_and_fit(folder, "nominal")
+    (row,) = compare(spectra, nominal, level="median")
+    t = time.perf_counter()
+    (d,) = diagnose(spectra, nominal, jobs=2)
+    dt = time.perf_counter() - t
+    ratio = d.error_steps[0] / row.overall.rms_norm
+    nonwhite = (f"non-white input (pseudo-random steps, 4 Hz lag): diagnose base error "
+                f"{d.error_steps[0]:.2f}× noise, compare (median) "
+                f"{row.overall.rms_norm:.2f}× noise, ratio {ratio:.2f} "
+                f"({'within' if 0.5 <= ratio <= 2 else 'OUTSIDE'} 2x); named: "
+                f"{_named(d)}; adequate: {'yes' if d.adequate else 'no'}; "
+                f"{dt:.0f} s")
+    return nonwhite
+
+
 def main() -> None:
     quick = "--quick" in sys.argv
     rows = []
     t_all = time.perf_counter()
     cases = CASES[:2] if quick else CASES
+    only = sys.argv[sys.argv.index("--only") + 1].split(",") if "--only" in sys.argv else []
+    if only:
+        cases = [c for c in CASES if any(t in c[0] for t in only)]
+        quick = True   # a subset: print, do not overwrite the full table
+    nonwhite = ""
     spring_file = ROOT / "examples" / "device_spring.py"
     with tempfile.TemporaryDirectory() as tmp:
         for label, kw, truth in cases:
@@ -128,23 +155,9 @@ def main() -> None:
                                  " → ".join(f"{e:.3g}" for e in d.error_steps), check,
                                  f"{dt:.0f}"])
                     print(" | ".join(rows[-1]), flush=True)
-        # non-white input: diagnose and compare on the same data
-        kw = dict(subjects=3, seed=141, axes=("x",), input="steps", hold_s=(0.3, 1.5),
-                  noise_m=5e-3, quantum_m=1e-4, effects={"lowpass": {"cutoff_hz": 4.0}})
-        folder = tdsim.write_study(tdsim.Study(**kw), Path(tmp) / "steps")
-        spectra, nominal = tdsim.estimate_and_fit(folder, "nominal")
-        (row,) = compare(spectra, nominal, level="median")
-        t = time.perf_counter()
-        (d,) = diagnose(spectra, nominal, jobs=2)
-        dt = time.perf_counter() - t
-        ratio = d.error_steps[0] / row.overall.rms_norm
-        nonwhite = (f"non-white input (pseudo-random steps, 4 Hz lag): diagnose base error "
-                    f"{d.error_steps[0]:.2f}× noise, compare (median) "
-                    f"{row.overall.rms_norm:.2f}× noise, ratio {ratio:.2f} "
-                    f"({'within' if 0.5 <= ratio <= 2 else 'OUTSIDE'} 2x); named: "
-                    f"{_named(d)}; adequate: {'yes' if d.adequate else 'no'}; "
-                    f"{dt:.0f} s")
-        print(nonwhite)
+        if not only or "steps" in only:
+            nonwhite = _nonwhite(tmp)
+            print(nonwhite)
     head = ["study", "axis", "truth", "named (final joint fit)", "adequate",
             "error/noise steps", "check", "diagnose s"]
     lines = ["# Validation of `armfit diagnose` on time-domain simulated studies", "",
