@@ -548,8 +548,10 @@ def _fixed_layout(fig: Figure, axs: np.ndarray) -> None:
     The figure size is fixed (3.5 in per panel column), so this is one pass of text
     measurement instead of a layout solver run at every draw; panels of a column share
     their left edge and panels of a row their height, as a grid of subplots does. Call it
-    when every artist is in place (tick labels follow the final view). It measures
-    twice, because the tick labels a locator chooses depend on the panel's size.
+    when every artist is in place (tick labels follow the final view). It measures again
+    when the panels' tick locations changed with their size (a locator picks ticks by the
+    length of the axis); how far the labels reach past a panel's ends is kept from the
+    first measure, made on smaller panels, so it errs on the side of room.
     """
     renderer = fig.canvas.get_renderer()
     width, height = fig.get_size_inches()
@@ -557,7 +559,12 @@ def _fixed_layout(fig: Figure, axs: np.ndarray) -> None:
     pad = LAYOUT_PAD_IN
     legend = fig.legends[0] if fig.legends else None
     sup = getattr(fig, "_suptitle", None)
+    def tick_locs() -> list[np.ndarray]:
+        return [loc for ax in axs.flat
+                for loc in (ax.xaxis.get_majorticklocs(), ax.yaxis.get_majorticklocs())]
+
     for _ in range(2):
+        measured = tick_locs()
         left, over = np.zeros(ncols), np.zeros(ncols)
         bottom, top = np.zeros(nrows), np.zeros(nrows)
         for i in range(nrows):
@@ -591,6 +598,9 @@ def _fixed_layout(fig: Figure, axs: np.ndarray) -> None:
                 axs[i, j].set_position([x / width, y / height, aw / width, ah / height])
                 x += aw + over[j] + pad
             y -= bottom[i] + gap[i]
+        if all(a.shape == b.shape and np.array_equal(a, b)
+               for a, b in zip(measured, tick_locs(), strict=True)):
+            break
 
 
 def _legend(fig: Figure, handles: list, ncol: int | None = None) -> None:
