@@ -8,8 +8,9 @@ SVG and PDF; the script prints build and write times (s) and file sizes (kB).
 
 Then the figures stage of `armfit run` on the log grid: Figs. 5, 6 and 7 (bode,
 uncertainty, literature) built and written as PNG, as `run` does, best of --repeat
-(wall and CPU seconds; target <= 2 s). On a loaded machine the wall times are inflated;
-the CPU times are the steadier measure.
+(wall and CPU seconds; target <= 2 s); then the figures of its later stages (one
+residual figure per axis, the stability figure of the grip fits), for reference. On a
+loaded machine the wall times are inflated; the CPU times are the steadier measure.
 
     .venv/bin/python benchmarks/bench_plot.py [--repeat 3] [--stage-only]
 """
@@ -125,6 +126,20 @@ def run_stage(repeat: int) -> None:
             cpus.append(time.process_time() - c0)
             print(f"round {r + 1}: wall {walls[-1]:5.2f} s, CPU {cpus[-1]:5.2f} s")
     print(f"best: wall {min(walls):5.2f} s, CPU {min(cpus):5.2f} s (target <= 2 s)")
+    print("== later figure stages of `armfit run` (residual per axis, stability PNG)")
+    trials = grip.assign(subject=[f"s{i}" for i in range(len(grip))])
+    walls, cpus = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(repeat):
+            w0, c0 = time.perf_counter(), time.process_time()
+            for axis in "xyz":
+                figures.save_figure(figures.residual_figure(spectra, nominal, axis=axis),
+                                    Path(tmp) / f"residual_{axis}.png", overwrite=True)
+            figures.save_figure(figures.stability_figure(trials),
+                                Path(tmp) / "stability.png", overwrite=True)
+            walls.append(time.perf_counter() - w0)
+            cpus.append(time.process_time() - c0)
+    print(f"best: wall {min(walls):5.2f} s, CPU {min(cpus):5.2f} s")
 
 
 def bench() -> None:
