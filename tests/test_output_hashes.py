@@ -59,7 +59,7 @@ EXPECTED: dict[str, str] = {
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
-        "97e04742b234a01967fdc6dfb47ea6c603aec556105f95d1a70cc2c73dafe478",
+        "df075c513fd7911f8c0535505e1cd6a8f6c937eca08e7c8a6164484c4e995463",
     "grip.csv":
         "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
     "nominal.csv":
