@@ -11,10 +11,11 @@ automatically, e.g. docs/api.md):
   ``sh`` for illustrations that are not run (paths such as ``raw/`` that a user has but
   the repository does not).
 - A command must exit 0, unless it ends with a comment ``# exit N`` (then it must exit N).
-- ``console check``: the output shown is compared with the real output. Each shown line
-  must match a real line, in order (real lines may be left out in the doc: a trimmed
-  output is fine); text must be equal up to runs of spaces, and each number must agree
-  within 5 % or two units of its last shown digit. A line starting with ``…`` marks an
+- ``console check``: the output shown is compared with the real output (only on the
+  locked versions of requirements.lock: an optimiser's digits may differ on another
+  set). Each shown line must match a real line, in order (real lines may be left out
+  in the doc: a trimmed output is fine); text must be equal up to runs of spaces, and
+  each number must agree within 5 % or two units of its last shown digit. A line starting with ``…`` marks an
   elision and is not compared. Without ``check`` the output is not compared.
 - ``python``: the block is executed with ``exec`` (blocks of one file share a namespace,
   in order).
@@ -43,6 +44,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from locked import unlocked
 
 from armfit.cli.main import cli
 
@@ -53,6 +55,9 @@ RUN_SLOW = os.environ.get("ARMFIT_DOCS_SLOW") == "1"
 LINKED = ("sample_data", "examples")
 LANGS = ("console", "python")
 REL_TOL = 0.05
+#: Outputs shown in the docs were made with the locked libraries; on another set
+#: (make test-latest / test-oldest) the commands still run, their digits are not compared.
+UNLOCKED = unlocked()
 
 FENCE = re.compile(r"^(?P<fence>`{3,}|~{3,})\s*(?P<info>[^`]*)$")
 NUMBER = re.compile(r"[-+−]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
@@ -272,7 +277,7 @@ def test_doc_examples(doc: Path, doc_runner: Runner, tmp_path: Path, monkeypatch
             code, output = doc_runner.run(step.argv, tmp_path)
             assert code == step.exit_code, f"{where}: exit {code}, expected " \
                                            f"{step.exit_code}\n{output}"
-            if "check" in block.tags:
+            if "check" in block.tags and not UNLOCKED:
                 check_output(step.expected, output, where)
     if not ran and doc.name == "README.md":
         pytest.fail("README.md has no runnable example")

@@ -17,15 +17,12 @@ from __future__ import annotations
 import hashlib
 import os
 import sys
-from importlib import metadata
 from pathlib import Path
 
 import pytest
+from locked import unlocked
 
 REPO = Path(__file__).resolve().parents[1]
-
-#: Libraries whose versions decide the bytes.
-LOCKED = ("numpy", "scipy", "pandas", "pyarrow", "matplotlib")
 
 #: The commands run, in order, from a scratch folder holding ``sample_data`` (a link to
 #: the repository's). ``run`` writes every table; the others add their own outputs.
@@ -103,16 +100,6 @@ EXPECTED: dict[str, str] = {
 }
 
 
-def locked_versions(lock: Path = REPO / "requirements.lock") -> dict[str, str]:
-    """{name: version} of :data:`LOCKED` in the lock file (names compared lower-case)."""
-    out = {}
-    for line in lock.read_text(encoding="utf-8").splitlines():
-        name, sep, version = line.strip().partition("==")
-        if sep and name.lower() in LOCKED:
-            out[name.lower()] = version
-    return out
-
-
 def produce(folder: Path) -> dict[str, str]:
     """Run :data:`COMMANDS` in ``folder`` and return {output: SHA-256}."""
     from click.testing import CliRunner
@@ -144,9 +131,7 @@ def produce(folder: Path) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def produced(tmp_path_factory) -> dict[str, str]:
-    locked = locked_versions()
-    installed = {name: metadata.version(name) for name in LOCKED}
-    differ = {n: (installed[n], locked.get(n)) for n in LOCKED if installed[n] != locked.get(n)}
+    differ = unlocked()
     if differ:
         pytest.skip("output bytes are recorded with the locked versions; installed "
                     + ", ".join(f"{n} {a} (locked {b})" for n, (a, b) in differ.items()))
