@@ -15,8 +15,9 @@ automatically, e.g. docs/api.md):
   locked versions of requirements.lock: an optimiser's digits may differ on another
   set). Each shown line must match a real line, in order (real lines may be left out
   in the doc: a trimmed output is fine); text must be equal up to runs of spaces, and
-  each number must agree within 5 % or two units of its last shown digit. A line starting with ``…`` marks an
-  elision and is not compared. Without ``check`` the output is not compared.
+  each number must agree within 5 % or two units of its last shown digit. A line
+  starting with ``…`` marks an elision and is not compared. Without ``check`` the output
+  is not compared.
 - ``python``: the block is executed with ``exec`` (blocks of one file share a namespace,
   in order).
 - ``slow`` (e.g. ``console slow``, ``console check slow``, ``python slow``): a heavy
