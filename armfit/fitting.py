@@ -650,6 +650,21 @@ class StudyFit:
         return params_frame(rows, names, grip=self.which == "grip")
 
 
+def _check_method(rows, method: str | None, source: str | None) -> str | None:
+    """The estimator ``method`` to select among ``rows`` (None: the only one they hold).
+
+    Raises UsageError when ``rows`` hold several estimators and none is chosen, or when the
+    chosen one is not among them."""
+    methods = sorted(rows.values_of("method"))
+    if method is None and len(methods) > 1:
+        raise UsageError(f"{source or 'spectra'} holds several estimators "
+                         f"({', '.join(methods)}); choose one with {{opt}}", option="method=")
+    if method is not None and method not in methods:
+        raise UsageError(f"{{opt}}{method}: not in {source or 'spectra'} (it has "
+                         f"{', '.join(methods)})", option="method=")
+    return method
+
+
 def fit_study(spectra, *, which: str, cost: str = "complex",
               bands: Mapping[str, tuple[float, float]] | None = None,
               effects: Sequence = (), bootstrap: int = 0, seed: int | None = 0,
@@ -712,14 +727,7 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         raise BadInputError(f"no rows with level '{how}' and kind 'measured'; run "
                             "`armfit estimate` to write the aggregates", file=source,
                             column="level")
-    methods = sorted(agg.values_of("method"))
-    if method is None and len(methods) > 1:
-        raise UsageError(f"{source or 'spectra'} holds several estimators "
-                         f"({', '.join(methods)}); choose one with {{opt}}", option="method=")
-    if method is not None:
-        if method not in methods:
-            raise UsageError(f"{{opt}}{method}: not in {source or 'spectra'} (it has "
-                             f"{', '.join(methods)})", option="method=")
+    if _check_method(agg, method, source) is not None:
         agg = agg.select(method=method)
         measured = measured.select(method=method)
     group_cols = ("axis", "grip_N") if which == "grip" else ("axis",)
@@ -831,14 +839,7 @@ def trial_groups(spectra, *, method: str | None = None, source: str | None = Non
     if len(tr) == 0:
         raise BadInputError("no rows with level 'trial' and kind 'measured'; make the file "
                             "with `armfit estimate`", file=source, column="level")
-    methods = sorted(tr.values_of("method"))
-    if method is None and len(methods) > 1:
-        raise UsageError(f"{source or 'spectra'} holds several estimators "
-                         f"({', '.join(methods)}); choose one with {{opt}}", option="method=")
-    if method is not None:
-        if method not in methods:
-            raise UsageError(f"{{opt}}{method}: not in {source or 'spectra'} (it has "
-                             f"{', '.join(methods)})", option="method=")
+    if _check_method(tr, method, source) is not None:
         tr = tr.select(method=method)
     keys = [(str(a), str(s), float(g), r) for a, s, g, r in zip(
         tr.key("axis"), tr.key("subject"), tr.key("grip_N"), tr.key("run"), strict=True)]
