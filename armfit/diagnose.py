@@ -16,8 +16,9 @@ its own measurement noise (Bendat & Piersol standard errors from coherence), whi
 candidate effect's parameters are **shared** by all trials of the axis (a delay, a sensor
 lag, the device's damping or mass, a structural mode are properties of the apparatus;
 for the reflex this reads as the population's typical reflex). One joint least-squares
-fit per candidate (T·5 + k parameters, block-sparse Jacobian by vectorised forward
-differences) is warm-started from the base
+fit per candidate (T·5 + k parameters, a block-arrow Jacobian by vectorised forward
+differences, solved by eliminating the trials' blocks: :mod:`armfit.blocklsq`) is
+warm-started from the base
 fit at the effect's null point (where it vanishes) and at the effect's own starting
 points, so adding an effect never makes the fit worse.
 
@@ -52,8 +53,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
-from scipy import optimize, sparse, stats
+from scipy import stats
 
+from armfit import blocklsq
 from armfit.constants import AXES, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import UsageError
 from armfit.fitting import ParamSpace, analytic_guess, fit_response, log_errors
@@ -387,11 +389,12 @@ class _Joint:
         r = np.concatenate([r_db * self.w_db, r_deg * self.w_deg], axis=1)
         return np.where(np.isfinite(r), r, 1e6).ravel()
 
-    def jac(self, x: np.ndarray) -> sparse.csr_matrix:
-        """Forward-difference Jacobian of :meth:`fun`, all columns in one vectorised
-        evaluation: column j of every trial is perturbed at once (the trials' blocks do
-        not overlap), shared columns for all trials together. Steps √eps·max(1, |z|),
-        taken backwards at an upper bound."""
+    def jac(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-difference Jacobian of :meth:`fun` as its blocks (per-trial
+        (T, m, 5), shared (T, m, k); see :mod:`armfit.blocklsq`), all columns in one
+        vectorised evaluation: column j of every trial is perturbed at once (the trials'
+        blocks do not overlap), shared columns for all trials together. Steps
+        √eps·max(1, |z|), taken backwards at an upper bound."""
         z = self.unpack(x)                                    # (T, P)
         T, P = z.shape
         h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(z))
@@ -405,19 +408,15 @@ class _Joint:
             r_db, r_deg = residuals(self.h[None], self.model.response(self.f, values))
             R = np.concatenate([r_db * self.w_db, r_deg * self.w_deg], axis=-1)
         R = np.where(np.isfinite(R), R, 1e6)
-        D = (R[1:] - R[:1]) / h.T[:, :, None]                  # (P, T, 2n)
-        m = R.shape[-1]
-        rows = (np.arange(T)[:, None, None] * m + np.arange(m)[None, None, :])
-        rows = np.broadcast_to(rows, (T, self.nb, m))
-        cols = np.broadcast_to((np.arange(T)[:, None] * self.nb
-                                + np.arange(self.nb)[None, :])[:, :, None], (T, self.nb, m))
-        data = np.transpose(D[: self.nb], (1, 0, 2))           # (T, nb, m)
-        base = sparse.csr_matrix((data.ravel(), (rows.ravel(), cols.ravel())),
-                                 shape=(T * m, T * self.nb))
-        if not self.k:
-            return base
-        shared = D[self.nb:].reshape(self.k, T * m).T
-        return sparse.hstack([base, sparse.csr_matrix(shared)]).tocsr()
+        D = (R[1:] - R[:1]) / h.T[:, :, None]                  # (P, T, m)
+        D = np.moveaxis(D, 0, -1)                              # (T, m, P)
+        return np.ascontiguousarray(D[..., : self.nb]), np.ascontiguousarray(D[..., self.nb:])
+
+    def solve(self, x0: np.ndarray, max_nfev: int, **tol) -> blocklsq.BlockResult:
+        """The joint least-squares fit from ``x0`` (:func:`armfit.blocklsq.solve`)."""
+        lo, hi = self.bounds()
+        return blocklsq.solve(self.fun, self.jac, x0, lo, hi, n_trials=self.T,
+                              n_block=self.nb, max_nfev=max_nfev, **tol)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo = np.concatenate([np.tile(self.space.zlo[: self.nb], self.T),
@@ -551,12 +550,8 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
                     bool(res.status > 0))
 
 
-def _refine(prob: _Joint, x0: np.ndarray, max_nfev: int):
-    lo, hi = prob.bounds()
-    return optimize.least_squares(prob.fun, x0, bounds=(lo, hi), jac=prob.jac,
-                                  method="trf", max_nfev=max_nfev, x_scale=1.0,
-                                  tr_solver="lsmr", tr_options={"maxiter": _LSMR_ITER},
-                                  ftol=1e-8, xtol=1e-8)
+def _refine(prob: _Joint, x0: np.ndarray, max_nfev: int) -> blocklsq.BlockResult:
+    return prob.solve(x0, max_nfev, ftol=1e-8, xtol=1e-8)
 
 
 #: A trial whose misfit exceeds this many times the median trial's is refitted globally.
@@ -588,8 +583,6 @@ def _rescue(prob: _Joint, model: ClosedLoopModel, data: AxisData, sel, res, max_
 _SCREEN_TRIALS = 9
 _SCREEN_NFEV = 12
 _REFINE_BEST = 2
-#: Inner iterations of the sparse trust-region solver (enough for these block problems).
-_LSMR_ITER = 25
 
 
 def _screen(model, data: AxisData, sel, combos, prob: _Joint, keep: int = _REFINE_BEST,
@@ -601,13 +594,9 @@ def _screen(model, data: AxisData, sel, combos, prob: _Joint, keep: int = _REFIN
     sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
                    tuple(data.starts[i] for i in idx))
     sprob = _Joint(model, sub, sel)
-    slo, shi = sprob.bounds()
     scored = []
     for b, st in combos:
-        r = optimize.least_squares(sprob.fun, sprob.pack(b[idx], st), bounds=(slo, shi),
-                                   jac=sprob.jac, method="trf", x_scale=1.0,
-                                   max_nfev=nfev, tr_solver="lsmr",
-                                   tr_options={"maxiter": _LSMR_ITER})
+        r = sprob.solve(sprob.pack(b[idx], st), nfev)
         scored.append((r.cost, b, st, r.x))
     scored.sort(key=lambda t: t[0])
     out = []
@@ -623,17 +612,10 @@ def _shared_ci(prob: _Joint, res, names) -> tuple[dict[str, float], dict[str, fl
     """95 % intervals of the shared parameters from the Jacobian (Schur complement)."""
     if not names:
         return {}, {}
-    J = res.jac.toarray() if sparse.issparse(res.jac) else np.asarray(res.jac)
-    m, p = J.shape
+    m, p = res.fun.size, res.x.size
     s2 = 2 * res.cost / max(m - p, 1)
-    JTJ = J.T @ J
-    try:
-        cov = s2 * np.linalg.pinv(JTJ, rcond=1e-12)
-    except np.linalg.LinAlgError:  # pragma: no cover - pinv is SVD based
-        nan = {n: float("nan") for n in names}
-        return nan, nan
     k = len(names)
-    var = np.diag(cov)[-k:]
+    var = s2 * np.diag(blocklsq.shared_covariance(res.jb, res.js))
     half = stats.norm.ppf(0.975) * np.sqrt(np.maximum(var, 0))
     z = res.x[-k:]
     sp = prob.space
@@ -1106,14 +1088,18 @@ def _keep(screened: Sequence[tuple[Effect, JointFit]]) -> list[tuple[Effect, Joi
     return [c for c in screened[:SCREEN_KEEP] if c[1].rss <= SCREEN_GAP * best]
 
 
-def _subset(data: AxisData, fit: JointFit, idx: np.ndarray) -> tuple[AxisData, JointFit]:
-    """The trials ``idx`` of ``data`` and of ``fit``."""
+def _subset(data: AxisData, fit: JointFit, idx: np.ndarray,
+            band: tuple[float, float]) -> tuple[AxisData, JointFit]:
+    """The trials ``idx`` of ``data`` and of ``fit`` (its residuals on ``band``), the
+    subset's residual sum of squares weighted as :func:`joint_fit` weighs it."""
     sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
                    tuple(data.starts[i] for i in idx))
-    z = np.concatenate([fit.r_db[idx], fit.r_deg[idx]], axis=1)
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    sdb, sdeg = _floor(sub.se_db[:, sel], sub.se_deg[:, sel])
+    z = np.concatenate([fit.r_db[idx] / sdb, fit.r_deg[idx] / sdeg], axis=1)
     return sub, JointFit(fit.model, fit.base[idx], fit.shared, fit.shared_lo, fit.shared_hi,
-                         fit.r_db[idx], fit.r_deg[idx], float(np.nansum(z * z)), int(z.size),
-                         fit.rho, fit.converged)
+                         fit.r_db[idx], fit.r_deg[idx], float(np.sum(z[np.isfinite(z)] ** 2)),
+                         int(z.size), fit.rho, fit.converged)
 
 
 def screen(data: AxisData, band: tuple[float, float], current: JointFit,
@@ -1128,7 +1114,7 @@ def screen(data: AxisData, band: tuple[float, float], current: JointFit,
     if T <= SCREEN_SUBSET:
         return fit_extend(data, band, current, effect)
     idx = np.unique(np.linspace(0, T - 1, SCREEN_SUBSET).round().astype(int))
-    sub, cur = _subset(data, current, idx)
+    sub, cur = _subset(data, current, idx, band)
     return fit_extend(sub, band, cur, effect, quick=True)
 
 

@@ -52,7 +52,7 @@ EXPECTED: dict[str, str] = {
     "compare.stdout":
         "68d52b6fffe31b4cf76911e3414a14189e3e8f1b59bb37e18b0aff29d838a2f4",
     "diagnose.stdout":
-        "6ec6dd445474e6de2364a775cca7e07ce86b40105953c446a689a232185e5d68",
+        "f2c72dc526ac113b93caf1c09089bae0b620b625a9951d1d7343369a1e0fa2f4",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
@@ -64,7 +64,7 @@ EXPECTED: dict[str, str] = {
     "run/compare.csv":
         "a5f960dfafebe811c2e3cf9f1c703eed0b319f606342e280a4ae07107b5df476",
     "run/diagnosis.json":
-        "6ec6dd445474e6de2364a775cca7e07ce86b40105953c446a689a232185e5d68",
+        "f2c72dc526ac113b93caf1c09089bae0b620b625a9951d1d7343369a1e0fa2f4",
     "run/grip_params.csv":
         "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
     "run/grip_params.tex":

@@ -1,0 +1,356 @@
+"""Bounded nonlinear least squares for block-arrow problems.
+
+The joint fits of the diagnosis (:mod:`armfit.diagnose`) have T trials, each with its own
+``nb`` parameters, and ``k`` parameters shared by every trial. Their residual vector is
+trial-major (T blocks of m residuals) and their Jacobian has a block-arrow shape::
+
+    J = [ Jb_1            Js_1 ]
+        [       Jb_2      Js_2 ]
+        [            ...  ...  ]
+        [            Jb_T Js_T ]
+
+so the Gauss-Newton normal equations [[A, B], [Bᵀ, C]] δ = −g have a block-diagonal A
+(T blocks of nb × nb). :func:`solve` eliminates the per-trial blocks (the Schur
+complement S = C − Σ Bᵢᵀ Aᵢ⁻¹ Bᵢ, k × k) and solves each step exactly in
+O(T·m·(nb + k)²) operations, vectorised over the trials, where a general sparse solver
+iterates in Python.
+
+The method is the trust-region-reflective algorithm of
+:func:`scipy.optimize.least_squares` (``method="trf"``) with every step solved exactly;
+its termination tests and statuses are those of that function (``ftol``, ``xtol``,
+``gtol``, ``max_nfev``; status 0 when the budget is spent).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["BlockResult", "shared_covariance", "solve"]
+
+#: Residual function: x (T·nb + k,) -> r (T·m,), trial-major.
+Fun = Callable[[np.ndarray], np.ndarray]
+#: Jacobian blocks: x -> (Jb (T, m, nb), Js (T, m, k)).
+Jac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class BlockResult:
+    """The solution: ``x``, ``cost`` = ½‖r‖², the residuals ``fun`` and the Jacobian
+    blocks ``jb`` (T, m, nb) and ``js`` (T, m, k) at ``x``; ``status`` as
+    :func:`scipy.optimize.least_squares` (0: evaluation budget spent; 1: gtol, 2: ftol,
+    3: xtol); ``nfev`` residual evaluations."""
+
+    x: np.ndarray
+    cost: float
+    fun: np.ndarray
+    jb: np.ndarray
+    js: np.ndarray
+    status: int
+    nfev: int
+
+
+def _normal(jb: np.ndarray, js: np.ndarray, r: np.ndarray):
+    """Blocks of JᵀJ (A (T, nb, nb), B (T, nb, k), C (k, k)) and of Jᵀr (gb, gs)."""
+    A = np.einsum("tmp,tmq->tpq", jb, jb)
+    B = np.einsum("tmp,tmk->tpk", jb, js)
+    C = np.einsum("tmk,tml->kl", js, js)
+    gb = np.einsum("tmp,tm->tp", jb, r)
+    gs = np.einsum("tmk,tm->k", js, r)
+    return A, B, C, gb, gs
+
+
+class _Scaled:
+    """The trust-region subproblem of one iteration in the scaled ("hat") variables of
+    the trust-region-reflective method: J_h = J·diag(d), H_h = J_hᵀJ_h + diag(c),
+    g_h = d·g, blocks as :func:`_normal` (per-trial part first, then the shared one)."""
+
+    def __init__(self, jb, js, A, B, C, gb, gs, db, ds, cb, cs):
+        self.jb, self.js, self.db, self.ds, self.cb, self.cs = jb, js, db, ds, cb, cs
+        self.A = A * db[:, :, None] * db[:, None, :]
+        self.B = B * db[:, :, None] * ds[None, None, :]
+        self.C = C * np.outer(ds, ds)
+        self.gb, self.gs = gb * db, gs * ds
+        self.T, self.nb = gb.shape
+        self.k = gs.size
+
+    def solve(self, alpha: float, rb: np.ndarray, rs: np.ndarray):
+        """y = (H_h + αI)⁻¹ (rb, rs) by eliminating the per-trial blocks."""
+        k = self.k
+        Al = self.A + np.eye(self.nb) * (self.cb + alpha)[:, None, :]
+        if k == 0:
+            return np.linalg.solve(Al, rb[..., None])[..., 0], np.zeros(0)
+        Cl = self.C + np.diag(self.cs + alpha)
+        sol = np.linalg.solve(Al, np.concatenate([self.B, rb[..., None]], axis=2))
+        AiB, Air = sol[..., :k], sol[..., k]
+        S = Cl - np.einsum("tpk,tpl->kl", self.B, AiB)
+        ys = np.linalg.solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))
+        return Air - AiB @ ys, ys
+
+    def jdot(self, hb: np.ndarray, hs: np.ndarray) -> np.ndarray:
+        """J_h·h, (T, m)."""
+        return (np.einsum("tmp,tp->tm", self.jb, hb * self.db)
+                + np.einsum("tmk,k->tm", self.js, hs * self.ds))
+
+    def quadratic_1d(self, s: np.ndarray, s0: np.ndarray | None = None):
+        """(a, b, c) of q(s0 + t·s) = a t² + b t + c, q(p) = ½pᵀH_h p + g_hᵀp."""
+        g = np.concatenate([self.gb.ravel(), self.gs])
+        c = np.concatenate([self.cb.ravel(), self.cs])
+        sb, ss = self._split(s)
+        js = self.jdot(sb, ss)
+        a = 0.5 * (float(np.sum(js * js)) + float(s @ (c * s)))
+        b = float(g @ s)
+        cc = 0.0
+        if s0 is not None:
+            j0 = self.jdot(*self._split(s0))
+            b += float(np.sum(js * j0)) + float(s0 @ (c * s))
+            cc = 0.5 * (float(np.sum(j0 * j0)) + float(s0 @ (c * s0))) + float(g @ s0)
+        return a, b, cc
+
+    def value(self, p: np.ndarray) -> float:
+        """q(p)."""
+        a, b, _ = self.quadratic_1d(p)
+        return a + b
+
+    def _split(self, v: np.ndarray):
+        return v[: self.T * self.nb].reshape(self.T, self.nb), v[self.T * self.nb:]
+
+    def trust_region(self, delta: float, alpha: float) -> tuple[np.ndarray, float]:
+        """The minimiser p_h of q within ‖p_h‖ ≤ ``delta``: the Gauss-Newton step when it
+        fits, else p(α) = −(H_h + αI)⁻¹g_h with ‖p(α)‖ = ``delta`` to 1 %, α by Moré's
+        Newton iteration on ‖p(α)‖ (as :func:`scipy.optimize.least_squares`'s exact
+        solver, with a solve in place of the SVD). ``alpha``: the previous α, the
+        first guess. Returns (p_h, α)."""
+        gb, gs = -self.gb, -self.gs
+        g_norm = float(np.sqrt(np.sum(gb * gb) + gs @ gs))
+        if g_norm == 0.0:
+            return np.zeros(self.T * self.nb + self.k), 0.0
+        diag = np.concatenate([np.diagonal(self.A, axis1=1, axis2=2).ravel(),
+                               np.diag(self.C) if self.k else np.zeros(0)])
+        floor = 1e-12 * max(float(diag.max(initial=0.0)), 1e-300)
+        pb, ps = self.solve(floor, gb, gs)
+        norm = float(np.sqrt(np.sum(pb * pb) + ps @ ps))
+        if np.isfinite(norm) and norm <= delta:
+            return np.concatenate([pb.ravel(), ps]), 0.0
+        lo, hi = 0.0, g_norm / delta
+        if not lo < alpha < hi:
+            alpha = max(1e-3 * hi, np.sqrt(lo * hi))
+        for _ in range(10):
+            if not lo < alpha < hi:
+                alpha = max(1e-3 * hi, np.sqrt(lo * hi))
+            pb, ps = self.solve(alpha, gb, gs)
+            norm = float(np.sqrt(np.sum(pb * pb) + ps @ ps))
+            phi = norm - delta
+            if phi < 0:
+                hi = alpha
+            qb, qs = self.solve(alpha, pb, ps)
+            phi_prime = -float(np.sum(pb * qb) + ps @ qs) / norm
+            ratio = phi / phi_prime
+            lo = max(lo, alpha - ratio)
+            alpha -= (phi + delta) * ratio / delta
+            if abs(phi) < 0.01 * delta:
+                break
+        p = np.concatenate([pb.ravel(), ps])
+        return p * (delta / np.linalg.norm(p)), alpha
+
+
+def _to_bound(x, s, lower, upper) -> tuple[float, np.ndarray]:
+    """Smallest t ≥ 0 with x + t·s on a bound, and which components hit it (±1)."""
+    steps = np.full_like(x, np.inf)
+    nz = s != 0
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        steps[nz] = np.maximum((lower - x)[nz] / s[nz], (upper - x)[nz] / s[nz])
+    t = float(np.min(steps))
+    return t, np.equal(steps, t) * np.sign(s).astype(int)
+
+
+def _through_sphere(p: np.ndarray, s: np.ndarray, delta: float) -> float:
+    """The t > 0 with ‖p + t·s‖ = ``delta``."""
+    a, b, c = s @ s, p @ s, p @ p - delta ** 2
+    disc = np.sqrt(max(b * b - a * c, 0.0))
+    return float((-b + disc) / a) if a > 0 else np.inf
+
+
+def _min_1d(a, b, lo, hi, c=0.0) -> tuple[float, float]:
+    t = [lo, hi]
+    if a != 0 and lo < -0.5 * b / a < hi:
+        t.append(-0.5 * b / a)
+    t = np.asarray(t, float)
+    y = t * (a * t + b) + c
+    i = int(np.argmin(y))
+    return float(t[i]), float(y[i])
+
+
+def _select_step(x, sub: _Scaled, d, p_h, delta, lower, upper, theta):
+    """The step of the trust-region-reflective method: the trust-region step if it stays
+    in the box, otherwise the best of that step stopped short of the bound, its
+    reflection off the bound, and the scaled steepest-descent step (Branch, Coleman &
+    Li, SIAM J. Sci. Comput. 21, 1999). Returns (step, step_h, predicted reduction)."""
+    p = d * p_h
+    if np.all((x + p >= lower) & (x + p <= upper)):
+        return p, p_h, -sub.value(p_h)
+    stride, hits = _to_bound(x, p, lower, upper)
+    r_h = p_h.copy()
+    r_h[hits.astype(bool)] *= -1
+    r = d * r_h
+    p, p_h = p * stride, p_h * stride
+    to_tr = _through_sphere(p_h, r_h, delta)
+    to_bound, _ = _to_bound(x + p, r, lower, upper)
+    r_stride = min(to_bound, to_tr)
+    if r_stride > 0:
+        lo = (1 - theta) * stride / r_stride
+        hi = theta * to_bound if r_stride == to_bound else to_tr
+    else:
+        lo, hi = 0.0, -1.0
+    if lo <= hi:
+        a, b, c = sub.quadratic_1d(r_h, p_h)
+        t, r_value = _min_1d(a, b, lo, hi, c)
+        r_h = p_h + t * r_h
+        r = d * r_h
+    else:
+        r_value = np.inf
+    p, p_h = p * theta, p_h * theta
+    p_value = sub.value(p_h)
+    ag_h = -np.concatenate([sub.gb.ravel(), sub.gs])
+    ag = d * ag_h
+    to_tr = delta / np.linalg.norm(ag_h)
+    to_bound, _ = _to_bound(x, ag, lower, upper)
+    ag_stride = theta * to_bound if to_bound < to_tr else to_tr
+    a, b, _ = sub.quadratic_1d(ag_h)
+    t, ag_value = _min_1d(a, b, 0.0, ag_stride)
+    if p_value < r_value and p_value < ag_value:
+        return p, p_h, -p_value
+    if r_value < p_value and r_value < ag_value:
+        return r, r_h, -r_value
+    return t * ag, t * ag_h, -ag_value
+
+
+def _strictly_inside(x, lower, upper) -> np.ndarray:
+    x = x.copy()
+    lo, hi = x <= lower, x >= upper
+    x[lo] = np.nextafter(lower[lo], upper[lo])
+    x[hi] = np.nextafter(upper[hi], lower[hi])
+    return x
+
+
+def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, *,
+          n_trials: int, n_block: int, max_nfev: int = 200, ftol: float = 1e-8,
+          xtol: float = 1e-8, gtol: float = 1e-8) -> BlockResult:
+    """Minimise ½‖fun(x)‖² over ``lower < x < upper`` for a block-arrow problem.
+
+    The trust-region-reflective method of :func:`scipy.optimize.least_squares`
+    (``method="trf"``, ``x_scale=1``, ``tr_solver="exact"``: Coleman-Li scaling of the
+    variables near their bounds, the same step selection, radius updates and stopping
+    tests), with the trust-region subproblem solved by eliminating the per-trial
+    blocks of the normal equations instead of an SVD of the whole Jacobian.
+
+    Parameters
+    ----------
+    fun : callable
+        x (T·nb + k,) -> residuals (T·m,), trial-major: the first m belong to trial 0.
+    jac : callable
+        x -> (Jb (T, m, nb), Js (T, m, k)), the Jacobian's per-trial and shared blocks.
+    x0 : ndarray
+        Start, (T·nb + k,): the per-trial parameters trial by trial, then the shared ones;
+        moved strictly inside the bounds.
+    lower, upper : ndarray
+        Finite bounds of every parameter (same shape as ``x0``).
+    n_trials, n_block : int
+        T and nb.
+    max_nfev : int
+        Budget of residual evaluations (the Jacobian calls are not counted).
+    ftol, xtol, gtol : float
+        Stop when a step lowers the cost by less than ``ftol``·cost (with a good
+        agreement of the model), when it is below ``xtol``·(``xtol`` + ‖x‖), or when the
+        scaled gradient's largest component is below ``gtol``.
+
+    Returns
+    -------
+    BlockResult
+    """
+    T, nb = n_trials, n_block
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    x = _strictly_inside(np.clip(np.asarray(x0, float), lower, upper), lower, upper)
+    r = fun(x)
+    nfev = 1
+    cost = 0.5 * float(r @ r)
+    jb, js = jac(x)
+    normal = _normal(jb, js, r.reshape(T, -1))
+    v, _ = _cl_scaling(x, np.concatenate([normal[3].ravel(), normal[4]]), lower, upper)
+    delta = float(np.linalg.norm(x / np.sqrt(v))) or 1.0
+    alpha, status = 0.0, 0
+    while True:
+        A, B, C, gb, gs = normal
+        g = np.concatenate([gb.ravel(), gs])
+        v, dv = _cl_scaling(x, g, lower, upper)
+        g_norm = float(np.max(np.abs(g * v), initial=0.0))
+        if g_norm < gtol:
+            status = 1
+        if status or nfev >= max_nfev:
+            break
+        d = np.sqrt(v)
+        c = g * dv
+        sub = _Scaled(jb, js, A, B, C, gb, gs, d[: T * nb].reshape(T, nb), d[T * nb:],
+                      c[: T * nb].reshape(T, nb), c[T * nb:])
+        theta = max(0.995, 1.0 - g_norm)
+        actual = -1.0
+        while actual <= 0 and nfev < max_nfev:
+            p_h, alpha = sub.trust_region(delta, alpha)
+            step, step_h, predicted = _select_step(x, sub, d, p_h, delta, lower, upper,
+                                                   theta)
+            x_new = _strictly_inside(x + step, lower, upper)
+            r_new = fun(x_new)
+            nfev += 1
+            step_h_norm = float(np.linalg.norm(step_h))
+            cost_new = 0.5 * float(r_new @ r_new)
+            if not np.isfinite(cost_new):
+                delta = 0.25 * step_h_norm
+                continue
+            actual = cost - cost_new
+            if predicted > 0:
+                ratio = actual / predicted
+            else:
+                ratio = 1.0 if predicted == actual == 0 else 0.0
+            new_delta = delta
+            if ratio < 0.25:
+                new_delta = 0.25 * step_h_norm
+            elif ratio > 0.75 and step_h_norm > 0.95 * delta:
+                new_delta = 2.0 * delta
+            step_norm = float(np.linalg.norm(step))
+            small_f = actual < ftol * cost and ratio > 0.25
+            small_x = step_norm < xtol * (xtol + float(np.linalg.norm(x)))
+            if small_f or small_x:
+                status = 4 if small_f and small_x else (2 if small_f else 3)
+                break
+            if new_delta > 0:
+                alpha *= delta / new_delta
+            delta = new_delta
+        if actual > 0:
+            x, r, cost = x_new, r_new, cost_new
+            jb, js = jac(x)
+            normal = _normal(jb, js, r.reshape(T, -1))
+    return BlockResult(x, cost, r, jb, js, status, nfev)
+
+
+def _cl_scaling(x, g, lower, upper) -> tuple[np.ndarray, np.ndarray]:
+    """Coleman-Li scaling: v is the distance to the bound the gradient points towards
+    (1 without one), dv its derivative's sign."""
+    v, dv = np.ones_like(x), np.zeros_like(x)
+    m = (g < 0) & np.isfinite(upper)
+    v[m], dv[m] = upper[m] - x[m], -1.0
+    m = (g > 0) & np.isfinite(lower)
+    v[m], dv[m] = x[m] - lower[m], 1.0
+    return v, dv
+
+
+def shared_covariance(jb: np.ndarray, js: np.ndarray) -> np.ndarray:
+    """The shared parameters' block of (JᵀJ)⁺, (k, k): the inverse of the Schur
+    complement C − Σ Bᵢᵀ Aᵢ⁺ Bᵢ (pseudo-inverses, so a parameter the data do not
+    determine gets a large variance instead of an error). Multiply by σ² for a
+    covariance."""
+    A, B, C, _, _ = _normal(jb, js, np.zeros(jb.shape[:2]))
+    Ai = np.linalg.pinv(A, rcond=1e-12)
+    S = C - np.einsum("tpk,tpq,tql->kl", B, Ai, B)
+    return np.linalg.pinv(S, rcond=1e-12)

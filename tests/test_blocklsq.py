@@ -1,0 +1,106 @@
+"""The block-arrow least-squares solver (armfit.blocklsq) on problems with a known answer.
+
+The problem: T decays y_i(t) = a_i·exp(−c·t) + e_i with per-trial amplitude a_i and
+offset e_i and a shared rate c (nb = 2, k = 1). Expected values: the truth the data were
+made from (noise-free data), and scipy.optimize.least_squares on the same problem with
+its dense Jacobian (noisy data, and a bound that is active at the optimum).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import optimize
+
+from armfit import blocklsq
+
+T_S = np.linspace(0.0, 4.0, 40)
+
+
+def _problem(a, e, c, noise=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    y = a[:, None] * np.exp(-c * T_S)[None] + e[:, None]
+    y = y + noise * rng.standard_normal(y.shape)
+    n = a.size
+
+    def fun(x):
+        ab, eb, cc = x[: 2 * n: 2], x[1: 2 * n: 2], x[-1]
+        return (ab[:, None] * np.exp(-cc * T_S)[None] + eb[:, None] - y).ravel()
+
+    def jac(x):
+        ab, cc = x[: 2 * n: 2], x[-1]
+        ex = np.broadcast_to(np.exp(-cc * T_S), (n, T_S.size))
+        jb = np.stack([ex, np.ones_like(ex)], axis=-1)              # (T, m, 2)
+        js = (-ab[:, None] * T_S[None] * ex)[..., None]             # (T, m, 1)
+        return jb, js
+
+    def dense(x):
+        jb, js = jac(x)
+        J = np.zeros((n * T_S.size, 2 * n + 1))
+        for i in range(n):
+            J[i * T_S.size:(i + 1) * T_S.size, 2 * i:2 * i + 2] = jb[i]
+        J[:, -1] = js.reshape(-1)
+        return J
+
+    return fun, jac, dense
+
+
+def _start(n, c0=0.3):
+    return np.concatenate([np.tile([1.0, 0.0], n), [c0]])
+
+
+def test_noise_free_problem_returns_the_truth():
+    a, e, c = np.array([1.0, 2.5, 0.7, 4.0]), np.array([0.1, -0.2, 0.0, 0.3]), 1.3
+    fun, jac, _ = _problem(a, e, c)
+    n = a.size
+    lo, hi = np.full(2 * n + 1, -10.0), np.full(2 * n + 1, 10.0)
+    res = blocklsq.solve(fun, jac, _start(n), lo, hi, n_trials=n, n_block=2)
+    assert res.status > 0
+    np.testing.assert_allclose(res.x[-1], c, rtol=1e-7)
+    np.testing.assert_allclose(res.x[: 2 * n: 2], a, rtol=1e-7)
+    np.testing.assert_allclose(res.x[1: 2 * n: 2], e, atol=1e-7)
+    assert res.cost < 1e-12
+
+
+@pytest.mark.parametrize("c_hi", [10.0, 1.0])
+def test_agrees_with_scipy_trf_with_noise_and_an_active_bound(c_hi):
+    # c = 1.3 truth; with c <= 1 the optimum sits on the bound
+    a, e, c = np.array([1.0, 2.5, 0.7]), np.array([0.1, -0.2, 0.0]), 1.3
+    fun, jac, dense = _problem(a, e, c, noise=0.05, seed=3)
+    n = a.size
+    lo = np.full(2 * n + 1, -10.0)
+    hi = np.concatenate([np.full(2 * n, 10.0), [c_hi]])
+    x0 = _start(n)
+    res = blocklsq.solve(fun, jac, x0, lo, hi, n_trials=n, n_block=2)
+    ref = optimize.least_squares(fun, x0, jac=dense, bounds=(lo, hi), method="trf",
+                                 x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12)
+    np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-6)
+    np.testing.assert_allclose(res.x, ref.x, atol=1e-5)
+    assert np.all(res.x >= lo) and np.all(res.x <= hi)
+    if c_hi == 1.0:
+        assert res.x[-1] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_budget_spent_is_status_zero():
+    a, e, c = np.array([1.0, 2.5]), np.array([0.1, -0.2]), 1.3
+    fun, jac, _ = _problem(a, e, c)
+    n = a.size
+    lo, hi = np.full(2 * n + 1, -10.0), np.full(2 * n + 1, 10.0)
+    res = blocklsq.solve(fun, jac, _start(n, c0=5.0), lo, hi, n_trials=n, n_block=2,
+                         max_nfev=2)
+    assert res.status == 0 and res.nfev <= 2
+    # never worse than the start
+    x0 = _start(n, c0=5.0)
+    assert res.cost <= 0.5 * float(fun(x0) @ fun(x0))
+
+
+def test_shared_covariance_is_the_block_of_the_full_inverse():
+    # linear algebra: the shared block of (JᵀJ)⁻¹ is the inverse of the Schur complement
+    a, e, c = np.array([1.0, 2.5, 0.7]), np.array([0.1, -0.2, 0.0]), 1.3
+    _, jac, dense = _problem(a, e, c)
+    x = np.concatenate([np.ravel(np.column_stack([a, e])), [c]])
+    jb, js = jac(x)
+    J = dense(x)
+    full = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(blocklsq.shared_covariance(jb, js), full[-1:, -1:],
+                               rtol=1e-9)
