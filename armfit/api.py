@@ -494,8 +494,8 @@ class Uncertainty:
 def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | None = None,
                     band: tuple[float, float] | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
-                    check: Mapping[str, Mapping[str, WuWeight]] | None = None
-                    ) -> Uncertainty:
+                    check: Mapping[str, Mapping[str, WuWeight]] | None = None,
+                    jobs: int = 1) -> Uncertainty:
     """W_max (eq. 6) of every trial's derived arm dynamics against the nominal H_ARM and
     the weight Wu(s) = K Π(s − z)/Π(s − p) (eq. 7, s in rad/s) per axis (Table III,
     ``armfit fit-uncertainty``).
@@ -519,6 +519,8 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
         Estimator of the derived spectra when several.
     check : dict, optional
         {label: {axis: WuWeight}} further weights to evaluate on the same data.
+    jobs : int
+        Worker processes (one axis each); the result does not depend on it.
 
     Returns
     -------
@@ -535,7 +537,7 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
     nom = ModelFit.of(nominal)
     results = _uncertainty.fit_uncertainty(sp, nom.table, cost=cost, n_pairs=order,
                                            band=band, smooth_oct=smooth_oct, method=method,
-                                           given=check)
+                                           given=check, jobs=jobs)
     bad = [r.axis for r in results if not r.result.converged]
     if bad and cost == "paper":
         raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "

@@ -63,7 +63,7 @@ from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
-from armfit.workers import ignore_sigint
+from armfit.workers import process_pool
 
 #: Standard error bands of the compare table (Hz).
 BANDS: tuple[tuple[float, float], ...] = ((0.1, 1.0), (1.0, 3.0), (3.0, 10.0), (10.0, 30.0))
@@ -1450,15 +1450,7 @@ def diagnose(spectra, params, *, band: tuple[float, float] | None = None,
         searches.append(_Search(data, b, effects, max_steps, min_effect_db, min_effect_deg))
     if not searches:
         return []
-    pool = None
-    if jobs > 1:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-        # forkserver: safe when the caller has threads of its own (the run pipeline)
-        method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-        # Ctrl-C is the main process's to handle
-        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method),
-                                   initializer=ignore_sigint)
+    pool = process_pool(jobs, preload=("armfit.diagnose",)) if jobs > 1 else None
     try:
         run = pool.map if pool is not None else map
         bases = list(run(_base_task, [(s.data, s.band) for s in searches]))

@@ -850,11 +850,14 @@ def trial_groups(spectra, *, method: str | None = None, source: str | None = Non
 
 def fit_trial(key: tuple[str, str, float, int | None], rows, *, cost: str = "complex",
               band: tuple[float, float] | None = None, effects: Sequence = (),
-              max_nfev: int | None = None) -> TrialFit:
+              max_nfev: int | None = None, x0: Mapping[str, float] | None = None
+              ) -> TrialFit:
     """Fit H_CL (eq. 4, plus ``effects``) to one trial's measured response ``rows`` =
     (f_hz, H in m/N, se_db, se_deg), as :func:`trial_groups` gives it, with
-    :func:`fit_response`; a fit that fails (no convergence, too few usable bins,
-    repeated frequencies) is returned with ``fit`` None and its reason, not raised."""
+    :func:`fit_response`: with the global search, or with ``x0`` a local fit from those
+    parameter values only (kept even when it did not converge: :func:`fit_trials`
+    decides). A fit that fails (no convergence, too few usable bins, repeated
+    frequencies) is returned with ``fit`` None and its reason, not raised."""
     axis, subject, grip, run = key
     band = PAPER_BANDS[axis] if band is None else band
     try:
@@ -864,7 +867,8 @@ def fit_trial(key: tuple[str, str, float, int | None], rows, *, cost: str = "com
             raise BadInputError("repeated frequencies in the trial's response",
                                 column="freq_hz")
         fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, cost=cost, band=band,
-                           max_nfev=max_nfev)
+                           max_nfev=max_nfev, x0=x0, global_search=x0 is None,
+                           strict=x0 is None)
     except (ConvergenceError, UsageError, BadInputError) as exc:
         return TrialFit(axis, subject, grip, run, None, str(exc).splitlines()[0])
     return TrialFit(axis, subject, grip, run, fit)
@@ -875,33 +879,96 @@ def _fit_trial_task(args):
     return fit_trial(key, rows, **kw)
 
 
+#: A trial's local fit (from its grip's fit) whose RMS normalised error exceeds this many
+#: times the median of its axis's local fits (and :data:`LOCAL_NOISE_TOL`) gets the
+#: global search as well.
+LOCAL_OUTLIER = 1.5
+#: Normalised RMS error under which a local fit is accepted whatever its axis's median.
+LOCAL_NOISE_TOL = 1.5
+
+
+def _needs_global(tf: TrialFit, median: float) -> bool:
+    fit = tf.fit
+    if fit is None or not fit.converged or fit.at_bound:
+        return True
+    err = fit.rms_norm if np.isfinite(fit.rms_norm) else fit.rms_db
+    return bool(err > max(LOCAL_NOISE_TOL, LOCAL_OUTLIER * median))
+
+
 def fit_trials(spectra, *, cost: str = "complex",
                bands: Mapping[str, tuple[float, float]] | None = None,
                effects: Sequence = (), method: str | None = None,
                max_nfev: int | None = None, jobs: int = 1, source: str | None = None,
+               starts: Mapping[tuple[str, float], Mapping[str, float]] | None = None,
                on_fit: Callable[[TrialFit], None] | None = None) -> list[TrialFit]:
     """One fit of H_CL per trial (axis × subject × grip [× run]) of a spectra table, in
     that order (:func:`trial_groups`). Failed fits are kept, with their reason. ``jobs``
-    > 1 fits in that many worker processes (the results do not depend on it)."""
+    > 1 fits in that many worker processes (the results do not depend on it).
+
+    The trials of one axis and grip are alike, so each trial is first fitted locally
+    from its grip's fit (``starts``: {(axis, grip_N): parameters}; by default the grip
+    fits of :func:`fit_study` on the same spectra). A trial whose local fit did not
+    converge, has a parameter at a bound, or misfits by more than :data:`LOCAL_OUTLIER`
+    times its axis's median RMS normalised error (and more than
+    :data:`LOCAL_NOISE_TOL`) gets the global search of :func:`fit_response` too, and
+    keeps the better fit; so does a trial without a start.
+    """
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
     groups = trial_groups(spectra, method=method, source=source)
-    tasks = [(key, rows, {"cost": cost, "band": bands[key[0]], "effects": tuple(effects),
-                          "max_nfev": max_nfev}) for key, rows in groups]
-    out: list[TrialFit] = []
+    if starts is None:
+        starts = _grip_starts(spectra, cost, bands, effects, method, source)
+    base = {"cost": cost, "effects": tuple(effects), "max_nfev": max_nfev}
+    tasks = [(key, rows, {**base, "band": bands[key[0]],
+                          "x0": starts.get((key[0], float(key[2])))})
+             for key, rows in groups]
+    pool = None
     if jobs > 1 and len(tasks) > 1:
-        from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            for tf in pool.map(_fit_trial_task, tasks, chunksize=1):
-                out.append(tf)
-                if on_fit is not None:
-                    on_fit(tf)
-    else:
-        for task in tasks:
-            tf = _fit_trial_task(task)
-            out.append(tf)
-            if on_fit is not None:
-                on_fit(tf)
+        from armfit.workers import process_pool
+        pool = process_pool(jobs, preload=("armfit.fitting",))
+    try:
+        run = (lambda fn, items: pool.map(fn, items, chunksize=4)) if pool else map
+        out = list(run(_fit_trial_task, tasks))
+        medians = {}
+        for axis in {t.axis for t in out}:
+            errs = [t.fit.rms_norm if np.isfinite(t.fit.rms_norm) else t.fit.rms_db
+                    for t in out if t.axis == axis and t.fit is not None]
+            medians[axis] = float(np.median(errs)) if errs else np.inf
+        again = [i for i, t in enumerate(out)
+                 if tasks[i][2]["x0"] is not None and _needs_global(t, medians[t.axis])]
+        glob = list(run(_fit_trial_task, [(tasks[i][0], tasks[i][1],
+                                           {**tasks[i][2], "x0": None}) for i in again]))
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    for i, tf in zip(again, glob, strict=True):
+        if _rank(tf) > _rank(out[i]):
+            out[i] = tf
+    for tf in out:
+        if on_fit is not None:
+            on_fit(tf)
     return out
+
+
+def _rank(tf: TrialFit) -> tuple[int, float]:
+    """Order of trial fits, best highest: a converged fit (then the lower objective), a
+    failure with its reason, a fit that did not converge."""
+    if tf.fit is None:
+        return (1, 0.0)
+    return (2, -tf.fit.objective) if tf.fit.converged else (0, 0.0)
+
+
+def _grip_starts(spectra, cost, bands, effects, method, source
+                 ) -> dict[tuple[str, float], dict[str, float]]:
+    """{(axis, grip_N): parameters} of the grip fits of ``spectra`` (none where they
+    cannot be made: every trial then gets the global search)."""
+    try:
+        study = fit_study(spectra, which="grip", cost=cost, bands=bands, effects=effects,
+                          method=method, source=source)
+    except (ConvergenceError, UsageError, BadInputError):
+        return {}
+    return {(axis, float(grip)): dict(fit.params)
+            for (axis, grip), fit in zip(study.keys, study.fits, strict=True)
+            if fit.converged and grip is not None}
 
 
 def trial_fits_table(fits: Sequence[TrialFit], effects: Sequence = ()):

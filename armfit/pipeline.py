@@ -9,6 +9,11 @@ subcommand, run in the order data flows (files written into OUTDIR in brackets):
   (grip_params.csv/.tex, nominal_params.csv/.tex);
 - fit-uncertainty: :func:`armfit.fit_uncertainty` (wu.csv, wu_summary.csv, wu_wmax.csv,
   wu.tex), with the same convergence policy as ``armfit fit-uncertainty``;
+- fit-trials: :func:`armfit.fitting.fit_trials`, one fit per trial, each started from
+  its grip's fit (trial_params.csv);
+- stability: :func:`armfit.stability.stability_table` of the per-trial fits at the
+  defaults (stability.csv), the certificate of the nominal models against Wu, and
+  :func:`armfit.figures.stability_figure` (figures/stability.png);
 - figures: Figs. 5–7 of :mod:`armfit.figures` (figures/bode.png, uncertainty.png,
   literature.png);
 - diagnose: :func:`armfit.diagnose` started from the grip fits (diagnosis.json);
@@ -16,12 +21,14 @@ subcommand, run in the order data flows (files written into OUTDIR in brackets):
   (nominal_params_<effect>.csv);
 - compare: :func:`armfit.compare` of each nominal model with the medians (compare.csv);
 - residuals: :func:`armfit.figures.residual_figure` per axis (figures/residual_<axis>.png);
-- fit-trials: :func:`armfit.fitting.fit_trials`, one fit per trial (trial_params.csv);
-- stability: :func:`armfit.stability.stability_table` of the per-trial fits at the
-  defaults (stability.csv), the certificate of the nominal models against Wu, and
-  :func:`armfit.figures.stability_figure` (figures/stability.png);
 - report: :func:`report_markdown` (report.md), from the stages' typed results and the
   configuration they used.
+
+With ``jobs`` > 1 one pool of worker processes serves every stage
+(:func:`armfit.workers.shared_pool`): the estimate runs in it while this process
+ingests, the diagnosis and the per-trial fits start in it as soon as the grip fits
+exist, and the figures are drawn and written in it while the later stages go on (the
+report stage waits for them). The results do not depend on ``jobs``.
 
 Every later stage reads the files the earlier ones wrote (as the subcommands do), so
 ``armfit run`` gives the same numbers as the subcommands run one after the other with
@@ -43,7 +50,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
 
 from armfit import api
@@ -63,6 +69,7 @@ from armfit.paramsets import read_param_rows
 from armfit.spectra import EstimateConfig, Spectra
 from armfit.stability import WallSettings, axis_summary, stability_table
 from armfit.tables import param_names, sig4, unit_of
+from armfit.workers import shared_pool
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
@@ -201,34 +208,33 @@ class _Clock:
         return time.perf_counter() - self.start
 
 
-class _Diagnosis:
-    """:func:`armfit.diagnose.diagnose` of every axis, started now (in a background thread
-    that drives ``jobs`` worker processes, one task per axis and candidate effect) and
-    collected by :meth:`results`, so the stages that do not need the diagnosis run
-    meanwhile in this process; with ``jobs`` 1 the diagnosis runs when collected. The
-    results are those of one ``diagnose(spectra, params)`` call, in x, y, z order."""
+class _Background:
+    """``fn(*args, **kwargs)``, started now in a background thread when ``jobs`` > 1
+    (the thread mostly waits for the shared worker pool, so the stages that do not need
+    the result run meanwhile in this process) and collected by :meth:`result`; with
+    ``jobs`` 1 it runs when collected. ``started`` is when it began (s, perf_counter)."""
 
-    def __init__(self, spectra, params, jobs: int):
-        self.spectra, self.params = spectra, params
-        self.axes = [a for a in AXES if (params["axis"] == a).any()]
+    def __init__(self, jobs: int, fn: Callable, /, *args, **kwargs):
+        self.call = (fn, args, kwargs)
         self.thread = None
         self.started = time.perf_counter()
         if jobs > 1:
             self.thread = ThreadPoolExecutor(max_workers=1)
-            self.task = self.thread.submit(diagnose, spectra, params, axes=self.axes,
-                                           jobs=jobs)
+            self.task = self.thread.submit(fn, *args, **kwargs)
 
-    def results(self) -> list:
+    def result(self):
         if self.thread is None:
             self.started = time.perf_counter()
-            return diagnose(self.spectra, self.params, axes=self.axes)
+            fn, args, kwargs = self.call
+            return fn(*args, **kwargs)
         try:
             return self.task.result()
         finally:
             self.close()
 
     def close(self) -> None:
-        """Wait for the diagnosis thread (its worker processes end with it)."""
+        """Wait for the thread (after a failure elsewhere, its pending work in the pool
+        has been cancelled, so it ends soon)."""
         if self.thread is not None:
             self.thread.shutdown(wait=True, cancel_futures=True)
             self.thread = None
@@ -236,16 +242,22 @@ class _Diagnosis:
 
 def _run_in(inputs: list, folder: Path, options: RunOptions, *,
             on_stage: OnStage | None, warn: Warn | None) -> RunResult:
-    with contextlib.ExitStack() as stack:
+    # one pool of worker processes for every stage, forked before any thread starts
+    with shared_pool(options.jobs) as pool, contextlib.ExitStack() as stack:
         ctx = _Context(inputs, folder, options, warn=warn, stack=stack,
                        config=EstimateConfig(method=options.method),
-                       bands=dict(PAPER_BANDS))
+                       bands=dict(PAPER_BANDS), drawings=_Drawings(pool))
         clock = _Clock(on_stage)
-        for stage in PIPELINE:
-            if stage.when(ctx):
-                summary, since = stage.run(ctx), ctx.since
-                ctx.since = None
-                clock.done(stage.name, summary, since=since)
+        try:
+            for stage in PIPELINE:
+                if stage.when(ctx):
+                    summary, since = stage.run(ctx), ctx.since
+                    ctx.since = None
+                    clock.done(stage.name, summary, since=since)
+        except BaseException:
+            if pool is not None:   # the background stages stop at their next task
+                pool.shutdown(wait=True, cancel_futures=True)
+            raise
         return RunResult(outdir=str(folder), files=tuple(sorted(ctx.files)),
                          trials=len(ctx.estimated.trials), skipped=ctx.skipped,
                          verdicts={d.axis: d.verdict for d in ctx.diagnosis.axes},
@@ -276,9 +288,12 @@ class _Context:
     spectra: Spectra | None = None      # as read back from spectra.parquet
     grip: api.ModelFit | None = None
     nominal: api.ModelFit | None = None
-    background: _Diagnosis | None = None
+    estimating: _Background | None = None
+    background: _Background | None = None       # the diagnosis
+    trial_fits: _Background | None = None
     uncertainty: api.Uncertainty | None = None
     drawn: list[str] = field(default_factory=list)
+    drawings: _Drawings | None = None
     diagnosis: api.Diagnosis | None = None
     refitted: dict[str, tuple[str, ...]] = field(default_factory=dict)
     extended: dict[str, api.ModelFit] = field(default_factory=dict)
@@ -305,8 +320,12 @@ class PipelineStage:
 
 
 def _ingest(ctx: _Context) -> str:
-    """Validate the raw trials once, into the canonical dataset (trials.parquet)."""
+    """Validate the raw trials once, into the canonical dataset (trials.parquet); the
+    estimate, which reads the same inputs, runs meanwhile in the worker processes."""
     o = ctx.options
+    ctx.estimating = _Background(o.jobs, api.estimate_study_result, ctx.inputs, ctx.config,
+                                 manifest=o.manifest, skip_bad=o.skip_bad, jobs=o.jobs)
+    ctx.stack.callback(ctx.estimating.close)
     ing = ingest(ctx.inputs, ctx.path("trials.parquet"), manifest=o.manifest,
                  skip_bad=o.skip_bad, warn=ctx.warn)
     ctx.skipped = tuple((s.file, s.reason) for s in ing.skipped)
@@ -318,9 +337,9 @@ def _ingest(ctx: _Context) -> str:
 def _estimate(ctx: _Context) -> str:
     """Estimate from the same inputs (so that a message names the user's files) into
     spectra.parquet; later stages read that file back, as the subcommands do."""
-    o, config = ctx.options, ctx.config
-    est = api.estimate_study_result(ctx.inputs, config, manifest=o.manifest,
-                                    skip_bad=o.skip_bad, jobs=o.jobs)
+    config = ctx.config
+    est = ctx.estimating.result()
+    ctx.since = ctx.estimating.started
     seen = {f for f, _ in ctx.skipped}
     ctx.skipped += tuple((f, r) for f, r in est.skipped if f not in seen)
     est.spectra.write(ctx.path("spectra.parquet"))
@@ -342,8 +361,20 @@ def _fit(which: str) -> Callable[[_Context], str]:
                        fits=model.fits, spectra=ctx.spectra)
         setattr(ctx, which, back)
         if which == "grip":
-            ctx.background = _Diagnosis(ctx.spectra, back.table, ctx.options.jobs)
+            o = ctx.options
+            axes = [a for a in AXES if (back.table["axis"] == a).any()]
+            ctx.background = _Background(o.jobs, diagnose, ctx.spectra, back.table,
+                                         axes=axes, jobs=o.jobs)
             ctx.stack.callback(ctx.background.close)
+            # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
+            # (the fits themselves, not the rounded CSV: the same start, the same bits)
+            starts = {(r["axis"], float(r["grip_N"])): dict(f.params)
+                      for (_, r), f in zip(model.table.iterrows(), model.fits, strict=True)
+                      if f.converged}
+            ctx.trial_fits = _Background(o.jobs, fit_trials, ctx.spectra, cost=o.cost,
+                                         jobs=o.jobs, source="spectra.parquet",
+                                         starts=starts)
+            ctx.stack.callback(ctx.trial_fits.close)
         return (f"{len(back.table)} fit(s), cost {ctx.options.cost}, median rms "
                 f"{_median(back.table['rms_db']):.2f} dB")
     return stage
@@ -353,7 +384,8 @@ def _fit_uncertainty(ctx: _Context) -> str:
     """W_max and Wu (Table III): wu.csv, wu_summary.csv, wu_wmax.csv, wu.tex."""
     wu_path = ctx.path("wu.csv")
     ctx.files += [p.name for p in wu_sidecar_paths(wu_path)]
-    unc = api.fit_uncertainty(ctx.spectra, ctx.nominal, cost=ctx.options.wu_cost)
+    unc = api.fit_uncertainty(ctx.spectra, ctx.nominal, cost=ctx.options.wu_cost,
+                              jobs=ctx.options.jobs)
     unc.write(wu_path, latex=ctx.path("wu.tex"))
     ctx.uncertainty = unc
     return ", ".join(f"{r.axis}: {r.result.order} pair(s)" for r in unc.axes) + \
@@ -363,14 +395,14 @@ def _fit_uncertainty(ctx: _Context) -> str:
 def _figures(ctx: _Context) -> str:
     """The paper's Figs. 5-7 (they need no diagnosis)."""
     (ctx.folder / "figures").mkdir()
-    ctx.drawn += _paper_figures(ctx.folder, ctx.spectra, ctx.grip.table, ctx.nominal.table,
-                                ctx.uncertainty.weights)
-    return f"{len(ctx.drawn)} figure(s): Figs. 5, 6, 7"
+    paper = _paper_figures(ctx)
+    ctx.drawn += paper
+    return f"{len(paper)} figure(s): Figs. 5, 6, 7"
 
 
 def _diagnose(ctx: _Context) -> str:
     """Per-trial fits started from the grip fits (diagnosis.json)."""
-    results = ctx.background.results()
+    results = ctx.background.result()
     ctx.diagnosis = api.Diagnosis(tuple(results), ctx.spectra, ctx.grip)
     write_text_atomic(ctx.path("diagnosis.json"),
                       json.dumps(ctx.diagnosis.to_dict(), indent=2) + "\n")
@@ -413,15 +445,16 @@ def _compare(ctx: _Context) -> str:
 
 def _residuals(ctx: _Context) -> str:
     """Residual figures: they need the diagnosis (failing bands) and the refits."""
-    res = _residual_figures(ctx.folder, ctx.spectra, ctx.nominal.table,
-                            {e: m.table for e, m in ctx.extended.items()}, ctx.refitted,
-                            ctx.diagnosis)
+    res = _residual_figures(ctx)
     ctx.drawn += res
     return f"{len(res)} figure(s)"
 
 
 def _report(ctx: _Context) -> str:
     """report.md, from the results above and the configuration they used."""
+    ctx.drawings.wait()
+    if ctx.wall and ctx.wall["figure"]:
+        ctx.drawn.append(ctx.wall["figure"])
     ctx.files += ctx.drawn
     ctx.files.append("report.md")
     write_text_atomic(ctx.folder / "report.md", report_markdown(ctx))
@@ -430,8 +463,8 @@ def _report(ctx: _Context) -> str:
 
 def _fit_trials(ctx: _Context) -> str:
     """One fit per trial (trial_params.csv): the population the stability stage uses."""
-    fits = fit_trials(ctx.spectra, cost=ctx.options.cost, jobs=ctx.options.jobs,
-                      source="spectra.parquet")
+    fits = ctx.trial_fits.result()
+    ctx.since = ctx.trial_fits.started
     write_params(trial_fits_table(fits), ctx.path("trial_params.csv"))
     ctx.trial_failed = [(f"{t.axis} {t.subject} {t.grip_N:g} N", t.reason) for t in fits
                         if t.fit is None]
@@ -462,8 +495,9 @@ def _stability(ctx: _Context) -> str:
                                weights_band_hz=bands)
     figure = None
     if ctx.options.figures:
-        figure = _save(ctx.folder, F.stability_figure(rows.table, settings), STABILITY_FIGURE)
-        ctx.drawn.append(figure)
+        figure = ctx.drawings.draw(ctx.folder, STABILITY_FIGURE, "stability_figure",
+                                   rows.table, settings)
+        # listed after the paper's and the residual figures (see _report)
     ctx.wall = {"settings": settings, "summary": summary, "failed": ctx.trial_failed,
                 "certificate": cert, "warnings": [str(w.message) for w in caught],
                 "figure": figure, "n_models": len(table)}
@@ -478,13 +512,13 @@ PIPELINE: tuple[PipelineStage, ...] = (
     PipelineStage("fit-grip", _fit("grip")),
     PipelineStage("fit-nominal", _fit("nominal")),
     PipelineStage("fit-uncertainty", _fit_uncertainty),
+    PipelineStage("fit-trials", _fit_trials),
+    PipelineStage("stability", _stability),
     PipelineStage("figures", _figures, lambda ctx: ctx.options.figures),
     PipelineStage("diagnose", _diagnose),
     PipelineStage("refit", _refit, lambda ctx: bool(ctx.refitted)),
     PipelineStage("compare", _compare),
     PipelineStage("residuals", _residuals, lambda ctx: ctx.options.figures),
-    PipelineStage("fit-trials", _fit_trials),
-    PipelineStage("stability", _stability),
     PipelineStage("report", _report),
 )
 
@@ -500,35 +534,61 @@ def _median(values) -> float:
     return float(np.median(v)) if v.size else float("nan")
 
 
-def _save(folder: Path, fig, name: str) -> str:
-    F.save_figure(fig, folder / name)
-    plt.close(fig)
-    return name
+def _draw_task(args) -> None:
+    """Worker: draw the figure ``figures.<fn>(*args, **kwargs)`` and write it to ``path``."""
+    fn, fargs, kwargs, path = args
+    F.save_figure(getattr(F, fn)(*fargs, **kwargs), path)
 
 
-def _paper_figures(folder: Path, spectra, grip, nominal, weights) -> list[str]:
+class _Drawings:
+    """Figures drawn and written by the worker pool while the stages go on (with no pool,
+    at once); :meth:`wait` returns when all are written and raises the first failure."""
+
+    def __init__(self, pool):
+        self.pool = pool
+        self.pending: list = []
+
+    def draw(self, folder: Path, name: str, fn: str, *args, **kwargs) -> str:
+        """Draw ``figures.<fn>(*args, **kwargs)`` into ``folder / name``; returns ``name``."""
+        task = (fn, args, kwargs, folder / name)
+        if self.pool is None:
+            _draw_task(task)
+        else:
+            self.pending.append(self.pool.submit(_draw_task, task))
+        return name
+
+    def wait(self) -> None:
+        pending, self.pending = self.pending, []
+        for fut in pending:
+            fut.result()
+
+
+def _paper_figures(ctx: _Context) -> list[str]:
     """Fig. 5 (bode: measured dynamics with the grip fits, all axes), Fig. 6 (derived
     dynamics, nominal H_ARM, W_max and |Wu|) and Fig. 7 (the X axis 1 N H_ARM, else the
-    first grip fit, against Table IV). Returns the paths written, relative to ``folder``."""
+    first grip fit, against Table IV). Returns the paths written, relative to OUTDIR."""
+    grip, draw = ctx.grip.table, ctx.drawings.draw
     rows = grip[(grip["axis"] == "x") & np.isclose(grip["grip_N"].to_numpy(float), 1.0)]
-    return [_save(folder, F.bode_figure(spectra, grip), FIGURES[0]),
-            _save(folder, F.uncertainty_figure(spectra, nominal, weights), FIGURES[1]),
-            _save(folder, F.literature_figure((rows if len(rows) else grip).iloc[0]),
-                  FIGURES[2])]
+    return [draw(ctx.folder, FIGURES[0], "bode_figure", ctx.spectra, grip),
+            draw(ctx.folder, FIGURES[1], "uncertainty_figure", ctx.spectra,
+                 ctx.nominal.table, ctx.uncertainty.weights),
+            draw(ctx.folder, FIGURES[2], "literature_figure",
+                 (rows if len(rows) else grip).iloc[0])]
 
 
-def _residual_figures(folder: Path, spectra, nominal, extended, refitted,
-                      diagnosis: api.Diagnosis) -> list[str]:
+def _residual_figures(ctx: _Context) -> list[str]:
     """One residual figure per diagnosed axis: the nominal model solid, the nominal model
     with the axis's named effect dashed, the diagnosis's failing bands shaded."""
-    by_axis = {a: eff for eff, axes in refitted.items() for a in axes}
+    by_axis = {a: eff for eff, axes in ctx.refitted.items() for a in axes}
+    extended = {e: m.table for e, m in ctx.extended.items()}
     out = []
-    for d in sorted(diagnosis.axes, key=lambda d: d.axis):
+    for d in sorted(ctx.diagnosis.axes, key=lambda d: d.axis):
         eff = by_axis.get(d.axis)
         bands = {d.axis: [(fb.lo_hz, fb.hi_hz) for fb in d.failing]}
-        fig = F.residual_figure(spectra, nominal, None if eff is None else extended[eff],
-                                axis=d.axis, bands=bands)
-        out.append(_save(folder, fig, f"figures/residual_{d.axis}.png"))
+        out.append(ctx.drawings.draw(ctx.folder, f"figures/residual_{d.axis}.png",
+                                     "residual_figure", ctx.spectra, ctx.nominal.table,
+                                     None if eff is None else extended[eff], axis=d.axis,
+                                     bands=bands))
     return out
 
 

@@ -44,6 +44,7 @@ from armfit.io.artifacts import read_wu_rows
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
+from armfit.workers import process_pool
 
 #: The paper's band for Wu: 0.01–30 Hz (Sec. II-F).
 PAPER_BAND_HZ: tuple[float, float] = (0.01, 30.0)
@@ -765,11 +766,16 @@ class AxisUncertainty:
     checks: Mapping[tuple[str, str], EnvelopeCheck]
 
 
+def _fit_wu_task(args) -> WuResult:
+    f, target, kw = args
+    return fit_wu(f, target, **kw)
+
+
 def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | None = None,
                     band: tuple[float, float] | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
                     given: Mapping[str, Mapping[str, WuWeight]] | None = None,
-                    ) -> list[AxisUncertainty]:
+                    jobs: int = 1) -> list[AxisUncertainty]:
     """W_max (eq. 6) and Wu (eq. 7) for each axis with derived trial spectra and a
     nominal row.
 
@@ -777,8 +783,9 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
     ``params``: DataFrame in the parameters-CSV layout, one row per axis (a fit-nominal
     file); ``band``: Hz, default 0.01–30 Hz, limited to the frequencies the spectra hold;
     ``smooth_oct``: smoothing width in octaves (None: raw W_max); ``given``:
-    {label: {axis: WuWeight}} weights to evaluate on the same data. Returns one
-    :class:`AxisUncertainty` per axis, in x, y, z order.
+    {label: {axis: WuWeight}} weights to evaluate on the same data; ``jobs`` > 1: the
+    axes' Wu fits in that many worker processes (the results do not depend on it).
+    Returns one :class:`AxisUncertainty` per axis, in x, y, z order.
     """
     if "grip_N" in params.columns:
         raise BadInputError("has a grip_N column (grip-dependent fits); give the "
@@ -792,7 +799,7 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
                             f"{', '.join(sorted(have_spec)) or 'none'}) and a nominal "
                             f"row (axes: {', '.join(sorted(have_par)) or 'none'})",
                             column="axis")
-    out = []
+    prepared = []
     for axis in wanted:
         rows = params[params["axis"].astype(str) == axis]
         if len(rows) > 1:
@@ -811,7 +818,16 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
                              f"(they cover {finite[0]:g}-{finite[-1]:g} Hz)")
         raw = w_max(H, Hn)
         target = raw if smooth_oct is None else w_max(H, Hn, f_hz=f, smooth_oct=smooth_oct)
-        res = fit_wu(f, target, n_pairs=n_pairs, cost=cost, band=b)
+        prepared.append((axis, f, H.shape[0], raw, target, b))
+    tasks = [(f, target, {"n_pairs": n_pairs, "cost": cost, "band": b})
+             for _, f, _, _, target, b in prepared]
+    if jobs > 1 and len(tasks) > 1:
+        with process_pool(min(jobs, len(tasks)), preload=("armfit.uncertainty",)) as pool:
+            fits = list(pool.map(_fit_wu_task, tasks))
+    else:
+        fits = [_fit_wu_task(t) for t in tasks]
+    out = []
+    for (axis, f, n_trials, raw, target, b), res in zip(prepared, fits, strict=True):
         targets = {"wmax": raw} if smooth_oct is None else {"wmax": raw, "wmax_smoothed": target}
         weights = {"fitted": res.weight}
         for label, by_axis in (given or {}).items():
@@ -819,7 +835,7 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
                 weights[label] = by_axis[axis]
         checks = {(label, tname): check_envelope(f, tw, w, band=b)
                   for label, w in weights.items() for tname, tw in targets.items()}
-        out.append(AxisUncertainty(axis, f, raw, target, b, H.shape[0], res, checks))
+        out.append(AxisUncertainty(axis, f, raw, target, b, n_trials, res, checks))
     return out
 
 

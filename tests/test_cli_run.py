@@ -90,8 +90,9 @@ def test_run_writes_every_expected_file(first):
 
 def test_stage_lines_and_json_timings(first):
     res, _, _ = first
-    stages = ["ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty", "figures",
-              "diagnose", "refit", "compare", "residuals", "fit-trials", "stability", "report"]
+    stages = ["ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty",
+              "fit-trials", "stability", "figures", "diagnose", "refit", "compare",
+              "residuals", "report"]
     lines = [ln for ln in res.stderr.splitlines()
              if re.match(r"^[a-z-]+: \d+\.\d s — ", ln)]
     assert [ln.split(":")[0] for ln in lines] == stages

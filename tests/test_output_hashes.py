@@ -78,9 +78,9 @@ EXPECTED: dict[str, str] = {
     "run/spectra.parquet":
         "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
     "run/stability.csv":
-        "315e1a914a3f7862106cf015e1d0b451983653c08618f2b9d343ab34361c6e29",
+        "bbb8c4cc0704eb71b2f4b2d0d28584925059f6a526b393d29c2ef2a8bce5131c",
     "run/trial_params.csv":
-        "d0d4910b1ca4615e3a1634db0f826c942cf5980fe2919c365ee45c4d53885605",
+        "0b35792769298af40edc39d399f475fee1e3a63436de71a8364896fe248c0667",
     "run/trials.parquet":
         "f11d71fa08bdbf7aaa708763a1b50612aec51f96af640c7cc23806c513ff7855",
     "run/wu.csv":
