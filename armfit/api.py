@@ -346,11 +346,11 @@ class ModelFit:
 
 
 def _fit(which: str, spectra, *, cost: str, bands, effects, bootstrap: int, seed,
-         method, max_nfev, on_fit) -> ModelFit:
+         method, max_nfev, on_fit, jobs: int) -> ModelFit:
     sp = _spectra(spectra)
     study = _fitting.fit_study(sp, which=which, cost=cost, bands=bands,
                                effects=_effects(effects), bootstrap=bootstrap, seed=seed,
-                               method=method, max_nfev=max_nfev, on_fit=on_fit)
+                               method=method, max_nfev=max_nfev, on_fit=on_fit, jobs=jobs)
     return ModelFit(study.table(), which, study.fits, sp)
 
 
@@ -358,7 +358,7 @@ def fit_grip(spectra, *, cost: str = "complex",
              bands: Mapping[str, tuple[float, float]] | None = None,
              effects: Iterable[Effect | str] = (), bootstrap: int = 0, seed: int | None = 0,
              method: str | None = None, max_nfev: int | None = None,
-             on_fit: Callable | None = None) -> ModelFit:
+             on_fit: Callable | None = None, jobs: int = 1) -> ModelFit:
     """Fit the closed loop H_CL (eq. 4) to each axis × grip mean (Table I, ``armfit
     fit-grip``).
 
@@ -383,6 +383,8 @@ def fit_grip(spectra, *, cost: str = "complex",
         Evaluation budget of each final local fit (default 200 per parameter).
     on_fit : callable, optional
         ``on_fit(axis, grip, FitResult)`` after each fit.
+    jobs : int
+        Worker processes (one aggregate each); the result does not depend on it.
 
     Returns
     -------
@@ -395,14 +397,15 @@ def fit_grip(spectra, *, cost: str = "complex",
     """
     return _fit("grip", spectra, cost=cost, bands=bands, effects=effects,
                 bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
-                on_fit=on_fit)
+                on_fit=on_fit, jobs=jobs)
 
 
 def fit_nominal(spectra, *, cost: str = "complex",
                 bands: Mapping[str, tuple[float, float]] | None = None,
                 effects: Iterable[Effect | str] = (), bootstrap: int = 0,
                 seed: int | None = 0, method: str | None = None,
-                max_nfev: int | None = None, on_fit: Callable | None = None) -> ModelFit:
+                max_nfev: int | None = None, on_fit: Callable | None = None,
+                jobs: int = 1) -> ModelFit:
     """Fit H_CL (eq. 4) to each axis median over all trials (Table II, ``armfit
     fit-nominal``). Parameters as :func:`fit_grip`.
 
@@ -414,7 +417,7 @@ def fit_nominal(spectra, *, cost: str = "complex",
     """
     return _fit("nominal", spectra, cost=cost, bands=bands, effects=effects,
                 bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
-                on_fit=on_fit)
+                on_fit=on_fit, jobs=jobs)
 
 
 def read_model(path: PathLike) -> ModelFit:

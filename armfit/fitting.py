@@ -670,8 +670,8 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
               effects: Sequence = (), bootstrap: int = 0, seed: int | None = 0,
               method: str | None = None, max_nfev: int | None = None,
               source: str | None = None,
-              on_fit: Callable[[str, float | None, FitResult], None] | None = None
-              ) -> StudyFit:
+              on_fit: Callable[[str, float | None, FitResult], None] | None = None,
+              jobs: int = 1) -> StudyFit:
     """Fit H_CL (eq. 4, plus ``effects``) to every aggregate of a study's spectra.
 
     Parameters
@@ -700,6 +700,8 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         File name for messages (default: the file the spectra were read from).
     on_fit : callable, optional
         ``on_fit(axis, grip, fit)`` after each fit.
+    jobs : int
+        Worker processes (one aggregate each); the result does not depend on it.
 
     Returns
     -------
@@ -737,35 +739,55 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         key = tuple(agg.key(c)[i] for c in group_cols)
         groups.setdefault(key, []).append(i)
     keys: list[tuple[str, float | None]] = []
-    fits: list[FitResult] = []
+    tasks = []
     for key, rows in groups.items():
         axis = str(key[0])
         grip = float(key[1]) if which == "grip" else None
-        model = ClosedLoopModel.for_axis(axis, effects)
         if len(rows) > 1:
             raise BadInputError(f"repeated frequencies in the {how} of axis {axis}"
                                 + (f", grip {grip:g} N" if grip is not None else ""),
                                 file=source, column="freq_hz")
         f, h, se_db, se_deg = agg.row(rows[0])
         where = f"axis {axis}" + (f", grip {grip:g} N" if grip is not None else "")
-        try:
-            fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, cost=cost,
-                               band=bands[axis], max_nfev=max_nfev)
-            if bootstrap:
-                trials = measured.select(level="trial", axis=axis, grip=grip)
-                hs, subjects = _trial_matrix(trials, f, source, where, how)
-                fit = bootstrap_fit(fit, f, hs, subjects,
-                                    aggregate=_aggregator(how), n_boot=bootstrap,
-                                    seed=seed, se_db=se_db, se_deg=se_deg)
-        except ConvergenceError as exc:
-            raise ConvergenceError(f"{where}: {exc}") from None
-        except UsageError as exc:
-            raise UsageError(f"{where}: {exc}") from None
+        boot = None
+        if bootstrap:
+            trials = measured.select(level="trial", axis=axis, grip=grip)
+            boot = (*_trial_matrix(trials, f, source, where, how), how, bootstrap, seed)
         keys.append((axis, grip))
-        fits.append(fit)
-        if on_fit is not None:
-            on_fit(axis, grip, fit)
+        tasks.append((where, ClosedLoopModel.for_axis(axis, effects), (f, h, se_db, se_deg),
+                      {"cost": cost, "band": bands[axis], "max_nfev": max_nfev}, boot))
+    pool = None
+    if jobs > 1 and len(tasks) > 1:
+        from armfit.workers import process_pool
+        pool = process_pool(min(jobs, len(tasks)), preload=("armfit.fitting",))
+    try:
+        results = pool.map(_fit_group, tasks) if pool is not None else map(_fit_group,
+                                                                            tasks)
+        fits: list[FitResult] = []
+        for (axis, grip), fit in zip(keys, results, strict=True):
+            fits.append(fit)
+            if on_fit is not None:
+                on_fit(axis, grip, fit)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     return StudyFit(which, tuple(keys), tuple(fits))
+
+
+def _fit_group(task) -> FitResult:
+    """One aggregate's fit (a task of :func:`fit_study`); errors name the group."""
+    where, model, (f, h, se_db, se_deg), kw, boot = task
+    try:
+        fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, **kw)
+        if boot is not None:
+            hs, subjects, how, n_boot, seed = boot
+            fit = bootstrap_fit(fit, f, hs, subjects, aggregate=_aggregator(how),
+                                n_boot=n_boot, seed=seed, se_db=se_db, se_deg=se_deg)
+    except ConvergenceError as exc:
+        raise ConvergenceError(f"{where}: {exc}") from None
+    except UsageError as exc:
+        raise UsageError(f"{where}: {exc}") from None
+    return fit
 
 
 def _aggregator(how: str) -> Aggregator:

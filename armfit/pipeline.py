@@ -40,6 +40,7 @@ OUTDIR, and an existing OUTDIR is replaced only with ``overwrite``.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import json
 import math
 import os
@@ -53,7 +54,6 @@ from pathlib import Path
 import numpy as np
 
 from armfit import api
-from armfit import figures as F
 from armfit._version import __version__
 from armfit.api import compare_frame
 from armfit.constants import AXES, PAPER_BANDS
@@ -354,7 +354,8 @@ def _fit(which: str) -> Callable[[_Context], str]:
         """Tables I and II (params CSV and LaTeX); the diagnosis starts from the grip
         fits as soon as they exist."""
         fit = api.fit_grip if which == "grip" else api.fit_nominal
-        model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands)
+        model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands,
+                    jobs=ctx.options.jobs)
         _warn_at_bound(which, model, ctx.warn)
         model.write(ctx.path(f"{which}_params.csv"), latex=ctx.path(f"{which}_params.tex"))
         back = replace(api.ModelFit.read(ctx.folder / f"{which}_params.csv"),
@@ -535,9 +536,12 @@ def _median(values) -> float:
 
 
 def _draw_task(args) -> None:
-    """Worker: draw the figure ``figures.<fn>(*args, **kwargs)`` and write it to ``path``."""
+    """Worker: draw the figure ``figures.<fn>(*args, **kwargs)`` and write it to ``path``.
+    :mod:`armfit.figures` (and matplotlib) is imported here, on first use: with worker
+    processes only they load it, off the run's critical path."""
     fn, fargs, kwargs, path = args
-    F.save_figure(getattr(F, fn)(*fargs, **kwargs), path)
+    figures = importlib.import_module("armfit.figures")
+    figures.save_figure(getattr(figures, fn)(*fargs, **kwargs), path)
 
 
 class _Drawings:

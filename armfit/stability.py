@@ -345,34 +345,69 @@ def crossing_gains(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *, tol: float =
     at once, so no crossing can be stepped over. Those within ``tol`` of the circle, and
     z = ±1 always, give K = 1/Re g(e^(jθ)). Returns (K, θ in rad per sample), K > 0.
     """
-    N = M0.shape[0]
-    Z = np.zeros((N, N))
-    zc = np.zeros((N, 1))
-    Abar = np.block([[M0, Z, b[:, None]], [Z, -np.eye(N), zc], [-c[None, :], c[None, :],
-                                                               np.zeros((1, 1))]])
-    Ebar = np.block([[np.eye(N), Z, zc], [Z, -M0, -b[:, None]], [np.zeros((1, 2 * N + 1))]])
-    with np.errstate(all="ignore"):
-        ev = linalg.eigvals(Abar, Ebar)
-    ev = ev[np.isfinite(ev)]
-    on = ev[np.abs(np.abs(ev) - 1.0) < tol]
-    theta = np.concatenate([np.abs(np.angle(on)), [0.0, np.pi]])
-    z = np.exp(1j * theta)
-    g = _g_of(M0, b, c, z)
+    (out,) = _crossing_gains_batch(M0[None], b[None], c[None], tol=tol)
+    return out
+
+
+def _pencils(M0: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pencils (Ā, Ē) of :func:`crossing_gains` for a stack of loops (R, N, N)."""
+    R, N, _ = M0.shape
+    n = 2 * N + 1
+    A = np.zeros((R, n, n))
+    E = np.zeros((R, n, n))
+    eye = np.eye(N)
+    A[:, :N, :N] = M0
+    A[:, :N, 2 * N] = b
+    A[:, N:2 * N, N:2 * N] = -eye
+    A[:, 2 * N, :N] = -c
+    A[:, 2 * N, N:2 * N] = c
+    E[:, :N, :N] = eye
+    E[:, N:2 * N, N:2 * N] = -M0
+    E[:, N:2 * N, 2 * N] = -b
+    return A, E
+
+
+def _crossing_gains_batch(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *,
+                          tol: float = 1e-6) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`crossing_gains` of each loop of a stack (M0 (R, N, N), b, c (R, N)): the
+    pencils are built at once and g(e^(jθ)) of every candidate is solved in one batch;
+    only the generalised eigenvalue problems (LAPACK ``ggev``) go one by one."""
+    R, N, _ = M0.shape
+    A, E = _pencils(M0, b, c)
+    ggev, = linalg.get_lapack_funcs(("ggev",), (A[0],))
+    rows, thetas = [], []
+    for r in range(R):
+        with np.errstate(all="ignore"):
+            ar, ai, beta, _, _, _, info = ggev(A[r], E[r], compute_vl=0, compute_vr=0,
+                                               overwrite_a=1, overwrite_b=1)
+            ev = (ar + 1j * ai) / beta if info == 0 else \
+                linalg.eigvals(*_pencils(M0[r:r + 1], b[r:r + 1], c[r:r + 1]))[0]
+        ev = ev[np.isfinite(ev)]
+        on = ev[np.abs(np.abs(ev) - 1.0) < tol]
+        th = np.concatenate([np.abs(np.angle(on)), [0.0, np.pi]])
+        rows.append(np.full(th.size, r))
+        thetas.append(th)
+    idx = np.concatenate(rows)
+    theta = np.concatenate(thetas)
+    g = _g_of(M0[idx], b[idx], c[idx], np.exp(1j * theta))
     with np.errstate(all="ignore"):
         K = 1.0 / g.real
     ok = np.isfinite(K) & (K > 0) & (np.abs(g.imag) <= 1e-6 * np.abs(g) + 1e-300)
-    return K[ok], theta[ok]
+    return [(K[ok & (idx == r)], theta[ok & (idx == r)]) for r in range(R)]
 
 
 def _g_of(M0, b, c, z):
-    N = M0.shape[0]
+    """g(z) = cᵀ (zI − M0)⁻¹ b for each row of the stacks M0 (P, N, N), b, c (P, N) at
+    z (P,)."""
+    N = M0.shape[-1]
     mats = z[:, None, None] * np.eye(N) - M0
     with np.errstate(all="ignore"):
         try:
-            sol = np.linalg.solve(mats, np.broadcast_to(b, (z.size, N))[..., None])[..., 0]
+            sol = np.linalg.solve(mats, b[..., None].astype(complex))[..., 0]
         except np.linalg.LinAlgError:
-            sol = np.stack([np.linalg.lstsq(m, b, rcond=None)[0] for m in mats])
-    return sol @ c
+            sol = np.stack([np.linalg.lstsq(m, v, rcond=None)[0]
+                            for m, v in zip(mats, b.astype(complex), strict=True)])
+    return np.einsum("pn,pn->p", sol, c)
 
 
 @dataclass(frozen=True)
@@ -399,8 +434,7 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
         R = g.M0.shape[0]
         cands = []
         thetas = []
-        for r in range(R):
-            K, th = crossing_gains(g.M0[r], g.b[r], g.c[r])
+        for K, th in _crossing_gains_batch(g.M0, g.b, g.c):
             order = np.argsort(K)
             K, th = K[order], th[order]
             keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
@@ -418,6 +452,7 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
             pos += list(range(mids.size))
         idx_a = np.array(idx)
         rho, top = _spectral_radius(g, idx_a, np.array(Ks))
+        pending = []
         for r in range(R):
             sel = np.flatnonzero(idx_a == r)
             unstable = rho[sel] >= 1.0
@@ -432,20 +467,27 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
                 out[g.rows[r]] = WallStability(0.0, abs(float(np.angle(z0))) / (2 * np.pi * T),
                                                True)
                 continue
-            k_lo, k_hi = float(Ks[sel[j - 1]]), float(Ks[sel[j]])
-            k_star, th = float(K[j - 1]), float(thetas[r][j - 1])
-            out[g.rows[r]] = _verify(g, r, k_star, th, k_lo, k_hi, T)
+            pending.append((r, float(K[j - 1]), float(thetas[r][j - 1]),
+                            float(Ks[sel[j - 1]]), float(Ks[sel[j]])))
+        # check stability just below and loss just above each K* (± K_REL_TOL/2), all
+        # loops at once; where the check fails, bisect between the stable and the
+        # unstable test gains
+        if pending:
+            rs = np.repeat([p[0] for p in pending], 2)
+            probe = np.array([[p[1] * (1 - K_REL_TOL / 2), p[1] * (1 + K_REL_TOL / 2)]
+                              for p in pending]).ravel()
+            rho, _ = _spectral_radius(g, rs, probe)
+            for i, (r, k_star, th, k_lo, k_hi) in enumerate(pending):
+                if rho[2 * i] < 1.0 <= rho[2 * i + 1]:
+                    out[g.rows[r]] = WallStability(k_star, th / (2 * np.pi * T), False)
+                else:
+                    out[g.rows[r]] = _bisect(g, r, k_lo, k_hi, T)
     return out  # type: ignore[return-value]
 
 
-def _verify(g: _Group, r: int, k_star: float, theta: float, k_lo: float, k_hi: float,
-            T: float) -> WallStability:
-    """Check stability just below and loss just above ``k_star`` (± K_REL_TOL/2); if the
-    check fails, bisect between the stable ``k_lo`` and the unstable ``k_hi``."""
-    probe = np.array([k_star * (1 - K_REL_TOL / 2), k_star * (1 + K_REL_TOL / 2)])
-    rho, top = _spectral_radius(g, np.array([r, r]), probe)
-    if rho[0] < 1.0 <= rho[1]:
-        return WallStability(k_star, theta / (2 * np.pi * T), False)
+def _bisect(g: _Group, r: int, k_lo: float, k_hi: float, T: float) -> WallStability:
+    """K_max of loop ``r`` by bisection between the stable ``k_lo`` and the unstable
+    ``k_hi`` (to K_REL_TOL)."""
     while k_hi - k_lo > K_REL_TOL * k_lo:
         mid = 0.5 * (k_lo + k_hi)
         rm, _ = _spectral_radius(g, np.array([r]), np.array([mid]))
