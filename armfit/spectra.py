@@ -1078,6 +1078,9 @@ def _aggregate_block(level: str, axis: str, grip: float, kind: str, out_axis: st
 # ---------------------------------------------------------------------------
 
 _EMPTY: dict[str, np.ndarray] = {}
+#: Responses per row group of the spectra file (:meth:`Spectra.write`): a paper-size study
+#: is written a group at a time (the sample studies are one group).
+WRITE_ROWS = 256
 
 
 @dataclass(frozen=True, eq=False)
@@ -1445,14 +1448,30 @@ class Spectra:
 
         import pyarrow as pa
         import pyarrow.parquet as pq
-        frame = self.to_frame()
-        frame.attrs = {}  # the metadata goes under its own key, below
-        table = pa.Table.from_pandas(frame, preserve_index=False)
-        kv = dict(table.schema.metadata or {})
-        kv[SPECTRA_META_KEY] = json.dumps(dict(self.meta), default=json_default).encode()
-        table = table.replace_schema_metadata(kv)
+        # written WRITE_ROWS responses at a time (one row group each), so that the long
+        # table and its Arrow copy never exist for the whole of a large study at once
+        n = len(self)
+        parts = [np.arange(i, min(i + WRITE_ROWS, n)) for i in range(0, max(n, 1),
+                                                                      WRITE_ROWS)]
         with atomic_path(path, overwrite=overwrite) as tmp:
-            pq.write_table(table, tmp, compression="zstd")
+            writer = None
+            try:
+                for rows in parts:
+                    frame = (self.take(rows) if n else self).to_frame()
+                    frame.attrs = {}  # the metadata goes under its own key, below
+                    if writer is None:
+                        schema = pa.Schema.from_pandas(frame, preserve_index=False)
+                        kv = dict(schema.metadata or {})
+                        kv[SPECTRA_META_KEY] = json.dumps(dict(self.meta),
+                                                          default=json_default).encode()
+                        schema = schema.with_metadata(kv)
+                        writer = pq.ParquetWriter(tmp, schema, compression="zstd")
+                    writer.write_table(pa.Table.from_pandas(frame, schema=schema,
+                                                            preserve_index=False))
+                    del frame
+            finally:
+                if writer is not None:
+                    writer.close()
         return path
 
     def write_csv(self, path, *, overwrite: bool = False):

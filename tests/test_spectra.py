@@ -484,3 +484,24 @@ def test_spectra_select_sort_and_grids():
     with pytest.raises(BadInputError, match="appears twice"):
         S.Spectra.from_frame(_long([("trial", "a", "x", 1.0, None, "measured",
                                      np.array([1.0, 1.0]), [1, 2])]))
+
+
+def test_spectra_file_written_in_row_groups_reads_back_the_same(tmp_path, monkeypatch):
+    # a large study is written a few responses at a time (one Parquet row group each):
+    # the file must hold the same table as one written in one piece
+    import pyarrow.parquet as pq
+
+    from armfit.simulate import StudyConfig, simulate_study
+    config = StudyConfig(subjects=2, axes=("x",), grips_N=(1.0,), duration_s=(30.0, 30.0),
+                         seed=4)
+    trials = [trial for _, trial in simulate_study(config)]
+    spectra = S.estimate_trials(trials, S.EstimateConfig()).spectra
+    spectra.write(tmp_path / "one.parquet")
+    monkeypatch.setattr(S, "WRITE_ROWS", 3)
+    spectra.write(tmp_path / "groups.parquet")
+    groups = pq.ParquetFile(tmp_path / "groups.parquet").metadata.num_row_groups
+    assert groups == -(-len(spectra) // 3) > 1
+    one = S.Spectra.read(tmp_path / "one.parquet").to_frame()
+    many = S.Spectra.read(tmp_path / "groups.parquet").to_frame()
+    assert one.equals(many)
+    assert S.Spectra.read(tmp_path / "groups.parquet").meta == spectra.meta
