@@ -1036,20 +1036,33 @@ def fit_extend(data: AxisData, band: tuple[float, float], current: JointFit,
     """``current``'s model plus ``effect``, all effects refitted jointly (shared across
     the trials), warm-started from ``current`` with the new effect at its null point and
     at the screening's values (:func:`screen`; or, without one, at the effect's starting
-    points); never worse than ``current``."""
+    points, also with each effect added before restarted at its own starting points);
+    never worse than ``current``."""
     start = _start_array(data)
     model = current.model.with_effect(effect)
     null = {**current.shared, **{f"{effect.name}.{k}": v
                                  for k, v in effect.null_values(model.mp).items()}}
+    def named(e: Effect, st: Mapping[str, float]) -> dict[str, float]:
+        return {f"{e.name}.{k}": v for k, v in st.items()}
+
+    fresh = []
     if screened is not None:
         starts = [null, dict(screened.shared)]
     else:
-        starts = [{**current.shared, **{f"{effect.name}.{k}": v for k, v in st.items()}}
+        starts = [{**current.shared, **named(effect, st)}
                   for st in effect.start_points(model.mp)]
+        # an effect added before may have settled where it stood in for this one (a lag
+        # for a delay): also start it afresh from its own starting points, one such
+        # effect at a time, with each of this effect's
+        fresh = [{**current.shared, **named(prev, pst), **named(effect, st)}
+                 for prev in current.model.effects
+                 for pst in prev.start_points(model.mp)[1:]
+                 for st in effect.start_points(model.mp)[1:]]
     # from the current fit and from Levy starts with the effects removed: a strong
     # missing effect can pull the arm parameters far from those the extended model needs
     pairs = [(_start_rows(model, data, band, st, [start, current.base]), st)
-             for st in starts[1:]]
+             for st in starts[1:] + fresh]
+    starts = starts + fresh
     opts = {"refine_best": _QUICK_BEST, "max_nfev": _QUICK_NFEV,
             "screen_nfev": _QUICK_SCREEN_NFEV} if quick else {}
     fit = joint_fit(model, data, band, [current.base], starts, pairs=pairs, **opts)
