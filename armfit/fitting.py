@@ -61,9 +61,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize, special
 from scipy.ndimage import uniform_filter1d
-from scipy.stats import qmc
 
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import BadInputError, ConvergenceError, UsageError
@@ -321,6 +320,7 @@ def _candidates(prob: _Problem, x0: Mapping[str, float] | None, n_sobol: int) ->
         starts.insert(0, sp.to_z(theta))
     if n_sobol:
         m = int(np.ceil(np.log2(n_sobol)))
+        from scipy.stats import qmc  # only the global search needs it (slow to import)
         u = qmc.Sobol(d=len(sp.names), scramble=False).random_base2(m)[:n_sobol]
         starts.extend(sp.zlo + u * (sp.zhi - sp.zlo))
     return sp.clip_z(np.array(starts))
@@ -541,10 +541,10 @@ def _jacobian_ci(space: ParamSpace, z: np.ndarray, jac: np.ndarray, blocks: np.n
     inv = np.where(ok, 1.0 / np.where(ok, sv, 1.0) ** 2, 0.0)
     var = s2 * np.einsum("ki,k,ki->i", vt, inv, vt)
     undetermined = np.any(np.abs(vt[~ok]) > 1e-8, axis=0)
-    half = stats.t.ppf(0.5 + level / 2, dof) * np.sqrt(var)
+    half = special.stdtrit(dof, 0.5 + level / 2) * np.sqrt(var)
     if jackknife is not None and jackknife[1] >= 3:
         sd_j, g = jackknife
-        half_j = stats.t.ppf(0.5 + level / 2, g - 1) * sd_j
+        half_j = special.stdtrit(g - 1, 0.5 + level / 2) * sd_j
         half = np.where(np.isfinite(half_j), np.maximum(half, half_j), half)
     lo = space.to_theta(np.clip(z - half, space.zlo, space.zhi))
     hi = space.to_theta(np.clip(z + half, space.zlo, space.zhi))

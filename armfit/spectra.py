@@ -45,8 +45,6 @@ import numpy as np
 import pandas as pd
 import scipy.fft
 from scipy.ndimage import uniform_filter1d
-from scipy.signal import get_window
-from scipy.signal.windows import chebwin
 
 from armfit._version import __version__
 from armfit.constants import AXES, DB_PER_NEPER, DEVICE_MASS_KG
@@ -124,7 +122,9 @@ def _window(window, nperseg: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def _cached_window(name: str, n: int, periodic: bool) -> np.ndarray:
-    """scipy.signal.get_window, cached (trials of a study share segment lengths)."""
+    """scipy.signal.get_window, cached (trials of a study share segment lengths).
+    scipy.signal is imported here: it loads scipy.stats, which only estimation needs."""
+    from scipy.signal import get_window
     w = get_window(name, n, fftbins=periodic)
     w.setflags(write=False)
     return w
@@ -232,6 +232,7 @@ def chebwin_spectra(force, pos, fs: float, *, attenuation_db: float = 100.0,
     """
     f = np.asarray(force, dtype=float)
     y = _as_outputs(pos)
+    from scipy.signal.windows import chebwin  # see _cached_window
     win = chebwin(f.size, attenuation_db, sym=True)
     lobe = math.acosh(10.0 ** (attenuation_db / 20.0)) / math.pi
     return welch_spectra(f, y.T, fs, nperseg=f.size, noverlap=0, window=win,
@@ -246,6 +247,7 @@ def frf_chebwin(force, pos, fs: float, *, attenuation_db: float = 100.0
     numbers as Octave's ``fft(w.*x) ./ fft(w.*F)`` for k = 0…floor(N/2).
     """
     f = np.asarray(force, dtype=float)
+    from scipy.signal.windows import chebwin  # see _cached_window
     win = chebwin(f.size, attenuation_db, sym=True)
     y = _as_outputs(pos)
     fx = scipy.fft.rfft(win * f)

@@ -1,13 +1,14 @@
 """Worker processes: one way to start a pool, one way to stop every worker at once.
 
-Pools use the ``forkserver`` start method where there is one (safe when the caller has
-threads of its own), else ``spawn``. Within :func:`shared_pool` (``armfit run``) every
-stage borrows one pool instead, forked once at the start, before the caller has threads:
-its workers inherit the modules already imported, and nothing is started or imported
-again per stage. Workers ignore SIGINT: Ctrl-C at a terminal reaches
-the whole process group, and only the main process decides what happens (it stops the
-workers with :func:`stop_workers` and removes its partial outputs), so no worker prints
-a traceback of its own.
+Pools fork their workers at once when the caller has no other thread (they inherit the
+modules already imported), else use the ``forkserver`` start method where there is one
+(safe when the caller has threads of its own), else ``spawn``. Within
+:func:`shared_pool` (``armfit run``) every stage borrows one pool instead, forked once at
+the start, before the caller has threads, so nothing is started or imported again per
+stage. Workers ignore SIGINT: Ctrl-C at a terminal reaches the whole process group, and
+only the main process decides what happens (it stops the workers with
+:func:`stop_workers` and removes its partial outputs), so no worker prints a traceback
+of its own.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import signal
 import sys
+import threading
 
 
 def ignore_sigint() -> None:
@@ -76,13 +78,21 @@ def shared_pool(jobs: int):
 
 
 def process_pool(jobs: int, preload: tuple[str, ...] = ()):
-    """A ProcessPoolExecutor of ``jobs`` workers that ignore SIGINT (forkserver, else
-    spawn); ``preload`` names modules the fork server imports once for every worker.
-    Within :func:`shared_pool`, that pool instead (its shutdown is a no-op)."""
+    """A ProcessPoolExecutor of ``jobs`` workers that ignore SIGINT: forked at once when
+    the caller has no other thread, else started by the fork server (``preload`` names
+    modules it imports once for every worker), else spawned. Within :func:`shared_pool`,
+    that pool instead (its shutdown is a no-op)."""
     import concurrent.futures as cf
     import multiprocessing as mp
     if _SHARED is not None:
         return _Borrowed(_SHARED)
+    if "fork" in mp.get_all_start_methods() and threading.active_count() == 1:
+        # no other thread: fork every worker now (they inherit the modules already
+        # imported, where a fork server imports them again)
+        pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("fork"),
+                                      initializer=ignore_sigint)
+        pool.submit(int).result()
+        return pool
     if "forkserver" in mp.get_all_start_methods():
         ctx = mp.get_context("forkserver")
         if preload:

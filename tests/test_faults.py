@@ -320,9 +320,9 @@ def _start_estimate(study: Path, out: Path):
 
     def workers_up() -> bool:
         kids.update(_descendants(proc.pid))
-        return len(kids) >= 3  # fork server + 2 workers
+        return len(kids) >= 2  # the 2 workers (forked from the command: no fork server)
     assert _wait_for(workers_up, step=0.02), "no worker processes appeared"
-    # workers forked from a preloaded server start at once: signal while they work
+    # the workers start at once: signal while they work
     time.sleep(0.05)
     kids.update(_descendants(proc.pid))
     return proc, kids
