@@ -395,7 +395,7 @@ def _fit_uncertainty(ctx: _Context) -> str:
 
 def _figures(ctx: _Context) -> str:
     """The paper's Figs. 5-7 (they need no diagnosis)."""
-    (ctx.folder / "figures").mkdir()
+    (ctx.folder / "figures").mkdir(exist_ok=True)  # the stability figure may be there
     paper = _paper_figures(ctx)
     ctx.drawn += paper
     return f"{len(paper)} figure(s): Figs. 5, 6, 7"

@@ -44,3 +44,15 @@ def test_output_that_is_or_holds_an_input(tmp_path):
     with pytest.raises(OutputError, match="also an input"):
         check_output(tmp_path / "data", overwrite=True, inputs=[inp])
     assert check_output(tmp_path / "new.csv", overwrite=False, inputs=[inp]).name == "new.csv"
+
+
+def test_an_existing_path_inside_the_temporary_is_no_concurrent_writer(tmp_path):
+    # an EEXIST raised while the folder is being filled is the filler's own error: the
+    # message names OUTDIR and the reason, and does not blame another run
+    dest = tmp_path / "out"
+    with pytest.raises(OutputError) as err:
+        with atomic_path(dest, folder=True) as tmp:
+            (tmp / "figures").mkdir()
+            (tmp / "figures").mkdir()
+    assert str(dest) in str(err.value) and "another run" not in str(err.value)
+    assert not dest.exists() and list(tmp_path.iterdir()) == []

@@ -109,3 +109,18 @@ def test_failing_stage_keeps_the_old_outdir_and_leaves_no_temporary(tiny_study, 
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
     assert workers == [2]  # one diagnosis worker per axis was running (jobs=2) ...
     assert mp.active_children() == []  # ... and was stopped
+
+
+def test_run_gives_the_same_bytes_with_one_or_two_jobs(tiny_study, tmp_path):
+    """With --jobs 2 one worker pool serves every stage (the estimate alongside the
+    ingest, the diagnosis and per-trial fits in the background, figures drawn in the
+    workers); every file, figures and report included, is the same as with --jobs 1."""
+    outs = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"j{jobs}"
+        result = run_pipeline([tiny_study], out, RunOptions(jobs=jobs))
+        outs[jobs] = {name: (out / name).read_bytes() for name in result.files}
+    assert sorted(outs[1]) == sorted(outs[2])
+    assert any(name.endswith(".png") for name in outs[1])
+    assert [n for n in outs[1] if outs[1][n] != outs[2][n]] == []
+    assert mp.active_children() == []   # the pool is shut down with the run

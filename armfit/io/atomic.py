@@ -348,7 +348,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False,
         _remove(tmp)
         if not (_is_write_error(exc, tmp) or (committing and exc.errno in _WRITE_ERRNOS)):
             raise
-        if exc.errno in (errno.EEXIST, errno.ENOTEMPTY):
+        if committing and exc.errno in (errno.EEXIST, errno.ENOTEMPTY):
             raise OutputError(f"{dest}: appeared while it was being written (another run?);"
                               " nothing replaced") from None
         raise _why(dest, exc) from None
