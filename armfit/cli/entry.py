@@ -27,8 +27,13 @@ def _on_signal(signum, frame) -> None:
     if _stopping:
         return  # already stopping: let the cleanup finish
     _stopping = True
+    import threading
+
     from armfit.errors import Terminated
     from armfit.workers import stop_workers
+    # the pools' helper threads fail when their workers are killed: the user asked for
+    # the stop, so their errors are not printed (the one line below is)
+    threading.excepthook = lambda args: None
     stop_workers()
     if signum == signal.SIGTERM:
         raise Terminated()
