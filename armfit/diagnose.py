@@ -560,21 +560,38 @@ _OUTLIER = 4.0
 
 def _rescue(prob: _Joint, model: ClosedLoopModel, data: AxisData, sel, res, max_nfev: int):
     """Trials stuck in a poor local minimum of the joint fit (misfit far above the median
-    trial's) get arm parameters from a global single-trial fit
-    (:func:`armfit.fitting.fit_response`), then the joint fit is refined again; the
-    better of the two results is returned."""
+    trial's) get new arm parameters from a single-trial fit
+    (:func:`armfit.fitting.fit_response`): first a local one from the median arm
+    parameters of the trials that fit, then, for a trial still far off, the global
+    search. The joint fit is refined again; the better of the two results is returned."""
     per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
-    bad = np.flatnonzero(per > _OUTLIER * max(np.median(per), 2.0 * prob.f.size))
+    limit = _OUTLIER * max(np.median(per), 2.0 * prob.f.size)
+    bad = np.flatnonzero(per > limit)
     if bad.size == 0:
         return res
     x0 = res.x.copy()
     zb = x0[: prob.T * prob.nb].reshape(prob.T, prob.nb)
-    for i in bad:
-        fit = fit_response(model, data.f_hz[sel], data.h[i, sel], se_db=data.se_db[i, sel],
-                           se_deg=data.se_deg[i, sel], strict=False)
+    theta = prob.space.to_theta(prob.unpack(res.x))
+    shared = theta[0, prob.nb:]
+    good = np.setdiff1d(np.arange(prob.T), bad)
+    typical = np.exp(np.median(np.log(theta[good, : prob.nb]), axis=0)) if good.size else None
+    f, names = data.f_hz[sel], prob.space.names
+
+    def place(i: int, fit) -> None:
         row = np.array([fit.params[n] for n in PARAM_NAMES])
-        full = np.concatenate([row, prob.space.to_theta(prob.unpack(res.x)[0])[prob.nb:]])
-        zb[i] = prob.space.clip_z(prob.space.to_z(full))[: prob.nb]
+        zb[i] = prob.space.clip_z(prob.space.to_z(np.concatenate([row, shared])))[: prob.nb]
+
+    for i in bad:
+        kw = dict(se_db=data.se_db[i, sel], se_deg=data.se_deg[i, sel], strict=False,
+                  intervals=False)
+        if typical is not None:
+            start = dict(zip(names, np.concatenate([typical, shared]), strict=True))
+            place(i, fit_response(model, f, data.h[i, sel], x0=start, global_search=False,
+                                  **kw))
+            r = prob.fun(x0).reshape(prob.T, -1)[i]
+            if float(r @ r) <= limit:
+                continue
+        place(i, fit_response(model, f, data.h[i, sel], **kw))
     res2 = _refine(prob, x0, max_nfev)
     return res2 if res2.cost < res.cost else res
 
