@@ -909,9 +909,13 @@ LOCAL_OUTLIER = 1.5
 LOCAL_NOISE_TOL = 1.5
 
 
-def _needs_global(tf: TrialFit, median: float) -> bool:
+def _needs_global(tf: TrialFit, median: float, start_bounds: Sequence[str] = ()) -> bool:
+    """Whether a trial's local fit also gets the global search: it failed, did not
+    converge, has a parameter at a bound that its start (the grip's fit) is not at, or
+    misfits (see :data:`LOCAL_OUTLIER`). A bound the grip's fit shares comes from the
+    model and the data, not from a poor local minimum of this trial."""
     fit = tf.fit
-    if fit is None or not fit.converged or fit.at_bound:
+    if fit is None or not fit.converged or set(fit.at_bound) - set(start_bounds):
         return True
     err = fit.rms_norm if np.isfinite(fit.rms_norm) else fit.rms_db
     return bool(err > max(LOCAL_NOISE_TOL, LOCAL_OUTLIER * median))
@@ -930,9 +934,9 @@ def fit_trials(spectra, *, cost: str = "complex",
     The trials of one axis and grip are alike, so each trial is first fitted locally
     from its grip's fit (``starts``: {(axis, grip_N): parameters}; by default the grip
     fits of :func:`fit_study` on the same spectra). A trial whose local fit did not
-    converge, has a parameter at a bound, or misfits by more than :data:`LOCAL_OUTLIER`
-    times its axis's median RMS normalised error (and more than
-    :data:`LOCAL_NOISE_TOL`) gets the global search of :func:`fit_response` too, and
+    converge, has a parameter at a bound its grip's fit is not at, or misfits by more
+    than :data:`LOCAL_OUTLIER` times its axis's median RMS normalised error (and more
+    than :data:`LOCAL_NOISE_TOL`) gets the global search of :func:`fit_response` too, and
     keeps the better fit; so does a trial without a start.
     """
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
@@ -956,7 +960,9 @@ def fit_trials(spectra, *, cost: str = "complex",
                     for t in out if t.axis == axis and t.fit is not None]
             medians[axis] = float(np.median(errs)) if errs else np.inf
         again = [i for i, t in enumerate(out)
-                 if tasks[i][2]["x0"] is not None and _needs_global(t, medians[t.axis])]
+                 if tasks[i][2]["x0"] is not None
+                 and _needs_global(t, medians[t.axis], at_bound(
+                     ClosedLoopModel.for_axis(t.axis, effects).params, tasks[i][2]["x0"]))]
         glob = list(run(_fit_trial_task, [(tasks[i][0], tasks[i][1],
                                            {**tasks[i][2], "x0": None}) for i in again]))
     finally:

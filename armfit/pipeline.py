@@ -24,11 +24,13 @@ subcommand, run in the order data flows (files written into OUTDIR in brackets):
 - report: :func:`report_markdown` (report.md), from the stages' typed results and the
   configuration they used.
 
-With ``jobs`` > 1 one pool of worker processes serves every stage
-(:func:`armfit.workers.shared_pool`): the estimate runs in it while this process
-ingests, the diagnosis and the per-trial fits start in it as soon as the grip fits
-exist, and the figures are drawn and written in it while the later stages go on (the
-report stage waits for them). The results do not depend on ``jobs``.
+With ``jobs`` > 1 the stages share ``jobs`` worker processes forked at the start
+(:func:`armfit.workers.shared_pool`): the estimate runs in them while this process
+ingests, the per-trial fits start in them as soon as the grip fits exist, and the figures
+are drawn and written in them while the later stages go on (the report stage waits for
+them). The diagnosis, which also starts from the grip fits, has ``jobs`` workers of its
+own, so the stages that wait for their tasks are not queued behind its long steps. The
+results do not depend on ``jobs``.
 
 Every later stage reads the files the earlier ones wrote (as the subcommands do), so
 ``armfit run`` gives the same numbers as the subcommands run one after the other with
@@ -69,7 +71,7 @@ from armfit.paramsets import read_param_rows
 from armfit.spectra import EstimateConfig, Spectra
 from armfit.stability import WallSettings, axis_summary, stability_table
 from armfit.tables import param_names, sig4, unit_of
-from armfit.workers import shared_pool
+from armfit.workers import in_lane, shared_pool
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
@@ -243,7 +245,8 @@ class _Background:
 def _run_in(inputs: list, folder: Path, options: RunOptions, *,
             on_stage: OnStage | None, warn: Warn | None) -> RunResult:
     # one pool of worker processes for every stage, forked before any thread starts
-    with shared_pool(options.jobs) as pool, contextlib.ExitStack() as stack:
+    with shared_pool(options.jobs, lanes=("main", "background")) as pool, \
+            contextlib.ExitStack() as stack:
         ctx = _Context(inputs, folder, options, warn=warn, stack=stack,
                        config=EstimateConfig(method=options.method),
                        bands=dict(PAPER_BANDS), drawings=_Drawings(pool))
@@ -364,8 +367,10 @@ def _fit(which: str) -> Callable[[_Context], str]:
         if which == "grip":
             o = ctx.options
             axes = [a for a in AXES if (back.table["axis"] == a).any()]
-            ctx.background = _Background(o.jobs, diagnose, ctx.spectra, back.table,
-                                         axes=axes, jobs=o.jobs)
+            # the diagnosis has worker processes of its own: its steps are long, and
+            # the stages that wait for their pool tasks should not queue behind them
+            ctx.background = _Background(o.jobs, in_lane, "background", diagnose,
+                                         ctx.spectra, back.table, axes=axes, jobs=o.jobs)
             ctx.stack.callback(ctx.background.close)
             # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
             # (the fits themselves, not the rounded CSV: the same start, the same bits)

@@ -14,6 +14,7 @@ of its own.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import signal
 import sys
 import threading
@@ -24,8 +25,22 @@ def ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-#: The pool of :func:`shared_pool` while one is open.
-_SHARED = None
+#: The pools of :func:`shared_pool` while one is open, by lane.
+_SHARED: dict | None = None
+#: The lane whose pool :func:`process_pool` hands out (see :func:`in_lane`).
+_LANE: contextvars.ContextVar[str] = contextvars.ContextVar("armfit_pool_lane",
+                                                            default="main")
+
+
+def in_lane(lane: str, fn, /, *args, **kwargs):
+    """``fn(*args, **kwargs)`` with :func:`process_pool` handing out the shared pool of
+    ``lane`` (a stage that runs in the background uses its own workers, so the stages
+    waited for are not queued behind it)."""
+    token = _LANE.set(lane)
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        _LANE.reset(token)
 
 
 class _Borrowed:
@@ -52,12 +67,15 @@ class _Borrowed:
 
 
 @contextlib.contextmanager
-def shared_pool(jobs: int):
-    """Within the block, :func:`process_pool` hands out one pool of ``jobs`` workers
-    (none when ``jobs`` <= 1), started now. Where the ``fork`` start method exists the
-    workers are forked at once, so call this before starting threads; elsewhere they use
-    the fork server. Yields the pool (None without one); it is shut down (pending tasks
-    cancelled) at the end."""
+def shared_pool(jobs: int, lanes: tuple[str, ...] = ("main",)):
+    """Within the block, :func:`process_pool` hands out a pool of ``jobs`` workers per
+    lane (none when ``jobs`` <= 1), all started now; code run with :func:`in_lane` gets
+    that lane's pool, other code the first lane's. Where the ``fork`` start method exists
+    the workers are forked at once, so call this before starting threads; elsewhere they
+    use the fork server. More workers than cores is deliberate: the system shares the
+    cores between the lanes, where one queue would make the waited-for tasks wait behind
+    the background ones. Yields the first lane's pool (None without one); all are shut
+    down (pending tasks cancelled) at the end."""
     global _SHARED
     if jobs <= 1 or _SHARED is not None:
         yield None
@@ -65,16 +83,35 @@ def shared_pool(jobs: int):
     import concurrent.futures as cf
     import multiprocessing as mp
     method = "fork" if "fork" in mp.get_all_start_methods() else None
-    pool = (cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context(method),
-                                   initializer=ignore_sigint)
-            if method else process_pool(jobs))
-    pool.submit(int).result()          # every fork happens here, before any thread
-    _SHARED = pool
+    pools = {}
+    for lane in lanes:
+        pools[lane] = (cf.ProcessPoolExecutor(max_workers=jobs,
+                                              mp_context=mp.get_context(method),
+                                              initializer=ignore_sigint)
+                       if method else process_pool(jobs))
+        pools[lane].submit(int).result()   # every fork happens here, before any thread
+    _SHARED = pools
     try:
-        yield pool
+        yield _Lanes(pools)
     finally:
         _SHARED = None
-        pool.shutdown(wait=True, cancel_futures=True)
+        for pool in pools.values():
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+class _Lanes:
+    """The pools of :func:`shared_pool` as its caller holds them: shutting down stops
+    every lane."""
+
+    def __init__(self, pools: dict):
+        self._pools = pools
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        for pool in self._pools.values():
+            pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+    def submit(self, fn, /, *args, **kwargs):
+        return next(iter(self._pools.values())).submit(fn, *args, **kwargs)
 
 
 def process_pool(jobs: int, preload: tuple[str, ...] = ()):
@@ -85,7 +122,7 @@ def process_pool(jobs: int, preload: tuple[str, ...] = ()):
     import concurrent.futures as cf
     import multiprocessing as mp
     if _SHARED is not None:
-        return _Borrowed(_SHARED)
+        return _Borrowed(_SHARED.get(_LANE.get(), next(iter(_SHARED.values()))))
     if "fork" in mp.get_all_start_methods() and threading.active_count() == 1:
         # no other thread: fork every worker now (they inherit the modules already
         # imported, where a fork server imports them again)

@@ -107,7 +107,7 @@ def test_failing_stage_keeps_the_old_outdir_and_leaves_no_temporary(tiny_study, 
     assert [p.name for p in out.iterdir()] == ["old.txt"]
     assert (out / "old.txt").read_text() == "previous results"
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
-    assert workers == [2]  # one diagnosis worker per axis was running (jobs=2) ...
+    assert workers == [4]  # jobs=2 workers for the stages and 2 for the diagnosis ...
     assert mp.active_children() == []  # ... and was stopped
 
 
