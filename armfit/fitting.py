@@ -70,6 +70,7 @@ from armfit.io.artifacts import params_frame
 from armfit.io.schema import params_columns
 from armfit.models.arm import ClosedLoopModel, at_bound, laplace
 from armfit.spectra import Spectra, aggregate
+from armfit.workers import iter_tasks, map_tasks
 
 COSTS: tuple[str, ...] = ("complex", "paper")
 
@@ -756,21 +757,12 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         keys.append((axis, grip))
         tasks.append((where, ClosedLoopModel.for_axis(axis, effects), (f, h, se_db, se_deg),
                       {"cost": cost, "band": bands[axis], "max_nfev": max_nfev}, boot))
-    pool = None
-    if jobs > 1 and len(tasks) > 1:
-        from armfit.workers import process_pool
-        pool = process_pool(min(jobs, len(tasks)), preload=("armfit.fitting",))
-    try:
-        results = pool.map(_fit_group, tasks) if pool is not None else map(_fit_group,
-                                                                            tasks)
-        fits: list[FitResult] = []
-        for (axis, grip), fit in zip(keys, results, strict=True):
-            fits.append(fit)
-            if on_fit is not None:
-                on_fit(axis, grip, fit)
-    finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
+    fits = []
+    for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs,
+                                                  preload=("armfit.fitting",)), strict=True):
+        fits.append(fit)
+        if on_fit is not None:
+            on_fit(axis, grip, fit)
     return StudyFit(which, tuple(keys), tuple(fits))
 
 
@@ -917,8 +909,12 @@ def _needs_global(tf: TrialFit, median: float, start_bounds: Sequence[str] = ())
     fit = tf.fit
     if fit is None or not fit.converged or set(fit.at_bound) - set(start_bounds):
         return True
-    err = fit.rms_norm if np.isfinite(fit.rms_norm) else fit.rms_db
-    return bool(err > max(LOCAL_NOISE_TOL, LOCAL_OUTLIER * median))
+    return bool(_misfit(fit) > max(LOCAL_NOISE_TOL, LOCAL_OUTLIER * median))
+
+
+def _misfit(fit: FitResult) -> float:
+    """A fit's RMS normalised error (its RMS dB error without standard errors)."""
+    return fit.rms_norm if np.isfinite(fit.rms_norm) else fit.rms_db
 
 
 def fit_trials(spectra, *, cost: str = "complex",
@@ -947,27 +943,23 @@ def fit_trials(spectra, *, cost: str = "complex",
     tasks = [(key, rows, {**base, "band": bands[key[0]],
                           "x0": starts.get((key[0], float(key[2])))})
              for key, rows in groups]
-    pool = None
-    if jobs > 1 and len(tasks) > 1:
-        from armfit.workers import process_pool
-        pool = process_pool(jobs, preload=("armfit.fitting",))
-    try:
-        run = (lambda fn, items: pool.map(fn, items, chunksize=4)) if pool else map
-        out = list(run(_fit_trial_task, tasks))
-        medians = {}
-        for axis in {t.axis for t in out}:
-            errs = [t.fit.rms_norm if np.isfinite(t.fit.rms_norm) else t.fit.rms_db
-                    for t in out if t.axis == axis and t.fit is not None]
-            medians[axis] = float(np.median(errs)) if errs else np.inf
-        again = [i for i, t in enumerate(out)
-                 if tasks[i][2]["x0"] is not None
-                 and _needs_global(t, medians[t.axis], at_bound(
-                     ClosedLoopModel.for_axis(t.axis, effects).params, tasks[i][2]["x0"]))]
-        glob = list(run(_fit_trial_task, [(tasks[i][0], tasks[i][1],
-                                           {**tasks[i][2], "x0": None}) for i in again]))
-    finally:
-        if pool is not None:
-            pool.shutdown()
+    # the parameters each start has at a bound (a bound shared with the start is no
+    # reason for the global search)
+    start_bounds = {k: at_bound(ClosedLoopModel.for_axis(k[0], effects).params, v)
+                    for k, v in starts.items()}
+    def run(items: list) -> list:
+        return map_tasks(_fit_trial_task, items, jobs, preload=("armfit.fitting",),
+                         chunksize=4)
+
+    out = run(tasks)
+    medians = {}
+    for axis in {t.axis for t in out}:
+        errs = [_misfit(t.fit) for t in out if t.axis == axis and t.fit is not None]
+        medians[axis] = float(np.median(errs)) if errs else np.inf
+    again = [i for i, (t, (key, _, kw)) in enumerate(zip(out, tasks, strict=True))
+             if kw["x0"] is not None and _needs_global(
+                 t, medians[t.axis], start_bounds[(key[0], float(key[2]))])]
+    glob = run([(tasks[i][0], tasks[i][1], {**tasks[i][2], "x0": None}) for i in again])
     for i, tf in zip(again, glob, strict=True):
         if _rank(tf) > _rank(out[i]):
             out[i] = tf

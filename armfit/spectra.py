@@ -35,6 +35,7 @@ about that line; raised where the bins' scatter about the line is larger (:func:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 from collections.abc import Mapping, Sequence
@@ -60,7 +61,7 @@ from armfit.io.schema import (
     json_default,
 )
 from armfit.io.trials import Trial, open_trials, read_trial
-from armfit.workers import process_pool
+from armfit.workers import iter_tasks
 
 METHODS = ("h1", "chebwin")
 
@@ -1652,21 +1653,13 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     sources = list(stream.sources)
     if on_open is not None:
         on_open(len(sources))
-    if jobs > 1 and len(sources) > 1:
-        with process_pool(min(jobs, len(sources)),
-                          preload=("armfit.spectra", "armfit.io.trials")) as pool:
-            try:
-                for res in pool.map(functools.partial(_estimate_source, config=config),
-                                    sources, chunksize=2):
-                    handle(res)
-                    if advance is not None:
-                        advance()
-            except BaseException:
-                pool.shutdown(wait=False, cancel_futures=True)
-                raise
-    else:
-        for src in sources:
-            handle(_estimate_source(src, config))
+    # closed on a bad trial: the pending work is cancelled at once
+    with contextlib.closing(iter_tasks(functools.partial(_estimate_source, config=config),
+                                       sources, jobs, preload=("armfit.spectra",
+                                                               "armfit.io.trials"),
+                                       chunksize=2)) as results:
+        for res in results:
+            handle(res)
             if advance is not None:
                 advance()
     if not kept:

@@ -50,6 +50,7 @@ import pandas as pd
 from scipy import linalg
 
 from armfit.errors import UsageError
+from armfit.io.schema import is_missing
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.params import model_from_params
 from armfit.uncertainty import PAPER_BAND_HZ
@@ -378,10 +379,8 @@ def _crossing_gains_batch(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *,
     rows, thetas = [], []
     for r in range(R):
         with np.errstate(all="ignore"):
-            ar, ai, beta, _, _, _, info = ggev(A[r], E[r], compute_vl=0, compute_vr=0,
-                                               overwrite_a=1, overwrite_b=1)
-            ev = (ar + 1j * ai) / beta if info == 0 else \
-                linalg.eigvals(*_pencils(M0[r:r + 1], b[r:r + 1], c[r:r + 1]))[0]
+            ar, ai, beta, _, _, _, info = ggev(A[r], E[r], compute_vl=0, compute_vr=0)
+            ev = (ar + 1j * ai) / beta if info == 0 else linalg.eigvals(A[r], E[r])
         ev = ev[np.isfinite(ev)]
         on = ev[np.abs(np.abs(ev) - 1.0) < tol]
         th = np.concatenate([np.abs(np.angle(on)), [0.0, np.pi]])
@@ -697,15 +696,7 @@ def _num(v) -> float:
 
 
 def _text(v) -> str | None:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return None
-    try:
-        import pandas as pd
-        if pd.isna(v):
-            return None
-    except (TypeError, ValueError):
-        pass
-    return str(v)
+    return None if is_missing(v) else str(v)
 
 
 def axis_summary(table) -> dict[str, dict]:

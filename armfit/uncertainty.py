@@ -44,7 +44,7 @@ from armfit.io.artifacts import read_wu_rows
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
-from armfit.workers import process_pool
+from armfit.workers import map_tasks
 
 #: The paper's band for Wu: 0.01–30 Hz (Sec. II-F).
 PAPER_BAND_HZ: tuple[float, float] = (0.01, 30.0)
@@ -821,11 +821,7 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
         prepared.append((axis, f, H.shape[0], raw, target, b))
     tasks = [(f, target, {"n_pairs": n_pairs, "cost": cost, "band": b})
              for _, f, _, _, target, b in prepared]
-    if jobs > 1 and len(tasks) > 1:
-        with process_pool(min(jobs, len(tasks)), preload=("armfit.uncertainty",)) as pool:
-            fits = list(pool.map(_fit_wu_task, tasks))
-    else:
-        fits = [_fit_wu_task(t) for t in tasks]
+    fits = map_tasks(_fit_wu_task, tasks, jobs, preload=("armfit.uncertainty",))
     out = []
     for (axis, f, n_trials, raw, target, b), res in zip(prepared, fits, strict=True):
         targets = {"wmax": raw} if smooth_oct is None else {"wmax": raw, "wmax_smoothed": target}

@@ -80,16 +80,7 @@ def shared_pool(jobs: int, lanes: tuple[str, ...] = ("main",)):
     if jobs <= 1 or _SHARED is not None:
         yield None
         return
-    import concurrent.futures as cf
-    import multiprocessing as mp
-    method = "fork" if "fork" in mp.get_all_start_methods() else None
-    pools = {}
-    for lane in lanes:
-        pools[lane] = (cf.ProcessPoolExecutor(max_workers=jobs,
-                                              mp_context=mp.get_context(method),
-                                              initializer=ignore_sigint)
-                       if method else process_pool(jobs))
-        pools[lane].submit(int).result()   # every fork happens here, before any thread
+    pools = {lane: _new_pool(jobs) for lane in lanes}   # before any thread: forked now
     _SHARED = pools
     try:
         yield _Lanes(pools)
@@ -119,10 +110,37 @@ def process_pool(jobs: int, preload: tuple[str, ...] = ()):
     the caller has no other thread, else started by the fork server (``preload`` names
     modules it imports once for every worker), else spawned. Within :func:`shared_pool`,
     that pool instead (its shutdown is a no-op)."""
-    import concurrent.futures as cf
-    import multiprocessing as mp
     if _SHARED is not None:
         return _Borrowed(_SHARED.get(_LANE.get(), next(iter(_SHARED.values()))))
+    return _new_pool(jobs, preload)
+
+
+def iter_tasks(fn, tasks, jobs: int, preload: tuple[str, ...] = (), chunksize: int = 1):
+    """``fn(t)`` for each of ``tasks``, yielded in task order as they are done: in a
+    :func:`process_pool` of up to ``jobs`` workers when ``jobs`` > 1 and there is more
+    than one task (``fn`` must be picklable), else here. The first error of a task, in
+    task order, is raised; pending tasks are then cancelled."""
+    tasks = list(tasks)
+    if jobs <= 1 or len(tasks) <= 1:
+        yield from map(fn, tasks)
+        return
+    pool = process_pool(min(jobs, len(tasks)), preload)
+    try:
+        yield from pool.map(fn, tasks, chunksize=chunksize)
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def map_tasks(fn, tasks, jobs: int, preload: tuple[str, ...] = (),
+              chunksize: int = 1) -> list:
+    """The list of :func:`iter_tasks`."""
+    return list(iter_tasks(fn, tasks, jobs, preload, chunksize))
+
+
+def _new_pool(jobs: int, preload: tuple[str, ...] = ()):
+    """A pool of its own for :func:`process_pool` and :func:`shared_pool`."""
+    import concurrent.futures as cf
+    import multiprocessing as mp
     if "fork" in mp.get_all_start_methods() and threading.active_count() == 1:
         # no other thread: fork every worker now (they inherit the modules already
         # imported, where a fork server imports them again)

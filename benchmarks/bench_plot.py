@@ -31,6 +31,7 @@ from armfit import figures, workers
 from armfit.data import paper_table
 from armfit.io.schema import SPECTRA_COLUMNS
 from armfit.models.arm import DEVICE_MASS_KG, h_arm, h_cl
+from armfit.pipeline import _draw_task  # the task `run` submits for each figure
 from armfit.uncertainty import read_wu
 
 GRIDS = {"log grid, 100 points": np.geomspace(0.1, 30.0, 100),
@@ -106,10 +107,6 @@ def main() -> None:
     run_stage(args.repeat)
 
 
-def _draw(fn: str, args: tuple, path: Path) -> None:
-    figures.save_figure(getattr(figures, fn)(*args), path)
-
-
 def run_stage(repeat: int) -> None:
     """The figures stage of `armfit run`: Figs. 5-7 as PNG, best of ``repeat``."""
     spectra, grip, nominal = study()
@@ -142,7 +139,8 @@ def run_stage(repeat: int) -> None:
             for t in tasks:
                 t[2].unlink(missing_ok=True)
             w0 = time.perf_counter()
-            for fut in [pool.submit(_draw, *t) for t in tasks]:
+            for fut in [pool.submit(_draw_task, (fn, args, {}, path))
+                        for fn, args, path in tasks]:
                 fut.result()
             walls.append(time.perf_counter() - w0)
     print(f"in 2 worker processes, as `run --jobs 2` draws them: best wall "

@@ -17,6 +17,7 @@ from armfit.api import fit_trials as api_fit_trials
 from armfit.cli.options import (
     axis_bands_option,
     bands_by_axis,
+    clean,
     effect_option,
     emit_json,
     jobs_option,
@@ -41,22 +42,6 @@ from armfit.stability import (
 )
 
 
-def _clean(v):
-    if v is None:
-        return None
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    try:
-        import pandas as pd
-        if pd.isna(v):
-            return None
-    except (TypeError, ValueError):
-        pass
-    if hasattr(v, "item"):
-        return v.item()
-    return v
-
-
 def _kn(v: float) -> str:
     if not math.isfinite(v):
         return "inf" if v > 0 else "-"
@@ -68,8 +53,8 @@ def stability_document(table, summary, settings, *, params_label: str,
     """The ``--json`` document: settings, models (in PARAMS row order), axes, skipped."""
     models = []
     for rec in table.to_dict("records"):
-        models.append({k: _clean(v) for k, v in rec.items()})
-    axes = {a: {k: _clean(v) for k, v in s.items()} for a, s in summary.items()}
+        models.append({k: clean(v) for k, v in rec.items()})
+    axes = {a: {k: clean(v) for k, v in s.items()} for a, s in summary.items()}
     return {
         "settings": {**settings.as_dict(), "params": params_label, "weights": weights_label},
         "models": models,
@@ -237,7 +222,7 @@ def fit_trials_command(spectra, output, cost, band, effects, method, max_nfev, j
     if as_json:
         emit_json({"command": "fit-trials", "spectra": spectra, "output": output,
                    "columns": list(df.columns),
-                   "fits": [{k: _clean(v) for k, v in row.items()}
+                   "fits": [{k: clean(v) for k, v in row.items()}
                             for row in df.to_dict("records")]})
     for tf in failed:
         message(f"warning: trial {tf.axis} subject {tf.subject} {tf.grip_N:g} N"

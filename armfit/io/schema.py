@@ -168,8 +168,22 @@ def json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def is_missing(v) -> bool:
+    """Whether a table cell holds no value: None, NaN or pandas' NA."""
+    if v is None:
+        return True
+    if isinstance(v, float):
+        return math.isnan(v)
+    import pandas as pd
+    try:
+        return bool(pd.isna(v))
+    except (TypeError, ValueError):  # not a scalar
+        return False
+
+
 def finite_or_none(v):
-    """A float that is NaN or infinite as None (JSON has no NaN); anything else as is."""
-    if isinstance(v, float) and not math.isfinite(v):
+    """A missing value (:func:`is_missing`) or an infinite float as None (JSON has
+    neither NaN nor NA); anything else as is."""
+    if is_missing(v) or (isinstance(v, float) and not math.isfinite(v)):
         return None
     return v
