@@ -345,7 +345,7 @@ def _estimate(ctx: _Context) -> str:
     ctx.since = ctx.estimating.started
     seen = {f for f, _ in ctx.skipped}
     ctx.skipped += tuple((f, r) for f, r in est.skipped if f not in seen)
-    est.spectra.write(ctx.path("spectra.parquet"))
+    est.write(ctx.path("spectra.parquet"))
     ctx.estimated = est
     ctx.spectra = Spectra.read(ctx.folder / "spectra.parquet")
     return (f"{len(est.trials)} trial(s), method {config.method}, "

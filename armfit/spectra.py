@@ -37,8 +37,9 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -52,6 +53,7 @@ from armfit.constants import AXES, DB_PER_NEPER, DEVICE_MASS_KG
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path
 from armfit.io.schema import (
+    COUNTED_FLAGS,
     CSV_FLOAT_FORMAT,
     SPECTRA_COLUMNS,
     SPECTRA_KEYS,
@@ -663,7 +665,9 @@ class EstimateConfig:
                                  f"got {ax}={m}")
 
     def grid(self) -> np.ndarray:
-        return log_grid(self.fmin, self.fmax, self.per_decade)
+        """The common grid, Hz (:func:`log_grid`); one read-only array shared by every
+        trial estimated with these options."""
+        return _shared_grid(self.fmin, self.fmax, self.per_decade)
 
     def h1_nperseg(self, fs: float, n_samples: int) -> int:
         """H1 segment length (samples): ``nperseg`` if given; else the smallest power of 2
@@ -677,6 +681,13 @@ class EstimateConfig:
         while seg > shortest and (n_samples - seg // 2) // (seg // 2) < 4:
             seg //= 2
         return seg
+
+
+@functools.lru_cache(maxsize=8)
+def _shared_grid(fmin: float, fmax: float, per_decade: int) -> np.ndarray:
+    grid = log_grid(fmin, fmax, per_decade)
+    grid.setflags(write=False)
+    return grid
 
 
 @dataclass(frozen=True)
@@ -1022,13 +1033,25 @@ def spectra_table(trials: Sequence[TrialResponses], meta: Mapping | None = None)
     carried by more than half of its trials at that frequency. Where an aggregate rests on
     a single response its se is that response's own (Bendat & Piersol) se.
     """
+    return _stack_blocks([*_trial_blocks(trials), *_aggregate_blocks(trials)], meta)
+
+
+def _trial_blocks(trials: Sequence[TrialResponses]):
+    """The trial-level blocks of :func:`spectra_table`, one per response, made as they are
+    consumed."""
+    for tr in trials:
+        for r in tr.responses:
+            yield _block("trial", tr.subject, tr.axis, tr.grip_N, tr.run, r.kind,
+                         r.out_axis, r.method, tr.freq_hz, r.h, r.coherence, r.se_db,
+                         r.se_deg, 1, r.flags)
+
+
+def _aggregate_blocks(trials: Sequence[TrialResponses]) -> list[dict[str, object]]:
+    """The aggregate blocks of :func:`spectra_table`, in the file's order."""
     blocks: list[dict[str, object]] = []
     groups: dict[tuple, list[tuple[TrialResponses, Response]]] = {}
     for tr in trials:
         for r in tr.responses:
-            blocks.append(_block("trial", tr.subject, tr.axis, tr.grip_N, tr.run, r.kind,
-                                 r.out_axis, r.method, tr.freq_hz, r.h, r.coherence,
-                                 r.se_db, r.se_deg, 1, r.flags))
             groups.setdefault((tr.axis, r.kind, r.out_axis), []).append((tr, r))
     for (axis, kind, out_axis), members in sorted(groups.items()):
         freq = members[0][0].freq_hz
@@ -1046,7 +1069,7 @@ def spectra_table(trials: Sequence[TrialResponses], meta: Mapping | None = None)
         rs_all = [r for _, r in members]
         blocks.append(_aggregate_block("median", axis, np.nan, kind, out_axis, method, freq,
                                        np.array([r.h for r in rs_all]), rs_all, len(rs_all)))
-    return _stack_blocks(blocks, meta)
+    return blocks
 
 
 def _aggregate_block(level: str, axis: str, grip: float, kind: str, out_axis: str,
@@ -1447,35 +1470,29 @@ class Spectra:
         OutputError
             ``path`` exists and not ``overwrite``.
         """
-        import json
-
-        import pyarrow as pa
-        import pyarrow.parquet as pq
         # written WRITE_ROWS responses at a time (one row group each), so that the long
         # table and its Arrow copy never exist for the whole of a large study at once
+        return write_parts(self.parts(), self.meta, path, overwrite=overwrite)
+
+    def parts(self, rows: int | None = None):
+        """The rows in order, ``rows`` (default :data:`WRITE_ROWS`) at a time, each a
+        :class:`Spectra` (one part when there is no row)."""
+        rows = rows or WRITE_ROWS
         n = len(self)
-        parts = [np.arange(i, min(i + WRITE_ROWS, n)) for i in range(0, max(n, 1),
-                                                                      WRITE_ROWS)]
-        with atomic_path(path, overwrite=overwrite) as tmp:
-            writer = None
-            try:
-                for rows in parts:
-                    frame = (self.take(rows) if n else self).to_frame()
-                    frame.attrs = {}  # the metadata goes under its own key, below
-                    if writer is None:
-                        schema = pa.Schema.from_pandas(frame, preserve_index=False)
-                        kv = dict(schema.metadata or {})
-                        kv[SPECTRA_META_KEY] = json.dumps(dict(self.meta),
-                                                          default=json_default).encode()
-                        schema = schema.with_metadata(kv)
-                        writer = pq.ParquetWriter(tmp, schema, compression="zstd")
-                    writer.write_table(pa.Table.from_pandas(frame, schema=schema,
-                                                            preserve_index=False))
-                    del frame
-            finally:
-                if writer is not None:
-                    writer.close()
-        return path
+        if not n:
+            yield self
+        for i in range(0, n, rows):
+            yield self.take(np.arange(i, min(i + rows, n)))
+
+    def counts(self) -> dict[str, object]:
+        """The rows of the spectra file, rows per level and flagged trial rows.
+
+        Returns
+        -------
+        dict
+            See :func:`row_counts`.
+        """
+        return row_counts([self])
 
     def write_csv(self, path, *, overwrite: bool = False):
         """Write :meth:`to_frame` as CSV (10 significant digits), atomically."""
@@ -1542,6 +1559,97 @@ def _complete(df):
     return df
 
 
+def write_parts(parts: Iterable[Spectra], meta: Mapping, path, *,
+                overwrite: bool = False):
+    """Write the spectra Parquet file from its rows in order, one row group per part.
+
+    :meth:`Spectra.write` passes slices of itself; :meth:`StudySpectra.write` makes its
+    parts as they are written. After each group, Arrow's allocator returns the freed
+    buffers to the system.
+
+    Parameters
+    ----------
+    parts : iterable of Spectra
+        The file's rows, in order, on one grid.
+    meta : mapping
+        Written as JSON under the key ``armfit`` of the file's key-value metadata.
+    path : str or os.PathLike
+        Destination, written atomically (zstd compression).
+    overwrite : bool
+        Replace an existing file.
+
+    Returns
+    -------
+    str or os.PathLike
+        ``path``.
+
+    Raises
+    ------
+    OutputError
+        ``path`` exists and not ``overwrite``.
+    """
+    import json
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        writer = None
+        try:
+            for part in parts:
+                frame = part.to_frame()
+                frame.attrs = {}  # the metadata goes under its own key, below
+                if writer is None:
+                    schema = pa.Schema.from_pandas(frame, preserve_index=False)
+                    kv = dict(schema.metadata or {})
+                    kv[SPECTRA_META_KEY] = json.dumps(dict(meta), default=json_default).encode()
+                    schema = schema.with_metadata(kv)
+                    writer = pq.ParquetWriter(tmp, schema, compression="zstd")
+                writer.write_table(pa.Table.from_pandas(frame, schema=schema,
+                                                        preserve_index=False))
+                del frame
+                # Arrow's allocator (mimalloc) would keep each group's buffers: give
+                # them back, so a file of many groups needs no more memory than one
+                pa.default_memory_pool().release_unused()
+        finally:
+            if writer is not None:
+                writer.close()
+    return path
+
+
+def row_counts(parts: Iterable[Spectra]) -> dict[str, object]:
+    """Count the rows of a spectra file made of ``parts``.
+
+    A row is one response at one frequency (a row of the long table).
+
+    Parameters
+    ----------
+    parts : iterable of Spectra
+        The file's rows, in order.
+
+    Returns
+    -------
+    dict
+        ``rows`` (all), ``levels`` (rows per level, most first) and
+        ``flagged_trial_rows`` (trial rows carrying each flag of
+        :data:`armfit.io.schema.COUNTED_FLAGS`), as ``armfit estimate --json`` reports
+        them.
+    """
+    levels: dict[str, int] = {}
+    flags = dict.fromkeys(COUNTED_FLAGS, 0)
+    for part in parts:
+        level = part.key("level")
+        sizes = part.present.sum(axis=1)
+        for k in dict.fromkeys(level):
+            levels[k] = levels.get(k, 0) + int(sizes[level == k].sum())
+        trial = level == "trial"
+        point_flags = part.flags[trial][part.present[trial]]
+        for f in COUNTED_FLAGS:
+            flags[f] += int(sum(f in v for v in point_flags))
+    return {"rows": sum(levels.values()),
+            "levels": dict(sorted(levels.items(), key=lambda kv: -kv[1])),
+            "flagged_trial_rows": flags}
+
+
 _KEY_DTYPES = {"subject": "string", "grip_N": "float64", "run": "Int64", "level": "string",
                "axis": "string", "kind": "string", "out_axis": "string", "method": "string"}
 
@@ -1571,21 +1679,78 @@ def _stack_blocks(blocks: list[dict[str, object]], meta: Mapping | None = None) 
 
 @dataclass(frozen=True)
 class StudySpectra:
-    """Result of :func:`estimate_study`: the spectra (with their file metadata), the
-    trials kept, what was left out (``skipped``: (file, reason)), the files found that
-    are not trials, the common sampling rate (Hz) and data warnings."""
+    """Result of :func:`estimate_study`: the trials kept (their responses), what was left
+    out (``skipped``: (file, reason)), the files found that are not trials, the common
+    sampling rate (Hz), data warnings and the metadata of the spectra file.
 
-    spectra: Spectra
+    :attr:`spectra` (every response and the aggregates, :func:`spectra_table`) is made
+    when first asked for; :meth:`write` writes the same file without making it whole, a
+    row group at a time, so a large study's file takes little more memory than its
+    trials' responses.
+    """
+
     trials: tuple[TrialResponses, ...]
     skipped: tuple[tuple[str, str], ...]
     ignored: tuple[str, ...]
     fs: float | None
     warnings: tuple[str, ...]
+    meta: Mapping[str, object] = field(default_factory=dict)
+
+    @functools.cached_property
+    def spectra(self) -> Spectra:
+        """The study's :class:`Spectra`, with :attr:`meta`."""
+        return spectra_table(self.trials, self.meta)
 
     @functools.cached_property
     def table(self) -> pd.DataFrame:
         """The long table of the spectra file (:meth:`Spectra.to_frame`)."""
         return self.spectra.to_frame()
+
+    @functools.cached_property
+    def _aggregates(self) -> list[dict[str, object]]:
+        return _aggregate_blocks(self.trials)
+
+    def parts(self, rows: int | None = None):
+        """The rows of :attr:`spectra` in order, ``rows`` (default :data:`WRITE_ROWS`)
+        responses at a time, each a :class:`Spectra` (made as they are consumed unless
+        :attr:`spectra` exists)."""
+        rows = rows or WRITE_ROWS
+        if "spectra" in self.__dict__:
+            yield from self.spectra.parts(rows)
+            return
+        blocks = itertools.chain(_trial_blocks(self.trials), self._aggregates)
+        while chunk := list(itertools.islice(blocks, rows)):
+            yield _stack_blocks(chunk, self.meta)
+
+    def write(self, path, *, overwrite: bool = False):
+        """Write the spectra file without making the whole :attr:`spectra`.
+
+        The bytes are those of ``self.spectra.write(path)`` (:meth:`Spectra.write`); the
+        rows of each row group are made just before it is written (:meth:`parts`).
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            Destination, written atomically.
+        overwrite : bool
+            Replace an existing file.
+
+        Returns
+        -------
+        str or os.PathLike
+            ``path``.
+        """
+        return write_parts(self.parts(), self.meta, path, overwrite=overwrite)
+
+    def counts(self) -> dict[str, object]:
+        """The file's rows, rows per level and flagged trial rows.
+
+        Returns
+        -------
+        dict
+            See :func:`row_counts`; computed part by part, like :meth:`write`.
+        """
+        return row_counts(self.parts())
 
 
 def _estimate_source(source, config: EstimateConfig):
@@ -1624,6 +1789,7 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     kept: list[TrialResponses] = []
     warnings: list[str] = []
     ref: tuple[float, str] | None = None
+    patterns: dict[tuple[str, ...], tuple[str, ...]] = {}
 
     def handle(res) -> None:
         nonlocal ref
@@ -1638,6 +1804,10 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
             warnings.append(w)
             if warn is not None:
                 warn(w)
+        # responses of a study share few flag patterns: keep one tuple of each
+        tr = replace(tr, responses=tuple(replace(r, flags=patterns.setdefault(r.flags,
+                                                                              r.flags))
+                                         for r in tr.responses))
         if ref is None:
             ref = (fs, tr.source)
         elif abs(fs - ref[0]) > 1e-6 * ref[0]:
@@ -1666,9 +1836,8 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
         raise NoInputError("no trial could be estimated"
                            + (f" ({len(skipped)} skipped)" if skipped else ""))
     fs = ref[0] if ref else None
-    meta = study_metadata(config, fs, len(kept), skipped)
-    return StudySpectra(spectra_table(kept, meta), tuple(kept), tuple(skipped),
-                        tuple(str(p) for p in stream.ignored), fs, tuple(warnings))
+    return StudySpectra(tuple(kept), tuple(skipped), tuple(str(p) for p in stream.ignored),
+                        fs, tuple(warnings), study_metadata(config, fs, len(kept), skipped))
 
 
 def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpectra:
@@ -1709,14 +1878,7 @@ def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpe
                                    config.grid(), responses))
     if not kept:
         raise NoInputError("no trial to estimate")
-    meta = study_metadata(config, fs, len(kept), [])
-    return StudySpectra(spectra_table(kept, meta), tuple(kept), (), (), fs, ())
-
-
-def spectra_metadata(config: EstimateConfig, result: StudySpectra) -> dict:
-    """The metadata a spectra file carries (JSON in its Parquet key-value metadata); see
-    :func:`study_metadata`."""
-    return study_metadata(config, result.fs, len(result.trials), result.skipped)
+    return StudySpectra(tuple(kept), (), (), fs, (), study_metadata(config, fs, len(kept), []))
 
 
 def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,

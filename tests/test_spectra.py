@@ -505,3 +505,20 @@ def test_spectra_file_written_in_row_groups_reads_back_the_same(tmp_path, monkey
     many = S.Spectra.read(tmp_path / "groups.parquet").to_frame()
     assert one.equals(many)
     assert S.Spectra.read(tmp_path / "groups.parquet").meta == spectra.meta
+    # estimate writes its file without making the whole Spectra: trial rows are made a
+    # group at a time, the aggregates last (a group here holds both); same bytes
+    study = S.estimate_trials(trials, S.EstimateConfig())
+    study.write(tmp_path / "streamed.parquet")
+    assert "spectra" not in study.__dict__  # never made whole
+    assert ((tmp_path / "streamed.parquet").read_bytes()
+            == (tmp_path / "groups.parquet").read_bytes())
+    assert (spectra.key("level") == "trial").sum() % 3  # a group holds trials and aggregates
+    # the counts estimate --json reports, from the parts and from the whole
+    counts = study.counts()
+    assert counts == spectra.counts()
+    assert counts["rows"] == spectra.present.sum() == len(one)
+    assert counts["levels"] == one["level"].value_counts().to_dict()
+    trial_flags = one.loc[one["level"] == "trial", "flags"]
+    assert counts["flagged_trial_rows"] == {
+        f: int(trial_flags.str.contains(f).sum()) for f in ("low_coherence", "saturation",
+                                                            "drift")}

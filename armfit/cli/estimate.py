@@ -21,7 +21,6 @@ from armfit.cli.options import (
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
-from armfit.io.schema import COUNTED_FLAGS
 
 WINDOWS = ("hann", "hamming", "blackman", "blackmanharris", "boxcar")
 
@@ -113,22 +112,16 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
                                        skip_bad=skip_bad, jobs=jobs, on_open=on_open,
                                        advance=lambda: bar["advance"](),
                                        warn=lambda text: message(f"warning: {text}"))
-    spectra = result.spectra
-    meta = spectra.meta
-    spectra.write(output, overwrite=overwrite)
+    meta = result.meta
+    result.write(output, overwrite=overwrite)
     if csv_path is not None:
-        spectra.write_csv(csv_path, overwrite=overwrite)
+        result.spectra.write_csv(csv_path, overwrite=overwrite)
     for f, r in result.skipped:
         message(f"skipped {f}: {r}")
     message(f"estimated {len(result.trials)} trial(s) into {output}"
             + (f"; skipped {len(result.skipped)}" if result.skipped else ""))
     if as_json:
-        trials = spectra.select(level="trial")
-        point_flags = trials.flags[trials.present]
-        flags = {f: int(sum(f in v for v in point_flags)) for f in COUNTED_FLAGS}
-        levels = spectra.key("level")
-        sizes = spectra.present.sum(axis=1)
-        counts = {k: int(sizes[levels == k].sum()) for k in dict.fromkeys(levels)}
+        counts = result.counts()
         emit_json({
             "output": str(output),
             "csv": csv_path,
@@ -138,8 +131,5 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
             "ignored": list(result.ignored),
             "fs_hz": result.fs,
             "grid": {"fmin_hz": fmin, "fmax_hz": fmax, "points": len(meta["grid_hz"])},
-            "rows": int(sizes.sum()),
-            "levels": dict(sorted(counts.items(), key=lambda kv: -kv[1])),
-            "flagged_trial_rows": flags,
+            **counts,
         })
-

@@ -832,7 +832,11 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
     for j, c in enumerate(DATASET_COLUMNS[:6]):
         if c in names:
             (force if j < 3 else pos)[:, j % 3] = table.column(c).to_numpy()
-    grip_N = table.column("grip_N").to_numpy() if "grip_N" in names else None
+    grip_N = table.column("grip_N").to_numpy().copy() if "grip_N" in names else None
+    del table
+    # the columns are copied out: Arrow's allocator (mimalloc) would keep their pages,
+    # and reading trial after trial would grow the process by the largest it has met
+    pa.default_memory_pool().release_unused()
     meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
                      float(rec["fs"]), int(rec["n_samples"]), float(rec["t0_s"]),
                      str(rec["source"]))
