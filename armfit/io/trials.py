@@ -628,7 +628,9 @@ def read_trial(source: TrialSource, *, f_min_hz: float = 0.1, force_limit_N: flo
         fs = sampling_rate(t, file=file)
         meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
                          fs, int(n), float(t[0]), file)
-        trial = Trial(meta, force, pos, grip)
+        trial = Trial(meta, force, pos, None if grip is None else np.array(grip))
+        del cols, t, grip
+        _release_arrow_memory()
     _check_trial(trial, source.label, f_min_hz=f_min_hz, force_limit_N=force_limit_N,
                  warn=warn)
     return trial
@@ -805,6 +807,14 @@ def _open_dataset(path: str, stamp: tuple[int, int, int]):
     return pf, records
 
 
+def _release_arrow_memory() -> None:
+    """Return the pages of Arrow's freed buffers to the system. A trial's columns are
+    copied out of its table; Arrow's allocator (mimalloc) would keep their pages, and
+    reading trial after trial would grow the process by every buffer size it has met."""
+    import pyarrow as pa
+    pa.default_memory_pool().release_unused()
+
+
 def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
     import pyarrow as pa
     idx = int(source.index)  # type: ignore[arg-type]
@@ -834,9 +844,7 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
             (force if j < 3 else pos)[:, j % 3] = table.column(c).to_numpy()
     grip_N = table.column("grip_N").to_numpy().copy() if "grip_N" in names else None
     del table
-    # the columns are copied out: Arrow's allocator (mimalloc) would keep their pages,
-    # and reading trial after trial would grow the process by the largest it has met
-    pa.default_memory_pool().release_unused()
+    _release_arrow_memory()
     meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
                      float(rec["fs"]), int(rec["n_samples"]), float(rec["t0_s"]),
                      str(rec["source"]))
