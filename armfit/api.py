@@ -670,6 +670,12 @@ class Diagnosis:
         """{axis: missing effect or None}."""
         return {d.axis: d.missing_effect for d in self.axes}
 
+    @property
+    def added(self) -> dict[str, tuple[str, ...]]:
+        """{axis: every effect the stepwise search added, in order} (empty when none)."""
+        return {d.axis: tuple(_effect_name(m) for m in d.missing_effects)
+                or ((d.missing_effect,) if d.missing_effect else ()) for d in self.axes}
+
     def to_dict(self) -> dict:
         """The JSON document of ``armfit diagnose --json`` (and of diagnosis.json)."""
         return diagnosis_to_dict(list(self.axes))
@@ -678,11 +684,10 @@ class Diagnosis:
         """One row per axis: axis, n_trials, band_lo_hz, band_hi_hz, missing_effects (the
         effects added, ";"-separated), adequate (the final model fits within the noise),
         base and final rms_norm, failing_bands (count, base model), verdict."""
+        added = self.added
         return pd.DataFrame([{
             "axis": d.axis, "n_trials": d.n_trials, "band_lo_hz": d.band[0],
-            "band_hi_hz": d.band[1],
-            "missing_effects": ";".join(_effect_name(m) for m in d.missing_effects)
-            or (d.missing_effect or ""),
+            "band_hi_hz": d.band[1], "missing_effects": ";".join(added[d.axis]),
             "adequate": bool(d.adequate), "rms_norm_base": d.base_error.rms_norm,
             "rms_norm_final": (d.final_error or d.base_error).rms_norm,
             "failing_bands": len(d.failing), "verdict": d.verdict} for d in self.axes],

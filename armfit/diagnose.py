@@ -59,6 +59,7 @@ from armfit import blocklsq
 from armfit.constants import AXES, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import UsageError
 from armfit.fitting import ParamSpace, analytic_guess, fit_response, log_errors
+from armfit.io.schema import finite_or_none
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
 from armfit.models.params import model_from_params
@@ -1183,8 +1184,7 @@ class _Search:
         return fit.base.size + len(fit.shared)
 
     def start(self, base: JointFit) -> None:
-        ad = adequacy(self.f, base, self.se_db, self.se_deg, self.band, self.n_params(base),
-                      self.min_db, self.min_deg)
+        ad = self._adequacy(base)
         self.fits.append(base)
         self.adequacies.append(ad)
         self.steps.append(Step(None, {}, {}, {}, (), ad.overall.rms_db, ad.overall.rms_deg,
@@ -1218,7 +1218,6 @@ class _Search:
         among the candidates of the first step, never added)."""
         cur = self.fits[-1]
         cands = []
-        self._screened = list(screened)
         for eff, fit in fits:
             lr, n_eff, reduction = _robust_lr(cur, fit, self.se_db, self.se_deg)
             score = float(lr - len(eff.params) * np.log(max(n_eff, 2.0)))
@@ -1234,7 +1233,7 @@ class _Search:
         cands.sort(key=lambda c: c[0], reverse=True)
         if not self.added:
             self.first_candidates = tuple(self._candidate(c) for c in cands) + tuple(
-                self._screened_candidate(e, sc) for e, sc in self._screened)
+                self._screened_candidate(e, sc) for e, sc in screened)
         # an effect with a parameter at a physical bound is only the library's nearest
         # approximation: take it only when no significant candidate is free of bounds
         free = [c for c in cands if c[1]
@@ -1247,18 +1246,26 @@ class _Search:
         if best is None:
             self.done, self.stop = True, "nothing-significant"
             return
-        score, _, eff, fit, err, _, _, cdb, cdeg = best
+        score, _, eff, fit, _, _, _, cdb, cdeg = best
+        self._append(eff, fit, self._adequacy(fit), score, cdb, cdeg)
+        self._check_stop()
+
+    def _adequacy(self, fit: JointFit) -> Adequacy:
+        return adequacy(self.f, fit, self.se_db, self.se_deg, self.band, self.n_params(fit),
+                        self.min_db, self.min_deg)
+
+    def _append(self, eff: Effect, fit: JointFit, ad: Adequacy, score: float,
+                change_db: float = float("nan"), change_deg: float = float("nan")) -> None:
+        """Record a step: ``eff`` added, the joint fit with it and its adequacy."""
+        err = ad.overall
+        p = _short(fit.shared, eff.name)
         self.added.append(eff)
         self.fits.append(fit)
-        ad = adequacy(self.f, fit, self.se_db, self.se_deg, self.band, self.n_params(fit),
-                      self.min_db, self.min_deg)
         self.adequacies.append(ad)
-        p = _short(fit.shared, eff.name)
         self.steps.append(Step(eff.name, p, _short(fit.shared_lo, eff.name),
                                _short(fit.shared_hi, eff.name),
                                tuple(at_bound(eff.params, p)), err.rms_db, err.rms_deg,
-                               err.rms_norm, float(score), cdb, cdeg))
-        self._check_stop()
+                               err.rms_norm, float(score), change_db, change_deg))
 
     def _candidate(self, c) -> Candidate:
         score, ok, eff, fit, err, reduction, lr, _, _ = c
@@ -1313,19 +1320,11 @@ class _Search:
                                  self.se_deg, self.min_db, self.min_deg)[0] for e in new)
             if not (score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION and prac):
                 return
-        ad = adequacy(self.f, fit, self.se_db, self.se_deg, self.band, self.n_params(fit),
-                      self.min_db, self.min_deg)
+        ad = self._adequacy(fit)
         err = ad.overall
         if new:
             for e in new:
-                self.added.append(e)
-                p = _short(fit.shared, e.name)
-                self.steps.append(Step(e.name, p, _short(fit.shared_lo, e.name),
-                                       _short(fit.shared_hi, e.name),
-                                       tuple(at_bound(e.params, p)), err.rms_db,
-                                       err.rms_deg, err.rms_norm, float(score)))
-                self.fits.append(fit)
-                self.adequacies.append(ad)
+                self._append(e, fit, ad, score)
         else:
             last = self.steps[-1]
             p = _short(fit.shared, last.effect) if last.effect else {}
@@ -1337,7 +1336,6 @@ class _Search:
             self.fits[-1] = fit
             self.adequacies[-1] = ad
         self.stop = "adequate" if ad.adequate else self.stop
-        self.borrowed = True
 
     def _screened_candidate(self, eff: Effect, fit: JointFit) -> Candidate:
         """A candidate that the screening ranked below the joint fits: its subset fit's
@@ -1767,11 +1765,6 @@ def band_to_dict(b: BandError) -> dict:
             "rms_norm": b.rms_norm, "bias_norm": b.bias_norm, "n_points": b.n_points}
 
 
-def _finite(v: float) -> float | None:
-    """``v``, or None (JSON null) when it is NaN or infinite."""
-    return float(v) if np.isfinite(v) else None
-
-
 def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
     """The JSON document of ``armfit diagnose`` (schema in docs/formats.md, "Diagnosis JSON")."""
     axes = {}
@@ -1789,17 +1782,17 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
             "candidates": [{
                 "effect": c.effect, "params": c.params, "params_lo": c.params_lo,
                 "params_hi": c.params_hi,
-                "rms_db_before": c.rms_db_before, "rms_db_after": _finite(c.rms_db_after),
+                "rms_db_before": c.rms_db_before, "rms_db_after": finite_or_none(c.rms_db_after),
                 "rms_deg_before": c.rms_deg_before,
-                "rms_deg_after": _finite(c.rms_deg_after),
+                "rms_deg_after": finite_or_none(c.rms_deg_after),
                 "rms_norm_before": c.rms_norm_before,
-                "rms_norm_after": _finite(c.rms_norm_after),
-                "failing_bias_before": _finite(c.failing_bias_before),
-                "failing_bias_after": _finite(c.failing_bias_after),
+                "rms_norm_after": finite_or_none(c.rms_norm_after),
+                "failing_bias_before": finite_or_none(c.failing_bias_before),
+                "failing_bias_after": finite_or_none(c.failing_bias_after),
                 "failing_before": [band_to_dict(b) for b in c.failing_before],
                 "failing_after": [band_to_dict(b) for b in c.failing_after],
-                "lr": c.lr, "score": _finite(c.score),
-                "rss_reduction": _finite(c.rss_reduction), "significant": c.significant,
+                "lr": c.lr, "score": finite_or_none(c.score),
+                "rss_reduction": finite_or_none(c.rss_reduction), "significant": c.significant,
             } for c in d.candidates],
             "missing_effects": [{
                 "effect": m.effect, "params": m.params, "params_lo": m.params_lo,
@@ -1812,9 +1805,9 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
                 "effect": s.effect, "params": s.params, "params_lo": s.params_lo,
                 "params_hi": s.params_hi, "at_bound": list(s.at_bound), "rms_db": s.rms_db,
                 "rms_deg": s.rms_deg, "rms_norm": s.rms_norm,
-                "delta_bic": None if not np.isfinite(s.delta_bic) else s.delta_bic,
-                "change_db": None if not np.isfinite(s.change_db) else s.change_db,
-                "change_deg": None if not np.isfinite(s.change_deg) else s.change_deg,
+                "delta_bic": finite_or_none(s.delta_bic),
+                "change_db": finite_or_none(s.change_db),
+                "change_deg": finite_or_none(s.change_deg),
             } for s in d.steps],
             "final_error": None if d.final_error is None else band_to_dict(d.final_error),
             "final_bands": [band_to_dict(b) for b in d.final_bands],

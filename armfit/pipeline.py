@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib
-import json
 import math
 import os
 import time
@@ -410,13 +409,10 @@ def _diagnose(ctx: _Context) -> str:
     """Per-trial fits started from the grip fits (diagnosis.json)."""
     results = ctx.background.result()
     ctx.diagnosis = api.Diagnosis(tuple(results), ctx.spectra, ctx.grip)
-    write_text_atomic(ctx.path("diagnosis.json"),
-                      json.dumps(ctx.diagnosis.to_dict(), indent=2) + "\n")
+    ctx.diagnosis.write(ctx.path("diagnosis.json"))
     ctx.since = ctx.background.started
     # every effect the stepwise search named on an axis, in order ("delay+lowpass")
-    doc = ctx.diagnosis.to_dict()
-    ctx.missing = {a: "+".join(m["effect"] for m in d.get("missing_effects", []))
-                   or d["missing_effect"] for a, d in doc["axes"].items()}
+    ctx.missing = {a: "+".join(names) or None for a, names in ctx.diagnosis.added.items()}
     for axis, eff in ctx.missing.items():
         if eff:
             ctx.refitted[eff] = (*ctx.refitted.get(eff, ()), axis)

@@ -1698,8 +1698,8 @@ class StudySpectra:
 
     @functools.cached_property
     def spectra(self) -> Spectra:
-        """The study's :class:`Spectra`, with :attr:`meta`."""
-        return spectra_table(self.trials, self.meta)
+        """The study's :class:`Spectra` (:func:`spectra_table`), with :attr:`meta`."""
+        return _stack_blocks([*_trial_blocks(self.trials), *self._aggregates], self.meta)
 
     @functools.cached_property
     def table(self) -> pd.DataFrame:
