@@ -55,7 +55,7 @@ from armfit.models.literature import LiteratureModel, literature_models
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
 from armfit.stability import WallSettings, k_max_sweep, plant_from_model, stability_table
-from armfit.uncertainty import WuWeight, w_max
+from armfit.uncertainty import WuWeight, arm_trials, w_max
 
 # fontTools, which subsets fonts for PDF output, logs every table it prunes at INFO.
 logging.getLogger("fontTools").setLevel(logging.WARNING)
@@ -875,7 +875,8 @@ def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
     """Derived arm dynamics with the nominal H_ARM, and W_max with |Wu| — paper Fig. 6.
 
     Rows: magnitude and phase of every trial's derived arm dynamics Xa/Fa (kind
-    "derived", level "trial"; thin) with the nominal H_ARM (eq. 3 with arm-stage effects,
+    "derived", level "trial"; thin; the nominal row's apparatus effects removed, as
+    W_max removes them) with the nominal H_ARM (eq. 3 with arm-stage effects,
     :meth:`ClosedLoopModel.arm_response` of the ``nominal`` row of the axis; black
     dash-dot), then W_max = max over trials |H/H̄ − 1| in dB (eq. 6; dots) with |Wu(jω)|
     in dB (eq. 7, ``weights`` {axis: WuWeight} as :func:`armfit.io.artifacts.read_wu`
@@ -898,6 +899,8 @@ def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
         if not pairs:
             raise BadInputError(f"no nominal model row for axis {ax_name}", column="axis")
         model, theta = model_from_row(pairs[0][1])
+        if model.apparatus_effects:    # the arm alone, as W_max sees it (arm_trials)
+            curves = [_arm_curve(c, pairs[0][1], spectra, ax_name) for c in curves]
         fd = _log_grid(f)
         h_nom_dense = model.arm_response(fd, theta)
         ref = _PhaseRef(fd, _phase_deg(h_nom_dense))
@@ -935,6 +938,14 @@ def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
     _minor_ticks_as_lines(fig)
     _fixed_layout(fig, axs)
     return fig
+
+
+def _arm_curve(c: Curve, row: Mapping[str, Any], spectra: Spectra, axis: str) -> Curve:
+    """A derived trial curve with the nominal row's apparatus effects removed
+    (:func:`armfit.uncertainty.arm_trials`)."""
+    mp = (spectra.meta.get("mp_kg") or {}).get(axis) if spectra.meta else None
+    h = arm_trials(row, c.freq_hz, c.h, mp)
+    return replace(c, h=h, mag_db=_db(h), phase_deg=np.degrees(np.angle(h)))
 
 
 # ---------------------------------------------------------------------------

@@ -68,7 +68,8 @@ from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import params_frame
 from armfit.io.schema import params_columns
-from armfit.models.arm import ClosedLoopModel, at_bound, laplace
+from armfit.models.arm import ClosedLoopModel, at_bound, laplace, union_param_names
+from armfit.models.effects import effects_by_axis
 from armfit.spectra import Spectra, aggregate
 from armfit.workers import iter_tasks, map_tasks
 
@@ -125,15 +126,20 @@ class FitResult:
     def row(self) -> dict[str, float | str | bool]:
         """Parameters, intervals and statistics as one flat dict (the params CSV column names,
         docs/formats.md "Params CSV")."""
-        out: dict[str, float | str | bool] = dict(self.params)
-        for n in self.params:
-            out[f"{n}_lo"] = self.ci_lo[n]
-            out[f"{n}_hi"] = self.ci_hi[n]
+        held = self.model.held_values
+        out: dict[str, float | str | bool] = {
+            n: held[n] if n in held else self.params[n] for n in self.model.all_param_names}
+        nan = float("nan")
+        for n in self.model.all_param_names:   # a held value is given, not estimated
+            out[f"{n}_lo"] = nan if n in held else self.ci_lo[n]
+            out[f"{n}_hi"] = nan if n in held else self.ci_hi[n]
         out.update(rms_db=self.rms_db, rms_deg=self.rms_deg, rms_norm=self.rms_norm,
                    band_lo_hz=self.band[0], band_hi_hz=self.band[1], n_points=self.n_points,
                    cost=self.cost, converged=self.converged, mp_kg=self.model.mp,
                    effects=";".join(e.name for e in self.model.effects),
                    at_bound=";".join(self.at_bound))
+        if held:
+            out["held"] = ";".join(held)
         return out
 
 
@@ -313,7 +319,10 @@ def _candidates(prob: _Problem, x0: Mapping[str, float] | None, n_sobol: int) ->
         starts.append(sp.to_z(theta))
     if x0 is not None:
         theta = typical.copy()
+        held = prob.model.held_values
         for n, v in x0.items():
+            if n in held:       # a start may come from a fit that held the same values
+                continue
             if n not in sp.names:
                 raise UsageError(f"starting value for unknown parameter {n!r}; the model has "
                                  f"{', '.join(sp.names)}")
@@ -647,7 +656,7 @@ class StudyFit:
             if self.which == "grip":
                 row["grip_N"] = grip
             rows.append(row)
-        names = self.fits[0].model.param_names if self.fits else PARAM_NAMES
+        names = union_param_names([f.model for f in self.fits])
         return params_frame(rows, names, grip=self.which == "grip")
 
 
@@ -686,8 +695,10 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         See the module docstring (eq. 5 for 'paper').
     bands : dict, optional
         {axis: (lo, hi) Hz}; default :data:`PAPER_BANDS`.
-    effects : sequence of Effect
-        Added to every model.
+    effects : sequence or mapping
+        Effects added to every model (a sequence of Effect, names or held specs
+        ``NAME=VALUES``; see :func:`armfit.models.effects.resolve_effects`), or one
+        sequence per axis {axis: sequence} (axes not named: the base model).
     bootstrap : int
         Number of subject resamples (0: Jacobian intervals), aggregated with
         :func:`armfit.spectra.aggregate`.
@@ -721,6 +732,7 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         raise UsageError(f"which must be one of {', '.join(STUDY_FITS)}, got {which!r}")
     how = STUDY_FITS[which]
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
+    specs = effects_by_axis(effects)
     sp = Spectra.of(spectra)
     source = source if source is not None else sp.source
     measured = sp.select(kind="measured")
@@ -755,7 +767,8 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
             trials = measured.select(level="trial", axis=axis, grip=grip)
             boot = (*_trial_matrix(trials, f, source, where, how), how, bootstrap, seed)
         keys.append((axis, grip))
-        tasks.append((where, ClosedLoopModel.for_axis(axis, effects), (f, h, se_db, se_deg),
+        model = ClosedLoopModel.for_axis(axis, specs[axis][0], held=specs[axis][1])
+        tasks.append((where, model, (f, h, se_db, se_deg),
                       {"cost": cost, "band": bands[axis], "max_nfev": max_nfev}, boot))
     fits = []
     for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs,
@@ -864,18 +877,19 @@ def trial_groups(spectra, *, method: str | None = None, source: str | None = Non
 
 def fit_trial(key: tuple[str, str, float, int | None], rows, *, cost: str = "complex",
               band: tuple[float, float] | None = None, effects: Sequence = (),
-              max_nfev: int | None = None, x0: Mapping[str, float] | None = None
-              ) -> TrialFit:
+              max_nfev: int | None = None, x0: Mapping[str, float] | None = None,
+              held: Mapping[str, float] | None = None) -> TrialFit:
     """Fit H_CL (eq. 4, plus ``effects``) to one trial's measured response ``rows`` =
     (f_hz, H in m/N, se_db, se_deg), as :func:`trial_groups` gives it, with
     :func:`fit_response`: with the global search, or with ``x0`` a local fit from those
     parameter values only (kept even when it did not converge: :func:`fit_trials`
     decides). A fit that fails (no convergence, too few usable bins, repeated
-    frequencies) is returned with ``fit`` None and its reason, not raised."""
+    frequencies) is returned with ``fit`` None and its reason, not raised. ``held``:
+    {``effect.param``: value} of effect parameters held fixed."""
     axis, subject, grip, run = key
     band = PAPER_BANDS[axis] if band is None else band
     try:
-        model = ClosedLoopModel.for_axis(axis, effects)
+        model = ClosedLoopModel.for_axis(axis, effects, held=held)
         f, h, se_db, se_deg = rows
         if np.unique(f).size != f.size:
             raise BadInputError("repeated frequencies in the trial's response",
@@ -936,16 +950,19 @@ def fit_trials(spectra, *, cost: str = "complex",
     keeps the better fit; so does a trial without a start.
     """
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
+    specs = effects_by_axis(effects)
     groups = trial_groups(spectra, method=method, source=source)
     if starts is None:
         starts = _grip_starts(spectra, cost, bands, effects, method, source)
-    base = {"cost": cost, "effects": tuple(effects), "max_nfev": max_nfev}
-    tasks = [(key, rows, {**base, "band": bands[key[0]],
+    base = {"cost": cost, "max_nfev": max_nfev}
+    tasks = [(key, rows, {**base, "band": bands[key[0]], "effects": specs[key[0]][0],
+                          "held": specs[key[0]][1],
                           "x0": starts.get((key[0], float(key[2])))})
              for key, rows in groups]
     # the parameters each start has at a bound (a bound shared with the start is no
     # reason for the global search)
-    start_bounds = {k: at_bound(ClosedLoopModel.for_axis(k[0], effects).params, v)
+    start_bounds = {k: at_bound(ClosedLoopModel.for_axis(k[0], specs[k[0]][0],
+                                                         held=specs[k[0]][1]).params, v)
                     for k, v in starts.items()}
     def run(items: list) -> list:
         return map_tasks(_fit_trial_task, items, jobs, preload=("armfit.fitting",),
@@ -991,15 +1008,22 @@ def _grip_starts(spectra, cost, bands, effects, method, source
             if fit.converged and grip is not None}
 
 
-def trial_fits_table(fits: Sequence[TrialFit], effects: Sequence = ()):
+def trial_fits_table(fits: Sequence[TrialFit], effects=()):
     """The per-trial params table: the layout of a grip fit
     (:func:`armfit.io.artifacts.params_columns`) with ``subject`` after ``axis``, ``run``
     after ``grip_N`` and a last column ``reason`` (empty for a fit; for a failed trial its
-    reason, with empty parameters and ``converged`` false)."""
+    reason, with empty parameters and ``converged`` false). ``effects``: the models'
+    effects as :func:`fit_trials` took them (names the effects of a failed trial)."""
     import pandas as pd
 
-    names = ClosedLoopModel.for_axis("x", effects).param_names
-    cols = params_columns(names, grip=True)
+    specs = effects_by_axis(effects)
+    present = {tf.axis for tf in fits}
+    models = [ClosedLoopModel.for_axis(a, e, held=h) for a, (e, h) in specs.items()
+              if a in present]
+    models += [tf.fit.model for tf in fits if tf.fit is not None]
+    names = union_param_names(models)
+    held = any(m.held for m in models)
+    cols = params_columns(names, grip=True, held=held)
     cols = cols[:1] + ["subject"] + cols[1:2] + ["run"] + cols[2:] + ["reason"]
     rows = []
     for tf in fits:
@@ -1008,7 +1032,8 @@ def trial_fits_table(fits: Sequence[TrialFit], effects: Sequence = ()):
         if tf.fit is not None:
             row.update(tf.fit.row())
         else:
-            row.update(converged=False, effects=";".join(e.name for e in effects),
+            row.update(converged=False,
+                       effects=";".join(e.name for e in specs[tf.axis][0]),
                        mp_kg=ClosedLoopModel.for_axis(tf.axis).mp, cost="")
         rows.append(row)
     df = pd.DataFrame(rows, columns=cols)

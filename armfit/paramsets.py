@@ -19,7 +19,8 @@ from armfit.constants import DEVICE_MASS_KG
 from armfit.data import paper_table
 from armfit.errors import BadInputError, NoInputError
 from armfit.io.schema import PARAMS_BASE, wu_sidecar_paths
-from armfit.models.effects import get_effect
+from armfit.models.arm import BASE_PARAMS
+from armfit.models.params import row_effects, row_param_names
 from armfit.uncertainty import PAPER_BAND_HZ, read_wu
 
 #: Names that stand for the paper's tables when no file of that name exists.
@@ -58,9 +59,10 @@ def read_param_rows(path_or_name: str) -> ParamRows:
     the paper's tables (``nominal``/``table2``, ``grip``/``table1``; a file of that name
     wins).
 
+    Each row is its own model (its ``effects`` cell): a file may hold one model per axis.
     Raises NoInputError for a missing file; BadInputError naming the file, column and
-    row for a missing column, rows mixing effects, or a parameter that is not a positive
-    number in a row that claims a fit.
+    row for a missing column, an unknown effect, or a parameter of a row's model that is
+    not a number inside its physical range in a row that claims a fit.
     """
     p = Path(path_or_name)
     if not p.exists() and str(path_or_name).lower() in PAPER_PARAMS:
@@ -84,17 +86,8 @@ def read_param_rows(path_or_name: str) -> ParamRows:
             raise BadInputError("missing column; expected a file written by fit-grip, "
                                 "fit-nominal or fit-trials", file=str(p), column=col)
     df["effects"] = df["effects"].fillna("").astype(str)
-    specs = set(df["effects"])
-    if len(specs) > 1:
-        raise BadInputError(f"rows list different effects ({' | '.join(sorted(specs))}); "
-                            "one params file holds one model", file=str(p), column="effects")
-    names = list(PARAMS_BASE)
-    for name in [n for n in next(iter(specs), "").split(";") if n]:
-        try:
-            eff = get_effect(name)
-        except ValueError as exc:
-            raise BadInputError(str(exc), file=str(p), column="effects") from None
-        names += [f"{eff.name}.{q.name}" for q in eff.params]
+    uses = row_param_names(df, p)       # each row's own model (one per axis, say)
+    names = list(PARAMS_BASE) + list(dict.fromkeys(n for u in uses for n in sorted(u)))
     for col in names:
         if col not in df.columns:
             raise BadInputError("missing column of the model's effects", file=str(p),
@@ -116,10 +109,19 @@ def read_param_rows(path_or_name: str) -> ParamRows:
             and isinstance(df["reason"].iloc[i], str) else "no parameters (fit failed)"
         skipped.append((int(i) + 1, _identity(df.iloc[i]), reason))
     keep = ~empty
+    bounds = {q.name: q for q in BASE_PARAMS}
+    for effects in row_effects(df, p):
+        for e in effects:
+            bounds.update({f"{e.name}.{q.name}": q for q in e.params})
     for col, v in values.items():
-        bad = np.flatnonzero(keep & ~(np.isfinite(v) & (v > 0)))
+        used = keep & np.array([col in PARAMS_BASE or col in u for u in uses], bool)
+        q = bounds[col]
+        tol = 1e-9 * max(abs(q.lower), abs(q.upper))  # 10-digit rounding of a bound
+        bad = np.flatnonzero(used & ~(np.isfinite(v) & (v >= q.lower - tol)
+                                      & (v <= q.upper + tol) & ((v > 0) | (not q.log))))
         if bad.size:
-            raise BadInputError(f"parameter must be a positive number, got "
+            raise BadInputError(f"parameter must be a number in its physical range "
+                                f"[{q.lower:g}, {q.upper:g}] {q.unit}, got "
                                 f"{df[col].iloc[bad[0]]!r}", file=str(p), column=col,
                                 row=int(bad[0]) + 1)
         df[col] = v

@@ -514,21 +514,72 @@ def closed_loop_stable(plant: RationalPlant, settings: WallSettings, k_N_per_m: 
 class Certificate:
     """Robust stability of the wall against the arm's multiplicative uncertainty Wu.
 
-    ``peak_k0``: max over the band of |Wu T| at K = 0 (with the settings' B and d);
-    ``f_peak_k0_hz``: where; ``k_robust_N_per_m``: the largest K with the loop
-    nominally stable and max |Wu T| < 1 for every K′ in [0, K] (NaN when it holds for no
-    K); ``band_hz``: the band evaluated (the weight's).
+    The small-gain test max |Wu T| < 1 is evaluated from the low edge of the weight's
+    band to ``f_max_hz``, the Nyquist frequency of the wall (every frequency at which the
+    sampled loop can lose stability). Above the weight's band (``band_hz``, where it was
+    fitted to data) Wu is its own continuation: the stated assumption that the arm's
+    relative uncertainty stays within |Wu| there too.
+
+    Attributes
+    ----------
+    peak_k0 : float
+        max |Wu T| at K = 0 (with the settings' B and d) over the evaluated range.
+    f_peak_k0_hz : float
+        Where (Hz).
+    k_weight_N_per_m : float
+        The largest K with the loop nominally stable and max |Wu T| < 1 for every K′ in
+        [0, K] (NaN when that holds for no K): what the weight alone certifies.
+    f_binding_hz : float
+        The frequency where |Wu T| reaches 1 at ``k_weight_N_per_m`` (NaN when the
+        nominal K_max or nothing binds).
+    binding_in_band : bool
+        Whether ``f_binding_hz`` lies inside ``band_hz`` (proven by the data) or above it
+        (resting on the assumption).
+    member_k_max_N_per_m : float
+        The smallest K_max of the member models (the trials the weight was built from),
+        at the same settings; NaN when no members were given.
+    limiting_member : str
+        Which member that is ('' without members).
+    beyond_margin : float
+        Over the members and the frequencies above ``band_hz`` up to ``f_max_hz``, the
+        largest |H_i/H̄ − 1| / |Wu| (H the arm responses, H̄ the nominal): ≤ 1 when the
+        members' own models agree with the assumption beyond the band; NaN without
+        members.
+    k_robust_N_per_m : float
+        The certified K: ``k_weight_N_per_m`` capped at ``member_k_max_N_per_m`` (a
+        certificate never admits a K at which a member of the set it covers is
+        unstable); NaN when it holds for no K.
+    limited_by : str
+        What sets ``k_robust_N_per_m``: "weight" (|Wu T| reaches 1 inside the band),
+        "weight beyond band" (above it, on the assumption), "nominal K_max", "member"
+        or "" when it holds for no K.
+    band_hz, f_max_hz
+        The weight's band and the top of the evaluated range (Hz).
     """
 
     peak_k0: float
     f_peak_k0_hz: float
     k_robust_N_per_m: float
     band_hz: tuple[float, float]
+    f_max_hz: float = math.nan
+    k_weight_N_per_m: float = math.nan
+    f_binding_hz: float = math.nan
+    binding_in_band: bool = False
+    member_k_max_N_per_m: float = math.nan
+    limiting_member: str = ""
+    beyond_margin: float = math.nan
+    limited_by: str = ""
 
     @property
     def holds(self) -> bool:
         """Whether the certificate holds for some K ≥ 0."""
         return bool(np.isfinite(self.k_robust_N_per_m))
+
+    @property
+    def assumption_checked(self) -> bool:
+        """Whether the members' models stay within |Wu| above the band (None-safe: False
+        without members)."""
+        return bool(np.isfinite(self.beyond_margin) and self.beyond_margin <= 1.0)
 
 
 def environment_terms(f_hz, model: ClosedLoopModel, theta: Mapping[str, float],
@@ -562,34 +613,85 @@ def environment_terms(f_hz, model: ClosedLoopModel, theta: Mapping[str, float],
 
 def robust_certificate(model: ClosedLoopModel, theta: Mapping[str, float], weight,
                        settings: WallSettings, *, band_hz: tuple[float, float],
-                       k_max_N_per_m: float) -> Certificate:
-    """The small-gain certificate max |Wu T| < 1 over ``band_hz`` (Hz).
+                       k_max_N_per_m: float, members: Sequence[tuple] = (),
+                       f_max_hz: float | None = None) -> Certificate:
+    """The small-gain certificate max |Wu T| < 1, sound for the sampled loop.
 
-    T = Z_env/(Z_ARM + Z_env) (see the module docstring), Z_env = a + K c
-    (:func:`environment_terms`). At each frequency, |Wu| |a + Kc| < |Z_ARM + a + Kc| is
-    a quadratic inequality α K² + β K + γ < 0 in K, solved exactly; K_robust is the
-    smallest K ≥ 0 that violates it anywhere on the grid (:data:`CERT_POINTS_PER_DECADE`
-    log-spaced points), capped at the nominal ``k_max_N_per_m``. ``weight``: a
-    :class:`armfit.uncertainty.WuWeight`.
+    Parameters
+    ----------
+    model, theta : ClosedLoopModel, mapping
+        The nominal model (its loop as :func:`environment_terms` sees it) and its values.
+    weight : armfit.uncertainty.WuWeight
+        Wu, fitted over ``band_hz`` (Hz).
+    settings : WallSettings
+    band_hz : (float, float)
+        Where the weight was fitted to data (Hz).
+    k_max_N_per_m : float
+        The nominal model's K_max (N/m) at ``settings``.
+    members : sequence of (label, ClosedLoopModel, theta, K_max)
+        The models the weight was built from (one per trial) with their K_max at the
+        same settings: the certified K is capped at the smallest, and their arm
+        responses above the band check the assumption (``beyond_margin``).
+    f_max_hz : float, optional
+        Top of the evaluated range (Hz); default the Nyquist frequency 1/(2T).
+
+    Returns
+    -------
+    Certificate
+
+    Notes
+    -----
+    T = Z_env/(Z_ARM + Z_env), Z_env = a + K c (:func:`environment_terms`). At each
+    frequency |Wu| |a + Kc| < |Z_ARM + a + Kc| is a quadratic inequality α K² + β K + γ
+    < 0 in K, solved exactly; K_weight is the smallest K ≥ 0 that violates it anywhere on
+    the grid (:data:`CERT_POINTS_PER_DECADE` log-spaced points from the band's low edge
+    to ``f_max_hz``), capped at ``k_max_N_per_m``. The sampled loop can lose stability at
+    any frequency up to the Nyquist frequency, and does (a wall on a stiff or delayed arm
+    goes unstable above the 30 Hz of a typical measured band), so a test limited to the
+    band would certify gains at which a member of the set is unstable.
     """
     lo, hi = map(float, band_hz)
-    n = max(int(CERT_POINTS_PER_DECADE * np.log10(hi / lo)) + 1, 2)
-    f = np.geomspace(lo, hi, n)
+    top = 0.5 / settings.sample_time_s if f_max_hz is None else float(f_max_hz)
+    top = max(top, hi)
+    n = max(int(CERT_POINTS_PER_DECADE * np.log10(top / lo)) + 1, 2)
+    f = np.geomspace(lo, top, n)
     z, a, c = environment_terms(f, model, theta, settings)
-    w2 = np.abs(weight.response(f)) ** 2
-    ratio0 = np.sqrt(w2) * np.abs(a) / np.abs(z + a)
+    wr = np.abs(weight.response(f))
+    w2 = wr ** 2
+    ratio0 = wr * np.abs(a) / np.abs(z + a)
     i0 = int(np.argmax(ratio0))
     peak0 = float(ratio0[i0])
     alpha = (w2 - 1.0) * np.abs(c) ** 2
     beta = 2.0 * np.real((w2 * np.conj(a) - np.conj(z + a)) * c)
     gamma = w2 * np.abs(a) ** 2 - np.abs(z + a) ** 2
     k_first = _first_violation(alpha, beta, gamma)
-    k_rob = float(np.min(k_first))
+    j = int(np.argmin(k_first))
+    k_w, f_bind = float(k_first[j]), float(f[j])
+    limited = "weight" if f_bind <= hi else "weight beyond band"
     if not (k_max_N_per_m > 0) or peak0 >= 1.0:
-        k_rob = math.nan
-    else:
-        k_rob = min(k_rob, float(k_max_N_per_m))
-    return Certificate(peak0, float(f[i0]), k_rob, (lo, hi))
+        k_w, f_bind, limited = math.nan, math.nan, ""
+    elif k_w >= k_max_N_per_m:
+        k_w, f_bind, limited = float(k_max_N_per_m), math.nan, "nominal K_max"
+    m_k, m_who, margin = math.nan, "", math.nan
+    if members:
+        labels = [m[0] for m in members]
+        ks = np.array([float(m[3]) for m in members])
+        i = int(np.argmin(ks))
+        m_k, m_who = float(ks[i]), str(labels[i])
+        above = f[f > hi]
+        if above.size:
+            h_nom = model.arm_response(above, theta)
+            dev = np.max([np.abs(mm.arm_response(above, th) / h_nom - 1.0)
+                          for _, mm, th, _ in members], axis=0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                margin = float(np.nanmax(dev / wr[f > hi]))
+    k_rob = k_w
+    if np.isfinite(k_rob) and np.isfinite(m_k) and m_k < k_rob:
+        k_rob, limited = m_k, "member"
+    return Certificate(peak0, float(f[i0]), k_rob, (lo, hi), f_max_hz=top, k_weight_N_per_m=k_w,
+                       f_binding_hz=f_bind, binding_in_band=bool(f_bind <= hi),
+                       member_k_max_N_per_m=m_k, limiting_member=m_who, beyond_margin=margin,
+                       limited_by=limited)
 
 
 def _first_violation(alpha, beta, gamma) -> np.ndarray:
@@ -619,32 +721,86 @@ def _first_violation(alpha, beta, gamma) -> np.ndarray:
 # A parameters table in, a stability table out
 # ---------------------------------------------------------------------------
 
-#: Columns of the stability table (CSV of ``armfit stability -o``), in order; the last two
-#: only with weights.
+#: Columns of the stability table (CSV of ``armfit stability -o``), in order; the
+#: certificate's (:data:`CERTIFICATE_COLUMNS`) follow with weights.
 STABILITY_COLUMNS: tuple[str, ...] = (
     "row", "axis", "grip_N", "subject", "run", "k_max_N_per_m", "f_unstable_hz",
-    "unstable_at_zero", "wu_t_peak_k0", "k_robust_N_per_m")
+    "unstable_at_zero")
+
+#: Columns of the robust certificate in a stability table (see :class:`Certificate`).
+CERTIFICATE_COLUMNS: tuple[str, ...] = (
+    "wu_t_peak_k0", "k_robust_N_per_m", "limited_by", "k_weight_N_per_m", "f_binding_hz",
+    "binding_in_band", "member_k_max_N_per_m", "limiting_member", "beyond_margin")
+
+
+def loop_model(model: ClosedLoopModel, theta: Mapping[str, float],
+               outside_loop: Sequence[str] = ()) -> tuple[ClosedLoopModel, dict[str, float]]:
+    """The model as the haptic loop sees it, and its values.
+
+    Every effect is in the loop unless named in ``outside_loop``: an apparatus effect
+    (stage output or device) that the measurement saw but the rendering loop does not
+    (e.g. a latency that is only a misalignment of the force and position logs). A
+    latency or lag in the position path is in the loop by default, since the wall reads
+    the same sensor; the arm's own effects (stage arm) always are. Raises UsageError for
+    an arm-stage effect named in ``outside_loop``.
+    """
+    drop = set(outside_loop)
+    for e in model.effects:
+        if e.name in drop and e.stage == "arm":
+            raise UsageError(f"{{opt:outside_loop}} {e.name}: an effect of the arm (stage "
+                             "arm) is part of the person and always in the loop")
+    values = model.values(theta)
+    if not drop & {e.name for e in model.effects}:
+        return model, values
+    kept = ClosedLoopModel(mp=model.mp, effects=tuple(e for e in model.effects
+                                                      if e.name not in drop))
+    return kept, {n: values[n] for n in kept.param_names}
 
 
 def stability_table(params, settings: WallSettings, *, weights=None,
                     weights_band_hz: Mapping[str, tuple[float, float]] | None = None,
-                    source: str | None = None):
-    """K_max for every row of a parameters table (DataFrame as
-    :func:`armfit.io.artifacts.read_params` returns, optionally with ``subject``, ``run``
-    and ``row`` columns), in row order.
+                    source: str | None = None, outside_loop: Sequence[str] = (),
+                    members=None):
+    """K_max for every row of a parameters table, in row order, and with ``weights``
+    the robust certificate of each row.
 
-    ``weights``: {axis: WuWeight} adds the robust certificate (``wu_t_peak_k0``,
-    ``k_robust_N_per_m``; NaN for an axis without a weight), evaluated over
-    ``weights_band_hz[axis]`` (default the paper's 0.01–30 Hz). A row unstable at K = 0
-    gets K_max = 0 and a ``RuntimeWarning`` naming it. Returns a DataFrame with
-    :data:`STABILITY_COLUMNS` (the certificate columns only with weights).
+    Parameters
+    ----------
+    params : pandas.DataFrame
+        Rows as :func:`armfit.paramsets.read_param_rows` returns them (optionally with
+        ``subject``, ``run`` and ``row`` columns); each row its own model.
+    settings : WallSettings
+    weights : dict, optional
+        {axis: WuWeight}: adds :data:`CERTIFICATE_COLUMNS` (NaN for an axis without a
+        weight), see :func:`robust_certificate`.
+    weights_band_hz : dict, optional
+        {axis: (lo, hi)} the band each weight was fitted over (Hz; default the paper's
+        0.01–30 Hz).
+    source : str, optional
+        Names the file in warnings.
+    outside_loop : sequence of str
+        Apparatus effects left out of the loop (:func:`loop_model`).
+    members : pandas.DataFrame, optional
+        The models each weight was built from (the per-trial fits), rows like
+        ``params``: each row's certificate is capped at the smallest K_max of its axis's
+        members and checked against their models above the band.
+
+    Returns
+    -------
+    pandas.DataFrame
+        :data:`STABILITY_COLUMNS`, then with weights :data:`CERTIFICATE_COLUMNS`. A row
+        unstable at K = 0 gets K_max = 0 and a ``RuntimeWarning`` naming it.
     """
-    models, plants = [], []
-    for _, row in params.iterrows():
-        model, theta = model_from_params(row)
-        models.append((model, theta))
-        plants.append(plant_from_model(model, theta))
-    res = wall_stability(plants, settings)
+    models, res = _k_max_rows(params, settings, outside_loop)
+    by_axis: dict[str, list] = {}
+    if weights is not None and members is not None and len(members):
+        m_models, m_res = _k_max_rows(members, settings, outside_loop)
+        for i, ((mm, th), r) in enumerate(zip(m_models, m_res, strict=True)):
+            row = members.iloc[i]
+            rec = {"axis": str(row["axis"]), "grip_N": _num(row.get("grip_N")),
+                   "subject": _text(row.get("subject")), "run": _num(row.get("run"))}
+            by_axis.setdefault(rec["axis"], []).append((describe(rec), mm, th,
+                                                        r.k_max_N_per_m))
     recs = []
     for i, ((model, theta), r) in enumerate(zip(models, res, strict=True)):
         row = params.iloc[i]
@@ -662,15 +818,26 @@ def stability_table(params, settings: WallSettings, *, weights=None,
         if weights is not None:
             w = weights.get(rec["axis"])
             if w is None:
-                rec.update(wu_t_peak_k0=math.nan, k_robust_N_per_m=math.nan)
+                rec.update({c: math.nan for c in CERTIFICATE_COLUMNS})
+                rec.update(limited_by="", limiting_member="")
             else:
                 band = (weights_band_hz or {}).get(rec["axis"], PAPER_BAND_HZ)
                 cert = robust_certificate(model, theta, w, settings, band_hz=band,
-                                          k_max_N_per_m=r.k_max_N_per_m)
-                rec.update(wu_t_peak_k0=cert.peak_k0, k_robust_N_per_m=cert.k_robust_N_per_m)
+                                          k_max_N_per_m=r.k_max_N_per_m,
+                                          members=by_axis.get(rec["axis"], ()))
+                rec.update({c: (cert.peak_k0 if c == "wu_t_peak_k0" else getattr(cert, c))
+                            for c in CERTIFICATE_COLUMNS})
         recs.append(rec)
-    cols = list(STABILITY_COLUMNS) if weights is not None else list(STABILITY_COLUMNS[:-2])
+    cols = list(STABILITY_COLUMNS) + (list(CERTIFICATE_COLUMNS) if weights is not None
+                                      else [])
     return pd.DataFrame(recs, columns=cols)
+
+
+def _k_max_rows(params, settings: WallSettings, outside_loop: Sequence[str]):
+    """[(loop model, values)] and their :class:`WallStability`, one per row."""
+    models = [loop_model(*model_from_params(row), outside_loop)
+              for _, row in params.iterrows()]
+    return models, wall_stability([plant_from_model(m, th) for m, th in models], settings)
 
 
 def describe(rec: Mapping) -> str:
@@ -741,11 +908,11 @@ def k_max_sweep(plants: Sequence[RationalPlant], rates_hz: Sequence[float],
 
 
 __all__ = [
-    "CERT_POINTS_PER_DECADE", "Certificate", "DEFAULT_DAMPING_NS_PER_M",
+    "CERTIFICATE_COLUMNS", "CERT_POINTS_PER_DECADE", "Certificate", "DEFAULT_DAMPING_NS_PER_M",
     "DEFAULT_DELAY_SAMPLES", "DEFAULT_SAMPLE_TIME_S", "K_REL_TOL", "REFLEX_PADE_ORDER",
     "RationalPlant", "STABILITY_COLUMNS", "WallSettings", "WallStability", "axis_summary",
     "closed_loop_stable", "crossing_gains", "describe", "environment_terms", "expm_batch",
-    "k_max_sweep",
+    "k_max_sweep", "loop_model",
     "pade_delay", "plant_from_model", "robust_certificate", "stability_table",
     "wall_stability",
 ]

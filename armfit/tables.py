@@ -32,15 +32,20 @@ _LATEX_UNIT = {"kg": "kg", "N/m": "N/m", "N*s/m": r"N$\cdot$s/m", "s": "s", "Hz"
 
 
 def param_names(df: pd.DataFrame) -> list[str]:
-    """The parameter columns of a params DataFrame, in model order (base, then effects)."""
+    """The parameter columns of a params DataFrame, in model order: the base parameters,
+    then the parameters of each effect the rows list, in the order they first appear (a
+    table may hold one model per axis; a row's cells of an effect it lacks are empty)."""
     names = [p.name for p in BASE_PARAMS]
-    spec = ""
-    if "effects" in df.columns and len(df):
-        first = df["effects"].iloc[0]
-        spec = first if isinstance(first, str) else ""
-    for e in (get_effect(n) for n in spec.split(";") if n):
-        names += [f"{e.name}.{p.name}" for p in e.params]
+    specs = df["effects"] if "effects" in df.columns else []
+    for spec in dict.fromkeys(s for s in specs if isinstance(s, str)):
+        for e in (get_effect(n) for n in spec.split(";") if n):
+            names += [q for p in e.params if (q := f"{e.name}.{p.name}") not in names]
     return names
+
+
+def _held(value) -> list[str]:
+    """The parameter names of a ``held`` cell (";"-separated; NaN or "" → none)."""
+    return [n for n in value.split(";") if n] if isinstance(value, str) else []
 
 
 def unit_of(name: str) -> str:
@@ -110,7 +115,10 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
     Table II (without). Axes are rows groups separated by ``\\midrule``; with ``ci`` the
     95 % interval ``[lo, hi]`` follows each value in small type. A value whose parameter
     is listed in the row's ``at_bound`` gets a dagger and the table a footnote. Needs
-    ``\\usepackage{booktabs}`` in the document."""
+    ``\\usepackage{booktabs}`` in the document. A value listed in the row's ``held``
+    (held fixed at a value estimated elsewhere, e.g. an apparatus latency estimated from
+    every trial of the axis) gets a double dagger and no interval; an effect the row's
+    model lacks, an empty cell."""
     names = param_names(df)
     grip = "grip_N" in df.columns
     first_cols = ["Axis"] + (["Grip (N)"] if grip else [])
@@ -123,9 +131,10 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
     lines += [r"\begin{tabular}{" + cols + "}", r"\toprule",
               " & ".join(first_cols + [_header(n) for n in names]) + r" \\", r"\midrule"]
     prev_axis = None
-    any_stuck = False
+    any_stuck = any_held = False
     for _, row in df.iterrows():
         stuck = _stuck(row["at_bound"]) if "at_bound" in df.columns else []
+        held = _held(row["held"]) if "held" in df.columns else []
         axis = str(row["axis"]).upper()
         if prev_axis is not None and axis != prev_axis:
             lines.append(r"\midrule")
@@ -138,7 +147,10 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
             if n in stuck:
                 cell += r"$^\dagger$"
                 any_stuck = True
-            if ci:
+            if n in held:
+                cell += r"$^\ddagger$"
+                any_held = True
+            elif ci and cell:
                 cell += (r" {\scriptsize[" + sig4(float(row[f'{n}_lo'])) + ", "
                          + sig4(float(row[f'{n}_hi'])) + "]}")
             cells.append(cell)
@@ -147,6 +159,10 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
     if any_stuck:
         lines += [r"\par\smallskip{\footnotesize $^\dagger$ at a physical bound of the fit "
                   r"(within 1\,\% of its range): a limit, not an estimate.}"]
+    if any_held:
+        lines += [r"\par\smallskip{\footnotesize $^\ddagger$ held at the value estimated "
+                  r"jointly from every trial of the axis (an effect of the apparatus, "
+                  r"shared by the trials), not fitted here.}"]
     lines += [r"\end{table}"]
     return "\n".join(lines) + "\n"
 

@@ -15,8 +15,10 @@ The pieces:
   or a fit that guarantees |Wu| ≥ W_max on and between the grid points while staying as
   tight as it can (``cost="envelope"``, the default).
 * :func:`check_envelope` — coverage and tightness of any weight against a W_max.
-* :func:`nominal_arm_response`, :func:`derived_trials`, :func:`fit_uncertainty` — from a
-  spectra table and a nominal-parameters table to the per-axis results (no file I/O).
+* :func:`nominal_arm_response`, :func:`derived_trials`, :func:`arm_trials`,
+  :func:`fit_uncertainty` — from a spectra table and a nominal-parameters table to the
+  per-axis results (no file I/O); the nominal row's apparatus effects are removed from
+  the trials' derived dynamics first (:func:`arm_trials`).
 
 Parametrisation of Wu. Every zero or pole row is a conjugate pair r, r̄ with
 r = −ω_n (cos φ ± j sin φ), i.e. the section s² + 2ζω_n s + ω_n² with ζ = cos φ, searched as
@@ -705,6 +707,19 @@ def nominal_arm_response(params_row: Mapping, f_hz) -> np.ndarray:
     return model.arm_response(f_hz, theta)
 
 
+def arm_trials(params_row: Mapping, f_hz, H_derived, mp_assumed: float | None = None
+               ) -> np.ndarray:
+    """The trials' derived arm dynamics (m/N) with the apparatus effects of a nominal
+    row removed (:meth:`ClosedLoopModel.arm_from_derived`): a latency, a sensor lag, a
+    device's own mass, damping or spring are properties of the rig, not of the arm, and
+    left in they would make W_max describe the rig rather than how arms differ.
+    ``mp_assumed``: the device mass (kg) the estimate used for Fa = F − Mp ẍ (default the
+    row's). Unchanged when the row has no apparatus effect."""
+    model, theta = model_from_params(params_row)
+    with np.errstate(all="ignore"):
+        return model.arm_from_derived(f_hz, H_derived, theta, mp_assumed)
+
+
 def derived_trials(spectra, axis: str, *, method: str | None = None
                    ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Per-trial derived arm dynamics of one axis.
@@ -806,6 +821,7 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
             raise BadInputError(f"axis {axis} has {len(rows)} nominal rows; expected one",
                                 column="axis", row=int(rows.index[1]) + 1)
         f, H, _ = derived_trials(trial_rows, axis, method=method)
+        H = arm_trials(rows.iloc[0], f, H, _mp_of(spectra, axis))
         Hn = nominal_arm_response(rows.iloc[0], f)
         lo, hi = PAPER_BAND_HZ if band is None else band
         finite = f[np.isfinite(H).any(axis=0) & (f > 0)]
@@ -833,6 +849,14 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
                   for label, w in weights.items() for tname, tw in targets.items()}
         out.append(AxisUncertainty(axis, f, raw, target, b, n_trials, res, checks))
     return out
+
+
+def _mp_of(spectra, axis: str) -> float | None:
+    """The device mass (kg) the spectra's derived dynamics were estimated with, from the
+    file's metadata (None if it does not say)."""
+    meta = getattr(spectra, "meta", None) or {}
+    mp = (meta.get("mp_kg") or {}).get(axis) if isinstance(meta, Mapping) else None
+    return None if mp is None else float(mp)
 
 
 def summary_table(results: Sequence[AxisUncertainty], *, smooth_oct: float | None = None):

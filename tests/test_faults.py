@@ -584,8 +584,8 @@ def test_grip_in_the_name_differs_from_the_grip_column(tmp_path, write_trial):
 def test_params_file_with_unknown_effect_columns(nominal, tmp_path):
     df = pd.read_csv(nominal)
     for col, expect in (("gravity.g", "unknown effect 'gravity'"),
-                        ("delay.delay_s", "parameter of the effect 'delay', which the column "
-                                         "'effects' does not list")):
+                        ("delay.delay_s", "parameter of the effect 'delay', which no row "
+                                         "lists in the column 'effects'")):
         bad = tmp_path / "p.csv"
         df.assign(**{col: 0.01}).to_csv(bad, index=False)
         res = invoke("fit-uncertainty", nominal.parent / "spectra.parquet", "--nominal", bad,

@@ -22,6 +22,7 @@ FLAGS: dict[str, str | tuple[str, ...]] = {
     "noise_m": "--noise", "drift_m": "--drift", "quantum_m": "--quantum",
     "sample_time_s": "--sample-time", "damping_Ns_per_m": "--damping",
     "delay_samples": "--delay-samples", "effect_files": "--effects",
+    "outside_loop": "--outside-loop", "members": "--members",
     "manifest": "--manifest", "skip_bad": "--skip-bad", "resample": "--resample",
     "f_min_hz": ("--f-min", "--fmin"),
 }

@@ -27,7 +27,7 @@ from armfit.cli.options import (
     overwrite_option,
 )
 from armfit.constants import PAPER_BANDS
-from armfit.errors import BadInputError
+from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import atomic_path, check_output
 from armfit.models.effects import get_effect
 from armfit.paramsets import read_param_rows, read_weights
@@ -100,7 +100,8 @@ def certificate_sentences(table, summary) -> list[str]:
             continue
         if math.isfinite(s["k_robust_min_N_per_m"]):
             out.append(f"axis {axis}: the robust certificate max |Wu T| < 1 holds for K up "
-                       f"to {_kn(s['k_robust_min_N_per_m'])} kN/m on every model")
+                       f"to {_kn(s['k_robust_min_N_per_m'])} kN/m on every model"
+                       + _limit_words(g))
         else:
             fails = g[~g["k_robust_N_per_m"].notna()]
             out.append(f"axis {axis}: the robust certificate holds for no K at all on "
@@ -109,6 +110,21 @@ def certificate_sentences(table, summary) -> list[str]:
                        "more than 100 % relative uncertainty where the device's own "
                        "impedance dominates)")
     return out
+
+
+def _limit_words(g) -> str:
+    """What bounds the smallest certified K of one axis, in words."""
+    i = g["k_robust_N_per_m"].idxmin()
+    why = str(g.loc[i, "limited_by"] or "")
+    if why == "member":
+        return (f" (capped at member {g.loc[i, 'limiting_member']}, whose K_max is "
+                f"{_kn(g.loc[i, 'member_k_max_N_per_m'])} kN/m)")
+    if why == "weight beyond band":
+        return (f" (bound at {g.loc[i, 'f_binding_hz']:.3g} Hz, above the weight's band: "
+                "there Wu is its fitted form continued)")
+    if why == "nominal K_max":
+        return " (the nominal model's own K_max)"
+    return ""
 
 
 @click.command("stability")
@@ -122,26 +138,43 @@ def certificate_sentences(table, summary) -> list[str]:
 @click.option("--weights", "weights_path", default=None, metavar="WU.csv",
               help="Also the robust certificate against these uncertainty weights "
                    "(fit-uncertainty output; 'paper': Table III).")
+@click.option("--members", "members_path", default=None, metavar="TRIALS.csv",
+              help="With --weights: the per-trial fits the weight covers (fit-trials "
+                   "output); the certificate never exceeds the smallest K_max among them.")
+@click.option("--outside-loop", "outside_loop", multiple=True, metavar="EFFECT",
+              help="An apparatus effect (stage output or device) the rendering loop does "
+                   "not see, e.g. a latency that only offsets the logs; repeatable.")
 @click.option("-o", "--output", "output", default=None, type=click.Path(dir_okay=False),
               help="Write the per-model table as CSV (atomically).")
 @json_option
 @overwrite_option
-def stability_command(params, sample_time, damping, delay, weights_path, output, as_json,
-                      overwrite):
+def stability_command(params, sample_time, damping, delay, weights_path, members_path,
+                      outside_loop, output, as_json, overwrite):
     """K_max: the stiffest virtual wall a sampled device renders stably with each arm.
 
     PARAMS is any parameters file armfit writes (fit-nominal, fit-grip, fit-trials) or a
     paper table by name (nominal, grip). The wall F[k] = -(K x[k-d] + B (x[k-d] -
     x[k-d-1])/T), held by a zero-order hold, acts on the measured dynamics of eq. 4 of
     each row, discretised exactly. Per row: K_max (N/m) and the frequency at which the
-    loop first goes unstable; per axis: minimum, median and 5th percentile.
+    loop first goes unstable; per axis: minimum, median and 5th percentile. Every
+    effect of a row is in the loop unless named with --outside-loop.
     """
 
     settings = WallSettings(sample_time, damping, delay)
     if output is not None:
         check_output(output, overwrite=overwrite,
-                     inputs=[p for p in (params, weights_path) if p])
+                     inputs=[p for p in (params, weights_path, members_path) if p])
+    if members_path and not weights_path:
+        raise UsageError("{opt:members} needs {opt:weights}: the members cap the robust "
+                         "certificate")
     rows = read_param_rows(params)
+    members = None
+    if members_path:
+        m_rows = read_param_rows(members_path)
+        members = m_rows.table
+        if m_rows.skipped:
+            message(f"warning: {m_rows.label}: {len(m_rows.skipped)} member row(s) without "
+                    "a fit left out of the certificate's cap")
     weights = bands = None
     weights_label = None
     if weights_path:
@@ -153,7 +186,8 @@ def stability_command(params, sample_time, damping, delay, weights_path, output,
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         table = stability_table(rows.table, settings, weights=weights,
-                                weights_band_hz=bands, source=rows.label)
+                                weights_band_hz=bands, source=rows.label,
+                                outside_loop=outside_loop, members=members)
     for w in caught:
         if issubclass(w.category, RuntimeWarning):
             message(f"warning: {w.message}")

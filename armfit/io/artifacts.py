@@ -21,6 +21,7 @@ from armfit.errors import BadInputError, NoInputError, cell
 from armfit.io.atomic import atomic_path
 from armfit.io.schema import (
     CSV_FLOAT_FORMAT,
+    PARAMS_HELD,
     WU_COLUMNS,
     params_columns,
 )
@@ -32,8 +33,11 @@ from armfit.io.schema import (
 
 def params_frame(rows: Iterable[Mapping], param_names, *, grip: bool) -> pd.DataFrame:
     """A params DataFrame from row dicts (one per fit), columns in file order
-    (:func:`armfit.io.schema.params_columns`)."""
-    return pd.DataFrame(list(rows), columns=params_columns(param_names, grip=grip))
+    (:func:`armfit.io.schema.params_columns`; the ``held`` column only when a row holds
+    parameters)."""
+    rows = list(rows)
+    held = any(r.get(PARAMS_HELD) for r in rows)
+    return pd.DataFrame(rows, columns=params_columns(param_names, grip=grip, held=held))
 
 
 def write_table(df: pd.DataFrame, path: str | os.PathLike, *, overwrite: bool = False

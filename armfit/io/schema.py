@@ -79,7 +79,12 @@ PARAMS_STATS: tuple[str, ...] = ("rms_db", "rms_deg", "rms_norm", "band_lo_hz", 
 PARAMS_OPTIONAL: dict[str, str] = {"at_bound": ""}
 
 
-def params_columns(param_names, *, grip: bool) -> list[str]:
+#: Column closing a params row when some parameters were held fixed (only then written):
+#: the ``effect.param`` names held, ";"-separated.
+PARAMS_HELD = "held"
+
+
+def params_columns(param_names, *, grip: bool, held: bool = False) -> list[str]:
     """Columns of a params file, in order.
 
     Parameters
@@ -88,18 +93,20 @@ def params_columns(param_names, *, grip: bool) -> list[str]:
         The model's parameters: the base names, then ``<effect>.<param>``.
     grip : bool
         True for grip-dependent fits (a ``grip_N`` column after ``axis``).
+    held : bool
+        True when some rows hold parameters fixed (a last column :data:`PARAMS_HELD`).
 
     Returns
     -------
     list of str
         ``axis``, ``grip_N`` (grip fits only), the parameters, ``<p>_lo, <p>_hi`` for
-        each (95 % interval), then :data:`PARAMS_STATS`.
+        each (95 % interval), then :data:`PARAMS_STATS` (and ``held``).
     """
     names = list(param_names)
     cols = ["axis"] + (["grip_N"] if grip else []) + names
     for n in names:
         cols += [f"{n}_lo", f"{n}_hi"]
-    return cols + list(PARAMS_STATS)
+    return cols + list(PARAMS_STATS) + ([PARAMS_HELD] if held else [])
 
 
 # ---------------------------------------------------------------------------

@@ -28,7 +28,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from armfit.models.effects import Effect
 
 __all__ = ["BASE_PARAMS", "DEVICE_MASS_KG", "PARAM_NAMES", "ClosedLoopModel", "Param",
-           "arm_tf", "cl_tf", "h_arm", "h_cl", "h_device", "laplace", "z_arm"]
+           "arm_tf", "cl_tf", "h_arm", "h_cl", "h_device", "laplace", "union_param_names",
+           "z_arm"]
 
 
 #: Default closeness (fraction of a parameter's range in its search coordinate) at which
@@ -119,6 +120,16 @@ BASE_PARAMS: tuple[Param, ...] = (
 )
 
 
+def union_param_names(models: Sequence[ClosedLoopModel]) -> tuple[str, ...]:
+    """Every parameter of several models (held ones included), each once: the base names,
+    then the effect parameters in the order they first appear — the parameter columns of
+    a table holding one model per row."""
+    names = list(PARAM_NAMES)
+    for m in models:
+        names += [n for n in m.all_param_names if n not in names]
+    return tuple(names)
+
+
 def laplace(f_hz: np.ndarray | float) -> np.ndarray:
     """Return s = j·2π·f (rad/s) for frequencies in Hz."""
     return 2j * np.pi * np.asarray(f_hz, dtype=float)
@@ -198,10 +209,15 @@ class ClosedLoopModel:
     :attr:`params` and :meth:`response`; they never learn effect names.
 
     Parameter names: the five base names, then ``<effect>.<param>`` for each effect.
+    ``held`` fixes some effect parameters at given values (pairs of a qualified name and
+    its value): they are not searched by a fit (:attr:`params` and :attr:`param_names`
+    leave them out), and :meth:`response` uses their held values whatever ``theta``
+    says. :attr:`all_param_names` lists every parameter, held or not.
     """
 
     mp: float
     effects: tuple[Effect, ...] = field(default=())
+    held: tuple[tuple[str, float], ...] = field(default=())
 
     def __post_init__(self) -> None:
         names = [e.name for e in self.effects]
@@ -210,22 +226,41 @@ class ClosedLoopModel:
             raise UsageError(f"effect given twice: {', '.join(dup)}")
         if not self.mp > 0:
             raise UsageError(f"device mass must be > 0 kg, got {self.mp}")
+        held = tuple(self.held.items()) if isinstance(self.held, Mapping) else \
+            tuple(self.held)
+        known = set(self._effect_names())
+        for n, _ in held:
+            if n not in known:
+                raise UsageError(f"cannot hold {n!r}: not a parameter of the model's "
+                                 f"effects ({', '.join(sorted(known)) or 'none'})")
+        object.__setattr__(self, "held", tuple((str(n), float(v)) for n, v in held))
 
     @classmethod
-    def for_axis(cls, axis: str, effects: Sequence[Effect] = (), mp: float | None = None
-                 ) -> ClosedLoopModel:
-        """The model of ``axis`` ('x', 'y', 'z') with the paper's Mp unless ``mp`` is given."""
+    def for_axis(cls, axis: str, effects: Sequence[Effect] = (), mp: float | None = None,
+                 held: Mapping[str, float] | None = None) -> ClosedLoopModel:
+        """The model of ``axis`` ('x', 'y', 'z') with the paper's Mp unless ``mp`` is given;
+        ``held``: {``effect.param``: value} of effect parameters fixed at those values."""
         if axis not in DEVICE_MASS_KG:
             raise UsageError(f"axis must be x, y or z, got {axis!r}")
-        return cls(mp=DEVICE_MASS_KG[axis] if mp is None else float(mp), effects=tuple(effects))
+        return cls(mp=DEVICE_MASS_KG[axis] if mp is None else float(mp), effects=tuple(effects),
+                   held=tuple((held or {}).items()))
 
     def with_effect(self, effect: Effect) -> ClosedLoopModel:
         """A new model with ``effect`` added (refused if already present)."""
-        return ClosedLoopModel(mp=self.mp, effects=self.effects + (effect,))
+        return ClosedLoopModel(mp=self.mp, effects=self.effects + (effect,), held=self.held)
+
+    def _effect_names(self) -> list[str]:
+        return [f"{e.name}.{p.name}" for e in self.effects for p in e.params]
 
     @property
-    def params(self) -> tuple[Param, ...]:
-        """All parameters, base first, effect parameters qualified as ``effect.param``."""
+    def held_values(self) -> dict[str, float]:
+        """{``effect.param``: value} of the held parameters."""
+        return dict(self.held)
+
+    @property
+    def all_params(self) -> tuple[Param, ...]:
+        """Every parameter, held ones included: base first, effect parameters qualified as
+        ``effect.param``."""
         out = list(BASE_PARAMS)
         for e in self.effects:
             for p in e.params:
@@ -234,14 +269,36 @@ class ClosedLoopModel:
         return tuple(out)
 
     @property
+    def params(self) -> tuple[Param, ...]:
+        """The parameters a fit searches: :attr:`all_params` without the held ones."""
+        held = self.held_values
+        return tuple(p for p in self.all_params if p.name not in held)
+
+    @property
     def param_names(self) -> tuple[str, ...]:
+        """Names of :attr:`params` (the free parameters)."""
         return tuple(p.name for p in self.params)
 
+    @property
+    def all_param_names(self) -> tuple[str, ...]:
+        """Names of :attr:`all_params` (free and held), the columns of a params table."""
+        return tuple(p.name for p in self.all_params)
+
+    def values(self, theta) -> dict[str, float]:
+        """Every parameter's value: ``theta`` (a mapping or a sequence in the order of
+        :attr:`param_names`) for the free ones, the held values for the others."""
+        values = _as_values(self.param_names, theta)
+        values.update(self.held_values)
+        return values
+
     def null_theta(self, base: Mapping[str, float]) -> dict[str, float]:
-        """Base parameters plus every effect at its null values: the base model's response."""
+        """Base parameters plus every free effect parameter at its null value: the base
+        model's response (held parameters keep their values)."""
         theta = {n: float(base[n]) for n in PARAM_NAMES}
+        held = self.held_values
         for e in self.effects:
-            theta.update({f"{e.name}.{k}": v for k, v in e.null_values(self.mp).items()})
+            theta.update({k2: v for k, v in e.null_values(self.mp).items()
+                          if (k2 := f"{e.name}.{k}") not in held})
         return theta
 
     def start_points(self, base: Mapping[str, float]) -> list[dict[str, float]]:
@@ -250,12 +307,16 @@ class ClosedLoopModel:
         null = self.null_theta(base)
         pts = [null]
         for e in self.effects:
+            free = {p.name for p in e.params if f"{e.name}.{p.name}" in null}
+            if not free:           # every parameter held: nothing to start
+                continue
             for st in e.start_points(self.mp)[1:]:
-                pts.append({**null, **{f"{e.name}.{k}": v for k, v in st.items()}})
+                pts.append({**null, **{f"{e.name}.{k}": v for k, v in st.items()
+                                       if k in free}})
         return pts
 
     def _split(self, theta) -> tuple[dict[str, float], list[dict[str, float]]]:
-        values = _as_values(self.param_names, theta)
+        values = self.values(theta)
         base = {n: values[n] for n in PARAM_NAMES}
         eff = [{p.name: values[f"{e.name}.{p.name}"] for p in e.params} for e in self.effects]
         return base, eff
@@ -291,6 +352,7 @@ class ClosedLoopModel:
         s = laplace(f_hz)
         factor = np.ones_like(s)
         dz = np.zeros_like(s)
+        effect_values = {**effect_values, **self.held_values}
         for e in self.effects:
             v = {p.name: effect_values[f"{e.name}.{p.name}"] for p in e.params}
             if e.stage == "output":
@@ -298,6 +360,41 @@ class ClosedLoopModel:
             else:
                 dz = dz + e.term(s, v, self.mp)
         return 1.0 / (factor / np.asarray(H) - dz)
+
+    @property
+    def apparatus_effects(self) -> tuple[Effect, ...]:
+        """The effects of the apparatus (stage output or device), as opposed to the arm's
+        own (stage arm): latency, sensor lag, the device's mass, damping or spring, a
+        linkage mode. They are the same for every trial of an axis."""
+        return tuple(e for e in self.effects if e.stage in ("output", "device"))
+
+    def arm_from_derived(self, f_hz, H_derived, theta, mp_assumed: float | None = None
+                         ) -> np.ndarray:
+        """The arm's own dynamics (m/N) from a derived-arm estimate Xa/Fa, the apparatus
+        effects of the model removed: the inverse of :meth:`derived_arm_response` for the
+        output and device stages.
+
+        With X/F = R/(Z_arm′ + Mp s² + ΔZ_dev) (Z_arm′ the arm impedance with arm-stage
+        effects, R the output factors, ΔZ_dev the added device impedance) and the derived
+        estimate D = (X/F)/(1 − Mp_a s² X/F) made with the device mass Mp_a (``mp_assumed``,
+        default the model's), Z_arm′ = R/D + (R·Mp_a − Mp) s² − ΔZ_dev. Returns 1/Z_arm′;
+        ``H_derived`` unchanged when the model has no apparatus effect and Mp_a = Mp.
+        Broadcasts over trials (rows of ``H_derived``).
+        """
+        H = np.asarray(H_derived)
+        mp_a = self.mp if mp_assumed is None else float(mp_assumed)
+        if not self.apparatus_effects and mp_a == self.mp:
+            return H
+        _, eff = self._split(theta)
+        s = laplace(f_hz)
+        factor = np.ones_like(s)
+        dz = np.zeros_like(s)
+        for e, v in zip(self.effects, eff, strict=True):
+            if e.stage == "output":
+                factor = factor * e.term(s, v, self.mp)
+            elif e.stage == "device":
+                dz = dz + e.term(s, v, self.mp)
+        return 1.0 / (factor / H + (factor * mp_a - self.mp) * s * s - dz)
 
     def derived_arm_response(self, f_hz, theta, mp_assumed: float | None = None) -> np.ndarray:
         """What the derived-arm estimate Xa/Fa, Fa = F − Mp ẍ, converges to (m/N).

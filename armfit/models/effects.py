@@ -568,3 +568,79 @@ def _number(spec: str, text: str) -> float:
         return float(text)
     except ValueError:
         raise UsageError(f"{{opt:effects}} {spec!r}: {text!r} is not a number") from None
+
+
+#: What may name an effect wherever a model takes effects: an :class:`Effect`, its name
+#: (the effect is fitted), ``"NAME=V1[,V2..]"`` or ``"NAME=param:V,.."`` (held at those
+#: values), or a pair (Effect or name, {param: value}) (held).
+EffectItem = "Effect | str | tuple[Effect | str, Mapping[str, float]]"
+
+
+def resolve_effects(items: Iterable | None) -> tuple[tuple[Effect, ...], dict[str, float]]:
+    """Effects and held values from the ways a user names them (:data:`EffectItem`).
+
+    Parameters
+    ----------
+    items : iterable
+        Each an :class:`Effect` or its name (fitted), a spec ``"NAME=V1[,V2..]"`` or
+        ``"NAME=param:V,.."`` (see :func:`parse_effect_spec`), or a pair (effect or name,
+        {param: value}) — the last two hold the effect's parameters at those values.
+
+    Returns
+    -------
+    (tuple of Effect, dict)
+        The effects in order, and {``effect.param``: value} of the held parameters (for
+        :class:`armfit.models.arm.ClosedLoopModel`'s ``held``).
+
+    Raises
+    ------
+    UsageError
+        An unknown effect, a value outside its physical range, or an effect named twice.
+    """
+    effects: list[Effect] = []
+    held: dict[str, float] = {}
+    for item in items or ():
+        values = None
+        if isinstance(item, tuple) and len(item) == 2:
+            item, values = item
+        if isinstance(item, str) and "=" in item:
+            effect, values = parse_effect_spec(item)
+        elif isinstance(item, str):
+            effect = get_effect(item.strip())
+        elif isinstance(item, Effect):
+            effect = item
+        else:
+            raise UsageError(f"{item!r} does not name an effect (give an Effect, its name, "
+                             "or NAME=VALUES)")
+        if any(e.name == effect.name for e in effects):
+            raise UsageError(f"effect given twice: {effect.name}")
+        effects.append(effect)
+        if values is not None:
+            for p in effect.params:
+                if p.name not in values:
+                    raise UsageError(f"{{opt:effects}} {effect.name}: give every parameter "
+                                     f"to hold it ({', '.join(effect.param_names)})")
+                v = float(values[p.name])
+                if not (p.lower <= v <= p.upper):
+                    raise UsageError(f"{{opt:effects}} {effect.name}: {p.name}={v:g} outside "
+                                     f"the physical range [{p.lower:g}, {p.upper:g}] {p.unit}")
+                held[f"{effect.name}.{p.name}"] = v
+    return tuple(effects), held
+
+
+def effects_by_axis(effects) -> dict[str, tuple[tuple[Effect, ...], dict[str, float]]]:
+    """Per axis, the effects and held values of :func:`resolve_effects`.
+
+    ``effects``: None or a sequence of :data:`EffectItem` (the same model on every axis),
+    or a mapping {axis: sequence} (one model per axis; axes not named take the base
+    model). Returns {axis: (effects, held)} for x, y and z.
+    """
+    from armfit.constants import AXES
+    if isinstance(effects, Mapping):
+        unknown = sorted(set(effects) - set(AXES))
+        if unknown:
+            raise UsageError(f"effects given for unknown axis {unknown[0]!r}; axes are "
+                             f"{', '.join(AXES)}")
+        return {a: resolve_effects(effects.get(a, ())) for a in AXES}
+    same = resolve_effects(effects)
+    return {a: same for a in AXES}

@@ -15,7 +15,7 @@ import pandas as pd
 
 from armfit.constants import AXES
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
-from armfit.io.schema import PARAMS_BASE, PARAMS_OPTIONAL, PARAMS_STATS
+from armfit.io.schema import PARAMS_BASE, PARAMS_HELD, PARAMS_OPTIONAL, PARAMS_STATS
 from armfit.models.arm import BASE_PARAMS, ClosedLoopModel, Param
 from armfit.models.effects import get_effect
 
@@ -31,9 +31,11 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
     Returns
     -------
     pandas.DataFrame
-        One row per fit; ``effects`` as str, ``converged`` as bool, ``at_bound`` as str
-        (the parameters at a physical bound, ";"-separated, empty when none or in a file
-        written before the column existed), ``grip_N`` present only for grip fits.
+        One row per fit; ``effects`` as str (the row's model: a file may hold one model
+        per axis), ``converged`` as bool, ``at_bound`` as str (the parameters at a
+        physical bound, ";"-separated, empty when none or in a file written before the
+        column existed), ``held`` as str when present (the parameters held fixed),
+        ``grip_N`` present only for grip fits.
 
     Raises
     ------
@@ -41,15 +43,16 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
         The file is missing.
     BadInputError
         Naming the file and the missing column, an unknown or unlisted effect column, an
-        axis other than x, y or z, or the row and column of a parameter that is not a
-        number inside its physical range.
+        axis other than x, y or z, or the row and column of a parameter of the row's model
+        that is not a number inside its physical range, or of a value given for an effect
+        the row's model does not have.
     """
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such params file")
     try:
-        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "cost": str, "at_bound": str},
-                         keep_default_na=True)
+        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "cost": str, "at_bound": str,
+                                   PARAMS_HELD: str}, keep_default_na=True)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
             ValueError) as exc:
         raise BadInputError(f"not a params CSV ({str(exc).splitlines()[0]})", file=str(p)
@@ -60,6 +63,8 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
     df["effects"] = df["effects"].fillna("").astype(str)
     for col, default in PARAMS_OPTIONAL.items():
         df[col] = df[col].fillna(default).astype(str) if col in df.columns else default
+    if PARAMS_HELD in df.columns:
+        df[PARAMS_HELD] = df[PARAMS_HELD].fillna("").astype(str)
     base_cols = ["axis", *PARAMS_BASE]
     bounds = _param_bounds(df, p)
     names = list(bounds)
@@ -79,8 +84,17 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
     if bad.size:
         raise BadInputError(f"axis {cell(df['axis'].iloc[bad[0]])} is not x, y or z",
                             file=str(p), column="axis", row=int(bad[0]) + 1)
+    uses = row_param_names(df, p)
     for col, par in bounds.items():
         vals = pd.to_numeric(df[col], errors="coerce").to_numpy(float)
+        used = np.array([col in PARAMS_BASE or col in u for u in uses], bool)
+        bad = np.flatnonzero(~used & np.isfinite(vals))
+        if bad.size:
+            raise BadInputError(f"value {cell(df[col].iloc[bad[0]])} for an effect this "
+                                f"row's model does not have (its effects: "
+                                f"{df['effects'].iloc[bad[0]] or 'none'}); the model would "
+                                "ignore it", file=str(p), column=col, row=int(bad[0]) + 1)
+        vals = np.where(used, vals, par.typical)   # cells the row's model does not use
         bad = np.flatnonzero(~np.isfinite(vals))
         if bad.size:
             raise BadInputError(f"parameter must be a positive number, got "
@@ -97,43 +111,50 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
 
 
 def _unknown_effect_column(col: str, df: pd.DataFrame) -> str:
-    """Why the column ``<effect>.<param>`` does not belong to the file's model."""
+    """Why the column ``<effect>.<param>`` does not belong to the file's models."""
     name = col.split(".", 1)[0]
-    spec = next(iter(set(df["effects"])), "") or "none"
+    spec = " | ".join(sorted(set(df["effects"]) - {""})) or "none"
     try:
         get_effect(name)
     except UsageError:
         return (f"unknown effect '{name}' (not built in, and no loaded effect has that "
-                f"name); the file's model lists effects: {spec}")
-    return (f"parameter of the effect '{name}', which the column 'effects' does not list "
-            f"({spec}); the model would ignore it")
+                f"name); the file's models list effects: {spec}")
+    return (f"parameter of the effect '{name}', which no row lists in the column "
+            f"'effects' ({spec}); the models would ignore it")
 
 
 def _param_bounds(df: pd.DataFrame, path: Path) -> dict[str, Param]:
-    """{column: Param} of the base parameters, then of each listed effect's parameters."""
+    """{column: Param} of the base parameters, then of each effect any row lists."""
     out = {q.name: q for q in BASE_PARAMS}
-    for name in _effect_param_names(df, path):
-        eff = get_effect(name.split(".", 1)[0])
-        out[name] = next(q for q in eff.params if f"{eff.name}.{q.name}" == name)
+    for effects in row_effects(df, path):
+        for eff in effects:
+            for q in eff.params:
+                out.setdefault(f"{eff.name}.{q.name}", q)
     return out
 
 
-def _effect_param_names(df: pd.DataFrame, path: Path) -> list[str]:
-    """The ``<effect>.<param>`` names of the effects the rows name (one model per file)."""
-    specs = set(df["effects"])
-    if len(specs) > 1:
-        raise BadInputError(f"rows list different effects ({' | '.join(sorted(specs))}); "
-                            "one params file holds one model", file=str(path),
-                            column="effects")
-    spec = next(iter(specs), "")
+def row_effects(df: pd.DataFrame, path) -> list[list]:
+    """The effects of each row's model, from its ``effects`` cell (``;``-separated
+    names; a params file may hold one model per axis, e.g. the models ``armfit run``
+    adopts). Raises BadInputError naming the file, column ``effects`` and row of an
+    effect no loaded library holds."""
     out = []
-    for name in [n for n in spec.split(";") if n]:
-        try:
-            eff = get_effect(name)
-        except UsageError as exc:
-            raise BadInputError(exc.template, file=str(path), column="effects") from None
-        out += [f"{eff.name}.{q.name}" for q in eff.params]
+    cache: dict[str, list] = {}
+    for i, spec in enumerate(df["effects"].fillna("").astype(str)):
+        if spec not in cache:
+            try:
+                cache[spec] = [get_effect(n) for n in spec.split(";") if n]
+            except UsageError as exc:
+                raise BadInputError(exc.template, file=str(path), column="effects",
+                                    row=i + 1) from None
+        out.append(cache[spec])
     return out
+
+
+def row_param_names(df: pd.DataFrame, path) -> list[set[str]]:
+    """Per row, the ``<effect>.<param>`` names of its model's effects."""
+    return [{f"{e.name}.{q.name}" for e in effects for q in e.params}
+            for effects in row_effects(df, path)]
 
 
 def model_from_params(row) -> tuple[ClosedLoopModel, dict[str, float]]:
