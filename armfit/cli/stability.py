@@ -19,6 +19,7 @@ from armfit.cli.options import (
     bands_by_axis,
     clean,
     effect_option,
+    effects_file_option,
     emit_json,
     jobs_option,
     json_option,
@@ -122,6 +123,7 @@ def certificate_sentences(table, summary) -> list[str]:
 @click.option("--weights", "weights_path", default=None, metavar="WU.csv",
               help="Also the robust certificate against these uncertainty weights "
                    "(fit-uncertainty output; 'paper': Table III).")
+@effects_file_option
 @click.option("-o", "--output", "output", default=None, type=click.Path(dir_okay=False),
               help="Write the per-model table as CSV (atomically).")
 @json_option
@@ -134,7 +136,9 @@ def stability_command(params, sample_time, damping, delay, weights_path, output,
     paper table by name (nominal, grip). The wall F[k] = -(K x[k-d] + B (x[k-d] -
     x[k-d-1])/T), held by a zero-order hold, acts on the measured dynamics of eq. 4 of
     each row, discretised exactly. Per row: K_max (N/m) and the frequency at which the
-    loop first goes unstable; per axis: minimum, median and 5th percentile.
+    loop first goes unstable; per axis: minimum, median and 5th percentile. A params
+    file with your own effects needs their --effects FILE, and each of them a rational
+    form (docs/methods.md, "Your own effects").
     """
 
     settings = WallSettings(sample_time, damping, delay)
@@ -182,6 +186,7 @@ def stability_command(params, sample_time, damping, delay, weights_path, output,
 @axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI) "
                    "[default: x=0.1:30,y=0.1:30,z=0.1:10]; axes not named keep it.")
 @effect_option
+@effects_file_option
 @click.option("--method", default=None, metavar="NAME",
               help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin).")
 @click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",
