@@ -4,7 +4,8 @@ The loop (see docs/methods.md, "Stability", for the derivation and the choices):
 
 * **Plant** — the measured dynamics of eq. 4 of Fu & Çavuşoğlu 2010 from one parameter
   row, P(s) = X/F = H_ARM / (1 + Mp s² H_ARM) in m/N, with the row's own device mass
-  ``mp_kg`` and its effects (:func:`plant_from_model`).
+  ``mp_kg`` and its effects, each through the rational form its definition declares
+  (``Effect.rational``, eq. R1 of :mod:`armfit.models.effects`) (:func:`plant_from_model`).
 * **Virtual wall** — the sampled controller
   F[k] = −(K x[k−d] + B (x[k−d] − x[k−d−1]) / T), i.e. C(z) = K + B (1 − z⁻¹)/T with
   d samples of computation delay, its force held by a zero-order hold (ZOH) over T.
@@ -19,12 +20,14 @@ The loop (see docs/methods.md, "Stability", for the derivation and the choices):
   are tested by closed-loop eigenvalues; the first loss of stability is verified to
   0.1 % (:data:`K_REL_TOL`) and refined by bisection if the check fails.
 
-Effects that are not rational: an output ``delay`` τ is exact — τ = m T + φ T with m
-whole samples added to d and the fraction φ ∈ [0, 1) handled by the modified z-transform
-(the held force enters the plant partly from the previous sample). The ``reflex`` delay
-sits inside the arm's impedance (a delayed feedback in continuous time), which has no
-finite sampled form: it is replaced by its [n/n] Padé approximant,
-n = :data:`REFLEX_PADE_ORDER` (exact magnitude, phase error below 1° up to ω·τ ≈ 7.7).
+Effects that are not rational: an effect's form num/den·e^(−sτ) may hold a delay τ. On an
+output-stage effect (e.g. ``delay``) it is exact — the plant's delays add up to
+τ = m T + φ T with m whole samples added to d and the fraction φ ∈ [0, 1) handled by the
+modified z-transform (the held force enters the plant partly from the previous sample).
+A delay inside an arm or device impedance (e.g. the ``reflex``: a delayed feedback in
+continuous time) has no finite sampled form: it is replaced by its [n/n] Padé
+approximant, n = :data:`INTERNAL_DELAY_PADE_ORDER` (exact magnitude, phase error below 1°
+up to ω·τ ≈ 7.7). An effect that declares no rational form is refused (UsageError).
 
 Robust certificate (:func:`robust_certificate`): the arm's multiplicative uncertainty
 H_ARM (1 + Wu Δ), ‖Δ‖∞ ≤ 1, sees the complementary sensitivity
@@ -52,6 +55,7 @@ from scipy import linalg
 from armfit.errors import UsageError
 from armfit.io.schema import is_missing
 from armfit.models.arm import ClosedLoopModel
+from armfit.models.effects import EFFECTS, Effect
 from armfit.models.params import model_from_params
 from armfit.uncertainty import PAPER_BAND_HZ
 
@@ -60,8 +64,10 @@ DEFAULT_SAMPLE_TIME_S = 1.0e-3
 DEFAULT_DAMPING_NS_PER_M = 0.0
 DEFAULT_DELAY_SAMPLES = 1
 
-#: Order n of the [n/n] Padé approximant of the reflex delay inside the arm impedance.
-REFLEX_PADE_ORDER = 6
+#: Order n of the [n/n] Padé approximant that replaces a delay inside an arm or device
+#: impedance (e.g. the reflex's): exact magnitude, phase error below 1° up to ω·τ ≈ 7.7
+#: (31 Hz for τ = 40 ms).
+INTERNAL_DELAY_PADE_ORDER = 6
 
 #: Relative accuracy to which K_max is verified (and refined when needed): 0.1 %.
 K_REL_TOL = 1.0e-3
@@ -148,41 +154,40 @@ def _add(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
             np.polymul(a[1], b[1]))
 
 
-def _effect_terms(name: str, v: Mapping[str, float], mp: float, pade_order: int
-                  ) -> tuple[tuple[np.ndarray, np.ndarray] | None, float]:
-    """(rational term (num, den) or None, output delay s) of one library effect, the same
-    functions of s as :mod:`armfit.models.effects` (impedance in N/m or output factor)."""
-    if name == "delay":
-        return None, float(v["delay_s"])
-    if name == "lowpass":
-        return (np.array([1.0]), np.array([1.0 / (2 * np.pi * v["cutoff_hz"]), 1.0])), 0.0
-    if name == "device-damping":
-        return (np.array([v["damping_Ns_per_m"], 0.0]), np.array([1.0])), 0.0
-    if name == "device-mass":
-        return (np.array([v["mass_kg"] - mp, 0.0, 0.0]), np.array([1.0])), 0.0
-    if name == "resonance":
-        wn = 2 * np.pi * v["freq_hz"]
-        den = np.array([1.0, 2 * v["zeta"] * wn, wn * wn])
-        w = v["weight"]
-        return (np.polyadd((1 - w) * den, [w * wn * wn]), den), 0.0
-    if name == "reflex":
-        pn, pd = pade_delay(v["delay_s"], pade_order)
-        return (v["gain_N_per_m"] * pn, pd), 0.0
-    raise UsageError(f"stability: effect {name!r} has no rational form known to armfit; "
-                     "fit the model without it to analyse the wall")
+def _effect_rational(e: Effect, values: Mapping[str, float], mp: float
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(num, den, delay_s) of one effect's term (eq. R1 of :mod:`armfit.models.effects`):
+    an impedance in N/m (stage arm or device) or an output factor. Raises UsageError
+    (one line) naming the effect and where it came from when it declares no rational
+    form."""
+    if e.rational is None:
+        origin = EFFECTS.describe_origin(e.name) if EFFECTS.origin_of(e) is not None \
+            else "no registered source"
+        raise UsageError(f"stability: effect {e.name!r} (from {origin}) declares no "
+                         "rational form: add rational=... to its Effect; see "
+                         "docs/methods.md#your-own-effects")
+    return e.rational_form(values, mp)
 
 
 def plant_from_model(model: ClosedLoopModel, theta: Mapping[str, float], *,
-                     pade_order: int = REFLEX_PADE_ORDER) -> RationalPlant:
+                     pade_order: int = INTERNAL_DELAY_PADE_ORDER) -> RationalPlant:
     """The measured dynamics X/F (eq. 4, with the model's effects) as a
     :class:`RationalPlant`.
 
     X/F = Π R_out / (Z_ARM + ΔZ_arm + Mp s² + ΔZ_dev) with Z_ARM = C1 (Ma s² + C2) /
-    (Ma s² + C1 + C2) (eq. 3), exactly as :meth:`ClosedLoopModel.response`; output
-    delays are kept apart as ``delay_s`` and a reflex delay is replaced by its Padé
-    approximant of order ``pade_order``.
+    (Ma s² + C1 + C2) (eq. 3), exactly as :meth:`ClosedLoopModel.response`, each effect's
+    term from its ``rational`` form num/den·e^(−sτ) (eq. R1 of
+    :mod:`armfit.models.effects`). Delays of output effects are kept apart (summed) as
+    ``delay_s``; a delay inside an arm or device impedance is replaced by its [n/n] Padé
+    approximant, n = ``pade_order``.
+
+    Raises
+    ------
+    UsageError
+        An effect declares no rational form (named, with where it came from), or X/F
+        is not strictly proper.
     """
-    values = {n: float(theta[n]) for n in model.param_names}
+    values = {n: float(v) for n, v in model.values(theta).items()}
     Ma, k1, k2, b1, b2 = (values[n] for n in ("Ma", "k1", "k2", "b1", "b2"))
     z = (np.polymul([b1, k1], [Ma, b2, k2]), np.array([Ma, b1 + b2, k1 + k2]))
     z = _add(z, (np.array([model.mp, 0.0, 0.0]), np.array([1.0])))
@@ -190,14 +195,15 @@ def plant_from_model(model: ClosedLoopModel, theta: Mapping[str, float], *,
     delay = 0.0
     for e in model.effects:
         v = {p.name: values[f"{e.name}.{p.name}"] for p in e.params}
-        term, tau = _effect_terms(e.name, v, model.mp, pade_order)
-        delay += tau
-        if term is None:
-            continue
+        num, den, tau = _effect_rational(e, v, model.mp)
         if e.stage == "output":
-            out = (np.polymul(out[0], term[0]), np.polymul(out[1], term[1]))
-        else:
-            z = _add(z, term)
+            out = (np.polymul(out[0], num), np.polymul(out[1], den))
+            delay += tau
+            continue
+        if tau > 0:
+            pn, pd = pade_delay(tau, pade_order)
+            num, den = np.polymul(num, pn), np.polymul(den, pd)
+        z = _add(z, (num, den))
     num = np.polymul(out[0], z[1])
     den = np.polymul(out[1], z[0])
     num = np.trim_zeros(num, "f")
@@ -599,7 +605,8 @@ def environment_terms(f_hz, model: ClosedLoopModel, theta: Mapping[str, float],
     # R and Z_dev from the model's own response: R/(Z_arm + Z_dev) with no output effect
     base = ClosedLoopModel(mp=model.mp, effects=tuple(e for e in model.effects
                                                       if e.stage != "output"))
-    theta_base = {n: theta[n] for n in base.param_names}
+    every = model.values(theta)
+    theta_base = {n: every[n] for n in base.param_names}
     z_total = 1.0 / base.response(f, theta_base)   # Z_arm + Z_dev
     R = z_all_inv * z_total
     z_dev = z_total - z_arm
@@ -909,7 +916,8 @@ def k_max_sweep(plants: Sequence[RationalPlant], rates_hz: Sequence[float],
 
 __all__ = [
     "CERTIFICATE_COLUMNS", "CERT_POINTS_PER_DECADE", "Certificate", "DEFAULT_DAMPING_NS_PER_M",
-    "DEFAULT_DELAY_SAMPLES", "DEFAULT_SAMPLE_TIME_S", "K_REL_TOL", "REFLEX_PADE_ORDER",
+    "DEFAULT_DELAY_SAMPLES", "DEFAULT_SAMPLE_TIME_S", "INTERNAL_DELAY_PADE_ORDER",
+    "K_REL_TOL",
     "RationalPlant", "STABILITY_COLUMNS", "WallSettings", "WallStability", "axis_summary",
     "closed_loop_stable", "crossing_gains", "describe", "environment_terms", "expm_batch",
     "k_max_sweep", "loop_model",

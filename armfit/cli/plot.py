@@ -188,6 +188,7 @@ def literature(model_path, axis, grip, output, overwrite):
 
 
 @command.command("stability")
+@effects_file_option
 @click.argument("params", metavar="PARAMS")
 @click.option("--sample-time", "sample_time", type=float, default=1e-3, show_default=True,
               metavar="S", help="Servo period T in seconds of the top row.")

@@ -19,6 +19,7 @@ from armfit.cli.options import (
     bands_by_axis,
     clean,
     effect_option,
+    effects_file_option,
     emit_json,
     jobs_option,
     json_option,
@@ -144,6 +145,7 @@ def _limit_words(g) -> str:
 @click.option("--outside-loop", "outside_loop", multiple=True, metavar="EFFECT",
               help="An apparatus effect (stage output or device) the rendering loop does "
                    "not see, e.g. a latency that only offsets the logs; repeatable.")
+@effects_file_option
 @click.option("-o", "--output", "output", default=None, type=click.Path(dir_okay=False),
               help="Write the per-model table as CSV (atomically).")
 @json_option
@@ -157,7 +159,9 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
     x[k-d-1])/T), held by a zero-order hold, acts on the measured dynamics of eq. 4 of
     each row, discretised exactly. Per row: K_max (N/m) and the frequency at which the
     loop first goes unstable; per axis: minimum, median and 5th percentile. Every
-    effect of a row is in the loop unless named with --outside-loop.
+    effect of a row is in the loop unless named with --outside-loop. A params file with
+    your own effects needs their --effects FILE, and each of them a rational form
+    (docs/methods.md, "Your own effects").
     """
 
     settings = WallSettings(sample_time, damping, delay)
@@ -216,6 +220,7 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
 @axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI) "
                    "[default: x=0.1:30,y=0.1:30,z=0.1:10]; axes not named keep it.")
 @effect_option
+@effects_file_option
 @click.option("--method", default=None, metavar="NAME",
               help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin).")
 @click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",

@@ -18,11 +18,14 @@ Defining an effect (a user's file, an installed package, or the built-in library
     def _spring(s, values, mp):
         return values["k_N_per_m"] + 0.0 * s
 
+    def _spring_rational(values, mp):
+        return values["k_N_per_m"], 1.0      # k/1: num(s) = k, den(s) = 1
+
     EFFECTS = [Effect(
         name="device-spring", stage="device",
         params=(Param("k_N_per_m", "N/m", 0.01, 5000.0, 50.0, "spring in the device"),),
-        term=_spring, summary="A spring in the device: its impedance gains k.",
-        null=(0.01,))]
+        term=_spring, rational=_spring_rational,
+        summary="A spring in the device: its impedance gains k.", null=(0.01,))]
 
 ``term(s, values, mp)`` gets s = j·2π·f (rad/s, a numpy array), ``values`` mapping the
 effect's own parameter names to numbers (or to arrays that broadcast against s: the
@@ -32,19 +35,33 @@ constant). ``null`` gives the values at which the effect vanishes (``None``: the
 mass, for an effect that replaces Mp); nested fits start there. ``starts`` (optional)
 gives further starting points, ``suspect_when`` (optional) the symptom, in words.
 
+``rational(values, mp)`` (optional) states the same term as a rational function of s
+times a delay, for the stability analysis (:mod:`armfit.stability`), which needs the
+plant as polynomials: it gets ``values`` as plain floats and the device mass ``mp``
+(kg) and returns ``(num, den)`` or ``(num, den, delay_s)``, polynomial coefficients in s
+(rad/s), highest power first, such that
+
+    term(s) = num(s) / den(s) · exp(−s · delay_s)                              (R1)
+
+exactly (``delay_s`` ≥ 0, in s; 0 when left out; a number stands for a polynomial of
+degree 0, as the spring's k/1 above). An effect without it is refused by ``armfit
+stability`` with a message saying so; every other use ignores it.
+
 The registry (:data:`EFFECTS`, a read-only mapping name → Effect) holds, in order: the
 built-in library (:mod:`armfit.models.library`), the effects of installed packages (the
 entry-point group ``armfit.effects``: each entry point names a module, or an object, with
 an ``EFFECTS`` list), and the files loaded with :func:`load_effect_file` (the CLI's
 ``--effects FILE``). Every effect is checked when it is registered
 (:func:`check_effect`); a bad one raises :class:`armfit.errors.EffectDefinitionError`
-naming the file and what is wrong.
+naming the file and what is wrong; with ``rational``, (R1) must hold on the probe grid
+within :data:`RATIONAL_RTOL`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import importlib.util
+import math
 import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -56,6 +73,7 @@ from armfit.errors import EffectDefinitionError, NoInputError, UsageError
 from armfit.models.arm import BASE_PARAMS, DEVICE_MASS_KG, Param
 
 TermFn = Callable[[np.ndarray, Mapping[str, float], float], np.ndarray]
+RationalFn = Callable[[Mapping[str, float], float], tuple]
 
 #: Where an effect can act (see the module docstring).
 STAGES: tuple[str, ...] = ("arm", "device", "output")
@@ -73,6 +91,15 @@ PROBE_HZ = np.geomspace(0.1, 30.0, 40)
 #: bin (0.1–1 dB), yet loose enough for effects whose null sits on a bound short of the
 #: exact zero (a 100 kHz low-pass changes the response by 3e-4 at 30 Hz).
 NULL_TOLERANCE = 1e-3
+
+#: Largest difference between an effect's rational form (R1) and its ``term`` on the
+#: probe grid, relative to the largest |term| there (at the same values and device
+#: mass), plus :data:`RATIONAL_ATOL` (the term's own unit: N/m, or 1 for an output
+#: factor). Both sides are the same function evaluated two ways, so they agree to
+#: rounding (about 1e-15); 1e-9 leaves room for a polynomial evaluated at |s| up to
+#: 190 rad/s and catches any wrong coefficient, sign or power of s.
+RATIONAL_RTOL = 1e-9
+RATIONAL_ATOL = 1e-12
 
 _BAD_NAME_CHARS = ".;,:="
 
@@ -100,6 +127,12 @@ class Effect:
         Further starting points of nested fits, one value per parameter.
     suspect_when : str, optional
         The symptom in the comparison that suggests this effect.
+    rational : callable, optional
+        ``rational(values, mp)`` → ``(num, den)`` or ``(num, den, delay_s)``: the same
+        term as num(s)/den(s)·exp(−s·delay_s) (eq. R1 of the module docstring), with
+        ``values`` plain floats, ``mp`` the device mass (kg), coefficients in powers of
+        s (rad/s), highest first, ``delay_s`` ≥ 0 in s. Needed by the stability analysis
+        only (:mod:`armfit.stability`); None (the default) when the effect has none.
     """
 
     name: str
@@ -110,6 +143,7 @@ class Effect:
     summary: str = ""
     starts: tuple[tuple[float, ...], ...] = ()
     suspect_when: str = ""
+    rational: RationalFn | None = None
 
     def __post_init__(self) -> None:
         # accept lists where tuples are documented (an Effect is immutable and hashable)
@@ -139,6 +173,32 @@ class Effect:
     @property
     def param_names(self) -> tuple[str, ...]:
         return tuple(p.name for p in self.params)
+
+    def rational_form(self, values: Mapping[str, float], mp: float
+                      ) -> tuple[np.ndarray, np.ndarray, float]:
+        """The term as (num, den, delay_s) with term(s) = num(s)/den(s)·exp(−s·delay_s)
+        (eq. R1): coefficients in powers of s (rad/s), highest first, as float arrays;
+        delay_s ≥ 0 (s).
+
+        Parameters
+        ----------
+        values : mapping
+            The effect's own parameter values (plain numbers).
+        mp : float
+            Device mass, kg.
+
+        Raises
+        ------
+        UsageError
+            The effect declares no ``rational``.
+        EffectDefinitionError
+            ``rational`` raised, or returned something other than finite real
+            coefficients and a finite delay ≥ 0.
+        """
+        if self.rational is None:
+            raise UsageError(f"effect {self.name!r} declares no rational form")
+        return _rational_parts(self, {k: float(v) for k, v in values.items()}, float(mp),
+                               "")
 
     def __reduce_ex__(self, protocol):
         # A registered effect travels to worker processes by reference (its name and
@@ -207,6 +267,9 @@ def _check_structure(e: Effect) -> None:
     for attr in ("summary", "suspect_when"):
         if not isinstance(getattr(e, attr), str):
             fail(f"{attr} must be a string")
+    if e.rational is not None and not callable(e.rational):
+        fail(f"rational must be a function rational(values, mp) or None, got "
+             f"{type(e.rational).__name__}")
 
 
 def _probe_term(e: Effect, values: Mapping[str, float], mp: float, where: str
@@ -235,6 +298,82 @@ def _probe_term(e: Effect, values: Mapping[str, float], mp: float, where: str
     return arr
 
 
+def _coefficients(e: Effect, x, what: str, where: str) -> np.ndarray:
+    """One polynomial of a rational form as a 1-D float array (a number is degree 0)."""
+    def fail(why: str) -> None:
+        raise EffectDefinitionError(f"effect {e.name!r}: rational returned {what} {why}"
+                                    f"{' ' + where if where else ''}; give real polynomial "
+                                    "coefficients in s, highest power first")
+    try:
+        arr = np.atleast_1d(np.asarray(x))
+    except (TypeError, ValueError):
+        fail(f"{type(x).__name__} that is not numbers")
+    if np.iscomplexobj(arr):
+        fail("with complex coefficients")
+    if arr.dtype.kind not in "biuf" or arr.dtype == bool:
+        fail(f"of {arr.dtype} that is not numbers")
+    if arr.ndim != 1 or arr.size == 0:
+        fail(f"of shape {arr.shape}, not a non-empty 1-D sequence")
+    arr = arr.astype(float)
+    if not np.all(np.isfinite(arr)):
+        fail("with NaN or infinite coefficients")
+    return arr
+
+
+def _rational_parts(e: Effect, values: Mapping[str, float], mp: float, where: str
+                    ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Call ``e.rational`` and check what it returns: (num, den, delay_s) (see
+    :meth:`Effect.rational_form`); any problem is one EffectDefinitionError line."""
+    at = f" {where}" if where else ""
+    try:
+        out = e.rational(dict(values), mp)
+    except Exception as exc:  # the user's code: report whatever it raised, in one line
+        msg = str(exc).splitlines()[0] if str(exc) else ""
+        raise EffectDefinitionError(f"effect {e.name!r}: rational raised "
+                                    f"{type(exc).__name__}{': ' + msg if msg else ''}{at}"
+                                    ) from None
+    if not isinstance(out, (tuple, list)) or len(out) not in (2, 3):
+        got = f"{len(out)} items" if isinstance(out, (tuple, list)) else type(out).__name__
+        raise EffectDefinitionError(f"effect {e.name!r}: rational must return (num, den) or "
+                                    f"(num, den, delay_s), got {got}{at}")
+    num = _coefficients(e, out[0], "num", where)
+    den = _coefficients(e, out[1], "den", where)
+    if not np.any(den != 0.0):
+        raise EffectDefinitionError(f"effect {e.name!r}: rational returned a zero "
+                                    f"denominator{at}")
+    delay = out[2] if len(out) == 3 else 0.0
+    d = np.asarray(delay) if isinstance(delay, (int, float, np.number, np.ndarray)) else None
+    if (d is None or d.ndim != 0 or d.dtype.kind not in "iuf" or not np.isfinite(d)
+            or d < 0):
+        raise EffectDefinitionError(f"effect {e.name!r}: rational returned delay_s "
+                                    f"{delay!r}{at}; it must be a finite number >= 0 (s)")
+    return num, den, float(d)
+
+
+def _check_rational(e: Effect, values: Mapping[str, float], mp: float,
+                    term: np.ndarray, where: str) -> None:
+    """(R1) on the probe grid: num/den·exp(−s·delay_s) equals ``term`` (the values of
+    ``e.term`` there) within RATIONAL_RTOL·max|term| + RATIONAL_ATOL."""
+    num, den, delay = _rational_parts(e, values, mp, where)
+    s = 2j * np.pi * PROBE_HZ
+    with np.errstate(all="ignore"):
+        r = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * delay)
+    if not np.all(np.isfinite(r)):
+        bad = PROBE_HZ[~np.isfinite(r)][0]
+        raise EffectDefinitionError(f"effect {e.name!r}: its rational form is NaN or "
+                                    f"infinite at {bad:.3g} Hz (den(s) = 0) {where}")
+    scale = float(np.max(np.abs(term)))
+    err = np.abs(r - term)
+    if np.any(err > RATIONAL_RTOL * scale + RATIONAL_ATOL):
+        i = int(np.argmax(err))
+        raise EffectDefinitionError(
+            f"effect {e.name!r}: its rational form differs from term by {err[i]:.3g} "
+            f"({err[i] / scale if scale > 0 else math.inf:.2g} of max |term|) at "
+            f"{PROBE_HZ[i]:.3g} Hz {where}; rational(values, mp) must return num, den "
+            "(and delay_s) with term(s) = num(s)/den(s)*exp(-s*delay_s), coefficients "
+            "in s highest power first")
+
+
 def check_effect(e: Effect) -> None:
     """Check an effect before registering it; raise EffectDefinitionError (without the
     file name: the loader adds it) when it breaks the contract.
@@ -245,7 +384,9 @@ def check_effect(e: Effect) -> None:
     result of shape (2, n)), as the fitter evaluates many points at once; and at its null
     values the effect must leave the closed-loop response of the base model (typical
     parameters) unchanged within :data:`NULL_TOLERANCE`, so that fits with the effect
-    nest the fit without it.
+    nest the fit without it. With ``rational``, at the same values and device masses, it
+    must return finite real coefficients and a finite delay ≥ 0 that give ``term``
+    (eq. R1) within :data:`RATIONAL_RTOL` of max |term| plus :data:`RATIONAL_ATOL`.
     """
     from armfit.models.arm import ClosedLoopModel
     if not isinstance(e, Effect):
@@ -259,10 +400,13 @@ def check_effect(e: Effect) -> None:
                 raise EffectDefinitionError(
                     f"effect {e.name!r}: null value of {p.name} (the device mass of axis "
                     f"{axis}, {mp:g} kg) lies outside its bounds [{p.lower:g}, {p.upper:g}]")
-        _probe_term(e, typical, mp, "at the typical values")
-        _probe_term(e, null, mp, "at the null values")
-        for j, st in enumerate(e.start_points(mp)[1:]):
-            _probe_term(e, st, mp, f"at starts[{j}]")
+        points = [(typical, "at the typical values"), (null, "at the null values")]
+        points += [(st, f"at starts[{j}]") for j, st in enumerate(e.start_points(mp)[1:])]
+        for values, where in points:
+            term = _probe_term(e, values, mp, where)
+            if e.rational is not None:
+                _check_rational(e, values, mp, term,
+                                f"{where} (axis {axis}, mp = {mp:g} kg)")
         s = 2j * np.pi * PROBE_HZ
         batch = {k: np.array([[v], [v]]) for k, v in typical.items()}
         try:
