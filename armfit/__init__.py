@@ -12,7 +12,7 @@ The Python API (the one backend of the ``armfit`` command line; docs/api.md)::
 
 Stages: :func:`read_trials`, :func:`estimate`, :func:`fit_grip`, :func:`fit_nominal`,
 :func:`fit_trials`, :func:`fit_uncertainty`, :func:`compare`, :func:`diagnose`,
-:func:`stability`, :func:`simulate`, :func:`run`. Models: :class:`Effect`,
+:func:`stability`, :func:`adopt_model`, :func:`simulate`, :func:`run`. Models: :class:`Effect`,
 :class:`Param` and the effect library :data:`EFFECTS`.
 """
 
@@ -27,12 +27,12 @@ _EXPORTS: dict[str, str] = {
     "read_trials": "armfit.api", "estimate": "armfit.api", "fit_grip": "armfit.api",
     "fit_nominal": "armfit.api", "fit_uncertainty": "armfit.api", "compare": "armfit.api",
     "diagnose": "armfit.api", "simulate": "armfit.api", "run": "armfit.pipeline",
-    "fit_trials": "armfit.api", "stability": "armfit.api",
+    "fit_trials": "armfit.api", "stability": "armfit.api", "adopt_model": "armfit.api",
     # results and readers
     "Trials": "armfit.api", "Spectra": "armfit.spectra", "ModelFit": "armfit.api",
     "Uncertainty": "armfit.api", "Comparisons": "armfit.api", "Diagnosis": "armfit.api",
     "Simulation": "armfit.api", "WuWeight": "armfit.uncertainty",
-    "TrialFits": "armfit.api", "Stability": "armfit.api",
+    "TrialFits": "armfit.api", "Stability": "armfit.api", "AdoptedModel": "armfit.api",
     "read_spectra": "armfit.api", "read_model": "armfit.api", "read_weights": "armfit.api",
     # models and effects
     "ClosedLoopModel": "armfit.models.arm", "Param": "armfit.models.arm",

@@ -33,6 +33,7 @@ import pandas as pd
 
 from armfit import fitting as _fitting
 from armfit import uncertainty as _uncertainty
+from armfit.adopt import Adoption, adopt
 from armfit.constants import AXES
 from armfit.diagnose import (
     MAX_STEPS,
@@ -72,6 +73,20 @@ def _figures():
 def _effects(effects: Iterable[Effect | str] | None) -> list[Effect]:
     """Effects given as objects or library names."""
     return [get_effect(e) if isinstance(e, str) else e for e in (effects or ())]
+
+
+def _fit_effects(effects):
+    """The fitters' ``effects`` as given: a mapping {axis: items} (one model per axis, as
+    :attr:`armfit.adopt.Adoption.effects`), or items for every axis — an Effect, its
+    name, ``"NAME=VALUES"`` or (effect, {param: value}) to hold an effect's parameters
+    (:func:`armfit.models.effects.resolve_effects`)."""
+    if isinstance(effects, AdoptedModel):
+        return effects.adoption.effects
+    if isinstance(effects, Adoption):
+        return effects.effects
+    if isinstance(effects, Mapping):
+        return {a: list(v) for a, v in effects.items()}
+    return [e for e in (effects or ())]
 
 
 # ---------------------------------------------------------------------------
@@ -349,7 +364,8 @@ def _fit(which: str, spectra, *, cost: str, bands, effects, bootstrap: int, seed
          method, max_nfev, on_fit, jobs: int) -> ModelFit:
     sp = _spectra(spectra)
     study = _fitting.fit_study(sp, which=which, cost=cost, bands=bands,
-                               effects=_effects(effects), bootstrap=bootstrap, seed=seed,
+                               effects=_fit_effects(effects), bootstrap=bootstrap,
+                               seed=seed,
                                method=method, max_nfev=max_nfev, on_fit=on_fit, jobs=jobs)
     return ModelFit(study.table(), which, study.fits, sp)
 
@@ -507,8 +523,9 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
     ----------
     spectra : Spectra or path
         With trial-level derived responses.
-    nominal : ModelFit, DataFrame or path
-        Nominal fits (one row per axis).
+    nominal : ModelFit, AdoptedModel, DataFrame or path
+        Nominal fits (one row per axis); their apparatus effects are removed from the
+        derived arm dynamics first (:func:`armfit.uncertainty.arm_trials`).
     cost : {'envelope', 'paper'}
         'envelope': |Wu| >= W_max on and between grid points, as tight as possible;
         'paper': dB least squares against W_max (no guarantee).
@@ -537,7 +554,7 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
         guarantee whether or not its shape optimiser converged).
     """
     sp = _spectra(spectra)
-    nom = ModelFit.of(nominal)
+    nom = nominal.nominal if isinstance(nominal, AdoptedModel) else ModelFit.of(nominal)
     results = _uncertainty.fit_uncertainty(sp, nom.table, cost=cost, n_pairs=order,
                                            band=band, smooth_oct=smooth_oct, method=method,
                                            given=check, jobs=jobs)
@@ -831,10 +848,86 @@ def fit_trials(spectra, *, cost: str = "complex",
         A failed fit is kept with its reason, not raised.
     """
     sp = _spectra(spectra)
-    objs = tuple(_effects(effects))
+    objs = _fit_effects(effects)
     fits = _fitting.fit_trials(sp, cost=cost, bands=bands, effects=objs, method=method,
                                max_nfev=max_nfev, jobs=jobs, on_fit=on_fit)
     return TrialFits(tuple(fits), objs, sp)
+
+
+@dataclass(frozen=True, eq=False)
+class AdoptedModel:
+    """The model the diagnosis found, fitted: what ``armfit run`` delivers.
+
+    Attributes
+    ----------
+    adoption : armfit.adopt.Adoption
+        Per axis the adopted effects, the apparatus values held and why.
+    grip, nominal : ModelFit
+        Tables I and II of the adopted model.
+    trials : TrialFits or None
+        One fit of the adopted model per trial (the population :func:`stability` uses).
+    base_grip : ModelFit or None
+        Table I of the paper's 5-parameter model, which the diagnosis started from.
+    diagnosis : Diagnosis or None
+
+    Pass it on as a model: :func:`fit_uncertainty` (its nominal, apparatus effects
+    removed from the derived arm dynamics), :func:`stability` (its trials; with weights,
+    the certificate of its nominal capped by its trials), and the fitters' ``effects``.
+    """
+
+    adoption: Adoption
+    grip: ModelFit
+    nominal: ModelFit
+    trials: TrialFits | None = None
+    base_grip: ModelFit | None = None
+    diagnosis: Diagnosis | None = None
+
+
+def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "auto",
+                cost: str = "complex", trials: bool = True, jobs: int = 1) -> AdoptedModel:
+    """Fit the adopted model (:mod:`armfit.adopt`): the paper's model plus the effects
+    the diagnosis names per axis, apparatus effects held at the diagnosis's joint fit.
+
+    Parameters
+    ----------
+    spectra : Spectra or path
+        With trial-level measured and derived responses.
+    diagnosis : Diagnosis, optional
+        Of the base model (default: fit Table I and diagnose it here).
+    policy : {'auto', 'none'}
+        See :func:`armfit.adopt.adopt`.
+    cost : {'complex', 'paper'}
+        As :func:`fit_grip`.
+    trials : bool
+        Also fit every trial (needed by :func:`stability`).
+    jobs : int
+        Worker processes; the result does not depend on it.
+
+    Returns
+    -------
+    AdoptedModel
+    """
+    sp = _spectra(spectra)
+    base = None
+    if diagnosis is None:
+        base = fit_grip(sp, cost=cost, jobs=jobs)
+        diagnosis = diagnose(sp, base, jobs=jobs)
+    elif diagnosis.model is not None and diagnosis.model.which == "grip":
+        base = diagnosis.model
+    ad = adopt(diagnosis, policy)
+    bands = ad.bands
+    grip = fit_grip(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs)
+    nominal = fit_nominal(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs)
+    per_trial = None
+    if trials:
+        starts = {(r["axis"], float(r["grip_N"])): dict(f.params)
+                  for (_, r), f in zip(grip.table.iterrows(), grip.fits, strict=True)
+                  if f.converged}
+        effects = ad.effects
+        fits = _fitting.fit_trials(sp, cost=cost, bands=bands, effects=effects,
+                                   jobs=jobs, starts=starts)
+        per_trial = TrialFits(tuple(fits), effects, sp)
+    return AdoptedModel(ad, grip, nominal, per_trial, base, diagnosis)
 
 
 @dataclass(frozen=True, eq=False)
@@ -885,21 +978,29 @@ class Stability:
 
 def stability(model, *, weights=None, sample_time_s: float | None = None,
               damping_Ns_per_m: float | None = None,
-              delay_samples: int | None = None) -> Stability:
+              delay_samples: int | None = None, members=None,
+              outside_loop: Sequence[str] = ()) -> Stability:
     """K_max: the stiffest virtual wall F[k] = −(K x[k−d] + B (x[k−d] − x[k−d−1])/T), held
     by a zero-order hold, that a device sampling every T renders stably with each arm
     model (exact discretisation of eq. 4) (``armfit stability``).
 
     Parameters
     ----------
-    model : ModelFit, TrialFits, DataFrame, path or str
+    model : ModelFit, TrialFits, AdoptedModel, DataFrame, path or str
         The arm models: fits, a params file, or a paper table by name ('nominal',
-        'grip').
+        'grip'). An AdoptedModel stands for its per-trial fits, or with ``weights`` for
+        its nominal, its trials the members.
     weights : Uncertainty, dict or path, optional
         Uncertainty weights Wu for the robust certificate (a fit, {axis: WuWeight}, a Wu
         CSV or 'paper' for Table III).
     sample_time_s, damping_Ns_per_m, delay_samples : optional
         The wall (default 1 ms, 0 N·s/m, 1 sample).
+    members : TrialFits, DataFrame or path, optional
+        With ``weights``: the models the weight covers; the certificate is capped at
+        their smallest K_max (:func:`armfit.stability.robust_certificate`).
+    outside_loop : sequence of str
+        Apparatus effects the rendering loop does not see
+        (:func:`armfit.stability.loop_model`).
 
     Returns
     -------
@@ -909,6 +1010,15 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
                             ("damping_Ns_per_m", damping_Ns_per_m),
                             ("delay_samples", delay_samples)) if v is not None}
     settings = WallSettings(**kw)
+    if isinstance(model, AdoptedModel):
+        if weights is not None:
+            members = model.trials if members is None else members
+            model = model.nominal
+        elif model.trials is not None:
+            model = model.trials
+        else:
+            raise UsageError("this adopted model has no per-trial fits; give weights for "
+                             "the certificate of its nominal, or adopt_model(trials=True)")
     if isinstance(model, ModelFit):
         rows, label = model.table, model.source
     elif isinstance(model, TrialFits):
@@ -927,8 +1037,17 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
         w = dict(weights)
     elif weights is not None:
         w, bands, _ = read_param_weights(str(weights))
+    member_rows = None
+    if isinstance(members, TrialFits):
+        member_rows = members.to_frame()
+        member_rows = member_rows[member_rows["converged"].astype(bool)]
+    elif isinstance(members, pd.DataFrame):
+        member_rows = members
+    elif members is not None:
+        member_rows = read_param_rows(str(members)).table
     table = stability_table(rows, settings, weights=w, weights_band_hz=bands,
-                                       source=label)
+                            source=label, members=member_rows,
+                            outside_loop=tuple(outside_loop))
     return Stability(table, settings, rows)
 
 
@@ -1009,9 +1128,11 @@ def simulate(config: StudyConfig | None = None, **settings) -> Simulation:
 
 
 __all__ = [
-    "AXES", "Comparisons", "Diagnosis", "ModelFit", "Simulation", "Spectra", "Trials",
+    "AXES", "AdoptedModel", "Comparisons", "Diagnosis", "ModelFit", "Simulation", "Spectra",
+    "Trials",
     "Uncertainty", "Stability", "TrialFits", "compare", "compare_frame", "diagnose",
-    "estimate", "estimate_config", "estimate_study_result", "fit_grip", "fit_nominal",
+    "adopt_model", "estimate", "estimate_config", "estimate_study_result", "fit_grip",
+    "fit_nominal",
     "fit_trials", "fit_uncertainty", "read_model", "read_spectra", "read_trials",
     "read_weights", "simulate", "stability",
 ]

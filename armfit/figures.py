@@ -1017,7 +1017,9 @@ def stability_figure(params: pd.DataFrame, settings=None, *,
     parameters table: per-trial fits with ``subject``, grip or nominal fits), one column
     per subject (or per row), coloured by grip, with the population minimum as a dashed
     line. Bottom row: K_max against servo rate 1/T (``rates_hz``, log-log) for each
-    delay d in ``delays`` — the minimum over the rows (line) and their range (band).
+    delay d in ``delays`` — the minimum over the rows (line) and their range (band); a
+    rate at which a model's latency exceeds
+    :data:`armfit.stability.MAX_LOOP_DELAY_SAMPLES` samples is left out (a gap).
     """
     st = WallSettings() if settings is None else settings
     if "row" not in params.columns:
@@ -1064,7 +1066,10 @@ def stability_figure(params: pd.DataFrame, settings=None, *,
         sweep = k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m)
         for i, d in enumerate(delays):
             col = _DELAY_COLOURS[i % len(_DELAY_COLOURS)]
-            lo, hi = sweep[i].min(axis=1) / 1e3, sweep[i].max(axis=1) / 1e3
+            with warnings.catch_warnings():   # a rate whose loop is too long: a gap
+                warnings.simplefilter("ignore", RuntimeWarning)
+                lo = np.nanmin(sweep[i], axis=1) / 1e3
+                hi = np.nanmax(sweep[i], axis=1) / 1e3
             bot.fill_between(rates_hz, lo, hi, color=col, alpha=0.2, lw=0,
                              gid=f"sweep-range:{axis}:d{d}")
             bot.plot(rates_hz, lo, color=col, lw=1.2, marker=".", ms=2.5,

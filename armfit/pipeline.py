@@ -5,32 +5,37 @@ subcommand, run in the order data flows (files written into OUTDIR in brackets):
 
 - ingest: :func:`armfit.io.trials.ingest` (trials.parquet);
 - estimate: :func:`armfit.api.estimate_study_result` (spectra.parquet);
-- fit-grip, fit-nominal: :func:`armfit.fit_grip`, :func:`armfit.fit_nominal`
-  (grip_params.csv/.tex, nominal_params.csv/.tex);
-- fit-uncertainty: :func:`armfit.fit_uncertainty` (wu.csv, wu_summary.csv, wu_wmax.csv,
-  wu.tex), with the same convergence policy as ``armfit fit-uncertainty``;
-- fit-trials: :func:`armfit.fitting.fit_trials`, one fit per trial, each started from
-  its grip's fit (trial_params.csv);
+- fit-grip, fit-nominal: :func:`armfit.fit_grip`, :func:`armfit.fit_nominal` of the
+  paper's 5-parameter model (grip_params.csv/.tex, nominal_params.csv/.tex);
+- diagnose: :func:`armfit.diagnose` started from the grip fits (diagnosis.json), and
+  the adopted model of each axis, :func:`armfit.adopt.adopt` (adoption.csv);
+- adopt, when an effect is adopted: Tables I and II again with the adopted model (the
+  base model's move to grip_params_base.csv/.tex and nominal_params_base.csv/.tex);
+- fit-uncertainty: :func:`armfit.fit_uncertainty` of the adopted nominal (wu.csv,
+  wu_summary.csv, wu_wmax.csv, wu.tex), with the same convergence policy as ``armfit
+  fit-uncertainty``;
+- fit-trials: :func:`armfit.fitting.fit_trials` with the adopted model, one fit per
+  trial, each started from its grip's fit (trial_params.csv);
 - stability: :func:`armfit.stability.stability_table` of the per-trial fits at the
-  defaults (stability.csv), the certificate of the nominal models against Wu, and
-  :func:`armfit.figures.stability_figure` (figures/stability.png);
+  defaults (stability.csv), the certificate of the nominal models against Wu capped by
+  the trials (certificate.csv), and :func:`armfit.figures.stability_figure`
+  (figures/stability.png);
 - figures: Figs. 5–7 of :mod:`armfit.figures` (figures/bode.png, uncertainty.png,
   literature.png);
-- diagnose: :func:`armfit.diagnose` started from the grip fits (diagnosis.json);
-- refit, when the diagnosis names an effect: :func:`armfit.fit_nominal` with that effect
-  (nominal_params_<effect>.csv);
-- compare: :func:`armfit.compare` of each nominal model with the medians (compare.csv);
+- compare: :func:`armfit.compare` of each nominal model (base, adopted) with the
+  medians (compare.csv);
 - residuals: :func:`armfit.figures.residual_figure` per axis (figures/residual_<axis>.png);
 - report: :func:`report_markdown` (report.md), from the stages' typed results and the
   configuration they used.
 
-With ``jobs`` > 1 the stages share ``jobs`` worker processes forked at the start
-(:func:`armfit.workers.shared_pool`): the estimate runs in them while this process
-ingests, the per-trial fits start in them as soon as the grip fits exist, and the figures
-are drawn and written in them while the later stages go on (the report stage waits for
-them). The diagnosis, which also starts from the grip fits, has ``jobs`` workers of its
-own, so the stages that wait for their tasks are not queued behind its long steps. The
-results do not depend on ``jobs``.
+Everything after the diagnosis uses the adopted model (the base model where nothing is
+adopted), so the products are computed once, from the model that survived the
+diagnosis. With ``jobs`` > 1 the stages share ``jobs`` worker processes forked at the
+start (:func:`armfit.workers.shared_pool`): the estimate runs in them while this process
+ingests, the per-trial fits run in them while this process fits Wu, and the figures are
+drawn and written in them while the later stages go on (the report stage waits for
+them). The diagnosis, which starts from the grip fits, has ``jobs`` workers of its own
+while this process fits Table II. The results do not depend on ``jobs``.
 
 Every later stage reads the files the earlier ones wrote (as the subcommands do), so
 ``armfit run`` gives the same numbers as the subcommands run one after the other with
@@ -56,6 +61,7 @@ import numpy as np
 
 from armfit import api
 from armfit._version import __version__
+from armfit.adopt import Adoption, adopt
 from armfit.api import compare_frame
 from armfit.constants import AXES, PAPER_BANDS
 from armfit.diagnose import BANDS, diagnose
@@ -65,7 +71,6 @@ from armfit.io.artifacts import write_params
 from armfit.io.atomic import atomic_path, check_output, write_text_atomic
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import ingest
-from armfit.models.effects import get_effect
 from armfit.paramsets import read_param_rows
 from armfit.spectra import EstimateConfig, Spectra
 from armfit.stability import WallSettings, axis_summary, stability_table
@@ -88,7 +93,9 @@ class RunOptions:
     past bad trials; method: estimator of the measured dynamics ("h1" or "chebwin");
     cost: arm-fit cost ("complex" or "paper", eq. 5); wu_cost: Wu fit ("envelope" or
     "paper", eq. 7); jobs: worker processes (estimate, diagnose); figures: draw the
-    figures; overwrite: replace an existing OUTDIR.
+    figures; overwrite: replace an existing OUTDIR; adopt: what the diagnosis found
+    becomes the model ("auto") or not ("none"), see :mod:`armfit.adopt`; outside_loop:
+    apparatus effects the stability loop leaves out (:func:`armfit.stability.loop_model`).
     """
 
     manifest: str | None = None
@@ -99,6 +106,8 @@ class RunOptions:
     jobs: int = 1
     figures: bool = True
     overwrite: bool = False
+    adopt: str = "auto"
+    outside_loop: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -116,7 +125,8 @@ class RunResult:
 
     outdir: the folder; files: paths relative to it, sorted; trials: trials estimated;
     skipped: (file, reason) of trials left out with ``skip_bad``; verdicts: {axis:
-    verdict sentence}; missing: {axis: effect name or None}; refitted: {effect: axes};
+    verdict sentence}; missing: {axis: effect name or None}; refitted: {effects: axes}
+    adopted ("delay+lowpass" for two); adoption: the adopted model per axis;
     stages: the stages run, in order, with their times (s; the diagnosis's time overlaps
     the stages before it when it ran in worker processes); wall_s: the whole run (s).
     """
@@ -128,6 +138,7 @@ class RunResult:
     verdicts: Mapping[str, str]
     missing: Mapping[str, str | None]
     refitted: Mapping[str, tuple[str, ...]]
+    adoption: Adoption | None = None
     stages: tuple[Stage, ...] = field(default_factory=tuple)
     wall_s: float = 0.0
 
@@ -264,7 +275,7 @@ def _run_in(inputs: list, folder: Path, options: RunOptions, *,
                          trials=len(ctx.estimated.trials), skipped=ctx.skipped,
                          verdicts={d.axis: d.verdict for d in ctx.diagnosis.axes},
                          missing=ctx.missing, refitted=ctx.refitted,
-                         stages=tuple(clock.stages), wall_s=clock.wall())
+                         adoption=ctx.adoption, stages=tuple(clock.stages), wall_s=clock.wall())
 
 
 # ---------------------------------------------------------------------------
@@ -298,7 +309,9 @@ class _Context:
     drawings: _Drawings | None = None
     diagnosis: api.Diagnosis | None = None
     refitted: dict[str, tuple[str, ...]] = field(default_factory=dict)
-    extended: dict[str, api.ModelFit] = field(default_factory=dict)
+    adoption: Adoption | None = None
+    base_grip: api.ModelFit | None = None       # the 5-parameter tables, when adopted
+    base_nominal: api.ModelFit | None = None
     comparisons: api.Comparisons | None = None
     missing: dict[str, str | None] = field(default_factory=dict)
     trial_failed: list[tuple[str, str]] = field(default_factory=list)
@@ -353,8 +366,8 @@ def _estimate(ctx: _Context) -> str:
 
 def _fit(which: str) -> Callable[[_Context], str]:
     def stage(ctx: _Context) -> str:
-        """Tables I and II (params CSV and LaTeX); the diagnosis starts from the grip
-        fits as soon as they exist."""
+        """Tables I and II of the base model (params CSV and LaTeX); the diagnosis starts
+        from the grip fits as soon as they exist."""
         fit = api.fit_grip if which == "grip" else api.fit_nominal
         model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands,
                     jobs=ctx.options.jobs)
@@ -371,22 +384,25 @@ def _fit(which: str) -> Callable[[_Context], str]:
             ctx.background = _Background(o.jobs, in_lane, "background", diagnose,
                                          ctx.spectra, back.table, axes=axes, jobs=o.jobs)
             ctx.stack.callback(ctx.background.close)
-            # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
-            # (the fits themselves, not the rounded CSV: the same start, the same bits)
-            starts = {(r["axis"], float(r["grip_N"])): dict(f.params)
-                      for (_, r), f in zip(model.table.iterrows(), model.fits, strict=True)
-                      if f.converged}
-            ctx.trial_fits = _Background(o.jobs, fit_trials, ctx.spectra, cost=o.cost,
-                                         jobs=o.jobs, source="spectra.parquet",
-                                         starts=starts)
-            ctx.stack.callback(ctx.trial_fits.close)
         return (f"{len(back.table)} fit(s), cost {ctx.options.cost}, median rms "
                 f"{_median(back.table['rms_db']):.2f} dB")
     return stage
 
 
 def _fit_uncertainty(ctx: _Context) -> str:
-    """W_max and Wu (Table III): wu.csv, wu_summary.csv, wu_wmax.csv, wu.tex."""
+    """W_max and Wu (Table III) of the adopted nominal, apparatus effects removed: wu.csv,
+    wu_summary.csv, wu_wmax.csv, wu.tex. The per-trial fits run meanwhile in the worker
+    processes."""
+    o = ctx.options
+    # each trial's fit starts from its grip's fit, as `armfit fit-trials` does (the fits
+    # themselves, not the rounded CSV: the same start, the same bits)
+    starts = {(r["axis"], float(r["grip_N"])): dict(f.params)
+              for (_, r), f in zip(ctx.grip.table.iterrows(), ctx.grip.fits, strict=True)
+              if f.converged}
+    ctx.trial_fits = _Background(o.jobs, fit_trials, ctx.spectra, cost=o.cost,
+                                 jobs=o.jobs, source="spectra.parquet", starts=starts,
+                                 bands=ctx.bands, effects=_effects_of(ctx))
+    ctx.stack.callback(ctx.trial_fits.close)
     wu_path = ctx.path("wu.csv")
     ctx.files += [p.name for p in wu_sidecar_paths(wu_path)]
     unc = api.fit_uncertainty(ctx.spectra, ctx.nominal, cost=ctx.options.wu_cost,
@@ -406,40 +422,64 @@ def _figures(ctx: _Context) -> str:
 
 
 def _diagnose(ctx: _Context) -> str:
-    """Per-trial fits started from the grip fits (diagnosis.json)."""
+    """The diagnosis started from the grip fits (diagnosis.json) and the adopted model of
+    each axis (adoption.csv)."""
     results = ctx.background.result()
     ctx.diagnosis = api.Diagnosis(tuple(results), ctx.spectra, ctx.grip)
     ctx.diagnosis.write(ctx.path("diagnosis.json"))
     ctx.since = ctx.background.started
     # every effect the stepwise search named on an axis, in order ("delay+lowpass")
     ctx.missing = {a: "+".join(names) or None for a, names in ctx.diagnosis.added.items()}
-    for axis, eff in ctx.missing.items():
-        if eff:
-            ctx.refitted[eff] = (*ctx.refitted.get(eff, ()), axis)
+    ctx.adoption = adopt(ctx.diagnosis, ctx.options.adopt)
+    text = ctx.adoption.to_frame().to_csv(index=False, float_format="%.10g",
+                                          lineterminator="\n")
+    write_text_atomic(ctx.path("adoption.csv"), text)
+    for a in ctx.adoption.axes:
+        if a.adopted:
+            key = "+".join(a.effects)
+            ctx.refitted[key] = (*ctx.refitted.get(key, ()), a.axis)
     return "; ".join(f"{a}: {e or 'no missing effect'}" for a, e in ctx.missing.items())
 
 
-def _refit(ctx: _Context) -> str:
-    """The nominal fit again with each named effect, on the axes that name it and over
-    the band the diagnosis looked at (the paper's z band stops at 10 Hz because of an
-    effect the base model lacks; with the effect in the model it need not)."""
-    bands_of = {d.axis: tuple(d.band) for d in ctx.diagnosis.axes}
-    for eff, axes in ctx.refitted.items():
-        sub = ctx.spectra.take(np.isin(ctx.spectra.key("axis"), axes))
-        model = api.fit_nominal(sub, cost=ctx.options.cost,
-                                effects=[get_effect(e) for e in eff.split("+")],
-                                bands={a: bands_of[a] for a in axes})
-        name = f"nominal_params_{eff}.csv"
-        model.write(ctx.path(name))
-        ctx.extended[eff] = api.ModelFit.read(ctx.folder / name)
-    return "; ".join(f"{e} on {', '.join(a)}" for e, a in ctx.refitted.items())
+def _effects_of(ctx: _Context):
+    """The fitters' ``effects`` of the adopted model ({axis: items}; () for none)."""
+    return ctx.adoption.effects if ctx.adoption is not None and ctx.adoption.anything \
+        else ()
+
+
+def _adopt(ctx: _Context) -> str:
+    """Tables I and II again with the adopted model (the band of the diagnosis on the
+    adopted axes, apparatus effects held at its joint fit); the base model's tables are
+    kept as grip_params_base.csv/.tex and nominal_params_base.csv/.tex."""
+    ad = ctx.adoption
+    ctx.base_grip, ctx.base_nominal = ctx.grip, ctx.nominal
+    for which in ("grip", "nominal"):
+        for ext in (".csv", ".tex"):
+            src = ctx.folder / f"{which}_params{ext}"
+            os.replace(src, ctx.path(f"{which}_params_base{ext}"))
+    ctx.bands = {**ctx.bands, **{a: ad[a].band_hz for a in ad.adopted_axes}}
+    for which in ("grip", "nominal"):
+        fit = api.fit_grip if which == "grip" else api.fit_nominal
+        model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands,
+                    effects=ad.effects, jobs=ctx.options.jobs)
+        _warn_at_bound(which, model, ctx.warn)
+        model.write(ctx.folder / f"{which}_params.csv",
+                    latex=ctx.folder / f"{which}_params.tex")
+        setattr(ctx, which, replace(api.ModelFit.read(ctx.folder / f"{which}_params.csv"),
+                                    fits=model.fits, spectra=ctx.spectra))
+    return "; ".join(f"{' + '.join(ad[a].effects)} on {a}" for a in ad.adopted_axes)
 
 
 def _compare(ctx: _Context) -> str:
-    """Each nominal model (base, base + effect) against the axis medians (compare.csv)."""
-    rows = list(api.compare(ctx.spectra, ctx.nominal, level="median").rows)
-    for model in ctx.extended.values():
-        rows += api.compare(ctx.spectra, model, level="median").rows
+    """Each nominal model (base, and adopted where it differs) against the axis medians
+    (compare.csv)."""
+    base = ctx.base_nominal or ctx.nominal
+    rows = list(api.compare(ctx.spectra, base, level="median").rows)
+    if ctx.base_nominal is not None:
+        adopted = ctx.nominal.table[ctx.nominal.table["axis"].isin(
+            ctx.adoption.adopted_axes)]
+        rows += api.compare(ctx.spectra, replace(ctx.nominal, table=adopted),
+                            level="median").rows
     ctx.comparisons = api.Comparisons(tuple(rows), "median")
     ctx.comparisons.write(ctx.path("compare.csv"))
     return f"{len(rows)} model(s) x axis against the medians"
@@ -476,13 +516,16 @@ def _fit_trials(ctx: _Context) -> str:
 
 def _stability(ctx: _Context) -> str:
     """The stiffest stable virtual wall of every trial's fit at the defaults
-    (stability.csv), the certificate of the nominal models against the fitted Wu, and
-    the stability figure."""
+    (stability.csv), the certificate of the nominal models against the fitted Wu, capped
+    by the trials it covers (certificate.csv), K_max of the base and adopted nominal
+    models, and the stability figure."""
     settings = WallSettings()
+    loop = ctx.options.outside_loop
     rows = read_param_rows(str(ctx.folder / "trial_params.csv"))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
-        table = stability_table(rows.table, settings, source="trial_params.csv")
+        table = stability_table(rows.table, settings, source="trial_params.csv",
+                                outside_loop=loop)
     text = table.to_csv(index=False, float_format="%.10g", lineterminator="\n")
     write_text_atomic(ctx.path("stability.csv"), text)
     summary = axis_summary(table)
@@ -494,7 +537,13 @@ def _stability(ctx: _Context) -> str:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         cert = stability_table(ctx.nominal.table, settings, weights=ctx.uncertainty.weights,
-                               weights_band_hz=bands)
+                               weights_band_hz=bands, outside_loop=loop,
+                               members=rows.table)
+        base = None
+        if ctx.base_nominal is not None:
+            base = stability_table(ctx.base_nominal.table, settings)
+    text = cert.to_csv(index=False, float_format="%.10g", lineterminator="\n")
+    write_text_atomic(ctx.path("certificate.csv"), text)
     figure = None
     if ctx.options.figures:
         figure = ctx.drawings.draw(ctx.folder, STABILITY_FIGURE, "stability_figure",
@@ -502,9 +551,18 @@ def _stability(ctx: _Context) -> str:
         # listed after the paper's and the residual figures (see _report)
     ctx.wall = {"settings": settings, "summary": summary, "failed": ctx.trial_failed,
                 "certificate": cert, "warnings": [str(w.message) for w in caught],
-                "figure": figure, "n_models": len(table)}
+                "figure": figure, "n_models": len(table), "base_nominal": base,
+                "in_loop": _loop_effects(ctx), "outside_loop": tuple(loop)}
     return "; ".join(f"{a}: K_max min {s['k_max_min_N_per_m'] / 1e3:.3g} kN/m"
                      for a, s in summary.items()) + (f"; {figure}" if figure else "")
+
+
+def _loop_effects(ctx: _Context) -> dict[str, tuple[str, ...]]:
+    """{axis: the adopted effects inside the stability loop}."""
+    if ctx.adoption is None:
+        return {}
+    drop = set(ctx.options.outside_loop)
+    return {a.axis: tuple(e for e in a.effects if e not in drop) for a in ctx.adoption.axes}
 
 
 #: The stages of ``armfit run``, in the order they run; names as reported (:data:`STAGES`).
@@ -513,20 +571,20 @@ PIPELINE: tuple[PipelineStage, ...] = (
     PipelineStage("estimate", _estimate),
     PipelineStage("fit-grip", _fit("grip")),
     PipelineStage("fit-nominal", _fit("nominal")),
+    PipelineStage("diagnose", _diagnose),
+    PipelineStage("adopt", _adopt, lambda ctx: ctx.adoption.anything),
     PipelineStage("fit-uncertainty", _fit_uncertainty),
     PipelineStage("fit-trials", _fit_trials),
     PipelineStage("stability", _stability),
     PipelineStage("figures", _figures, lambda ctx: ctx.options.figures),
-    PipelineStage("diagnose", _diagnose),
-    PipelineStage("refit", _refit, lambda ctx: bool(ctx.refitted)),
     PipelineStage("compare", _compare),
     PipelineStage("residuals", _residuals, lambda ctx: ctx.options.figures),
     PipelineStage("report", _report),
 )
 
-#: Stage names, in the order they are reported (``refit`` only when an effect is named,
+#: Stage names, in the order they are reported (``adopt`` only when an effect is adopted,
 #: ``figures`` and ``residuals`` only with figures on). With jobs > 1 the diagnosis runs
-#: in worker processes from the end of fit-grip on, alongside the stages before it.
+#: in worker processes from the end of fit-grip on, alongside fit-nominal.
 STAGES: tuple[str, ...] = tuple(stage.name for stage in PIPELINE)
 
 
@@ -582,18 +640,17 @@ def _paper_figures(ctx: _Context) -> list[str]:
 
 
 def _residual_figures(ctx: _Context) -> list[str]:
-    """One residual figure per diagnosed axis: the nominal model solid, the nominal model
-    with the axis's named effect dashed, the diagnosis's failing bands shaded."""
-    by_axis = {a: eff for eff, axes in ctx.refitted.items() for a in axes}
-    extended = {e: m.table for e, m in ctx.extended.items()}
+    """One residual figure per diagnosed axis: the base nominal model solid, the adopted
+    nominal model dashed where it differs, the diagnosis's failing bands shaded."""
+    base = (ctx.base_nominal or ctx.nominal).table
+    adopted = ctx.adoption.adopted_axes if ctx.adoption is not None else ()
     out = []
     for d in sorted(ctx.diagnosis.axes, key=lambda d: d.axis):
-        eff = by_axis.get(d.axis)
         bands = {d.axis: [(fb.lo_hz, fb.hi_hz) for fb in d.failing]}
         out.append(ctx.drawings.draw(ctx.folder, f"figures/residual_{d.axis}.png",
-                                     "residual_figure", ctx.spectra, ctx.nominal.table,
-                                     None if eff is None else extended[eff], axis=d.axis,
-                                     bands=bands))
+                                     "residual_figure", ctx.spectra, base,
+                                     ctx.nominal.table if d.axis in adopted else None,
+                                     axis=d.axis, bands=bands))
     return out
 
 
@@ -649,6 +706,51 @@ def _bands_text(bands: Mapping[str, tuple[float, float]]) -> str:
                         for (lo, hi), axes in groups.items())
 
 
+def adoption_markdown(run: _Context) -> list[str]:
+    """The report's opening section: the adopted model per axis, why, and what changed
+    because of it (lines of Markdown)."""
+    ad = run.adoption
+    L = ["## Adopted model", ""]
+    if not ad.anything:
+        why = ("adoption is off (`--adopt none`)" if ad.policy == "none"
+               else "the diagnosis found nothing missing")
+        L += [f"Nothing adopted: {why}. Every table, weight and stability answer below "
+              "comes from the paper's 5-parameter model.", ""]
+        declined = [a for a in ad.axes if a.declined]
+        L += [f"- {a.sentence()}." for a in declined]
+        return L + ([""] if declined else [])
+    L += ["The diagnosis's model becomes the model of every product below (Tables I–III, "
+          "per-trial fits, compare, K_max, certificate, figures); the paper's 5-parameter "
+          "tables are kept as `*_base` files. Apparatus effects (stage output or device) "
+          "are held at the diagnosis's joint fit over all trials of the axis; arm effects "
+          "are fitted per row (`adoption.csv`).", ""]
+    L += [f"- {a.sentence()}." for a in ad.axes]
+    L.append("")
+    wall = run.wall or {}
+    base, cert = wall.get("base_nominal"), wall.get("certificate")
+    if base is not None and cert is not None:
+        rows = []
+        for axis in ad.adopted_axes:
+            b = base[base["axis"] == axis]["k_max_N_per_m"]
+            c = cert[cert["axis"] == axis]["k_max_N_per_m"]
+            t = wall["summary"].get(axis, {}).get("k_max_min_N_per_m", math.nan)
+            loop = wall.get("in_loop", {}).get(axis, ())
+            rows.append([axis.upper(), _kn(b.iloc[0] if len(b) else math.nan),
+                         _kn(c.iloc[0] if len(c) else math.nan), _kn(t),
+                         ", ".join(loop) or "none"])
+        L += ["What changed because of it — the stiffest stable wall at the defaults "
+              "(1 kHz, B = 0, d = 1):", ""]
+        L += _md_table(["axis", "K_max base nominal (kN/m)",
+                        "K_max adopted nominal (kN/m)",
+                        "K_max min over trials, adopted (kN/m)",
+                        "adopted effects in the loop"], rows)
+    return L
+
+
+def _kn(v) -> str:
+    return _num(float(v) / 1e3 if v is not None else None, ".3g")
+
+
 def report_markdown(run: _Context) -> str:
     """The text of report.md: what was done with the configuration each stage used, the
     tables, the diagnosis per axis in words, the figures. Built from the stages' typed
@@ -659,8 +761,7 @@ def report_markdown(run: _Context) -> str:
     grip, nominal = run.grip.table, run.nominal.table
     wu_summary, weights = run.uncertainty.summary(), run.uncertainty.weights
     diagnosis = run.diagnosis.to_dict()
-    refitted = run.refitted
-    extended = {e: m.table for e, m in run.extended.items()}
+    adoption = run.adoption
     compare_rows = run.comparisons.to_frame()
     figures, files = run.drawn, sorted(run.files)
     cmd = ["armfit run", *inputs, "-o OUTDIR"]
@@ -672,18 +773,22 @@ def report_markdown(run: _Context) -> str:
             f"--wu-cost {options.wu_cost}"]
     if not options.figures:
         cmd.append("--no-figures")
+    if options.adopt != "auto":
+        cmd.append(f"--adopt {options.adopt}")
+    cmd += [f"--outside-loop {e}" for e in options.outside_loop]
     L = ["# armfit report", "",
          f"armfit {__version__} — human arm dynamics and variability models by the method "
          "of Fu & Çavuşoğlu, ICRA 2010.", "",
-         "```", " ".join(cmd), "```", "",
-         "## What was done", ""]
+         "```", " ".join(cmd), "```", ""]
+    L += adoption_markdown(run)
+    L += ["## What was done", ""]
     skipped_text = ""
     if skipped:
         skipped_text = f"; {len(skipped)} skipped: " + "; ".join(
             f"`{f}` ({r})" for f, r in skipped)
-    refit_text = ("with " + "; ".join(f"`{e}` on axis {', '.join(a)}"
-                                      for e, a in refitted.items())
-                  if refitted else "not needed: no effect was named")
+    adopted = adoption.adopted_axes
+    adopt_text = ("; ".join(f"`{' + '.join(adoption[a].effects)}` on {a}" for a in adopted)
+                  if adopted else "nothing adopted")
     steps = [
         f"**ingest** — {n_trials} trial(s) validated against the trial contract into "
         f"`trials.parquet`{skipped_text}.",
@@ -691,18 +796,25 @@ def report_markdown(run: _Context) -> str:
         f"derived arm dynamics Xa/Fa (tfestimate, {config.derived_segments} segments), on "
         f"{config.per_decade} points per decade {config.fmin:g}–{config.fmax:g} Hz; mean "
         "per axis × grip and median per axis → `spectra.parquet`.",
-        f"**fit-grip** — eq. 4 fitted to each axis × grip mean (Table I), cost "
-        f"`{options.cost}`, bands {_bands_text(run.bands)} → `grip_params.csv/.tex`.",
-        f"**fit-nominal** — eq. 4 fitted to each axis median (Table II), cost "
-        f"`{options.cost}` → `nominal_params.csv/.tex`.",
-        f"**fit-uncertainty** — W_max (eq. 6) of every trial's derived dynamics against "
-        f"the nominal H_ARM, Wu (eq. 7) fitted with cost `{options.wu_cost}` → `wu.csv`, "
-        "`wu_summary.csv`, `wu_wmax.csv`, `wu.tex`.",
+        f"**fit-grip** — eq. 4 (the paper's 5-parameter model) fitted to each axis × grip "
+        f"mean (Table I), cost `{options.cost}`, bands {_bands_text(PAPER_BANDS)}"
+        f" → `grip_params{'_base' if adopted else ''}.csv/.tex`.",
+        f"**fit-nominal** — the same fitted to each axis median (Table II) → "
+        f"`nominal_params{'_base' if adopted else ''}.csv/.tex`.",
         "**diagnose** — stepwise search over the whole grid, started from the grip fits: "
         "the base model and the effects added one at a time, fitted to every trial, "
         "until the model is within the noise → `diagnosis.json`.",
-        f"**refit** — the nominal fit again with the named effect, over the band of the "
-        f"diagnosis: {refit_text}.",
+        f"**adopt** — the model the diagnosis found becomes the model of the products "
+        f"below: {adopt_text} → `adoption.csv`"
+        + (f"; Tables I and II refitted with it, bands {_bands_text(run.bands)} → "
+           "`grip_params.csv/.tex`, `nominal_params.csv/.tex`." if adopted else "."),
+        f"**fit-uncertainty** — W_max (eq. 6) of every trial's derived arm dynamics "
+        f"against the nominal H_ARM{' (apparatus effects removed)' if adopted else ''}, "
+        f"Wu (eq. 7) fitted with cost `{options.wu_cost}` → `wu.csv`, "
+        "`wu_summary.csv`, `wu_wmax.csv`, `wu.tex`.",
+        "**fit-trials** — the same model fitted to every trial → `trial_params.csv`.",
+        "**stability** — K_max of every trial's model and the robust certificate of the "
+        "nominal models → `stability.csv`, `certificate.csv`.",
         "**compare** — each nominal model against the axis medians, overall and per band "
         "→ `compare.csv`.",
         ("**figures** — " + ", ".join(f"`{f}`" for f in figures) + ".") if figures
@@ -710,16 +822,25 @@ def report_markdown(run: _Context) -> str:
     ]
     L += [f"{i}. {s}" for i, s in enumerate(steps, 1)] + [""]
 
-    L += ["## Grip-dependent parameters (Table I)", "",
+    which = "adopted model" if adopted else "the paper's 5-parameter model"
+    L += [f"## Grip-dependent parameters (Table I, {which})", "",
           "Fits to the mean over subjects per axis and grip; 95 % intervals are in "
-          "`grip_params.csv` and `grip_params.tex`.", ""]
+          "`grip_params.csv` and `grip_params.tex`" + (" (‡: held at the diagnosis's "
+                                                         "value)" if adopted else "")
+          + ".", ""]
     L += _md_table(*_params_rows(grip))
-    L += ["## Nominal parameters (Table II)", "",
+    L += [f"## Nominal parameters (Table II, {which})", "",
           "Fits to the median over all trials of an axis.", ""]
     L += _md_table(*_params_rows(nominal))
-    for eff, table in extended.items():
-        L += [f"With the effect `{eff}` (`nominal_params_{eff}.csv`):", ""]
-        L += _md_table(*_params_rows(table))
+    if adopted:
+        L += ["## The paper's 5-parameter model (base model, not adopted)", "",
+              "Kept for comparison with the paper: the same fits without the adopted "
+              "effects (`grip_params_base.csv`, `nominal_params_base.csv`). On the "
+              "adopted axes the diagnosis found this model inadequate: its parameters "
+              "partly imitate the missing effects.", "", "Table I, base model:", ""]
+        L += _md_table(*_params_rows(run.base_grip.table))
+        L += ["Table II, base model:", ""]
+        L += _md_table(*_params_rows(run.base_nominal.table))
 
     L += ["## Uncertainty weights (Table III)", "",
           "Wu(s) = K Π(s − z)/Π(s − p), s in rad/s; coverage is the share of grid points "
@@ -816,9 +937,9 @@ def report_markdown(run: _Context) -> str:
             cap = captions.get(f)
             if cap is None:
                 axis = f.rsplit("_", 1)[1].split(".")[0]
-                eff = next((e for e, a in refitted.items() if axis in a), None)
+                eff = " + ".join(adoption[axis].effects)
                 cap = (f"Normalised residual of the nominal model, axis {axis.upper()}"
-                       + (f", with `{eff}` dashed" if eff else "")
+                       + (f", adopted model with `{eff}` dashed" if eff else "")
                        + "; failing bands of the diagnosis shaded")
             L += [f"### {cap}", "", f"![{cap}]({f})", ""]
 
@@ -828,7 +949,8 @@ def report_markdown(run: _Context) -> str:
 
 def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = "h1",
         cost: str = "complex", wu_cost: str = "envelope", jobs: int = 1,
-        figures: bool = True, overwrite: bool = False, on_stage: OnStage | None = None,
+        figures: bool = True, overwrite: bool = False, adopt: str = "auto",
+        outside_loop: Sequence[str] = (), on_stage: OnStage | None = None,
         warn: Warn | None = None) -> RunResult:
     """Run every stage on raw trials and write all tables, figures and report.md into
     ``outdir`` (``armfit run``).
@@ -855,6 +977,11 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
         Draw the figures.
     overwrite : bool
         Replace an existing ``outdir``.
+    adopt : {'auto', 'none'}
+        Whether the model the diagnosis finds becomes the model of every product
+        (:mod:`armfit.adopt`).
+    outside_loop : sequence of str
+        Adopted apparatus effects the stability loop leaves out.
     on_stage : callable, optional
         Called with each finished :class:`Stage`.
     warn : callable, optional
@@ -866,7 +993,8 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
     """
     items = [inputs] if isinstance(inputs, str | os.PathLike) else list(inputs)
     options = RunOptions(manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
-                         wu_cost=wu_cost, jobs=jobs, figures=figures, overwrite=overwrite)
+                         wu_cost=wu_cost, jobs=jobs, figures=figures, overwrite=overwrite,
+                         adopt=adopt, outside_loop=tuple(outside_loop))
     return run_pipeline(items, outdir, options, on_stage=on_stage, warn=warn)
 def _warn_at_bound(which: str, model: api.ModelFit, warn: Warn | None) -> None:
     """One warning per fit with a parameter at a physical bound (column ``at_bound``)."""
@@ -911,17 +1039,40 @@ def stability_markdown(wall: Mapping) -> list[str]:
         L.append(f"- Trial {who} has no fit ({why}) and is not in the population.")
     for text in wall["warnings"]:
         L.append(f"- Warning: {text}.")
+    loop = wall.get("in_loop") or {}
+    if any(loop.values()) or wall.get("outside_loop"):
+        L += ["", "Effects in the loop: " + "; ".join(
+            f"{a.upper()} {', '.join(e) or 'none'}" for a, e in loop.items())
+            + (" (left out with --outside-loop: " + ", ".join(wall["outside_loop"]) + ")"
+               if wall.get("outside_loop") else
+               " (a latency or lag in the position path is in the loop, since the wall "
+               "reads the same sensor; `--outside-loop EFFECT` leaves one out)") + "."]
     cert = wall["certificate"]
     if "k_robust_N_per_m" in cert.columns:
         L += ["", "Robust certificate of the nominal models against the fitted Wu "
               "(max |Wu T| < 1, T the complementary sensitivity seen by the arm's "
-              "multiplicative uncertainty):", ""]
+              "multiplicative uncertainty; `certificate.csv`), evaluated from the band's "
+              "low edge up to the Nyquist frequency, Wu continued beyond its band, and "
+              "capped at the smallest K_max of the trials it covers:", ""]
         for _, r in cert.iterrows():
             if math.isfinite(r["k_robust_N_per_m"]):
+                why = {"member": f"capped at trial {r['limiting_member']} (its K_max)",
+                       "weight beyond band": f"bound at {r['f_binding_hz']:.3g} Hz, above "
+                                             "the weight's band",
+                       "weight": f"bound at {r['f_binding_hz']:.3g} Hz",
+                       "nominal K_max": "the nominal's own K_max"}.get(r["limited_by"], "")
+                margin = r.get("beyond_margin", math.nan)
+                check = ""
+                if isinstance(margin, float) and math.isfinite(margin):
+                    check = (f"; above the band the trials stay within "
+                             f"{margin:.2f} × |Wu|" + ("" if margin <= 1 else
+                                                       " — beyond the weight: the "
+                                                       "assumption does not hold"))
                 L.append(f"- {r['axis'].upper()}: holds for K up to "
-                         f"{r['k_robust_N_per_m'] / 1e3:.3g} kN/m (peak at K = 0: "
-                         f"{r['wu_t_peak_k0']:.2f}).")
+                         f"{r['k_robust_N_per_m'] / 1e3:.3g} kN/m ({why}; peak at K = 0: "
+                         f"{r['wu_t_peak_k0']:.2f}{check}).")
             else:
                 L.append(f"- {r['axis'].upper()}: holds for no K at all (max |Wu T| is "
-                         f"{r['wu_t_peak_k0']:.2f} > 1 already at K = 0).")
+                         f"{r['wu_t_peak_k0']:.2f} > 1 already at K = 0, at "
+                         f"{r['f_peak_k0_hz']:.3g} Hz).")
     return L + [""]

@@ -69,6 +69,12 @@ DEFAULT_DELAY_SAMPLES = 1
 #: (31 Hz for τ = 40 ms).
 INTERNAL_DELAY_PADE_ORDER = 6
 
+#: Most samples of latency (the plant's delay plus the computation delay d) a loop may
+#: hold: each sample is a state of the sampled loop, and the eigenvalues that test it
+#: lose their accuracy past about 80 such states (a shift register is a nilpotent block;
+#: at 96 they report a stable loop unstable). A longer loop is refused, not answered.
+MAX_LOOP_DELAY_SAMPLES = 64
+
 #: Relative accuracy to which K_max is verified (and refined when needed): 0.1 %.
 K_REL_TOL = 1.0e-3
 
@@ -435,6 +441,12 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
     """
     out: list[WallStability | None] = [None] * len(plants)
     T = settings.sample_time_s
+    worst = max((loop_delay_samples(p, settings) for p in plants), default=0)
+    if worst > MAX_LOOP_DELAY_SAMPLES:
+        raise UsageError(f"the loop holds {worst} samples of latency (the model's delay at "
+                         f"T = {T * 1e3:g} ms plus d = {settings.delay_samples}); armfit "
+                         f"analyses up to {MAX_LOOP_DELAY_SAMPLES}: use a longer "
+                         "{opt:sample_time_s}")
     for g in _loops(plants, settings):
         R = g.M0.shape[0]
         cands = []
@@ -488,6 +500,12 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
                 else:
                     out[g.rows[r]] = _bisect(g, r, k_lo, k_hi, T)
     return out  # type: ignore[return-value]
+
+
+def loop_delay_samples(plant: RationalPlant, settings: WallSettings) -> int:
+    """Whole samples of latency in the sampled loop: ⌈plant delay / T⌉ + d."""
+    return int(math.ceil(plant.delay_s / settings.sample_time_s - 1e-12)) + \
+        int(settings.delay_samples)
 
 
 def _bisect(g: _Group, r: int, k_lo: float, k_hi: float, T: float) -> WallStability:
@@ -736,8 +754,9 @@ STABILITY_COLUMNS: tuple[str, ...] = (
 
 #: Columns of the robust certificate in a stability table (see :class:`Certificate`).
 CERTIFICATE_COLUMNS: tuple[str, ...] = (
-    "wu_t_peak_k0", "k_robust_N_per_m", "limited_by", "k_weight_N_per_m", "f_binding_hz",
-    "binding_in_band", "member_k_max_N_per_m", "limiting_member", "beyond_margin")
+    "wu_t_peak_k0", "f_peak_k0_hz", "k_robust_N_per_m", "limited_by", "k_weight_N_per_m",
+    "f_binding_hz", "binding_in_band", "member_k_max_N_per_m", "limiting_member",
+    "beyond_margin")
 
 
 def loop_model(model: ClosedLoopModel, theta: Mapping[str, float],
@@ -905,22 +924,27 @@ def axis_summary(table) -> dict[str, dict]:
 def k_max_sweep(plants: Sequence[RationalPlant], rates_hz: Sequence[float],
                 delays: Sequence[int], *, damping_Ns_per_m: float = 0.0) -> np.ndarray:
     """K_max (N/m) of each plant at each servo rate (Hz) and delay (samples):
-    array (n_delays, n_rates, n_plants)."""
-    out = np.empty((len(delays), len(rates_hz), len(plants)))
+    array (n_delays, n_rates, n_plants); NaN where the loop holds more than
+    :data:`MAX_LOOP_DELAY_SAMPLES` samples of latency."""
+    out = np.full((len(delays), len(rates_hz), len(plants)), np.nan)
     for i, d in enumerate(delays):
         for j, rate in enumerate(rates_hz):
             st = WallSettings(1.0 / float(rate), damping_Ns_per_m, int(d))
-            out[i, j] = [r.k_max_N_per_m for r in wall_stability(plants, st)]
+            ok = [k for k, p in enumerate(plants)
+                  if loop_delay_samples(p, st) <= MAX_LOOP_DELAY_SAMPLES]
+            if ok:
+                out[i, j, ok] = [r.k_max_N_per_m
+                                 for r in wall_stability([plants[k] for k in ok], st)]
     return out
 
 
 __all__ = [
     "CERTIFICATE_COLUMNS", "CERT_POINTS_PER_DECADE", "Certificate", "DEFAULT_DAMPING_NS_PER_M",
     "DEFAULT_DELAY_SAMPLES", "DEFAULT_SAMPLE_TIME_S", "INTERNAL_DELAY_PADE_ORDER",
-    "K_REL_TOL",
+    "K_REL_TOL", "MAX_LOOP_DELAY_SAMPLES",
     "RationalPlant", "STABILITY_COLUMNS", "WallSettings", "WallStability", "axis_summary",
     "closed_loop_stable", "crossing_gains", "describe", "environment_terms", "expm_batch",
-    "k_max_sweep", "loop_model",
+    "k_max_sweep", "loop_delay_samples", "loop_model",
     "pade_delay", "plant_from_model", "robust_certificate", "stability_table",
     "wall_stability",
 ]

@@ -27,11 +27,14 @@ from armfit.spectra import Spectra
 
 TRUE_DELAY_S = 0.012  # the simulator's --effect delay=0.012 on z (its known truth)
 
-#: Every file a run of this study must write (delay named on z only -> one refit file).
-TABLES = ("compare.csv", "grip_params.csv", "nominal_params.csv", "nominal_params_delay.csv",
-          "wu.csv", "wu_summary.csv", "wu_wmax.csv", "trial_params.csv", "stability.csv")
+#: Every file a run of this study must write (delay adopted on z: the base model's tables
+#: kept as *_base).
+TABLES = ("compare.csv", "grip_params.csv", "nominal_params.csv", "grip_params_base.csv",
+          "nominal_params_base.csv", "adoption.csv", "wu.csv", "wu_summary.csv",
+          "wu_wmax.csv", "trial_params.csv", "stability.csv", "certificate.csv")
 EXPECTED = set(TABLES) | {
     "trials.parquet", "spectra.parquet", "grip_params.tex", "nominal_params.tex", "wu.tex",
+    "grip_params_base.tex", "nominal_params_base.tex",
     "diagnosis.json", "report.md", "figures/bode.png", "figures/uncertainty.png",
     "figures/literature.png", "figures/residual_x.png", "figures/residual_z.png",
     "figures/stability.png"}
@@ -90,8 +93,8 @@ def test_run_writes_every_expected_file(first):
 
 def test_stage_lines_and_json_timings(first):
     res, _, _ = first
-    stages = ["ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty",
-              "fit-trials", "stability", "figures", "diagnose", "refit", "compare",
+    stages = ["ingest", "estimate", "fit-grip", "fit-nominal", "diagnose", "adopt",
+              "fit-uncertainty", "fit-trials", "stability", "figures", "compare",
               "residuals", "report"]
     lines = [ln for ln in res.stderr.splitlines()
              if re.match(r"^[a-z-]+: \d+\.\d s — ", ln)]
@@ -101,23 +104,40 @@ def test_stage_lines_and_json_timings(first):
     assert all(v >= 0 for v in doc["timings_s"].values()) and doc["total_s"] > 0
 
 
-def test_diagnosis_names_the_simulated_effect_and_refits_it(first):
+def test_diagnosis_names_the_simulated_effect_and_adopts_it(first):
     res, files, _ = first
     doc = json.loads(res.stdout)
     # simulator's truth: a delay on z only, the paper's model on x
     assert doc["diagnosis"]["z"]["missing_effect"] == "delay"
     assert doc["diagnosis"]["x"]["missing_effect"] is None
     assert doc["refitted"] == {"delay": ["z"]}
+    assert doc["adoption"]["axes"]["z"]["effects"] == ["delay"]
+    assert doc["adoption"]["axes"]["x"]["effects"] == []
     diag = json.loads(files["diagnosis.json"])
     assert {a: d["verdict"] for a, d in diag["axes"].items()} == \
         {a: d["verdict"] for a, d in doc["diagnosis"].items()}
-    refit = pd.read_csv(io.BytesIO(files["nominal_params_delay.csv"]))
-    assert list(refit["axis"]) == ["z"] and refit["effects"].iloc[0] == "delay"
-    # the refit recovers the simulated 12 ms within 10 %: a delay is pi*f*tau*2 rad of
-    # phase, 130 deg at 30 Hz, against a phase noise of a few degrees per grid point
-    assert refit["delay.delay_s"].iloc[0] == pytest.approx(TRUE_DELAY_S, rel=0.10)
+    adopted = pd.read_csv(io.BytesIO(files["nominal_params.csv"]), keep_default_na=False)
+    z = adopted[adopted["axis"] == "z"].iloc[0]
+    x = adopted[adopted["axis"] == "x"].iloc[0]
+    assert z["effects"] == "delay" and x["effects"] == ""
+    # the delay is held at the diagnosis's joint fit, which recovers the simulated 12 ms
+    # within 10 %: a delay is 2*pi*f*tau rad of phase, 130 deg at 30 Hz, against a phase
+    # noise of a few degrees per grid point
+    joint = diag["axes"]["z"]["missing_effects"][0]["params"]["delay_s"]
+    assert float(z["delay.delay_s"]) == pytest.approx(joint, rel=1e-9)
+    assert joint == pytest.approx(TRUE_DELAY_S, rel=0.10)
+    assert z["held"] == "delay.delay_s"
     # fitted over the band the diagnosis used (the whole grid), not the paper's z band
-    assert refit["band_hi_hz"].iloc[0] == pytest.approx(diag["axes"]["z"]["band_hz"][1])
+    assert float(z["band_hi_hz"]) == pytest.approx(diag["axes"]["z"]["band_hz"][1])
+    # every trial of z carries the same held delay; x's trials the base model
+    trials = pd.read_csv(io.BytesIO(files["trial_params.csv"]), keep_default_na=False)
+    tz = trials[trials["axis"] == "z"]
+    assert (tz["effects"] == "delay").all()
+    assert np.allclose(tz["delay.delay_s"].astype(float), joint, rtol=1e-9)
+    assert (trials[trials["axis"] == "x"]["effects"] == "").all()
+    # the base model's tables are the paper's 5-parameter model
+    base = pd.read_csv(io.BytesIO(files["nominal_params_base.csv"]), keep_default_na=False)
+    assert set(base["effects"]) == {""}
 
 
 def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
@@ -133,8 +153,8 @@ def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
     # analytic check of the overall rows: RMS over the grid of 20 log10|H_med / H_CL| (dB)
     # and of angle(H_med / H_CL) (deg), H_CL of eq. 4 at the row's parameters
     spectra = Spectra.read(out / "spectra.parquet").to_frame()
-    for axis, model_file in (("x", "nominal_params.csv"), ("z", "nominal_params.csv"),
-                             ("z", "nominal_params_delay.csv")):
+    for axis, model_file in (("x", "nominal_params_base.csv"),
+                             ("z", "nominal_params_base.csv"), ("z", "nominal_params.csv")):
         row = read_params(out / model_file).set_index("axis").loc[axis]
         model, theta = model_from_params({**row.to_dict(), "axis": axis})
         med = spectra[(spectra["level"] == "median") & (spectra["kind"] == "measured")
@@ -143,7 +163,7 @@ def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
         ratio = h / model.response(med["freq_hz"].to_numpy(), theta)
         rms_db = np.sqrt(np.mean((20 * np.log10(np.abs(ratio))) ** 2))
         rms_deg = np.sqrt(np.mean(np.degrees(np.angle(ratio)) ** 2))
-        label = "base" if model_file == "nominal_params.csv" else "base+delay"
+        label = "base" if model_file == "nominal_params_base.csv" else "base+delay"
         got = comp[(comp["axis"] == axis) & (comp["model"] == label)
                    & (comp["band"] == "overall")].iloc[0]
         # CSV keeps 10 significant digits
@@ -156,27 +176,32 @@ def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
 
 def test_tables_equal_those_of_the_subcommands(first, tmp_path):
     """The pipeline's tables are byte-identical to fit-grip / fit-nominal /
-    fit-uncertainty run by hand on the spectra it wrote."""
+    fit-uncertainty run by hand on the spectra it wrote: the base tables without
+    effects, the adopted ones with the delay held on z at the value adoption.csv
+    records, over the diagnosis's band."""
     _, files, out = first
     spectra = str(out / "spectra.parquet")
+    adoption = pd.read_csv(out / "adoption.csv", keep_default_na=False).set_index("axis")
+    held = adoption.loc["z", "held"]            # "delay.delay_s=<value>"
+    value = held.split("=", 1)[1]
+    effect = ["--effect", f"z:delay={value}", "--band", "z=0.1:30"]
     for args, written in (
-            (["fit-grip", spectra, "-o", str(tmp_path / "g.csv")], {"g.csv": "grip_params.csv"}),
+            (["fit-grip", spectra, "-o", str(tmp_path / "g.csv")],
+             {"g.csv": "grip_params_base.csv"}),
             (["fit-nominal", spectra, "-o", str(tmp_path / "n.csv")],
-             {"n.csv": "nominal_params.csv"}),
+             {"n.csv": "nominal_params_base.csv"}),
+            (["fit-grip", spectra, "-o", str(tmp_path / "ga.csv"), *effect],
+             {"ga.csv": "grip_params.csv"}),
+            (["fit-nominal", spectra, "-o", str(tmp_path / "na.csv"), *effect],
+             {"na.csv": "nominal_params.csv"}),
             (["fit-uncertainty", spectra, "--nominal", str(out / "nominal_params.csv"), "-o",
               str(tmp_path / "wu.csv")],
              {"wu.csv": "wu.csv", "wu_summary.csv": "wu_summary.csv",
-              "wu_wmax.csv": "wu_wmax.csv"}),
-            (["fit-nominal", spectra, "-o", str(tmp_path / "nd.csv"), "--effect", "delay",
-              "--band", "z=0.1:30"], None)):
+              "wu_wmax.csv": "wu_wmax.csv"})):
         res = _invoke(*args)
         assert res.exit_code == 0, res.stderr
         for mine, theirs in (written or {}).items():
             assert (tmp_path / mine).read_bytes() == files[theirs], theirs
-    # the refit is fit-nominal --effect delay over 0.1-30 Hz, on z
-    hand = read_params(tmp_path / "nd.csv")
-    pipe = read_params(out / "nominal_params_delay.csv")
-    assert hand[hand["axis"] == "z"].reset_index(drop=True).equals(pipe)
 
 
 def test_trial_fits_and_stability_equal_those_of_the_subcommands(first, tmp_path):
@@ -184,7 +209,10 @@ def test_trial_fits_and_stability_equal_those_of_the_subcommands(first, tmp_path
     `armfit stability trial_params.csv` at the defaults (byte for byte), and the report
     states the population minimum of K_max per axis as a sentence."""
     _, files, out = first
-    res = _invoke("fit-trials", str(out / "spectra.parquet"), "-o", str(tmp_path / "t.csv"))
+    adoption = pd.read_csv(out / "adoption.csv", keep_default_na=False).set_index("axis")
+    value = adoption.loc["z", "held"].split("=", 1)[1]
+    res = _invoke("fit-trials", str(out / "spectra.parquet"), "-o", str(tmp_path / "t.csv"),
+                  "--effect", f"z:delay={value}", "--band", "z=0.1:30")
     assert res.exit_code == 0, res.stderr
     assert (tmp_path / "t.csv").read_bytes() == files["trial_params.csv"]
     res = _invoke("stability", str(out / "trial_params.csv"), "-o", str(tmp_path / "s.csv"))
@@ -205,7 +233,7 @@ def test_report_states_every_stage_and_the_diagnosis(first):
     diag = json.loads(files["diagnosis.json"])
     assert f"armfit {__version__}" in report
     for stage in ("ingest", "estimate", "fit-grip", "fit-nominal", "fit-uncertainty",
-                  "diagnose", "refit", "compare", "figures"):
+                  "diagnose", "adopt", "fit-trials", "stability", "compare", "figures"):
         assert f"**{stage}**" in report
     for heading in ("Table I", "Table II", "Table III", "## Diagnosis", "### Axis X",
                     "### Axis Z"):
@@ -222,7 +250,11 @@ def test_report_states_every_stage_and_the_diagnosis(first):
         assert f"| {st['rms_db']:.2f} | {st['rms_deg']:.1f} | {st['rms_norm']:.2f} |" in report
     for fig in (f for f in EXPECTED if f.startswith("figures/")):
         assert f"]({fig})" in report
-    assert "`nominal_params_delay.csv`" in report
+    # it opens with the adopted model: delay on z, x the base model
+    head = report[:report.index("## What was done")]
+    assert "## Adopted model" in head
+    assert "Z: adopted delay" in head and "X: base model (nothing adopted)" in head
+    assert "`nominal_params_base.csv`" in report
     # deterministic: no timings or dates in the report
     assert not re.search(r"\d+\.\d+ s\b|\b20\d\d-\d\d-\d\d", report)
 
@@ -231,6 +263,7 @@ def test_second_run_gives_identical_tables_and_no_figures(first, second):
     _, files1, _ = first
     res, files2 = second
     for name in (*TABLES, "grip_params.tex", "nominal_params.tex", "wu.tex",
+                 "grip_params_base.tex", "nominal_params_base.tex",
                  "diagnosis.json", "spectra.parquet", "trials.parquet"):
         assert files2[name] == files1[name], name
     # --no-figures: the replaced folder has no figures (it was replaced, not merged)

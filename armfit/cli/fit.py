@@ -14,16 +14,16 @@ from armfit.api import fit_nominal as api_fit_nominal
 from armfit.constants import PAPER_BANDS
 from armfit.fitting import COSTS
 from armfit.io.atomic import check_output
-from armfit.models.effects import get_effect
 from armfit.spectra import Spectra
 
 from .options import (
     axis_bands_option,
     bands_by_axis,
     clean,
-    effect_option,
+    effect_items,
     effects_file_option,
     emit_json,
+    fit_effect_option,
     json_option,
     message,
     output_option,
@@ -47,7 +47,7 @@ def _options(f):
                           "(0: intervals from the Jacobian)."),
         click.option("--seed", type=int, default=0, show_default=True,
                      help="Seed of the bootstrap resampling (the fit itself uses none)."),
-        effect_option,
+        fit_effect_option,
         effects_file_option,
         click.option("--method", default=None, metavar="NAME",
                      help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin)."),
@@ -67,7 +67,7 @@ def _run(which: str, spectra: str, output: str, cost: str, band, bootstrap: int,
          seed: int, effects: tuple[str, ...], method: str | None, max_nfev: int | None,
          latex: str | None, as_json: bool, overwrite: bool) -> None:
     bands = bands_by_axis(band, PAPER_BANDS)
-    effect_objs = [get_effect(n) for n in effects]
+    effect_objs = effect_items(effects)
     check_output(output, overwrite=overwrite, inputs=[spectra])
     if latex is not None:
         check_output(latex, overwrite=overwrite, inputs=[spectra, output])

@@ -37,6 +37,30 @@ effect_option = click.option(
     "--effect", "effects", multiple=True, metavar="NAME",
     help="Add a physical effect to the model (repeatable; see `armfit effects`).")
 
+fit_effect_option = click.option(
+    "--effect", "effects", multiple=True, metavar="[AXIS:]NAME[=VALUES]",
+    help="Add a physical effect to the model, fitted (NAME) or held at given values "
+         "(NAME=VALUES, e.g. delay=0.012); AXIS: on that axis only (e.g. z:delay). "
+         "Repeatable; see `armfit effects`.")
+
+
+def effect_items(values: Iterable[str]):
+    """The fitters' ``effects`` from ``--effect`` values ``[AXIS:]NAME[=VALUES]``: a list
+    of items for every axis, or {axis: items} when some value names an axis (items without
+    one apply to every axis). Raises UsageError for an unknown effect or value."""
+    from armfit.models.effects import effects_by_axis
+    common: list[str] = []
+    per_axis: dict[str, list[str]] = {}
+    for text in values:
+        t = text.strip()
+        if len(t) > 2 and t[1] == ":" and t[0].lower() in AXES:
+            per_axis.setdefault(t[0].lower(), []).append(t[2:].strip())
+        else:
+            common.append(t)
+    items = {a: common + per_axis.get(a, []) for a in AXES} if per_axis else common
+    effects_by_axis(items)      # every item checked here, with its message
+    return items
+
 
 # ---------------------------------------------------------------------------
 # Bands: one grammar, LO:HI in Hz, optionally for one axis as AXIS=LO:HI

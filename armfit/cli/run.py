@@ -34,19 +34,27 @@ from armfit.spectra import METHODS
 @click.option("--wu-cost", type=click.Choice(["envelope", "paper"]), default="envelope",
               show_default=True,
               help="Wu fit: envelope (|Wu| >= W_max guaranteed) or paper (dB least squares).")
+@click.option("--adopt", type=click.Choice(["auto", "none"]), default="auto",
+              show_default=True,
+              help="auto: the effects the diagnosis names become the model of every "
+                   "product; none: the paper's 5-parameter model throughout.")
+@click.option("--outside-loop", "outside_loop", multiple=True, metavar="EFFECT",
+              help="An adopted apparatus effect the rendering loop does not see (e.g. a "
+                   "latency of the logging only); repeatable.")
 @jobs_option
 @click.option("--no-figures", is_flag=True, help="Skip the figures (faster).")
 @overwrite_option
 @json_option
-def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, jobs, no_figures,
-            overwrite, as_json):
+def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, outside_loop,
+            jobs, no_figures, overwrite, as_json):
     """Run every stage on raw trials and write all tables, figures and report.md into
     OUTDIR, e.g. ``armfit run raw/ -o results``.
 
-    Stages: ingest, estimate, fit-grip, fit-nominal, fit-uncertainty, diagnose, then
-    (if the diagnosis names an effect missing from the model) fit-nominal again with
-    that effect, compare, figures and the report. INPUT are trial files, folders or an
-    `armfit ingest` dataset. Nothing is left behind if a stage fails; an existing OUTDIR
+    Stages: ingest, estimate, fit-grip, fit-nominal, diagnose, then (if the diagnosis
+    names an effect missing from the model) the adopted model: Tables I and II again
+    with it, and everything after — fit-uncertainty, fit-trials, stability, compare,
+    figures and the report — from it. INPUT are trial files, folders or an `armfit
+    ingest` dataset. Nothing is left behind if a stage fails; an existing OUTDIR
     is replaced only with --overwrite.
     """
     if not inputs and manifest is None:
@@ -54,12 +62,16 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, jobs, no_
     result = run(
         list(inputs), outdir, manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
         wu_cost=wu_cost, jobs=jobs, figures=not no_figures, overwrite=overwrite,
+        adopt=adopt, outside_loop=outside_loop,
         on_stage=lambda s: message(f"{s.name}: {s.seconds:.1f} s — {s.summary}"),
         warn=lambda text: message(f"warning: {text}"))
     for f, reason in result.skipped:
         message(f"skipped {f}: {reason}")
     for axis, verdict in result.verdicts.items():
         message(f"axis {axis}: {verdict}")
+    for a in result.adoption.axes:
+        if a.adopted or a.declined:
+            message(f"adopted model, {a.sentence()}")
     message(f"wrote {len(result.files)} files into {result.outdir} in "
             f"{result.wall_s:.1f} s; see {result.outdir}/report.md")
     if as_json:
@@ -71,6 +83,7 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, jobs, no_
             "diagnosis": {a: {"missing_effect": result.missing[a], "verdict": v}
                           for a, v in result.verdicts.items()},
             "refitted": {e: list(a) for e, a in result.refitted.items()},
+            "adoption": result.adoption.to_dict(),
             "timings_s": {s.name: round(s.seconds, 3) for s in result.stages},
             "total_s": round(result.wall_s, 3),
         })

@@ -18,9 +18,10 @@ from armfit.cli.options import (
     axis_bands_option,
     bands_by_axis,
     clean,
-    effect_option,
+    effect_items,
     effects_file_option,
     emit_json,
+    fit_effect_option,
     jobs_option,
     json_option,
     message,
@@ -30,7 +31,6 @@ from armfit.cli.options import (
 from armfit.constants import PAPER_BANDS
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import atomic_path, check_output
-from armfit.models.effects import get_effect
 from armfit.paramsets import read_param_rows, read_weights
 from armfit.spectra import Spectra
 from armfit.stability import (
@@ -219,7 +219,7 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
                    "paper: dB magnitude error only (eq. 5).")
 @axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI) "
                    "[default: x=0.1:30,y=0.1:30,z=0.1:10]; axes not named keep it.")
-@effect_option
+@fit_effect_option
 @effects_file_option
 @click.option("--method", default=None, metavar="NAME",
               help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin).")
@@ -239,7 +239,7 @@ def fit_trials_command(spectra, output, cost, band, effects, method, max_nfev, j
     others are written all the same (exit 0).
     """
     bands = bands_by_axis(band, PAPER_BANDS)
-    effect_objs = [get_effect(n) for n in effects]
+    effect_objs = effect_items(effects)
     check_output(output, overwrite=overwrite, inputs=[spectra])
     data = Spectra.read(spectra)
 
