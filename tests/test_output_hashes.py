@@ -61,6 +61,10 @@ EXPECTED: dict[str, str] = {
         "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
     "nominal.csv":
         "086929d69cbf9b11936a4a84ff047dbb56d4bcbd835fe01a0f38aa05f8f79da8",
+    "run/adoption.csv":
+        "b55f0a13253b42c415ea5bfba4589e66c3adf945902cd3606666bc9ca797269c",
+    "run/certificate.csv":
+        "c355fb376f95d003177c83591d0144f5580276bfb8c185be47c1cf7e7fcdada7",
     "run/compare.csv":
         "a5f960dfafebe811c2e3cf9f1c703eed0b319f606342e280a4ae07107b5df476",
     "run/diagnosis.json":
@@ -74,7 +78,7 @@ EXPECTED: dict[str, str] = {
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.md":
-        "c554021e225532fe340a768b84454817d660e95422706988e3c01b8dd3f2c63d",
+        "c33a0c232545f397b4079128d164f177f6f58d0f27e162ee56296b1c5a164fab",
     "run/spectra.parquet":
         "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
     "run/stability.csv":
