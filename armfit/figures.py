@@ -45,7 +45,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import TICKDOWN, TICKUP, Line2D
 from matplotlib.patches import Patch
-from matplotlib.ticker import FuncFormatter, Locator, NullLocator
+from matplotlib.ticker import FuncFormatter, Locator, LogLocator, NullFormatter, NullLocator
 
 from armfit.constants import AXES
 from armfit.errors import BadInputError, UsageError
@@ -54,8 +54,13 @@ from armfit.models.arm import ClosedLoopModel
 from armfit.models.literature import LiteratureModel, literature_models
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
-from armfit.stability import WallSettings, k_max_sweep, plant_from_model, stability_table
-from armfit.uncertainty import WuWeight, arm_trials, w_max
+from armfit.stability import (
+    WallSettings,
+    k_max_sweep,
+    plant_from_model,
+    stability_table,
+)
+from armfit.uncertainty import WuWeight, arm_trials, derived_mass_kg, w_max
 
 # fontTools, which subsets fonts for PDF output, logs every table it prunes at INFO.
 logging.getLogger("fontTools").setLevel(logging.WARNING)
@@ -435,6 +440,17 @@ def _ticks_in_view(ax) -> None:
                          (axis.get_minor_locator, axis.set_minor_locator)):
             if not isinstance(get(), _InView):
                 put(_InView(get()))
+
+
+def _log_labels_within_decades(axis, lo: float, hi: float) -> None:
+    """On a log axis whose data span less than about two decades (no or one power of ten
+    inside), label 1-2-5 steps in plain numbers instead of matplotlib's minor labels,
+    which overlap each other and the axis label."""
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo > 0) or hi / lo >= 100:
+        return
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def _grid(nrows: int, ncols: int, *, legend_rows: int = 1) -> tuple[Figure, np.ndarray]:
@@ -943,8 +959,7 @@ def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
 def _arm_curve(c: Curve, row: Mapping[str, Any], spectra: Spectra, axis: str) -> Curve:
     """A derived trial curve with the nominal row's apparatus effects removed
     (:func:`armfit.uncertainty.arm_trials`)."""
-    mp = (spectra.meta.get("mp_kg") or {}).get(axis) if spectra.meta else None
-    h = arm_trials(row, c.freq_hz, c.h, mp)
+    h = arm_trials(row, c.freq_hz, c.h, derived_mass_kg(spectra, axis))
     return replace(c, h=h, mag_db=_db(h), phase_deg=np.degrees(np.angle(h)))
 
 
@@ -1001,6 +1016,10 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
 #: Servo rates (Hz) of the K_max sweep: 250 Hz to 8 kHz in half-octave steps (so 500 Hz,
 #: 1, 2 and 4 kHz are on it), and 10 kHz.
 SWEEP_RATES_HZ = tuple(250.0 * 2.0 ** (k / 2) for k in range(11)) + (1.0e4,)
+#: Most samples of latency a loop of the sweep may hold: the test's cost grows with the
+#: cube of the loop's order (81 models with 50 samples take 3 s per servo rate and
+#: delay), and the figure shows a trend, so longer loops are left out (a gap).
+SWEEP_MAX_LATENCY_SAMPLES = 36
 #: Computation delays (samples) of the sweep.
 SWEEP_DELAYS = (0, 1, 2)
 _DELAY_COLOURS = ("black", "#CC79A7", "#56B4E9")  # apart from the grip colours
@@ -1018,8 +1037,8 @@ def stability_figure(params: pd.DataFrame, settings=None, *,
     per subject (or per row), coloured by grip, with the population minimum as a dashed
     line. Bottom row: K_max against servo rate 1/T (``rates_hz``, log-log) for each
     delay d in ``delays`` — the minimum over the rows (line) and their range (band); a
-    rate at which a model's latency exceeds
-    :data:`armfit.stability.MAX_LOOP_DELAY_SAMPLES` samples is left out (a gap).
+    rate at which a model's latency exceeds :data:`SWEEP_MAX_LATENCY_SAMPLES` samples is
+    left out (a gap).
     """
     st = WallSettings() if settings is None else settings
     if "row" not in params.columns:
@@ -1063,7 +1082,8 @@ def stability_figure(params: pd.DataFrame, settings=None, *,
         top.set_xlabel("Subject" if has_subject else "Row")
         rows = params[sel.to_numpy()]
         plants = [plant_from_model(*model_from_row(r)) for _, r in rows.iterrows()]
-        sweep = k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m)
+        sweep = k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m,
+                            max_delay_samples=SWEEP_MAX_LATENCY_SAMPLES)
         for i, d in enumerate(delays):
             col = _DELAY_COLOURS[i % len(_DELAY_COLOURS)]
             with warnings.catch_warnings():   # a rate whose loop is too long: a gap
@@ -1078,6 +1098,14 @@ def stability_figure(params: pd.DataFrame, settings=None, *,
                                                         label=f"d = {d}: minimum (band: range)"))
         bot.set_xscale("log")
         bot.set_yscale("log")
+        # the whole swept range, also where a long latency leaves gaps
+        bot.set_xlim(rates_hz[0] / 1.1, rates_hz[-1] * 1.1)
+        if np.isnan(sweep).any():
+            bot.annotate(f"gaps: more than {SWEEP_MAX_LATENCY_SAMPLES} samples of latency, "
+                         "not analysed", (0.98, 0.04), xycoords="axes fraction",
+                         ha="right", fontsize=6, gid=f"sweep-gap:{axis}")
+        _log_labels_within_decades(bot.yaxis, np.nanmin(sweep) / 1e3,
+                                   np.nanmax(sweep) / 1e3)
         bot.axvline(1.0 / st.sample_time_s, color="0.5", ls=":", lw=0.8)
         bot.set_xlabel("Servo rate 1/T (Hz)")
     axs[0, 0].set_ylabel("K_max (kN/m)")

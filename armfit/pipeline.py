@@ -1041,7 +1041,7 @@ def stability_markdown(wall: Mapping) -> list[str]:
         L.append(f"- Warning: {text}.")
     loop = wall.get("in_loop") or {}
     if any(loop.values()) or wall.get("outside_loop"):
-        L += ["", "Effects in the loop: " + "; ".join(
+        L += ([""] if L[-1] else []) + ["Effects in the loop: " + "; ".join(
             f"{a.upper()} {', '.join(e) or 'none'}" for a, e in loop.items())
             + (" (left out with --outside-loop: " + ", ".join(wall["outside_loop"]) + ")"
                if wall.get("outside_loop") else
@@ -1049,7 +1049,8 @@ def stability_markdown(wall: Mapping) -> list[str]:
                "reads the same sensor; `--outside-loop EFFECT` leaves one out)") + "."]
     cert = wall["certificate"]
     if "k_robust_N_per_m" in cert.columns:
-        L += ["", "Robust certificate of the nominal models against the fitted Wu "
+        L += ([""] if L[-1] else []) + [
+              "Robust certificate of the nominal models against the fitted Wu "
               "(max |Wu T| < 1, T the complementary sensitivity seen by the arm's "
               "multiplicative uncertainty; `certificate.csv`), evaluated from the band's "
               "low edge up to the Nyquist frequency, Wu continued beyond its band, and "
@@ -1065,7 +1066,7 @@ def stability_markdown(wall: Mapping) -> list[str]:
                 check = ""
                 if isinstance(margin, float) and math.isfinite(margin):
                     check = (f"; above the band the trials stay within "
-                             f"{margin:.2f} × |Wu|" + ("" if margin <= 1 else
+                             f"{margin:.3g} × |Wu|" + ("" if margin <= 1 else
                                                        " — beyond the weight: the "
                                                        "assumption does not hold"))
                 L.append(f"- {r['axis'].upper()}: holds for K up to "

@@ -922,16 +922,18 @@ def axis_summary(table) -> dict[str, dict]:
 
 
 def k_max_sweep(plants: Sequence[RationalPlant], rates_hz: Sequence[float],
-                delays: Sequence[int], *, damping_Ns_per_m: float = 0.0) -> np.ndarray:
+                delays: Sequence[int], *, damping_Ns_per_m: float = 0.0,
+                max_delay_samples: int = MAX_LOOP_DELAY_SAMPLES) -> np.ndarray:
     """K_max (N/m) of each plant at each servo rate (Hz) and delay (samples):
     array (n_delays, n_rates, n_plants); NaN where the loop holds more than
-    :data:`MAX_LOOP_DELAY_SAMPLES` samples of latency."""
+    ``max_delay_samples`` (at most :data:`MAX_LOOP_DELAY_SAMPLES`) samples of latency."""
+    cap = min(int(max_delay_samples), MAX_LOOP_DELAY_SAMPLES)
     out = np.full((len(delays), len(rates_hz), len(plants)), np.nan)
     for i, d in enumerate(delays):
         for j, rate in enumerate(rates_hz):
             st = WallSettings(1.0 / float(rate), damping_Ns_per_m, int(d))
             ok = [k for k, p in enumerate(plants)
-                  if loop_delay_samples(p, st) <= MAX_LOOP_DELAY_SAMPLES]
+                  if loop_delay_samples(p, st) <= cap]
             if ok:
                 out[i, j, ok] = [r.k_max_N_per_m
                                  for r in wall_stability([plants[k] for k in ok], st)]

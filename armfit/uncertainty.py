@@ -821,7 +821,7 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
             raise BadInputError(f"axis {axis} has {len(rows)} nominal rows; expected one",
                                 column="axis", row=int(rows.index[1]) + 1)
         f, H, _ = derived_trials(trial_rows, axis, method=method)
-        H = arm_trials(rows.iloc[0], f, H, _mp_of(spectra, axis))
+        H = arm_trials(rows.iloc[0], f, H, derived_mass_kg(spectra, axis))
         Hn = nominal_arm_response(rows.iloc[0], f)
         lo, hi = PAPER_BAND_HZ if band is None else band
         finite = f[np.isfinite(H).any(axis=0) & (f > 0)]
@@ -851,7 +851,7 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
     return out
 
 
-def _mp_of(spectra, axis: str) -> float | None:
+def derived_mass_kg(spectra, axis: str) -> float | None:
     """The device mass (kg) the spectra's derived dynamics were estimated with, from the
     file's metadata (None if it does not say)."""
     meta = getattr(spectra, "meta", None) or {}
