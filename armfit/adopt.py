@@ -33,20 +33,18 @@ the paper does.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import pandas as pd
 
 from armfit.constants import AXES, PAPER_BANDS
 from armfit.errors import UsageError
+from armfit.models.arm import APPARATUS_STAGES
 from armfit.models.effects import get_effect
 
 #: Adoption policies (``armfit run --adopt``).
 POLICIES: tuple[str, ...] = ("auto", "none")
-
-#: Stages whose effects belong to the apparatus (held at the diagnosis's value).
-APPARATUS_STAGES: tuple[str, ...] = ("output", "device")
 
 #: Columns of :meth:`Adoption.to_frame` (adoption.csv of ``armfit run``).
 ADOPTION_COLUMNS: tuple[str, ...] = (
@@ -165,13 +163,11 @@ class Adoption:
 
     axes: tuple[AxisAdoption, ...]
     policy: str = "auto"
-    _by_axis: dict = field(default_factory=dict, init=False, repr=False, compare=False)
-
-    def __post_init__(self) -> None:
-        self._by_axis.update({a.axis: a for a in self.axes})
 
     def __getitem__(self, axis: str) -> AxisAdoption:
-        return self._by_axis.get(axis) or AxisAdoption(axis, band_hz=PAPER_BANDS[axis])
+        """The adoption of ``axis`` (the base model for an axis the diagnosis lacks)."""
+        return next((a for a in self.axes if a.axis == axis),
+                    AxisAdoption(axis, band_hz=PAPER_BANDS[axis]))
 
     @property
     def adopted_axes(self) -> tuple[str, ...]:
@@ -301,31 +297,5 @@ def adopt(diagnosis, policy: str = "auto") -> Adoption:
     return Adoption(tuple(_axis_adoption(d, policy) for d in axes), policy)
 
 
-def merge_rows(base: pd.DataFrame, adopted: pd.DataFrame, axes: Sequence[str]
-               ) -> pd.DataFrame:
-    """The rows of ``adopted`` for ``axes`` and of ``base`` for the others, in the
-    order of ``base`` (by axis), with the union of their columns (a parameter a row's
-    model lacks is empty)."""
-    axes = set(axes)
-    parts = [adopted[adopted["axis"] == a] if a in axes else base[base["axis"] == a]
-             for a in dict.fromkeys(base["axis"])]
-    cols = list(base.columns)
-    for c in adopted.columns:
-        if c not in cols:
-            cols.append(c)
-    return _order_columns(pd.concat(parts, ignore_index=True), cols)
-
-
-def _order_columns(df: pd.DataFrame, cols: Sequence[str]) -> pd.DataFrame:
-    return df.reindex(columns=list(cols))
-
-
-def held_of(adoption: Adoption | None) -> Mapping[str, tuple[HeldValue, ...]]:
-    """{axis: held values} (empty without an adoption)."""
-    if adoption is None:
-        return {}
-    return {a.axis: a.held for a in adoption.axes}
-
-
 __all__ = ["ADOPTION_COLUMNS", "APPARATUS_STAGES", "Adoption", "AxisAdoption", "HeldValue",
-           "POLICIES", "adopt", "held_of", "merge_rows"]
+           "POLICIES", "adopt"]

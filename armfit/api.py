@@ -920,9 +920,8 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
     nominal = fit_nominal(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs)
     per_trial = None
     if trials:
-        starts = {(r["axis"], float(r["grip_N"])): dict(f.params)
-                  for (_, r), f in zip(grip.table.iterrows(), grip.fits, strict=True)
-                  if f.converged}
+        keys = zip(grip.table["axis"], grip.table["grip_N"], strict=True)
+        starts = _fitting.grip_fit_starts(keys, grip.fits)
         effects = ad.effects
         fits = _fitting.fit_trials(sp, cost=cost, bands=bands, effects=effects,
                                    jobs=jobs, starts=starts)

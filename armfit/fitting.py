@@ -1003,8 +1003,15 @@ def _grip_starts(spectra, cost, bands, effects, method, source
                           method=method, source=source)
     except (ConvergenceError, UsageError, BadInputError):
         return {}
+    return grip_fit_starts(study.keys, study.fits)
+
+
+def grip_fit_starts(keys, fits: Sequence[FitResult]) -> dict[tuple[str, float], dict[str, float]]:
+    """{(axis, grip_N): parameters} of converged grip fits, the starts of
+    :func:`fit_trials`; ``keys`` (axis, grip_N) in the order of ``fits`` (the fits
+    themselves, not a rounded CSV: the same start, the same bits)."""
     return {(axis, float(grip)): dict(fit.params)
-            for (axis, grip), fit in zip(study.keys, study.fits, strict=True)
+            for (axis, grip), fit in zip(keys, fits, strict=True)
             if fit.converged and grip is not None}
 
 

@@ -66,7 +66,7 @@ from armfit.api import compare_frame
 from armfit.constants import AXES, PAPER_BANDS
 from armfit.diagnose import BANDS, diagnose
 from armfit.errors import ArmfitError, OutputError
-from armfit.fitting import fit_trials, trial_fits_table
+from armfit.fitting import fit_trials, grip_fit_starts, trial_fits_table
 from armfit.io.artifacts import write_params
 from armfit.io.atomic import atomic_path, check_output, write_text_atomic
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
@@ -394,11 +394,9 @@ def _fit_uncertainty(ctx: _Context) -> str:
     wu_summary.csv, wu_wmax.csv, wu.tex. The per-trial fits run meanwhile in the worker
     processes."""
     o = ctx.options
-    # each trial's fit starts from its grip's fit, as `armfit fit-trials` does (the fits
-    # themselves, not the rounded CSV: the same start, the same bits)
-    starts = {(r["axis"], float(r["grip_N"])): dict(f.params)
-              for (_, r), f in zip(ctx.grip.table.iterrows(), ctx.grip.fits, strict=True)
-              if f.converged}
+    # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
+    starts = grip_fit_starts(zip(ctx.grip.table["axis"], ctx.grip.table["grip_N"], strict=True),
+                             ctx.grip.fits)
     ctx.trial_fits = _Background(o.jobs, fit_trials, ctx.spectra, cost=o.cost,
                                  jobs=o.jobs, source="spectra.parquet", starts=starts,
                                  bands=ctx.bands, effects=_effects_of(ctx))
@@ -457,11 +455,11 @@ def _adopt(ctx: _Context) -> str:
         for ext in (".csv", ".tex"):
             src = ctx.folder / f"{which}_params{ext}"
             os.replace(src, ctx.path(f"{which}_params_base{ext}"))
-    ctx.bands = {**ctx.bands, **{a: ad[a].band_hz for a in ad.adopted_axes}}
+    ctx.bands = ad.bands
+    fitted = api.adopt_model(ctx.spectra, ctx.diagnosis, policy=ad.policy,
+                             cost=ctx.options.cost, trials=False, jobs=ctx.options.jobs)
     for which in ("grip", "nominal"):
-        fit = api.fit_grip if which == "grip" else api.fit_nominal
-        model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands,
-                    effects=ad.effects, jobs=ctx.options.jobs)
+        model = getattr(fitted, which)
         _warn_at_bound(which, model, ctx.warn)
         model.write(ctx.folder / f"{which}_params.csv",
                     latex=ctx.folder / f"{which}_params.tex")

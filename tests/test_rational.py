@@ -19,10 +19,12 @@ import numpy as np
 import pandas as pd
 import pytest
 from scipy import interpolate, signal
+from test_cli_stability import GRID  # noise-free spectra rows of one trial
+from test_cli_stability import _trial as _spectra_rows
 
 from armfit.cli.main import cli
 from armfit.errors import EffectDefinitionError, UsageError
-from armfit.io.schema import SPECTRA_COLUMNS, params_columns
+from armfit.io.schema import params_columns
 from armfit.models import library
 from armfit.models.arm import ClosedLoopModel, Param
 from armfit.models.effects import (
@@ -409,21 +411,6 @@ def test_effect_without_rational_is_a_usage_error(runner, tmp_path, command):
 # ---------------------------------------------------------------------------
 # 4. fit-trials with a user effect, then stability on its output
 # ---------------------------------------------------------------------------
-
-GRID = np.geomspace(0.1, 30, 61)
-
-
-def _spectra_rows(subject, axis, grip, h):
-    """Spectra rows of one noise-free trial (as tests/test_cli_stability.py builds)."""
-    db = 20 * np.log10(np.abs(h))
-    return pd.DataFrame({
-        "level": "trial", "subject": subject, "axis": axis, "grip_N": grip,
-        "run": pd.array([None] * GRID.size, dtype="Int64"), "kind": "measured",
-        "out_axis": axis, "method": "h1", "freq_hz": GRID, "re": h.real, "im": h.imag,
-        "mag_db": db, "phase_deg": np.degrees(np.unwrap(np.angle(h))), "coherence": 0.99,
-        "se_db": 0.1, "se_deg": 1.0, "n": 1, "q25_db": db, "q75_db": db,
-        "q25_deg": 0.0, "q75_deg": 0.0, "flags": ""})[list(SPECTRA_COLUMNS)]
-
 
 def test_fit_trials_with_the_device_spring_then_stability(runner, tmp_path):
     """One noise-free trial: Table I (X, 2 N, Mp = 0.09 kg) plus a 300 N/m device spring

@@ -37,6 +37,11 @@ effect_option = click.option(
     "--effect", "effects", multiple=True, metavar="NAME",
     help="Add a physical effect to the model (repeatable; see `armfit effects`).")
 
+outside_loop_option = click.option(
+    "--outside-loop", "outside_loop", multiple=True, metavar="EFFECT",
+    help="An apparatus effect (stage output or device) the rendering loop does not see, "
+         "e.g. a latency that only offsets the logs; repeatable.")
+
 fit_effect_option = click.option(
     "--effect", "effects", multiple=True, metavar="[AXIS:]NAME[=VALUES]",
     help="Add a physical effect to the model, fitted (NAME) or held at given values "

@@ -11,6 +11,7 @@ from armfit.cli.options import (
     json_option,
     manifest_option,
     message,
+    outside_loop_option,
     overwrite_option,
     skip_bad_option,
 )
@@ -38,9 +39,7 @@ from armfit.spectra import METHODS
               show_default=True,
               help="auto: the effects the diagnosis names become the model of every "
                    "product; none: the paper's 5-parameter model throughout.")
-@click.option("--outside-loop", "outside_loop", multiple=True, metavar="EFFECT",
-              help="An adopted apparatus effect the rendering loop does not see (e.g. a "
-                   "latency of the logging only); repeatable.")
+@outside_loop_option
 @jobs_option
 @click.option("--no-figures", is_flag=True, help="Skip the figures (faster).")
 @overwrite_option

@@ -26,6 +26,7 @@ from armfit.cli.options import (
     json_option,
     message,
     output_option,
+    outside_loop_option,
     overwrite_option,
 )
 from armfit.constants import PAPER_BANDS
@@ -142,9 +143,7 @@ def _limit_words(g) -> str:
 @click.option("--members", "members_path", default=None, metavar="TRIALS.csv",
               help="With --weights: the per-trial fits the weight covers (fit-trials "
                    "output); the certificate never exceeds the smallest K_max among them.")
-@click.option("--outside-loop", "outside_loop", multiple=True, metavar="EFFECT",
-              help="An apparatus effect (stage output or device) the rendering loop does "
-                   "not see, e.g. a latency that only offsets the logs; repeatable.")
+@outside_loop_option
 @effects_file_option
 @click.option("-o", "--output", "output", default=None, type=click.Path(dir_okay=False),
               help="Write the per-model table as CSV (atomically).")

@@ -27,9 +27,9 @@ from armfit.errors import EffectDefinitionError, UsageError
 if TYPE_CHECKING:  # pragma: no cover
     from armfit.models.effects import Effect
 
-__all__ = ["BASE_PARAMS", "DEVICE_MASS_KG", "PARAM_NAMES", "ClosedLoopModel", "Param",
-           "arm_tf", "cl_tf", "h_arm", "h_cl", "h_device", "laplace", "union_param_names",
-           "z_arm"]
+__all__ = ["APPARATUS_STAGES", "BASE_PARAMS", "DEVICE_MASS_KG", "PARAM_NAMES", "STAGE_NAMES",
+           "ClosedLoopModel", "Param", "arm_tf", "cl_tf", "h_arm", "h_cl", "h_device",
+           "laplace", "union_param_names", "z_arm"]
 
 
 #: Default closeness (fraction of a parameter's range in its search coordinate) at which
@@ -118,6 +118,14 @@ BASE_PARAMS: tuple[Param, ...] = (
     Param("b1", "N*s/m", 0.05, 1000.0, 7.0, "hand (grip) damping"),
     Param("b2", "N*s/m", 0.05, 1000.0, 5.0, "arm damping"),
 )
+
+
+#: Where an effect acts: in the arm's impedance, in the device's, or on the output X/F.
+STAGE_NAMES: tuple[str, ...] = ("arm", "device", "output")
+
+#: The stages of the apparatus (the rig, the same for every trial of an axis), as opposed
+#: to the arm's own effects (stage arm).
+APPARATUS_STAGES: tuple[str, ...] = ("output", "device")
 
 
 def union_param_names(models: Sequence[ClosedLoopModel]) -> tuple[str, ...]:
@@ -344,29 +352,38 @@ class ClosedLoopModel:
                 factor = factor * e.term(s, v, self.mp)
         return factor / z
 
+    def _effect_terms(self, s, eff: Sequence[Mapping[str, float]], stages: Sequence[str]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """(R, ΔZ) at s (rad/s): the product of the output factors and the sum of the
+        added impedances (N/m) of the effects whose stage is in ``stages``; ``eff`` holds
+        each effect's own values, in the order of :attr:`effects`."""
+        factor = np.ones_like(s)
+        dz = np.zeros_like(s)
+        for e, v in zip(self.effects, eff, strict=True):
+            if e.stage not in stages:
+                continue
+            if e.stage == "output":
+                factor = factor * e.term(s, v, self.mp)
+            else:
+                dz = dz + e.term(s, v, self.mp)
+        return factor, dz
+
     def remove_effects(self, f_hz, H, effect_values: Mapping[str, float]) -> np.ndarray:
         """The response eq. 4 would have without the effects, given a measured X/F (m/N)
         and values of the effect parameters (qualified names): the inverse of
         :meth:`response`, H_base = 1 / (R/H − ΔZ), R the output factors, ΔZ the added
         impedances."""
-        s = laplace(f_hz)
-        factor = np.ones_like(s)
-        dz = np.zeros_like(s)
-        effect_values = {**effect_values, **self.held_values}
-        for e in self.effects:
-            v = {p.name: effect_values[f"{e.name}.{p.name}"] for p in e.params}
-            if e.stage == "output":
-                factor = factor * e.term(s, v, self.mp)
-            else:
-                dz = dz + e.term(s, v, self.mp)
+        values = {**effect_values, **self.held_values}
+        eff = [{p.name: values[f"{e.name}.{p.name}"] for p in e.params} for e in self.effects]
+        factor, dz = self._effect_terms(laplace(f_hz), eff, STAGE_NAMES)
         return 1.0 / (factor / np.asarray(H) - dz)
 
     @property
     def apparatus_effects(self) -> tuple[Effect, ...]:
-        """The effects of the apparatus (stage output or device), as opposed to the arm's
+        """The effects of the apparatus (:data:`APPARATUS_STAGES`), as opposed to the arm's
         own (stage arm): latency, sensor lag, the device's mass, damping or spring, a
         linkage mode. They are the same for every trial of an axis."""
-        return tuple(e for e in self.effects if e.stage in ("output", "device"))
+        return tuple(e for e in self.effects if e.stage in APPARATUS_STAGES)
 
     def arm_from_derived(self, f_hz, H_derived, theta, mp_assumed: float | None = None
                          ) -> np.ndarray:
@@ -387,13 +404,7 @@ class ClosedLoopModel:
             return H
         _, eff = self._split(theta)
         s = laplace(f_hz)
-        factor = np.ones_like(s)
-        dz = np.zeros_like(s)
-        for e, v in zip(self.effects, eff, strict=True):
-            if e.stage == "output":
-                factor = factor * e.term(s, v, self.mp)
-            elif e.stage == "device":
-                dz = dz + e.term(s, v, self.mp)
+        factor, dz = self._effect_terms(s, eff, APPARATUS_STAGES)
         return 1.0 / (factor / H + (factor * mp_a - self.mp) * s * s - dz)
 
     def derived_arm_response(self, f_hz, theta, mp_assumed: float | None = None) -> np.ndarray:

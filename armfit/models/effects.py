@@ -70,13 +70,13 @@ from pathlib import Path
 import numpy as np
 
 from armfit.errors import EffectDefinitionError, NoInputError, UsageError
-from armfit.models.arm import BASE_PARAMS, DEVICE_MASS_KG, Param
+from armfit.models.arm import BASE_PARAMS, DEVICE_MASS_KG, STAGE_NAMES, Param
 
 TermFn = Callable[[np.ndarray, Mapping[str, float], float], np.ndarray]
 RationalFn = Callable[[Mapping[str, float], float], tuple]
 
 #: Where an effect can act (see the module docstring).
-STAGES: tuple[str, ...] = ("arm", "device", "output")
+STAGES: tuple[str, ...] = STAGE_NAMES
 
 #: Entry-point group through which installed packages register effects.
 ENTRY_POINT_GROUP = "armfit.effects"
