@@ -19,8 +19,7 @@ from armfit.constants import DEVICE_MASS_KG
 from armfit.data import paper_table
 from armfit.errors import BadInputError, NoInputError
 from armfit.io.schema import PARAMS_BASE, wu_sidecar_paths
-from armfit.models.arm import BASE_PARAMS
-from armfit.models.params import row_effects, row_param_names
+from armfit.models.params import param_bounds, row_param_names
 from armfit.uncertainty import PAPER_BAND_HZ, read_wu
 
 #: Names that stand for the paper's tables when no file of that name exists.
@@ -109,10 +108,7 @@ def read_param_rows(path_or_name: str) -> ParamRows:
             and isinstance(df["reason"].iloc[i], str) else "no parameters (fit failed)"
         skipped.append((int(i) + 1, _identity(df.iloc[i]), reason))
     keep = ~empty
-    bounds = {q.name: q for q in BASE_PARAMS}
-    for effects in row_effects(df, p):
-        for e in effects:
-            bounds.update({f"{e.name}.{q.name}": q for q in e.params})
+    bounds = param_bounds(df, p)
     for col, v in values.items():
         used = keep & np.array([col in PARAMS_BASE or col in u for u in uses], bool)
         q = bounds[col]

@@ -599,12 +599,6 @@ class Certificate:
         """Whether the certificate holds for some K ≥ 0."""
         return bool(np.isfinite(self.k_robust_N_per_m))
 
-    @property
-    def assumption_checked(self) -> bool:
-        """Whether the members' models stay within |Wu| above the band (None-safe: False
-        without members)."""
-        return bool(np.isfinite(self.beyond_margin) and self.beyond_margin <= 1.0)
-
 
 def environment_terms(f_hz, model: ClosedLoopModel, theta: Mapping[str, float],
                       settings: WallSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -66,7 +66,7 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
     if PARAMS_HELD in df.columns:
         df[PARAMS_HELD] = df[PARAMS_HELD].fillna("").astype(str)
     base_cols = ["axis", *PARAMS_BASE]
-    bounds = _param_bounds(df, p)
+    bounds = param_bounds(df, p)
     names = list(bounds)
     expected = base_cols + names[len(PARAMS_BASE):] + [
         f"{n}{sfx}" for n in names for sfx in ("_lo", "_hi")] + list(PARAMS_STATS)
@@ -123,7 +123,7 @@ def _unknown_effect_column(col: str, df: pd.DataFrame) -> str:
             f"'effects' ({spec}); the models would ignore it")
 
 
-def _param_bounds(df: pd.DataFrame, path: Path) -> dict[str, Param]:
+def param_bounds(df: pd.DataFrame, path) -> dict[str, Param]:
     """{column: Param} of the base parameters, then of each effect any row lists."""
     out = {q.name: q for q in BASE_PARAMS}
     for effects in row_effects(df, path):
