@@ -1064,7 +1064,7 @@ def stability_markdown(wall: Mapping) -> list[str]:
                 check = ""
                 if isinstance(margin, float) and math.isfinite(margin):
                     check = (f"; above the band the trials stay within "
-                             f"{margin:.3g} × |Wu|" + ("" if margin <= 1 else
+                             f"{margin:.4f} × |Wu|" + ("" if margin <= 1 else
                                                        " — beyond the weight: the "
                                                        "assumption does not hold"))
                 L.append(f"- {r['axis'].upper()}: holds for K up to "

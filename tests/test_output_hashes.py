@@ -78,7 +78,7 @@ EXPECTED: dict[str, str] = {
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.md":
-        "eded7db6598751f47f875f7c79d1a4efbbf6866c963b341f11355535e89b5388",
+        "abf0294ffc5b20db2513fd502b1da8005eeebe334a83c4d441a8811a42210962",
     "run/spectra.parquet":
         "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
     "run/stability.csv":
