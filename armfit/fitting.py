@@ -16,11 +16,20 @@ The global search needs no user starting values and no seed: (1) an analytic ini
 (Levy's linear fit of the arm impedance Z_ARM = 1/H − Mp s², exact for noise-free data);
 (2) the typical values of ClosedLoopModel.params and any warm start; (3) a fixed,
 unscrambled Sobol set of 512 points over the log-bounds, screened in one vectorised
-evaluation. The starts of (1)–(2) and the 3 best screened ones are refined on a log-spaced
+evaluation; (4) structured starts (:func:`_anchors`), screened apart: the arm rows of the
+paper's Tables I and II and the analytic guess with the effects removed, with the effects
+at their null, starting and typical values (the Sobol set is thin in the stiff-Z corner).
+The starts of (1)–(2), the 3 best screened Sobol points and the 3 best structured starts
+are refined on a log-spaced
 subset of the band, both with the cost's weights and with unit weights (a smoother
 landscape); the two best distinct end points (by the full weighted cost) are polished on
 every bin of the band and the better kept. Jacobians are central differences evaluated in
 one vectorised batch. No random numbers are drawn: the answer is the same on every run.
+
+Convergence: a fit is converged when the optimiser is and, should it end more than
+:data:`FAR_FROM_NOISE` times the noise, no point the search reached has a cost below
+:data:`MARKEDLY_LOWER` of its own (a local fit from ``x0`` then also refines the cheapest
+structured starts); otherwise its message names the local minimum and the better start.
 
 The "complex" cost's standard errors: invalid ones take the median of the valid ones, and
 the variance is pooled over 9 neighbouring bins (standard errors estimated from a few
