@@ -464,7 +464,8 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
                  x0: Mapping[str, float] | None = None, global_search: bool = True,
                  max_nfev: int | None = None, se_pool: int = SE_POOL_BINS,
                  strict: bool = True, intervals: bool = True,
-                 jackknife_bands: int = JACKKNIFE_BANDS) -> FitResult:
+                 jackknife_bands: int = JACKKNIFE_BANDS,
+                 second_opinion: bool = True) -> FitResult:
     """Fit ``model`` (H_CL of eq. 4 with its effects) to a measured response.
 
     f_hz: frequencies (Hz); H: complex response X/F (m/N); se_db, se_deg: standard errors
@@ -479,6 +480,12 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     intervals: False skips the 95 % intervals (NaN), e.g. for bootstrap replicates;
     jackknife_bands: bands of the delete-a-band jackknife that widens them
     (:func:`band_jackknife`; 0: the noise interval alone).
+
+    second_opinion: a local fit (``global_search`` False) that ends more than
+    :data:`FAR_FROM_NOISE` times the noise also refines the cheapest structured starts and
+    is not converged when one of them reaches a cost below :data:`MARKEDLY_LOWER` of its
+    own (the message says so); False skips that (bootstrap replicates, whose start is a
+    checked global fit).
 
     Cost and intervals: see the module docstring (eq. 5 for ``cost="paper"``).
     Raises ConvergenceError (exit 3) if the optimiser stops before converging and
@@ -542,7 +549,7 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     not_best = ""
     noise_ref = cost == "complex" and se_db is not None and se_deg is not None
     if converged and noise_ref and _rms(res.fun) > FAR_FROM_NOISE:
-        if not global_search:
+        if not global_search and second_opinion:
             other, n_other = _second_opinion(prob, res.x, _anchors(prob))
             nfev += n_other
             if other is not None:
@@ -758,7 +765,8 @@ def bootstrap_fit(base: FitResult, f_hz, H_trials, subjects: Sequence[str], *,
         try:
             fit = fit_response(base.model, f_hz, hb, se_db=se_db, se_deg=se_deg,
                                cost=base.cost, band=base.band, x0=base.params,
-                               global_search=False, intervals=False)
+                               global_search=False, intervals=False,
+                               second_opinion=False)
         except ConvergenceError:
             failed += 1
             continue
