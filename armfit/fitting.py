@@ -16,11 +16,20 @@ The global search needs no user starting values and no seed: (1) an analytic ini
 (Levy's linear fit of the arm impedance Z_ARM = 1/H − Mp s², exact for noise-free data);
 (2) the typical values of ClosedLoopModel.params and any warm start; (3) a fixed,
 unscrambled Sobol set of 512 points over the log-bounds, screened in one vectorised
-evaluation. The starts of (1)–(2) and the 3 best screened ones are refined on a log-spaced
+evaluation; (4) structured starts (:func:`_anchors`), screened apart: the arm rows of the
+paper's Tables I and II and the analytic guess with the effects removed, with the effects
+at their null, starting and typical values (the Sobol set is thin in the stiff-Z corner).
+The starts of (1)–(2), the 3 best screened Sobol points and the 3 best structured starts
+are refined on a log-spaced
 subset of the band, both with the cost's weights and with unit weights (a smoother
 landscape); the two best distinct end points (by the full weighted cost) are polished on
 every bin of the band and the better kept. Jacobians are central differences evaluated in
 one vectorised batch. No random numbers are drawn: the answer is the same on every run.
+
+Convergence: a fit is converged when the optimiser is and, should it end more than
+:data:`FAR_FROM_NOISE` times the noise, no point the search reached has a cost below
+:data:`MARKEDLY_LOWER` of its own (a local fit from ``x0`` then also refines the cheapest
+structured starts); otherwise its message names the local minimum and the better start.
 
 The "complex" cost's standard errors: invalid ones take the median of the valid ones, and
 the variance is pooled over 9 neighbouring bins (standard errors estimated from a few
@@ -59,6 +68,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
 from scipy import optimize, special
@@ -78,6 +88,8 @@ COSTS: tuple[str, ...] = ("complex", "paper")
 _N_SOBOL = 512          # screened candidate starts (2**9, fixed and unscrambled)
 _N_REFINE = 3           # screened candidates refined locally, per weighting
 _N_SUBSET = 160         # log-spaced bins used while refining candidates
+_N_ANCHORS = 3          # structured starts (paper rows, effect-removed guess) refined
+_MAX_EFFECT_POINTS = 64  # combinations of the effects' starting values among the anchors
 _TOL = 1e-12            # ftol/xtol/gtol of the final polish
 #: Neighbouring bins over which the measurement's variance is pooled (see fit_response).
 SE_POOL_BINS = 9
@@ -336,23 +348,89 @@ def _candidates(prob: _Problem, x0: Mapping[str, float] | None, n_sobol: int) ->
     return sp.clip_z(np.array(starts))
 
 
-def _global_starts(prob: _Problem, starts: np.ndarray, n_fixed: int
-                   ) -> tuple[list[np.ndarray], int]:
-    """The global stage: screen the Sobol starts (``starts[n_fixed:]``) on a log-spaced
-    subset of bins, with the problem's weights and with unit weights; refine the fixed
-    starts and the best screened ones under both weightings; return the two best distinct
-    end points by the full weighted cost (the polish starts from each) and the evaluations
-    used."""
+@lru_cache(maxsize=1)
+def _paper_rows() -> np.ndarray:
+    """The arm parameters (Ma, k1, k2, b1, b2; SI) of every row of the paper's Tables I
+    and II, all axes: from the compliant X and Y arm (k1 ≈ 80 N/m) to the stiff Z arm
+    (k1 ≈ 2000–5000 N/m)."""
+    from armfit.data import paper_table  # tables read once, only by the global search
+
+    cols = ["Ma_kg", "k1_N_per_m", "k2_N_per_m", "b1_Ns_per_m", "b2_Ns_per_m"]
+    return np.vstack([paper_table(t)[cols].to_numpy(float) for t in ("grip", "nominal")])
+
+
+def _effect_points(model: ClosedLoopModel, names: Sequence[str]) -> list[dict[str, float]]:
+    """Values of the free effect parameters to start from: every combination of each
+    effect's null point, its own starting points and its typical values (at most
+    :data:`_MAX_EFFECT_POINTS` combinations; [{}] without free effect parameters)."""
+    combos: list[dict[str, float]] = [{}]
+    for e in model.effects:
+        pts = e.start_points(model.mp) + [{p.name: p.typical for p in e.params}]
+        opts = []
+        for pt in pts:
+            d = {f"{e.name}.{k}": float(v) for k, v in pt.items() if f"{e.name}.{k}" in names}
+            if d and d not in opts:
+                opts.append(d)
+        if opts:
+            combos = [{**c, **o} for c in combos for o in opts][:_MAX_EFFECT_POINTS]
+    return combos
+
+
+def _anchors(prob: _Problem) -> np.ndarray:
+    """Structured starts of the global search, beside the Sobol set: the arm parameters
+    of every row of the paper's Tables I and II (:func:`_paper_rows`) and of the analytic
+    guess on the data with the effects removed (:meth:`ClosedLoopModel.remove_effects`),
+    each with the effects at every point of :func:`_effect_points`. A Sobol set over the
+    whole box is thin in a corner such as the stiff Z arm (k1 in the thousands, Ma in
+    kg) and, once an effect can mimic part of the arm (a lag lowering the response like
+    a mass), a start far from that corner may end in a distant local minimum."""
+    sp, model = prob.space, prob.model
+    typical = np.array([p.typical for p in model.params])
+    base_idx = [sp.names.index(n) for n in PARAM_NAMES]
+    rows = []
+    for eff in _effect_points(model, sp.names):
+        arm = [r for r in _paper_rows()]
+        with np.errstate(all="ignore"):
+            hb = model.remove_effects(prob.f, prob.h, eff) if eff else None
+        # (without effects the analytic guess is among the fixed starts already)
+        if hb is not None and np.all(np.isfinite(hb)):
+            arm += [np.array([c[n] for n in PARAM_NAMES])
+                    for c in analytic_guess(prob.f, hb, model.mp)]
+        for a in arm:
+            theta = typical.copy()
+            theta[base_idx] = a
+            for n, v in eff.items():
+                theta[sp.names.index(n)] = v
+            rows.append(sp.to_z(theta))
+    return sp.clip_z(np.array(rows))
+
+
+def _global_starts(prob: _Problem, starts: np.ndarray, n_fixed: int,
+                   anchors: np.ndarray | None = None
+                   ) -> tuple[list[np.ndarray], int, np.ndarray]:
+    """The global stage: screen the Sobol starts (``starts[n_fixed:]``) and, apart, the
+    structured ``anchors`` (:func:`_anchors`) on a log-spaced subset of bins, with the
+    problem's weights and with unit weights; refine the fixed starts and the best
+    screened ones of each set under both weightings; return the two best distinct end
+    points by the full weighted cost (the polish starts from each), the evaluations used
+    and every end point."""
     sub = _subset(prob.f, _N_SUBSET)
     bounds = (prob.space.zlo, prob.space.zhi)
     problems = [prob] if prob.cost == "paper" else [prob.unweighted(), prob]
+    if anchors is None or not len(anchors):
+        anchors = starts[:0]
+    pool = np.vstack([starts, anchors])
+    n_sobol = len(starts) - n_fixed
     nfev = 0
     ends = []
     for p in problems:
-        ss = np.sum(p.residuals_batch(starts[n_fixed:], sub) ** 2, axis=1)
-        picks = list(range(n_fixed)) + [n_fixed + int(i) for i in np.argsort(ss)[:_N_REFINE]]
+        ss = np.sum(p.residuals_batch(pool[n_fixed:], sub) ** 2, axis=1)
+        picks = list(range(n_fixed)) + [n_fixed + int(i)
+                                         for i in np.argsort(ss[:n_sobol])[:_N_REFINE]]
+        picks += [n_fixed + n_sobol + int(i)
+                  for i in np.argsort(ss[n_sobol:])[:_N_ANCHORS]]
         for i in picks:
-            r = optimize.least_squares(p.residuals, starts[i], jac=p.jacobian, args=(sub,),
+            r = optimize.least_squares(p.residuals, pool[i], jac=p.jacobian, args=(sub,),
                                        bounds=bounds, method="trf", x_scale=1.0,
                                        max_nfev=30 * starts.shape[1], ftol=1e-6,
                                        xtol=1e-6)
@@ -366,7 +444,7 @@ def _global_starts(prob: _Problem, starts: np.ndarray, n_fixed: int
         if np.max(np.abs(ends_arr[i] - chosen[0])) > 1e-3:
             chosen.append(ends_arr[i])
             break
-    return chosen, nfev
+    return chosen, nfev, ends_arr
 
 
 def _subset(f: np.ndarray, n: int) -> np.ndarray:
@@ -386,7 +464,8 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
                  x0: Mapping[str, float] | None = None, global_search: bool = True,
                  max_nfev: int | None = None, se_pool: int = SE_POOL_BINS,
                  strict: bool = True, intervals: bool = True,
-                 jackknife_bands: int = JACKKNIFE_BANDS) -> FitResult:
+                 jackknife_bands: int = JACKKNIFE_BANDS,
+                 second_opinion: bool = True) -> FitResult:
     """Fit ``model`` (H_CL of eq. 4 with its effects) to a measured response.
 
     f_hz: frequencies (Hz); H: complex response X/F (m/N); se_db, se_deg: standard errors
@@ -401,6 +480,12 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     intervals: False skips the 95 % intervals (NaN), e.g. for bootstrap replicates;
     jackknife_bands: bands of the delete-a-band jackknife that widens them
     (:func:`band_jackknife`; 0: the noise interval alone).
+
+    second_opinion: a local fit (``global_search`` False) that ends more than
+    :data:`FAR_FROM_NOISE` times the noise also refines the cheapest structured starts and
+    is not converged when one of them reaches a cost below :data:`MARKEDLY_LOWER` of its
+    own (the message says so); False skips that (bootstrap replicates, whose start is a
+    checked global fit).
 
     Cost and intervals: see the module docstring (eq. 5 for ``cost="paper"``).
     Raises ConvergenceError (exit 3) if the optimiser stops before converging and
@@ -434,26 +519,56 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     starts = _candidates(prob, x0, _N_SOBOL if global_search else 0)
     bounds = (space.zlo, space.zhi)
     nfev = 0
+    ends = np.empty((0, n_par))
     if global_search:
-        z_starts, nfev = _global_starts(prob, starts, n_fixed=len(starts) - _N_SOBOL)
+        z_starts, nfev, ends = _global_starts(prob, starts, n_fixed=len(starts) - _N_SOBOL,
+                                              anchors=_anchors(prob))
     else:
         z_starts = starts[:1]
 
     budget = 200 * n_par if max_nfev is None else int(max_nfev)
+
+    def polish(z0):
+        return optimize.least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=bounds,
+                                      method="trf", x_scale=1.0, max_nfev=budget,
+                                      ftol=_TOL, xtol=_TOL, gtol=_TOL)
+
     res = None
+    others = [ends]          # every point the search reached (the polish's ends too)
     for z0 in z_starts:
-        r = optimize.least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=bounds,
-                                   method="trf", x_scale=1.0, max_nfev=budget,
-                                   ftol=_TOL, xtol=_TOL, gtol=_TOL)
+        r = polish(z0)
         nfev += r.nfev
+        others.append(r.x[None])
         if res is None or (r.status > 0, -r.cost) > (res.status > 0, -res.cost):
             res = r
     converged = bool(res.status > 0 and np.all(np.isfinite(res.x)))
+    # Honest convergence: a fit far above the noise while another start reaches a
+    # markedly lower cost is a local minimum, not converged. The global search refined
+    # the structured starts already (and keeps its best end); a local fit from x0 gets
+    # their second opinion here.
+    not_best = ""
+    noise_ref = cost == "complex" and se_db is not None and se_deg is not None
+    if converged and noise_ref and _rms(res.fun) > FAR_FROM_NOISE:
+        if not global_search and second_opinion:
+            other, n_other = _second_opinion(prob, res.x, _anchors(prob))
+            nfev += n_other
+            if other is not None:
+                others.append(other.x[None])
+        pts = np.vstack(others)
+        ss = np.sum(prob.residuals_batch(pts) ** 2, axis=1)
+        i = int(np.argmin(ss))
+        if ss[i] < MARKEDLY_LOWER * 2 * res.cost:
+            converged = False
+            not_best = (f"a local minimum: this fit ends at {_rms(res.fun):.3g}× the "
+                        f"noise, another start reaches "
+                        f"{np.sqrt(ss[i] / res.fun.size):.3g}× "
+                        f"({_describe(space, pts[i])})")
     band_used = (float(prob.f[0]), float(prob.f[-1]))
     if not converged and strict:
+        why = not_best or f"{res.message}"
         raise ConvergenceError(f"fit did not converge in band {band_used[0]:g}-"
                                f"{band_used[1]:g} Hz after {res.nfev} evaluations "
-                               f"({res.message}); no parameters reported")
+                               f"({why}); no parameters reported")
     theta = space.to_theta(res.x)
     params = {n: float(v) for n, v in zip(space.names, theta, strict=True)}
     if intervals:
@@ -479,10 +594,50 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
         rms_norm = float(np.sqrt(np.mean(np.concatenate([db / sdb, deg / sdeg]) ** 2)))
     stuck = at_bound(model.params, params)
     msg = res.message + (f"; at physical bound: {', '.join(stuck)}" if stuck else "")
+    if not_best:
+        msg = f"not converged: {not_best}; optimiser: {msg}"
     return FitResult(model=model, params=params, ci_lo=ci_lo, ci_hi=ci_hi, rms_db=rms_db,
                      rms_deg=rms_deg, rms_norm=rms_norm, band=band_used, n_points=m,
                      cost=cost, converged=converged, message=msg, nfev=nfev,
                      objective=float(2 * res.cost), at_bound=tuple(stuck))
+
+
+#: A fit whose RMS normalised error exceeds this ("several times the noise") gets a
+#: second opinion from the structured starts (:func:`_second_opinion`).
+FAR_FROM_NOISE = 2.0
+#: ... and is not the best fit when another start reaches a cost (Σ r²) below this
+#: fraction of its own.
+MARKEDLY_LOWER = 0.5
+_N_CHECK = 2            # structured starts refined for the second opinion
+
+
+def _rms(r: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.asarray(r) ** 2)))
+
+
+def _describe(space: ParamSpace, z: np.ndarray) -> str:
+    theta = space.to_theta(z)
+    return ", ".join(f"{n}={v:.4g}" for n, v in zip(space.names, theta, strict=True))
+
+
+def _second_opinion(prob: _Problem, z: np.ndarray, anchors: np.ndarray):
+    """The best local fit (on every bin, the problem's weights) from the :data:`_N_CHECK`
+    structured starts of lowest cost that differ from ``z``; (None, 0) without any.
+    Returns (scipy result, evaluations used)."""
+    cand = anchors[np.max(np.abs(anchors - z), axis=1) > 1e-3]
+    if not len(cand):
+        return None, 0
+    ss = np.sum(prob.residuals_batch(cand) ** 2, axis=1)
+    best, nfev = None, 0
+    for i in np.argsort(ss)[:_N_CHECK]:
+        r = optimize.least_squares(prob.residuals, cand[i], jac=prob.jacobian,
+                                   bounds=(prob.space.zlo, prob.space.zhi), method="trf",
+                                   x_scale=1.0, max_nfev=50 * cand.shape[1], ftol=1e-8,
+                                   xtol=1e-8)
+        nfev += r.nfev
+        if best is None or r.cost < best.cost:
+            best = r
+    return best, nfev
 
 
 def residual_correlation(blocks: np.ndarray) -> float:
@@ -610,7 +765,8 @@ def bootstrap_fit(base: FitResult, f_hz, H_trials, subjects: Sequence[str], *,
         try:
             fit = fit_response(base.model, f_hz, hb, se_db=se_db, se_deg=se_deg,
                                cost=base.cost, band=base.band, x0=base.params,
-                               global_search=False, intervals=False)
+                               global_search=False, intervals=False,
+                               second_opinion=False)
         except ConvergenceError:
             failed += 1
             continue

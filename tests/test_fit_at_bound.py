@@ -2,9 +2,11 @@
 physical bound are named in the CSV, the JSON, the API's frame and the LaTeX table, and
 a warning names the row.
 
-Expected values: the nominal fit of the shipped study ``sample_data/hidden`` puts b1 of
-the X axis on its lower bound, 0.05 N·s/m (recorded with this version and the one before
-it, which reported it as converged with nothing in the CSV); the synthetic case is the
+Expected values: the nominal fit of the shipped study ``sample_data/hidden`` puts b2 of
+the X axis on its lower bound, 0.05 N·s/m (recorded with this version; the versions
+before the global search's structured starts stopped in a costlier minimum, RMS
+normalised error 14.77 against 14.61, with b1 on its bound instead — the 5-parameter
+model misses that study's hidden effect, so neither is an estimate); the synthetic case is the
 noise-free response of eq. 4 with b1 = 0.01 N·s/m, below the bound, so the fit must stop
 on the bound."""
 
@@ -57,13 +59,13 @@ def test_nominal_fit_of_sample_study_names_the_bound(runner, hidden_x):
                             "--json"])
     assert r.exit_code == 0, r.stderr
     warn = [ln for ln in r.stderr.splitlines() if ln.startswith("warning:")]
-    assert len(warn) == 1 and "fit x:" in warn[0] and "b1" in warn[0]
+    assert len(warn) == 1 and "fit x:" in warn[0] and "b2" in warn[0]
     (row,) = json.loads(r.stdout)["fits"]
-    assert row["at_bound"] == ["b1"] and row["converged"] is True
-    assert row["b1"] == pytest.approx(0.05, rel=0.01)
+    assert row["at_bound"] == ["b2"] and row["converged"] is True
+    assert row["b2"] == pytest.approx(0.05, rel=0.01)
     raw = pd.read_csv(out, dtype=str, keep_default_na=False)
-    assert list(raw.columns)[-1] == "at_bound" and raw["at_bound"].tolist() == ["b1"]
-    assert read_params(out)["at_bound"].tolist() == ["b1"]
+    assert list(raw.columns)[-1] == "at_bound" and raw["at_bound"].tolist() == ["b2"]
+    assert read_params(out)["at_bound"].tolist() == ["b2"]
     text = tex.read_text()
     assert r"0.05000$^\dagger$" in text and r"$^\dagger$ at a physical bound" in text
 
