@@ -44,63 +44,63 @@ EXPECTED: dict[str, str] = {
     "run.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "fit-grip.stdout":
-        "b545b13137856f843cf7452c6e0ebd29146550c0ba012af307982caef8571f4a",
+        "c6aded63e03b743ab5c44c78195f63372046318878ab5d34b6c6a5938318cef9",
     "fit-nominal.stdout":
-        "501203cf10818b2b56d0177cf97f63bb76dea7aef4bd5bb46c3e640831ae5eb0",
+        "99b47e6bcc0cb39d81b6483d08bed6846c0fc810ba63cb5e59e15b828834d482",
     "fit-uncertainty.stdout":
-        "3f4c6981d5612cee3f15e6a9193c7fc19b943eb813e6a2c9f6ca5c025d94bdfe",
+        "7acce02812cb51d19039cda6a48c0b11f5ea8d38283c7016a123d6327b88f10e",
     "compare.stdout":
-        "68d52b6fffe31b4cf76911e3414a14189e3e8f1b59bb37e18b0aff29d838a2f4",
+        "516323bd67968046d6f4ad69470323bb92a04760945e528d19ddfe424d677469",
     "diagnose.stdout":
-        "f2c72dc526ac113b93caf1c09089bae0b620b625a9951d1d7343369a1e0fa2f4",
+        "979d09e3dc56bd36dd4c541638c914c7580deffa05076d9b8c8514f24a39f26e",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
         "df075c513fd7911f8c0535505e1cd6a8f6c937eca08e7c8a6164484c4e995463",
     "grip.csv":
-        "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
+        "0deb889a2d14ad30c8e5e6eb89eec8b31a2ab82be4883070caeb2339f5471125",
     "nominal.csv":
-        "086929d69cbf9b11936a4a84ff047dbb56d4bcbd835fe01a0f38aa05f8f79da8",
+        "0053d5e5beda45559d72e0e56545143f4882f41b33beb1ecc59fdf3f831e0d37",
     "run/adoption.csv":
         "b55f0a13253b42c415ea5bfba4589e66c3adf945902cd3606666bc9ca797269c",
     "run/certificate.csv":
-        "c355fb376f95d003177c83591d0144f5580276bfb8c185be47c1cf7e7fcdada7",
+        "752f009838dff8d3dadac45bd35ecad87adeb3492c0c6e4f861f498da97fd7c8",
     "run/compare.csv":
-        "a5f960dfafebe811c2e3cf9f1c703eed0b319f606342e280a4ae07107b5df476",
+        "aa2b8b7b1f3d7f61adffdc5b570b08546bb6186b42752f92bfb4ae09b965e6c2",
     "run/diagnosis.json":
-        "f2c72dc526ac113b93caf1c09089bae0b620b625a9951d1d7343369a1e0fa2f4",
+        "979d09e3dc56bd36dd4c541638c914c7580deffa05076d9b8c8514f24a39f26e",
     "run/grip_params.csv":
-        "33d633b60b9804160ae14bb95ac54d2d668b2dfe2596d7da946d78566b2b3786",
+        "0deb889a2d14ad30c8e5e6eb89eec8b31a2ab82be4883070caeb2339f5471125",
     "run/grip_params.tex":
         "a30e9288acad14b36f41695e560bea5d7201a820e8e1f5151b4040acda5136ca",
     "run/nominal_params.csv":
-        "086929d69cbf9b11936a4a84ff047dbb56d4bcbd835fe01a0f38aa05f8f79da8",
+        "0053d5e5beda45559d72e0e56545143f4882f41b33beb1ecc59fdf3f831e0d37",
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.md":
-        "abf0294ffc5b20db2513fd502b1da8005eeebe334a83c4d441a8811a42210962",
+        "9265aa424ab94022276f8fde7a0027e9e253a2ebe4f8a5147e7e0a47c31c1c04",
     "run/spectra.parquet":
         "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
     "run/stability.csv":
-        "bbb8c4cc0704eb71b2f4b2d0d28584925059f6a526b393d29c2ef2a8bce5131c",
+        "e7aeee8413f3c36b6898f177b293dbbf5a83f29150b95ff440a676bd51575796",
     "run/trial_params.csv":
-        "0b35792769298af40edc39d399f475fee1e3a63436de71a8364896fe248c0667",
+        "412a232790ac60fe532280f65fe8eb4b4403b0a48789c2ac7c7da9f747d344d4",
     "run/trials.parquet":
         "f11d71fa08bdbf7aaa708763a1b50612aec51f96af640c7cc23806c513ff7855",
     "run/wu.csv":
-        "511ab974288fe419bb85c419f9791b8a1f3bbbad60c5d2a9e047215af7dd2b6b",
+        "4824f188576131bfb98155414a9dd6c73bf99a5e039738c5f58cf77502c84500",
     "run/wu.tex":
-        "f04afb6c5653e883f1fa77c852f1cb4f237fd6cbae7befce94fe5ea77cf0784d",
+        "18f6592c6705c7f76441595eb5b1c686a32460fec1afc99f3361a49e703c7c99",
     "run/wu_summary.csv":
-        "f80422978fd05829467189f251e714f5c67a8be79914b3e98c04e8237035156a",
+        "6e204760d044e9ea9442f47c0708e21689a242fd7a435c86356278756bdf2abc",
     "run/wu_wmax.csv":
-        "817201b0dd94fe77735125ef61d9683112a8a7cd41f428a350d0198147f795a0",
+        "b27c7d622673cf3b81470d7f6d1134362a88990fb8def733286b5beac0425d78",
     "wu.csv":
-        "511ab974288fe419bb85c419f9791b8a1f3bbbad60c5d2a9e047215af7dd2b6b",
+        "4824f188576131bfb98155414a9dd6c73bf99a5e039738c5f58cf77502c84500",
     "wu_summary.csv":
-        "f80422978fd05829467189f251e714f5c67a8be79914b3e98c04e8237035156a",
+        "6e204760d044e9ea9442f47c0708e21689a242fd7a435c86356278756bdf2abc",
     "wu_wmax.csv":
-        "817201b0dd94fe77735125ef61d9683112a8a7cd41f428a350d0198147f795a0",
+        "b27c7d622673cf3b81470d7f6d1134362a88990fb8def733286b5beac0425d78",
 }
 
 
