@@ -50,13 +50,13 @@ from armfit.io.atomic import atomic_path, write_text_atomic
 from armfit.io.rawwrite import trial_filename, write_trial
 from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
 from armfit.io.trials import Skipped, Trial, open_trials, write_dataset
+from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.models.effects import Effect, get_effect
 from armfit.models.params import model_from_params, read_params
 from armfit.paramsets import read_param_rows
 from armfit.paramsets import read_weights as read_param_weights
-from armfit.simulate import StudyConfig, plan_study, simulate_trial, truth_dict
+from armfit.simulation import StudyConfig, plan_study, simulate_trial, truth_dict
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimate_study, estimate_trials
-from armfit.stability import WallSettings, axis_summary, stability_table
 from armfit.tables import caption_for, latex_table, wu_latex
 from armfit.uncertainty import AxisUncertainty, WuWeight, read_wu
 
@@ -939,8 +939,8 @@ class Stability:
     table : pandas.DataFrame
         One row per model: K_max (N/m), the frequency where the loop first goes unstable,
         and with weights the robust certificate (columns of
-        :data:`armfit.stability.STABILITY_COLUMNS`).
-    settings : armfit.stability.WallSettings
+        :data:`armfit.loop.STABILITY_COLUMNS`).
+    settings : armfit.loop.WallSettings
         Servo period (s), virtual damping (N·s/m), computation delay (samples).
     models : pandas.DataFrame
         The parameter rows analysed (for :meth:`plot`).
@@ -996,10 +996,10 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
         The wall (default 1 ms, 0 N·s/m, 1 sample).
     members : TrialFits, DataFrame or path, optional
         With ``weights``: the models the weight covers; the certificate is capped at
-        their smallest K_max (:func:`armfit.stability.robust_certificate`).
+        their smallest K_max (:func:`armfit.loop.robust_certificate`).
     outside_loop : sequence of str
         Apparatus effects the rendering loop does not see
-        (:func:`armfit.stability.loop_model`).
+        (:func:`armfit.loop.loop_model`).
 
     Returns
     -------
@@ -1060,9 +1060,9 @@ class Simulation:
 
     Attributes
     ----------
-    config : armfit.simulate.StudyConfig
+    config : armfit.simulation.StudyConfig
         Every setting (SI units).
-    plans : tuple of armfit.simulate.TrialPlan
+    plans : tuple of armfit.simulation.TrialPlan
         The truth of each trial (identity, length, parameters, effects).
     """
 
@@ -1109,7 +1109,7 @@ def simulate(config: StudyConfig | None = None, **settings) -> Simulation:
 
     Parameters
     ----------
-    config : armfit.simulate.StudyConfig, optional
+    config : armfit.simulation.StudyConfig, optional
         Every setting; or give them as keywords (subjects, axes, grips_N, duration_s,
         fs, seed, noise_m, variability, drift_m, quantum_m, effects, …).
 

@@ -50,16 +50,16 @@ from matplotlib.ticker import FuncFormatter, Locator, LogLocator, NullFormatter,
 from armfit.constants import AXES
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import atomic_path, check_output
-from armfit.models.arm import ClosedLoopModel
-from armfit.models.literature import LiteratureModel, literature_models
-from armfit.models.params import model_from_params
-from armfit.spectra import Spectra
-from armfit.stability import (
+from armfit.loop import (
     WallSettings,
     k_max_sweep,
     plant_from_model,
     stability_table,
 )
+from armfit.models.arm import ClosedLoopModel
+from armfit.models.literature import LiteratureModel, literature_models
+from armfit.models.params import model_from_params
+from armfit.spectra import Spectra
 from armfit.uncertainty import WuWeight, arm_trials, derived_mass_kg, w_max
 
 # fontTools, which subsets fonts for PDF output, logs every table it prunes at INFO.
@@ -1031,7 +1031,7 @@ def stability_figure(params: pd.DataFrame, settings=None, *,
                      delays: Sequence[int] = SWEEP_DELAYS) -> Figure:
     """The stiffest stable virtual wall per arm model, and its sensitivity to T and d.
 
-    Top row, per axis: K_max (kN/m, :func:`armfit.stability.stability_table` at
+    Top row, per axis: K_max (kN/m, :func:`armfit.loop.stability_table` at
     ``settings``, default T = 1 ms, B = 0, d = 1) of each row of ``params`` (any
     parameters table: per-trial fits with ``subject``, grip or nominal fits), one column
     per subject (or per row), coloured by grip, with the population minimum as a dashed

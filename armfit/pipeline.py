@@ -16,7 +16,7 @@ subcommand, run in the order data flows (files written into OUTDIR in brackets):
   fit-uncertainty``;
 - fit-trials: :func:`armfit.fitting.fit_trials` with the adopted model, one fit per
   trial, each started from its grip's fit (trial_params.csv);
-- stability: :func:`armfit.stability.stability_table` of the per-trial fits at the
+- stability: :func:`armfit.loop.stability_table` of the per-trial fits at the
   defaults (stability.csv), the certificate of the nominal models against Wu capped by
   the trials (certificate.csv), and :func:`armfit.figures.stability_figure`
   (figures/stability.png);
@@ -71,9 +71,9 @@ from armfit.io.artifacts import write_params
 from armfit.io.atomic import atomic_path, check_output, write_text_atomic
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import ingest
+from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.paramsets import read_param_rows
 from armfit.spectra import EstimateConfig, Spectra
-from armfit.stability import WallSettings, axis_summary, stability_table
 from armfit.tables import param_names, sig4, unit_of
 from armfit.workers import in_lane, shared_pool
 
@@ -95,7 +95,7 @@ class RunOptions:
     "paper", eq. 7); jobs: worker processes (estimate, diagnose); figures: draw the
     figures; overwrite: replace an existing OUTDIR; adopt: what the diagnosis found
     becomes the model ("auto") or not ("none"), see :mod:`armfit.adopt`; outside_loop:
-    apparatus effects the stability loop leaves out (:func:`armfit.stability.loop_model`).
+    apparatus effects the stability loop leaves out (:func:`armfit.loop.loop_model`).
     """
 
     manifest: str | None = None

@@ -1847,7 +1847,7 @@ def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpe
     ----------
     trials : sequence of armfit.io.trials.Trial
         Trials of one sampling rate (e.g. from :func:`armfit.read_trials` or
-        :func:`armfit.simulate.simulate_trial`).
+        :func:`armfit.simulation.simulate_trial`).
     config : EstimateConfig
         Estimator options.
 

@@ -40,7 +40,7 @@ MP_KG = {0: 0.09, 1: 0.095, 2: 0.091}
 def make_dataset(path: Path, *, subjects: int = 9, duration_s=(75.0, 100.0)) -> None:
     """Simulate a study (armfit's simulator, seed 0) into one canonical dataset."""
     from armfit.io.trials import write_dataset
-    from armfit.simulate import StudyConfig, simulate_study
+    from armfit.simulation import StudyConfig, simulate_study
     config = StudyConfig(subjects=subjects, duration_s=duration_s, seed=0)
     write_dataset((trial for _, trial in simulate_study(config)), path)
 

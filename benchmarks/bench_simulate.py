@@ -13,7 +13,7 @@ from pathlib import Path
 from click.testing import CliRunner
 
 from armfit.cli.main import cli
-from armfit.simulate import StudyConfig, plan_study, simulate_trial
+from armfit.simulation import StudyConfig, plan_study, simulate_trial
 
 
 def simulate_only(duration: tuple[float, float]) -> tuple[float, float, float]:

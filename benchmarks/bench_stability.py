@@ -14,8 +14,8 @@ import time
 import numpy as np
 import pandas as pd
 
+from armfit.loop import WallSettings, stability_table
 from armfit.paramsets import paper_params, read_weights
-from armfit.stability import WallSettings, stability_table
 
 
 def per_trial_table(n_subjects: int = 9, seed: int = 0) -> pd.DataFrame:

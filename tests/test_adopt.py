@@ -18,9 +18,9 @@ from scipy import signal
 
 from armfit.adopt import adopt
 from armfit.cli.main import cli
+from armfit.loop import WallSettings, stability_table
 from armfit.models.arm import ClosedLoopModel
 from armfit.paramsets import paper_params, read_param_rows
-from armfit.stability import WallSettings, stability_table
 
 TRUE_DELAY_S = 0.009
 NAMES = ("Ma", "k1", "k2", "b1", "b2")
@@ -95,7 +95,7 @@ def test_wmax_is_well_below_0_db_on_x_and_y(delayed):
 def _kmax_independent(axis: str, theta, delay_s: float, T: float = 1e-3, d: int = 1
                       ) -> float:
     """K_max of the wall K with d samples of computation delay on the true arm, with
-    the latency inside the loop, computed independently of armfit.stability:
+    the latency inside the loop, computed independently of armfit.loop:
     P(s) = 1/(Z_ARM(s) + Mp s²) (eq. 3–4) discretised by scipy.signal.cont2discrete
     (zero-order hold), the latency m = τ/T whole samples as z^(−m), characteristic
     polynomial den(z)·z^(m+d) + K·num(z), stability by its roots, bisection to 0.1 %."""

@@ -14,7 +14,7 @@ from armfit.cli.main import cli
 from armfit.errors import BadInputError
 from armfit.io.schema import SPECTRA_COLUMNS
 from armfit.models.arm import h_arm
-from armfit.simulate import StudyConfig, plan_study
+from armfit.simulation import StudyConfig, plan_study
 from armfit.spectra import Spectra
 
 SIM = ["--subjects", "2", "--axes", "xz", "--grips", "1,2", "--duration", "30,40",

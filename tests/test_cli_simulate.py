@@ -12,7 +12,7 @@ from armfit.cli.main import cli
 from armfit.errors import EXIT_CANTCREAT, EXIT_USAGE, OutputError, UsageError
 from armfit.io.rawwrite import trial_filename, write_trial
 from armfit.io.trials import TrialSource, open_trials, parse_name, read_trial
-from armfit.simulate import StudyConfig, plan_study, simulate_trial
+from armfit.simulation import StudyConfig, plan_study, simulate_trial
 
 SMALL = ["--subjects", "1", "--axes", "xz", "--grips", "1,3", "--duration", "20,21"]
 

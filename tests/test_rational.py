@@ -25,6 +25,7 @@ from test_cli_stability import _trial as _spectra_rows
 from armfit.cli.main import cli
 from armfit.errors import EffectDefinitionError, UsageError
 from armfit.io.schema import params_columns
+from armfit.loop import INTERNAL_DELAY_PADE_ORDER, plant_from_model
 from armfit.models import library
 from armfit.models.arm import ClosedLoopModel, Param
 from armfit.models.effects import (
@@ -36,7 +37,6 @@ from armfit.models.effects import (
 )
 from armfit.paramsets import paper_params
 from armfit.spectra import Spectra
-from armfit.stability import INTERNAL_DELAY_PADE_ORDER, plant_from_model
 
 ROOT = Path(__file__).resolve().parents[1]
 SPRING = ROOT / "examples" / "device_spring.py"
@@ -97,7 +97,7 @@ def test_plant_equals_model_response_for_every_library_effect(name, axis):
 
 def _pade_exp(order):
     """[n/n] Padé approximant of e^(−x) by scipy.interpolate.pade from the Taylor
-    coefficients (−1)^k/k! (independent of armfit.stability.pade_delay)."""
+    coefficients (−1)^k/k! (independent of armfit.loop.pade_delay)."""
     taylor = [(-1.0) ** k / math.factorial(k) for k in range(2 * order + 1)]
     return interpolate.pade(taylor, order, order)
 

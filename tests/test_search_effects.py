@@ -20,7 +20,7 @@ from armfit.fitting import FAR_FROM_NOISE, MARKEDLY_LOWER, fit_response
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import EFFECTS
 from armfit.paramsets import paper_params
-from armfit.simulate import EffectSetting
+from armfit.simulation import EffectSetting
 
 CUTOFF_HZ = 18.0
 BAND_Z = (0.1, 30.0)

@@ -1,4 +1,4 @@
-"""Tests of the study simulator (armfit.simulate): exactness, physics, noise model, seeding."""
+"""Tests of the study simulator (armfit.simulation): exactness, physics, noise model, seeding."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from scipy import signal
 from armfit.data import paper_table
 from armfit.errors import UsageError
 from armfit.models.arm import DEVICE_MASS_KG, PARAM_NAMES, cl_tf, h_cl
-from armfit.simulate import (
+from armfit.simulation import (
     CROSS_COUPLING,
     GRIP_RATE_HZ,
     EffectSetting,

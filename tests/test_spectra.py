@@ -24,7 +24,7 @@ def table1_row(axis: str, grip: float) -> dict[str, float]:
 
 
 def fft_filtered_trial(params, mp, *, duration_s=100.0, noise_rel=0.01, seed=0):
-    """A trial made independently of armfit.simulate: white Gaussian force on a periodic
+    """A trial made independently of armfit.simulation: white Gaussian force on a periodic
     frame 10 s longer than the record, ideally low-passed to 30 Hz (DFT bins above 30 Hz
     and DC zeroed), through H_CL by FFT filtering (exact steady state for a periodic,
     band-limited input), plus white
@@ -491,7 +491,7 @@ def test_spectra_file_written_in_row_groups_reads_back_the_same(tmp_path, monkey
     # the file must hold the same table as one written in one piece
     import pyarrow.parquet as pq
 
-    from armfit.simulate import StudyConfig, simulate_study
+    from armfit.simulation import StudyConfig, simulate_study
     config = StudyConfig(subjects=2, axes=("x",), grips_N=(1.0,), duration_s=(30.0, 30.0),
                          seed=4)
     trials = [trial for _, trial in simulate_study(config)]

@@ -1,4 +1,4 @@
-"""Stability of the sampled virtual wall (armfit.stability) against analytic results and an
+"""Stability of the sampled virtual wall (armfit.loop) against analytic results and an
 independent computation."""
 
 from __future__ import annotations
@@ -12,10 +12,7 @@ from scipy import signal
 
 from armfit.data import paper_table
 from armfit.errors import UsageError
-from armfit.models.arm import ClosedLoopModel
-from armfit.models.effects import get_effect
-from armfit.paramsets import paper_params, read_weights
-from armfit.stability import (
+from armfit.loop import (
     RationalPlant,
     WallSettings,
     closed_loop_stable,
@@ -25,6 +22,9 @@ from armfit.stability import (
     stability_table,
     wall_stability,
 )
+from armfit.models.arm import ClosedLoopModel
+from armfit.models.effects import get_effect
+from armfit.paramsets import paper_params, read_weights
 
 NAMES = ("Ma", "k1", "k2", "b1", "b2")
 
@@ -257,7 +257,7 @@ def test_certificate_k_robust_is_where_the_peak_reaches_one():
     directly (T = Z_env/(Z_ARM + Z_env)) on a finer grid from the band's low edge to the
     Nyquist frequency is < 1 just below K_robust and ≥ 1 just above it (brute force,
     independent of the certificate's quadratic solution)."""
-    from armfit.stability import environment_terms
+    from armfit.loop import environment_terms
     weights, bands, _ = read_weights("paper")
     st = WallSettings()
     model, theta = TABLE2["z"]
@@ -315,7 +315,7 @@ def test_expm_batch_matches_scipy():
     Higham's Padé method) on random matrices of entries up to ~3 (the loops' are < 1)."""
     from scipy import linalg
 
-    from armfit.stability import expm_batch
+    from armfit.loop import expm_batch
     rng = np.random.default_rng(0)
     M = rng.standard_normal((12, 6, 6)) * np.geomspace(0.01, 3, 12)[:, None, None]
     got = expm_batch(M)

@@ -15,10 +15,10 @@ from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import check_output
+from armfit.loop import WallSettings
 from armfit.models.params import read_params
 from armfit.paramsets import read_param_rows
 from armfit.spectra import Spectra
-from armfit.stability import WallSettings
 from armfit.uncertainty import read_wu
 
 from .options import (

@@ -22,7 +22,7 @@ from armfit.errors import UsageError
 from armfit.io.atomic import check_output
 from armfit.io.rawwrite import POSITION_UNITS, RAW_FORMATS
 from armfit.models.effects import parse_effect_spec
-from armfit.simulate import EffectSetting, StudyConfig
+from armfit.simulation import EffectSetting, StudyConfig
 
 _DEFAULTS = StudyConfig()
 

@@ -2,7 +2,7 @@
 with these arms; ``armfit fit-trials``: one fit per trial, the population it needs.
 
 Both check their outputs first, read their inputs, call the library
-(:func:`armfit.stability.stability_table`, :func:`armfit.fitting.fit_trials`) and write
+(:func:`armfit.loop.stability_table`, :func:`armfit.fitting.fit_trials`) and write
 atomically.
 """
 
@@ -32,9 +32,7 @@ from armfit.cli.options import (
 from armfit.constants import PAPER_BANDS
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import atomic_path, check_output
-from armfit.paramsets import read_param_rows, read_weights
-from armfit.spectra import Spectra
-from armfit.stability import (
+from armfit.loop import (
     DEFAULT_DAMPING_NS_PER_M,
     DEFAULT_DELAY_SAMPLES,
     DEFAULT_SAMPLE_TIME_S,
@@ -42,6 +40,8 @@ from armfit.stability import (
     axis_summary,
     stability_table,
 )
+from armfit.paramsets import read_param_rows, read_weights
+from armfit.spectra import Spectra
 
 
 def _kn(v: float) -> str:

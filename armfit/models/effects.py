@@ -36,7 +36,7 @@ mass, for an effect that replaces Mp); nested fits start there. ``starts`` (opti
 gives further starting points, ``suspect_when`` (optional) the symptom, in words.
 
 ``rational(values, mp)`` (optional) states the same term as a rational function of s
-times a delay, for the stability analysis (:mod:`armfit.stability`), which needs the
+times a delay, for the stability analysis (:mod:`armfit.loop`), which needs the
 plant as polynomials: it gets ``values`` as plain floats and the device mass ``mp``
 (kg) and returns ``(num, den)`` or ``(num, den, delay_s)``, polynomial coefficients in s
 (rad/s), highest power first, such that
@@ -132,7 +132,7 @@ class Effect:
         term as num(s)/den(s)·exp(−s·delay_s) (eq. R1 of the module docstring), with
         ``values`` plain floats, ``mp`` the device mass (kg), coefficients in powers of
         s (rad/s), highest first, ``delay_s`` ≥ 0 in s. Needed by the stability analysis
-        only (:mod:`armfit.stability`); None (the default) when the effect has none.
+        only (:mod:`armfit.loop`); None (the default) when the effect has none.
     """
 
     name: str
