@@ -52,13 +52,11 @@ from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
 from armfit.io.trials import Skipped, Trial, open_trials, write_dataset
 from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.models.effects import Effect, get_effect
-from armfit.models.params import model_from_params, read_params
-from armfit.paramsets import read_param_rows
-from armfit.paramsets import read_weights as read_param_weights
+from armfit.models.params import model_from_params, read_param_rows, read_params
 from armfit.simulation import StudyConfig, plan_study, simulate_trial, truth_dict
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimate_study, estimate_trials
 from armfit.tables import caption_for, latex_table, wu_latex
-from armfit.uncertainty import AxisUncertainty, WuWeight, read_wu
+from armfit.uncertainty import AxisUncertainty, WuWeight, read_weights_and_bands, read_wu
 
 PathLike = str | os.PathLike
 Warn = Callable[[str], object]
@@ -1035,7 +1033,7 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     elif isinstance(weights, Mapping):
         w = dict(weights)
     elif weights is not None:
-        w, bands, _ = read_param_weights(str(weights))
+        w, bands, _ = read_weights_and_bands(str(weights))
     member_rows = None
     if isinstance(members, TrialFits):
         member_rows = members.to_frame()

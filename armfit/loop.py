@@ -787,7 +787,7 @@ def stability_table(params, settings: WallSettings, *, weights=None,
     Parameters
     ----------
     params : pandas.DataFrame
-        Rows as :func:`armfit.paramsets.read_param_rows` returns them (optionally with
+        Rows as :func:`armfit.models.params.read_param_rows` returns them (optionally with
         ``subject``, ``run`` and ``row`` columns); each row its own model.
     settings : WallSettings
     weights : dict, optional

@@ -72,7 +72,7 @@ from armfit.io.atomic import atomic_path, check_output, write_text_atomic
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import ingest
 from armfit.loop import WallSettings, axis_summary, stability_table
-from armfit.paramsets import read_param_rows
+from armfit.models.params import read_param_rows
 from armfit.spectra import EstimateConfig, Spectra
 from armfit.tables import param_names, sig4, unit_of
 from armfit.workers import in_lane, shared_pool

@@ -34,6 +34,7 @@ import contextlib
 import ctypes
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -43,13 +44,15 @@ from scipy import optimize
 from armfit.constants import AXES
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import read_wu_rows
-from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS
+from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS, wu_sidecar_paths
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
 from armfit.workers import map_tasks
 
 #: The paper's band for Wu: 0.01–30 Hz (Sec. II-F).
 PAPER_BAND_HZ: tuple[float, float] = (0.01, 30.0)
+#: Names that stand for the paper's Table III (uncertainty weights).
+PAPER_WEIGHTS: tuple[str, ...] = ("paper", "table3")
 
 #: At most five zero pairs and five pole pairs (paper, Sec. II-F).
 MAX_PAIRS = 5
@@ -896,3 +899,30 @@ def points_table(results: Sequence[AxisUncertainty]):
                 "in_band": (f >= r.band_hz[0]) & (f <= r.band_hz[1]),
             }, columns=list(WU_POINTS_COLUMNS)))
     return pd.concat(parts, ignore_index=True)
+
+
+def read_weights_and_bands(path_or_name: str | Path):
+    """({axis: WuWeight}, {axis: (lo, hi) Hz}, label) of a Wu CSV (fit-uncertainty
+    output, Table III layout) or the paper's Table III by name (``paper``/``table3``;
+    a file of that name wins). The band is the one the weight was fitted over, from the
+    ``<stem>_summary.csv`` written beside it; without one, the paper's 0.01–30 Hz."""
+    p = Path(path_or_name)
+    if not p.exists() and str(path_or_name).lower() in PAPER_WEIGHTS:
+        ref = resources.files("armfit.data").joinpath("table3_uncertainty_weights.csv")
+        with resources.as_file(ref) as f:
+            w = read_wu(f)
+        return w, {a: PAPER_BAND_HZ for a in w}, "Table III of the paper"
+    w = read_wu(p)
+    bands = {a: PAPER_BAND_HZ for a in w}
+    summary, _ = wu_sidecar_paths(p)
+    if summary.is_file():
+        try:
+            s = pd.read_csv(summary)
+            s = s[(s["weight"] == "fitted") & (s["target"] == "wmax")]
+            for _, r in s.iterrows():
+                lo, hi = float(r["band_lo_hz"]), float(r["band_hi_hz"])
+                if r["axis"] in bands and 0 < lo < hi:
+                    bands[r["axis"]] = (lo, hi)
+        except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
+            pass
+    return w, bands, str(p)

@@ -15,7 +15,8 @@ import numpy as np
 import pandas as pd
 
 from armfit.loop import WallSettings, stability_table
-from armfit.paramsets import paper_params, read_weights
+from armfit.models.params import paper_params
+from armfit.uncertainty import read_weights_and_bands
 
 
 def per_trial_table(n_subjects: int = 9, seed: int = 0) -> pd.DataFrame:
@@ -35,7 +36,7 @@ def per_trial_table(n_subjects: int = 9, seed: int = 0) -> pd.DataFrame:
 
 def main() -> None:
     table = per_trial_table()
-    weights, bands, _ = read_weights("paper")
+    weights, bands, _ = read_weights_and_bands("paper")
     st = WallSettings()
     stability_table(table.iloc[:3], st)            # warm-up (imports)
     for label, kw in (("K_max", {}), ("K_max + certificate",

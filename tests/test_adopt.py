@@ -20,7 +20,7 @@ from armfit.adopt import adopt
 from armfit.cli.main import cli
 from armfit.loop import WallSettings, stability_table
 from armfit.models.arm import ClosedLoopModel
-from armfit.paramsets import paper_params, read_param_rows
+from armfit.models.params import paper_params, read_param_rows
 
 TRUE_DELAY_S = 0.009
 NAMES = ("Ma", "k1", "k2", "b1", "b2")

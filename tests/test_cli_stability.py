@@ -161,7 +161,7 @@ def test_plot_stability_is_deterministic_and_marks_the_minimum(tmp_path, runner)
     same bytes); the figure's minimum line of each axis sits at the smallest K_max of
     `armfit stability` on the same rows (Table II, defaults)."""
     from armfit import figures
-    from armfit.paramsets import paper_params
+    from armfit.models.params import paper_params
     a, b = tmp_path / "a.png", tmp_path / "b.png"
     res = runner.invoke(cli, ["plot", "stability", "nominal", "-o", str(a)])
     assert res.exit_code == 0, res.output

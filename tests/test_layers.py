@@ -23,7 +23,7 @@ LAYERS: dict[str, int] = {
     "spectra": 2,
     "models": 3,
     "fitting": 4, "uncertainty": 4, "diagnose": 4, "simulation": 4, "tables": 4,
-    "loop": 4, "paramsets": 4, "blocklsq": 4,
+    "loop": 4, "blocklsq": 4,
     "figures": 5, "adopt": 5,
     "api": 6,
     "pipeline": 7,

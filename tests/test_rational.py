@@ -35,7 +35,7 @@ from armfit.models.effects import (
     get_effect,
     load_effect_file,
 )
-from armfit.paramsets import paper_params
+from armfit.models.params import paper_params
 from armfit.spectra import Spectra
 
 ROOT = Path(__file__).resolve().parents[1]

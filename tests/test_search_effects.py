@@ -19,7 +19,7 @@ from armfit.errors import ConvergenceError
 from armfit.fitting import FAR_FROM_NOISE, MARKEDLY_LOWER, fit_response
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import EFFECTS
-from armfit.paramsets import paper_params
+from armfit.models.params import paper_params
 from armfit.simulation import EffectSetting
 
 CUTOFF_HZ = 18.0

@@ -24,7 +24,8 @@ from armfit.loop import (
 )
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import get_effect
-from armfit.paramsets import paper_params, read_weights
+from armfit.models.params import paper_params
+from armfit.uncertainty import read_weights_and_bands
 
 NAMES = ("Ma", "k1", "k2", "b1", "b2")
 
@@ -231,7 +232,7 @@ def test_table3_certificate_fails_at_k0_on_every_axis():
     of the paper's weights over 0.01–30 Hz); up to the Nyquist frequency (500 Hz at
     T = 1 ms), where the sampled loop can go unstable, Table III's weights keep rising
     and Z's peak (0.77 in its band) passes 1 too, so no K is certified on any axis."""
-    weights, bands, _ = read_weights("paper")
+    weights, bands, _ = read_weights_and_bands("paper")
     st = WallSettings()
     in_band = {"x": 1.11, "y": 1.15, "z": 0.77}
     for axis in "xyz":
@@ -258,7 +259,7 @@ def test_certificate_k_robust_is_where_the_peak_reaches_one():
     Nyquist frequency is < 1 just below K_robust and ≥ 1 just above it (brute force,
     independent of the certificate's quadratic solution)."""
     from armfit.loop import environment_terms
-    weights, bands, _ = read_weights("paper")
+    weights, bands, _ = read_weights_and_bands("paper")
     st = WallSettings()
     model, theta = TABLE2["z"]
     w_z = _scaled(weights["z"], 0.3)
@@ -281,7 +282,7 @@ def test_certificate_is_never_looser_than_a_member_of_its_set():
     Members: Table I's Z rows and Table II's Z with its damping halved (K_max 13.1 kN/m
     from the exact sampled loop, below the 26.6 kN/m the 0.01× weight alone admits);
     the certificate is capped at that member and names it."""
-    weights, bands, _ = read_weights("paper")
+    weights, bands, _ = read_weights_and_bands("paper")
     st = WallSettings()
     model, theta = TABLE2["z"]
 

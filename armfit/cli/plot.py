@@ -16,8 +16,7 @@ from armfit.data import paper_table
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import check_output
 from armfit.loop import WallSettings
-from armfit.models.params import read_params
-from armfit.paramsets import read_param_rows
+from armfit.models.params import read_param_rows, read_params
 from armfit.spectra import Spectra
 from armfit.uncertainty import read_wu
 

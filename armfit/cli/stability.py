@@ -40,8 +40,9 @@ from armfit.loop import (
     axis_summary,
     stability_table,
 )
-from armfit.paramsets import read_param_rows, read_weights
+from armfit.models.params import read_param_rows
 from armfit.spectra import Spectra
+from armfit.uncertainty import read_weights_and_bands
 
 
 def _kn(v: float) -> str:
@@ -181,7 +182,7 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
     weights = bands = None
     weights_label = None
     if weights_path:
-        weights, bands, weights_label = read_weights(weights_path)
+        weights, bands, weights_label = read_weights_and_bands(weights_path)
     for r, who, why in rows.skipped:
         message(f"warning: {rows.label}: row {r} ({who}) has no fit and is left out: {why}")
     if len(rows.table) == 0:

@@ -1,27 +1,127 @@
-"""Params files (written by fit-grip and fit-nominal) read back into models.
+"""Params files (written by fit-grip, fit-nominal, fit-trials and ``run``) read back into
+models, and the paper's Tables I and II as params rows.
 
-A params file is checked against the models it describes: the columns of the effects it
-names, and parameters that are positive numbers. :func:`model_from_params` turns one row
-into the closed-loop model of eq. 4 and its values.
+One reader, :func:`read_param_rows`, checks a params file against the models it
+describes: the columns of the effects each row names, and parameters that are numbers
+inside their physical ranges. :func:`read_params` is that reader for a file of fits.
+:func:`model_from_params` turns one row into the closed-loop model of eq. 4 and its
+values.
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from armfit.constants import AXES
+from armfit.constants import AXES, DEVICE_MASS_KG
+from armfit.data import paper_table
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.schema import PARAMS_BASE, PARAMS_HELD, PARAMS_OPTIONAL, PARAMS_STATS
 from armfit.models.arm import BASE_PARAMS, ClosedLoopModel, Param
 from armfit.models.effects import get_effect
 
+#: Names that stand for the paper's tables when no file of that name exists.
+PAPER_PARAMS: dict[str, str] = {"nominal": "nominal", "table2": "nominal",
+                                "grip": "grip", "table1": "grip"}
+
+_PAPER_RENAME = {"Ma_kg": "Ma", "k1_N_per_m": "k1", "k2_N_per_m": "k2",
+                 "b1_Ns_per_m": "b1", "b2_Ns_per_m": "b2"}
+
+
+@dataclass(frozen=True)
+class ParamRows:
+    """Model rows of a parameters file: ``table`` (DataFrame with a 1-based ``row``
+    column, the file's row number), ``skipped`` [(row, identity, reason)] of the rows
+    without parameters, and ``label`` (file path, or the paper's table)."""
+
+    table: pd.DataFrame
+    skipped: tuple[tuple[int, str, str], ...]
+    label: str
+
+
+def paper_params(name: str) -> pd.DataFrame:
+    """The paper's Table I ('grip') or II ('nominal') in the columns of a params file:
+    axis[, grip_N], Ma..b2 (SI), mp_kg (eq. 2), effects ''."""
+    table = paper_table(name).rename(columns=_PAPER_RENAME)
+    table["mp_kg"] = table["axis"].map(DEVICE_MASS_KG)
+    table["effects"] = ""
+    table["converged"] = True
+    return table
+
+
+def read_param_rows(path_or_name: str | os.PathLike) -> ParamRows:
+    """Read any params file armfit writes (fit-grip, fit-nominal, fit-trials, ``run``),
+    or name one of the paper's tables, as one model per row: the one reader of params
+    files, with every check.
+
+    Parameters
+    ----------
+    path_or_name : str or os.PathLike
+        The CSV, or ``nominal``/``table2``, ``grip``/``table1`` for the paper's Tables
+        II and I (a file of that name wins).
+
+    Returns
+    -------
+    ParamRows
+        ``table``: one row per model with parameters (a 1-based ``row`` column first,
+        the file's row; ``axis`` lower-case; parameters as float; ``effects``,
+        ``at_bound`` and ``held`` as str; ``converged`` as bool). ``skipped``: the rows
+        of a per-trial file whose fit failed (no parameters, not converged), with their
+        reason. ``label``: the file, or the paper's table.
+
+    Raises
+    ------
+    NoInputError
+        The file is missing.
+    BadInputError
+        Naming the file, column and row: not a CSV, a missing column, an axis other than
+        x, y or z, an unknown effect or an effect column no row lists, a value for an
+        effect the row's model does not have, a parameter of a row's model that is not a
+        number inside its physical range, or a device mass that is not positive.
+    """
+    p = Path(path_or_name)
+    if not p.exists() and str(path_or_name).lower() in PAPER_PARAMS:
+        which = PAPER_PARAMS[str(path_or_name).lower()]
+        table = paper_params(which)
+        table.insert(0, "row", np.arange(1, len(table) + 1))
+        label = "Table I of the paper" if which == "grip" else "Table II of the paper"
+        return ParamRows(table, (), label)
+    df = _read_csv(p)
+    uses = row_param_names(df, p)       # each row's own model (one per axis, say)
+    bounds = param_bounds(df, p)
+    _check_columns(df, p, bounds)
+    df.insert(0, "row", np.arange(1, len(df) + 1))
+    df["axis"] = _axes(df, p)
+    df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"]) \
+        if "converged" in df.columns else True
+    values = {c: pd.to_numeric(df[c], errors="coerce").to_numpy(float) for c in bounds}
+    used = {c: np.array([c in PARAMS_BASE or c in u for u in uses], bool) for c in bounds}
+    empty = np.all([np.isnan(v) for v in values.values()], axis=0) \
+        & ~df["converged"].to_numpy(bool)
+    keep = ~empty
+    for col, q in bounds.items():
+        _check_values(df, p, col, q, values[col], used[col], keep)
+        df[col] = values[col]
+    mp = pd.to_numeric(df["mp_kg"], errors="coerce").to_numpy(float)
+    bad = np.flatnonzero(keep & ~(np.isfinite(mp) & (mp > 0)))
+    if bad.size:
+        raise BadInputError(f"device mass must be a positive number (kg), got "
+                            f"{cell(df['mp_kg'].iloc[bad[0]])}", file=str(p),
+                            column="mp_kg", row=int(bad[0]) + 1)
+    df["mp_kg"] = mp
+    skipped = tuple((int(i) + 1, _identity(df.iloc[i]), _reason(df, i))
+                    for i in np.flatnonzero(empty))
+    return ParamRows(df[keep].reset_index(drop=True), skipped, str(p))
+
 
 def read_params(path: str | os.PathLike) -> pd.DataFrame:
-    """Read a params CSV written by fit-grip or fit-nominal and check its columns.
+    """A params file of fits (fit-grip, fit-nominal): :func:`read_param_rows` of the
+    file, which must have a fit in every row and the columns of a fit (each
+    parameter's interval ``_lo``/``_hi`` and the fit statistics).
 
     Parameters
     ----------
@@ -31,83 +131,125 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
     Returns
     -------
     pandas.DataFrame
-        One row per fit; ``effects`` as str (the row's model: a file may hold one model
-        per axis), ``converged`` as bool, ``at_bound`` as str (the parameters at a
-        physical bound, ";"-separated, empty when none or in a file written before the
-        column existed), ``held`` as str when present (the parameters held fixed),
-        ``grip_N`` present only for grip fits.
+        One row per fit, the columns of the file (no ``row`` column); as
+        :func:`read_param_rows` reads them. ``grip_N`` is present only for grip fits.
 
     Raises
     ------
-    NoInputError
-        The file is missing.
-    BadInputError
-        Naming the file and the missing column, an unknown or unlisted effect column, an
-        axis other than x, y or z, or the row and column of a parameter of the row's model
-        that is not a number inside its physical range, or of a value given for an effect
-        the row's model does not have.
+    NoInputError, BadInputError
+        As :func:`read_param_rows`; also naming the file and column of a missing
+        interval or statistic column, and the row of a fit without parameters.
     """
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such params file")
-    try:
-        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "cost": str, "at_bound": str,
-                                   PARAMS_HELD: str}, keep_default_na=True)
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
-            ValueError) as exc:
-        raise BadInputError(f"not a params CSV ({str(exc).splitlines()[0]})", file=str(p)
-                            ) from None
-    if "effects" not in df.columns:
-        raise BadInputError("missing column; expected a file written by fit-grip or "
-                            "fit-nominal", file=str(p), column="effects")
-    df["effects"] = df["effects"].fillna("").astype(str)
-    for col, default in PARAMS_OPTIONAL.items():
-        df[col] = df[col].fillna(default).astype(str) if col in df.columns else default
-    if PARAMS_HELD in df.columns:
-        df[PARAMS_HELD] = df[PARAMS_HELD].fillna("").astype(str)
-    base_cols = ["axis", *PARAMS_BASE]
-    bounds = param_bounds(df, p)
-    names = list(bounds)
-    expected = base_cols + names[len(PARAMS_BASE):] + [
-        f"{n}{sfx}" for n in names for sfx in ("_lo", "_hi")] + list(PARAMS_STATS)
-    for col in expected:
-        if col not in df.columns:
+    rows = read_param_rows(p)
+    table = rows.table
+    names = [c for c in param_bounds(table, p)]
+    for col in [f"{n}{sfx}" for n in names for sfx in ("_lo", "_hi")] + list(PARAMS_STATS):
+        if col not in table.columns:
             raise BadInputError("missing column; expected a file written by fit-grip or "
                                 "fit-nominal", file=str(p), column=col)
-    known = set(expected)
-    for col in df.columns:  # an effect parameter the model would silently ignore
+    if rows.skipped:
+        row, who, _ = rows.skipped[0]
+        raise BadInputError(f"a fit without parameters ({who})", file=str(p),
+                            column=PARAMS_BASE[0], row=row)
+    for col, default in PARAMS_OPTIONAL.items():   # absent in files of older versions
+        if col not in table.columns:
+            table[col] = default
+    return table.drop(columns="row")
+
+
+def _read_csv(p: Path) -> pd.DataFrame:
+    """The CSV as text columns where they are text, optional columns filled."""
+    if not p.is_file():
+        raise NoInputError(f"{p}: no such params file (or give nominal, grip: the "
+                           "paper's Tables II, I)")
+    try:
+        df = pd.read_csv(p, dtype={"axis": str, "effects": str, "subject": str,
+                                   "reason": str, "cost": str, "at_bound": str,
+                                   PARAMS_HELD: str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
+            ValueError) as exc:
+        raise BadInputError(f"not a params CSV ({str(exc).splitlines()[0]})",
+                            file=str(p)) from None
+    for col in ("axis", "effects"):
+        if col not in df.columns:
+            raise BadInputError("missing column; expected a file written by fit-grip, "
+                                "fit-nominal or fit-trials", file=str(p), column=col)
+    df["effects"] = df["effects"].fillna("").astype(str)
+    for col, default in PARAMS_OPTIONAL.items():
+        if col in df.columns:
+            df[col] = df[col].fillna(default).astype(str)
+    if PARAMS_HELD in df.columns:
+        df[PARAMS_HELD] = df[PARAMS_HELD].fillna("").astype(str)
+    return df
+
+
+def _check_columns(df: pd.DataFrame, p: Path, bounds: dict[str, Param]) -> None:
+    """Every parameter column of the rows' models and ``mp_kg`` present; no column of an
+    effect that no row lists."""
+    for col in (*bounds, "mp_kg"):
+        if col not in df.columns:
+            raise BadInputError("missing column; expected a file written by fit-grip, "
+                                "fit-nominal or fit-trials", file=str(p), column=col)
+    known = {f"{n}{sfx}" for n in bounds for sfx in ("", "_lo", "_hi")}
+    for col in df.columns:  # an effect parameter the models would silently ignore
         if "." in str(col) and str(col) not in known:
             raise BadInputError(_unknown_effect_column(str(col), df),
                                 file=str(p), column=str(col))
-    axes = df["axis"].fillna("").astype(str).str.strip()
+
+
+def _axes(df: pd.DataFrame, p: Path) -> pd.Series:
+    """The ``axis`` column, lower-case; BadInputError at the first that is not x, y, z."""
+    axes = df["axis"].fillna("").astype(str).str.strip().str.lower()
     bad = np.flatnonzero(~axes.isin(list(AXES)).to_numpy())
     if bad.size:
         raise BadInputError(f"axis {cell(df['axis'].iloc[bad[0]])} is not x, y or z",
                             file=str(p), column="axis", row=int(bad[0]) + 1)
-    uses = row_param_names(df, p)
-    for col, par in bounds.items():
-        vals = pd.to_numeric(df[col], errors="coerce").to_numpy(float)
-        used = np.array([col in PARAMS_BASE or col in u for u in uses], bool)
-        bad = np.flatnonzero(~used & np.isfinite(vals))
-        if bad.size:
-            raise BadInputError(f"value {cell(df[col].iloc[bad[0]])} for an effect this "
-                                f"row's model does not have (its effects: "
-                                f"{df['effects'].iloc[bad[0]] or 'none'}); the model would "
-                                "ignore it", file=str(p), column=col, row=int(bad[0]) + 1)
-        vals = np.where(used, vals, par.typical)   # cells the row's model does not use
-        bad = np.flatnonzero(~np.isfinite(vals))
-        if bad.size:
-            raise BadInputError(f"parameter must be a positive number, got "
-                                f"{cell(df[col].iloc[bad[0]])}", file=str(p), column=col,
-                                row=int(bad[0]) + 1)
-        tol = 1e-9 * max(abs(par.lower), abs(par.upper))  # 10-digit rounding of a bound
-        bad = np.flatnonzero((vals < par.lower - tol) | (vals > par.upper + tol))
-        if bad.size:
-            raise BadInputError(f"{col} = {cell(vals[bad[0]])} {par.unit} is outside its "
-                                f"physical range [{par.lower:g}, {par.upper:g}] {par.unit}",
-                                file=str(p), column=col, row=int(bad[0]) + 1)
-    df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
-    return df
+    return axes
+
+
+def _check_values(df: pd.DataFrame, p: Path, col: str, q: Param, v: np.ndarray,
+                  used: np.ndarray, keep: np.ndarray) -> None:
+    """The parameter ``col`` is a number inside its physical range in every kept row
+    whose model has it, and empty in the rows whose model does not."""
+    bad = np.flatnonzero(~used & np.isfinite(v))
+    if bad.size:
+        raise BadInputError(f"value {cell(df[col].iloc[bad[0]])} for an effect this "
+                            f"row's model does not have (its effects: "
+                            f"{df['effects'].iloc[bad[0]] or 'none'}); the model would "
+                            "ignore it", file=str(p), column=col, row=int(bad[0]) + 1)
+    bad = np.flatnonzero(used & keep & ~np.isfinite(v))
+    if bad.size:
+        kind = "a positive number" if q.log else "a number"
+        raise BadInputError(f"parameter must be {kind}, got {cell(df[col].iloc[bad[0]])}",
+                            file=str(p), column=col, row=int(bad[0]) + 1)
+    tol = 1e-9 * max(abs(q.lower), abs(q.upper))  # 10-digit rounding of a bound
+    bad = np.flatnonzero(used & keep & ((v < q.lower - tol) | (v > q.upper + tol)))
+    if bad.size:
+        raise BadInputError(f"{col} = {cell(v[bad[0]])} {q.unit} is outside its physical "
+                            f"range [{q.lower:g}, {q.upper:g}] {q.unit}", file=str(p),
+                            column=col, row=int(bad[0]) + 1)
+
+
+def _reason(df: pd.DataFrame, i: int) -> str:
+    """Why row ``i`` of a per-trial file has no parameters."""
+    r = df["reason"].iloc[i] if "reason" in df.columns else None
+    return r if isinstance(r, str) else "no parameters (fit failed)"
+
+
+def _identity(row) -> str:
+    parts = [f"axis {row['axis']}"]
+    for col, fmt in (("subject", "subject {}"), ("grip_N", "grip {} N"), ("run", "run {}")):
+        v = row.get(col)
+        if v is not None and str(v) not in ("", "nan", "<NA>", "None"):
+            try:
+                v = f"{float(v):g}"
+            except (TypeError, ValueError):
+                pass
+            parts.append(fmt.format(v))
+    return ", ".join(parts)
 
 
 def _unknown_effect_column(col: str, df: pd.DataFrame) -> str:
