@@ -7,7 +7,7 @@ arm dynamics, W_max and Wu, the comparison, K_max and the robust certificate, th
 — is computed with it; ``armfit run`` keeps the base model's tables beside them, labelled
 as such.
 
-**Apparatus and arm.** An effect acts at a stage (:data:`armfit.models.effects.STAGES`):
+**Apparatus and arm.** An effect acts at a stage (:data:`armfit.models.arm.STAGE_NAMES`):
 
 * ``output`` and ``device`` effects (a latency, a sensor lag, the device's mass, damping
   or spring, a linkage mode) belong to the **apparatus**. They are the same for every

@@ -27,3 +27,9 @@ UNIT_SE_DEG: float = math.degrees(1.0) / DB_PER_NEPER
 #: Default fit bands (Hz) per axis, as the paper: X and Y 0.1–30 Hz, Z 0.1–10 Hz.
 PAPER_BANDS: dict[str, tuple[float, float]] = {
     "x": (0.1, 30.0), "y": (0.1, 30.0), "z": (0.1, 10.0)}
+
+
+__all__ = [
+    "AXES", "PARAM_NAMES", "DEVICE_MASS_KG", "DB_PER_NEPER", "UNIT_SE_DEG",
+    "PAPER_BANDS",
+]

@@ -167,3 +167,11 @@ def cell(value, limit: int = CELL_CHARS) -> str:
     if len(text) > limit:
         text = text[:limit] + f"… ({len(text)} characters)"
     return repr(text) if len(text) <= limit else "'" + text + "'"
+
+
+__all__ = [
+    "EXIT_OK", "EXIT_INTERNAL", "EXIT_USAGE", "EXIT_NOT_CONVERGED", "EXIT_DATAERR",
+    "EXIT_NOINPUT", "EXIT_CANTCREAT", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
+    "ArmfitError", "UsageError", "BadInputError", "NoInputError", "OutputError",
+    "ConvergenceError", "EffectDefinitionError", "Terminated", "CELL_CHARS", "cell",
+]

@@ -65,7 +65,7 @@ from scipy import fft as sfft
 
 from armfit.data import paper_table
 from armfit.errors import UsageError
-from armfit.io.trials import AXES, Trial, TrialMeta
+from armfit.io.trials import AXES, GRIP_TOLERANCE_N, Trial, TrialMeta
 from armfit.models.arm import DEVICE_MASS_KG, PARAM_NAMES, ClosedLoopModel
 from armfit.models.effects import get_effect
 
@@ -86,10 +86,10 @@ CROSS_COUPLING: dict[tuple[str, str], float] = {
 PAD_S = 10.0
 #: Corner of the postural drift spectrum, Hz.
 DRIFT_CORNER_HZ = 0.05
-#: Grip signal: sensor rate (Hz), tolerance around the target (N), wander and noise rms (N),
-#: quantisation step (N), wander bandwidth (Hz).
+#: Grip signal: sensor rate (Hz), wander and noise rms (N), quantisation step (N), wander
+#: bandwidth (Hz); it stays within the reader's tolerance around the target
+#: (:data:`armfit.io.trials.GRIP_TOLERANCE_N`).
 GRIP_RATE_HZ = 65.0
-GRIP_TOLERANCE_N = 0.5
 GRIP_WANDER_N = 0.2
 GRIP_NOISE_N = 0.02
 GRIP_STEP_N = 0.01
@@ -436,3 +436,12 @@ def truth_dict(config: StudyConfig, plans: Sequence[TrialPlan],
                             for s, row in enumerate(subject_factors(config).tolist())},
         "trials": [p.as_dict() for p in plans],
     }
+
+
+__all__ = [
+    "CROSS_COUPLING", "PAD_S", "DRIFT_CORNER_HZ", "GRIP_RATE_HZ", "GRIP_WANDER_N",
+    "GRIP_NOISE_N", "GRIP_STEP_N", "GRIP_WANDER_HZ", "EffectSetting", "StudyConfig",
+    "TrialPlan", "subject_label", "subject_factors", "plan_study", "frame_length",
+    "shaped_noise", "band_limited_force", "periodic_response", "quantise",
+    "sample_and_hold", "grip_signal", "simulate_trial", "simulate_study", "truth_dict",
+]

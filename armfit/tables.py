@@ -206,3 +206,9 @@ def wu_latex(weights, *, caption: str | None = None, label: str = "tab:uncertain
             lines.append(r"\midrule")
     lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}", ""]
     return "\n".join(lines)
+
+
+__all__ = [
+    "PAPER_COLUMNS", "param_names", "unit_of", "paper_layout", "csv_text", "sig4",
+    "latex_table", "caption_for", "wu_latex",
+]

@@ -103,7 +103,7 @@ def _run(which: str, spectra: str, output: str, cost: str, band, bootstrap: int,
 
 @click.command("fit-grip")
 @_options
-def fit_grip(**kw) -> None:
+def fit_grip_command(**kw) -> None:
     """Fit the arm model to each axis x grip mean (Table I).
 
     SPECTRA is the Parquet file written by `armfit estimate`; its rows of level "mean" and
@@ -115,10 +115,13 @@ def fit_grip(**kw) -> None:
 
 @click.command("fit-nominal")
 @_options
-def fit_nominal(**kw) -> None:
+def fit_nominal_command(**kw) -> None:
     """Fit the arm model to each axis median over all subjects and grips (Table II).
 
     SPECTRA is the Parquet file written by `armfit estimate`; its rows of level "median"
     and kind "measured" are fitted with the closed loop of eq. 4 (3 fits).
     """
     _run("nominal", **kw)
+
+
+__all__ = ["fit_grip_command", "fit_nominal_command"]

@@ -75,3 +75,8 @@ def command(paths, output, manifest, skip_bad, resample, f_min, force_limit, ove
                        "duration_s": m.duration_s, "t0_s": m.t0_s, "source": m.source}
                       for m in result.trials],
         })
+
+
+__all__ = [
+    "command",
+]

@@ -105,8 +105,8 @@ def _register() -> None:
     ArmfitGroup.lazy.update({
         "ingest": "armfit.cli.ingest:command",
         "plot": "armfit.cli.plot:command",
-        "fit-grip": "armfit.cli.fit:fit_grip",
-        "fit-nominal": "armfit.cli.fit:fit_nominal",
+        "fit-grip": "armfit.cli.fit:fit_grip_command",
+        "fit-nominal": "armfit.cli.fit:fit_nominal_command",
         "simulate": "armfit.cli.simulate:command",
         "estimate": "armfit.cli.estimate:command",
         "effects": "armfit.cli.diagnose:effects_command",

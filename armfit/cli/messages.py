@@ -14,7 +14,7 @@ from armfit.errors import ArmfitError
 
 #: The flag of each library option named in an error message (see
 #: :meth:`armfit.errors.ArmfitError.render`).
-FLAGS: dict[str, str | tuple[str, ...]] = {
+OPTION_FLAGS: dict[str, str | tuple[str, ...]] = {
     "overwrite": "--overwrite", "method": "--method", "n_boot": "--bootstrap",
     "level": "--level", "fmin": "--fmin", "fmax": "--fmax", "nperseg": "--nperseg",
     "n_pairs": "--order", "order": "--order", "band": "--band", "effects": "--effect",
@@ -31,7 +31,7 @@ FLAGS: dict[str, str | tuple[str, ...]] = {
 def flag(name: str) -> str:
     """The command-line flag of the library option ``name`` (where commands spell it
     differently, the spelling of the command running)."""
-    known = FLAGS.get(name, f"--{name.replace('_', '-')}")
+    known = OPTION_FLAGS.get(name, f"--{name.replace('_', '-')}")
     if isinstance(known, str):
         return known
     ctx = click.get_current_context(silent=True)
@@ -49,4 +49,4 @@ def cli_message(exc: ArmfitError) -> str:
     return exc.render(lambda name, python: flag(name))
 
 
-__all__ = ["FLAGS", "cli_message", "flag"]
+__all__ = ["OPTION_FLAGS", "cli_message", "flag"]

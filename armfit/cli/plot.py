@@ -76,7 +76,7 @@ def command() -> None:
 @click.option("--no-trials", is_flag=True, help="Leave out the single-trial responses.")
 @output_option
 @overwrite_option
-def bode(spectra, model_path, axis, spread, no_trials, output, overwrite):
+def bode_command(spectra, model_path, axis, spread, no_trials, output, overwrite):
     """Measured dynamics X/F per axis with the model fits (the paper's Fig. 5)."""
     _prepare(output, overwrite, [spectra, model_path])
     df = Spectra.read(spectra)
@@ -102,7 +102,7 @@ def bode(spectra, model_path, axis, spread, no_trials, output, overwrite):
                    "reports for the first model.", multiple=True)
 @output_option
 @overwrite_option
-def residual(spectra, model_path, model2_path, axis, band, output, overwrite):
+def residual_command(spectra, model_path, model2_path, axis, band, output, overwrite):
     """Normalised residual (measurement - model)/SE with the noise and failing bands."""
     _prepare(output, overwrite, [spectra, model_path, model2_path])
     df = Spectra.read(spectra)
@@ -137,7 +137,7 @@ def residual(spectra, model_path, model2_path, axis, band, output, overwrite):
 @click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
 @output_option
 @overwrite_option
-def uncertainty(spectra, nominal_path, weights_path, axis, output, overwrite):
+def uncertainty_command(spectra, nominal_path, weights_path, axis, output, overwrite):
     """Derived arm dynamics with the nominal H_ARM, W_max and |Wu| (the paper's Fig. 6)."""
     _prepare(output, overwrite, [spectra, nominal_path, weights_path])
     df = Spectra.read(spectra)
@@ -160,7 +160,7 @@ def uncertainty(spectra, nominal_path, weights_path, axis, output, overwrite):
               help="Grip force (N) of the row to draw, when the file has grip fits.")
 @output_option
 @overwrite_option
-def literature(model_path, axis, grip, output, overwrite):
+def literature_command(model_path, axis, grip, output, overwrite):
     """This study's H_ARM against the literature models of Table IV (the paper's Fig. 7)."""
     _prepare(output, overwrite, [model_path])
     if model_path:
@@ -197,7 +197,7 @@ def literature(model_path, axis, grip, output, overwrite):
               metavar="D", help="Computation delay d of the top row, samples.")
 @output_option
 @overwrite_option
-def stability(params, sample_time, damping, delay, output, overwrite):
+def stability_command(params, sample_time, damping, delay, output, overwrite):
     """K_max per subject and grip, and against servo rate for d = 0, 1, 2.
 
     PARAMS: any parameters file armfit writes (fit-trials for the population), or a
@@ -210,3 +210,9 @@ def stability(params, sample_time, damping, delay, output, overwrite):
         message(f"warning: {rows.label}: row {r} ({who}) has no fit and is left out: {why}")
     fig = figures.stability_figure(rows.table, settings)
     _save(fig, output, overwrite)
+
+
+__all__ = [
+    "AXIS_CHOICE", "command", "bode_command", "residual_command", "uncertainty_command",
+    "literature_command", "stability_command",
+]

@@ -135,3 +135,8 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
     if as_json:
         emit_json({"output": str(out), "truth": str(truth_path), "trials": len(sim.plans),
                    "seconds": seconds, "format": fmt, "seed": seed, "files": files})
+
+
+__all__ = [
+    "build_config", "command",
+]

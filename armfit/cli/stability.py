@@ -267,3 +267,9 @@ def fit_trials_command(spectra, output, cost, band, effects, method, max_nfev, j
         message(f"warning: trial {tf.axis} subject {tf.subject} {tf.grip_N:g} N"
                 + (f" run {tf.run}" if tf.run is not None else "")
                 + f" has no fit ({tf.reason}); listed in {output} with converged false")
+
+
+__all__ = [
+    "stability_document", "human_table", "certificate_sentences", "stability_command",
+    "fit_trials_command",
+]

@@ -19,3 +19,8 @@ def paper_table(name: str) -> pd.DataFrame:
     'literature' (IV), as printed (SI units)."""
     with resources.files(__name__).joinpath(TABLES[name]).open() as fh:
         return pd.read_csv(fh)
+
+
+__all__ = [
+    "TABLES", "paper_table",
+]

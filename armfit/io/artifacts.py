@@ -194,3 +194,9 @@ def read_wu_rows(path: str | os.PathLike, *, require_stable: bool = True
                     file=str(p), column="real", row=i + 1)
         out[ax] = (float(nums["real"][gains[0]]), reps["zero"], reps["pole"])
     return out
+
+
+__all__ = [
+    "params_frame", "write_table", "write_params", "write_wu_table", "WuRows",
+    "wu_frame", "write_wu", "read_wu_rows",
+]

@@ -362,3 +362,9 @@ def write_text_atomic(path: str | os.PathLike, text: str, *, overwrite: bool = F
     with atomic_path(path, overwrite=overwrite) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+__all__ = [
+    "log", "SHORT_BYTES", "temp_name", "clean_stale", "check_output",
+    "exchange_folders", "atomic_path", "write_text_atomic",
+]

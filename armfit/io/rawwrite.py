@@ -113,3 +113,8 @@ def _format_of(path: Path) -> str:
 def _check_format(fmt: str) -> None:
     if fmt not in RAW_FORMATS:
         raise UsageError(f"format must be one of {', '.join(RAW_FORMATS)}, got {fmt!r}")
+
+
+__all__ = [
+    "RAW_FORMATS", "POSITION_UNITS", "trial_filename", "trial_columns", "write_trial",
+]

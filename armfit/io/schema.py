@@ -194,3 +194,12 @@ def finite_or_none(v):
     if is_missing(v) or (isinstance(v, float) and not math.isfinite(v)):
         return None
     return v
+
+
+__all__ = [
+    "SPECTRA_COLUMNS", "SPECTRA_KEYS", "SPECTRA_VALUES", "SPECTRA_TEXT", "FLAGS",
+    "COUNTED_FLAGS", "SPECTRA_META_KEY", "PARAMS_BASE", "PARAMS_STATS",
+    "PARAMS_OPTIONAL", "PARAMS_HELD", "params_columns", "WU_COLUMNS",
+    "WU_SUMMARY_COLUMNS", "WU_POINTS_COLUMNS", "wu_sidecar_paths", "COMPARE_COLUMNS",
+    "CSV_FLOAT_FORMAT", "json_default", "is_missing", "finite_or_none",
+]

@@ -1095,3 +1095,14 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
                             file=str(out)) from None
     return IngestResult(str(out), tuple(metas), tuple(stream.skipped),
                         tuple(str(p) for p in stream.ignored))
+
+
+__all__ = [
+    "TRIAL_EXTENSIONS", "DATASET_COLUMNS", "DATASET_FORMAT_KEY", "DATASET_TRIALS_KEY",
+    "DATASET_FORMAT_VERSION", "JITTER_TOLERANCE", "RATE_TOLERANCE", "Warn", "TrialMeta",
+    "Trial", "TrialSource", "Skipped", "parse_name", "read_manifest", "discover",
+    "sampling_rate", "read_trial", "MAX_ABS_VALUE", "MAX_POSITION_M", "check_values",
+    "check_grip", "GRIP_TOLERANCE_N", "GRIP_TOLERANCE_FRACTION", "is_dataset",
+    "dataset_metadata", "dataset_sources", "write_dataset", "TrialStream",
+    "resample_trial", "open_trials", "IngestResult", "ingest",
+]

@@ -75,9 +75,6 @@ from armfit.models.arm import BASE_PARAMS, DEVICE_MASS_KG, STAGE_NAMES, Param
 TermFn = Callable[[np.ndarray, Mapping[str, float], float], np.ndarray]
 RationalFn = Callable[[Mapping[str, float], float], tuple]
 
-#: Where an effect can act (see the module docstring).
-STAGES: tuple[str, ...] = STAGE_NAMES
-
 #: Entry-point group through which installed packages register effects.
 ENTRY_POINT_GROUP = "armfit.effects"
 
@@ -225,8 +222,8 @@ def _check_structure(e: Effect) -> None:
     bad = [c for c in e.name if c in _BAD_NAME_CHARS or c.isspace()]
     if bad:
         fail(f"its name may not hold {bad[0]!r} (no spaces or . ; , : =)")
-    if e.stage not in STAGES:
-        fail(f"stage must be one of {', '.join(STAGES)}, got {e.stage!r}")
+    if e.stage not in STAGE_NAMES:
+        fail(f"stage must be one of {', '.join(STAGE_NAMES)}, got {e.stage!r}")
     if not isinstance(e.params, tuple) or not e.params:
         fail("params must be a non-empty tuple of armfit.Param")
     for i, p in enumerate(e.params):
@@ -788,3 +785,11 @@ def effects_by_axis(effects) -> dict[str, tuple[tuple[Effect, ...], dict[str, fl
         return {a: resolve_effects(effects.get(a, ())) for a in AXES}
     same = resolve_effects(effects)
     return {a: same for a in AXES}
+
+
+__all__ = [
+    "TermFn", "RationalFn", "ENTRY_POINT_GROUP", "PROBE_HZ", "NULL_TOLERANCE",
+    "RATIONAL_RTOL", "RATIONAL_ATOL", "Effect", "check_effect", "Origin",
+    "EffectRegistry", "EFFECTS", "load_effect_file", "load_effect_files", "get_effect",
+    "parse_effect_spec", "EffectItem", "resolve_effects", "effects_by_axis",
+]

@@ -43,3 +43,8 @@ def literature_models() -> list[LiteratureModel]:
         out.append(LiteratureModel(r.model, float(r.Ma_kg), float(r.k1_N_per_m),
                                    float(r.b1_Ns_per_m), k2, b2))
     return out
+
+
+__all__ = [
+    "LiteratureModel", "literature_models",
+]

@@ -145,6 +145,9 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
         raise NoInputError(f"{p}: no such params file")
     rows = read_param_rows(p)
     table = rows.table
+    for col, default in PARAMS_OPTIONAL.items():   # absent in files of older versions
+        if col not in table.columns:
+            table[col] = default
     names = [c for c in param_bounds(table, p)]
     for col in [f"{n}{sfx}" for n in names for sfx in ("_lo", "_hi")] + list(PARAMS_STATS):
         if col not in table.columns:
@@ -154,9 +157,6 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
         row, who, _ = rows.skipped[0]
         raise BadInputError(f"a fit without parameters ({who})", file=str(p),
                             column=PARAMS_BASE[0], row=row)
-    for col, default in PARAMS_OPTIONAL.items():   # absent in files of older versions
-        if col not in table.columns:
-            table[col] = default
     return table.drop(columns="row")
 
 
@@ -327,3 +327,9 @@ def model_from_params(row) -> tuple[ClosedLoopModel, dict[str, float]]:
         raise BadInputError(exc.template, column="effects") from None
     model = ClosedLoopModel.for_axis(str(row["axis"]), effects, mp=float(row["mp_kg"]))
     return model, {n: float(row[n]) for n in model.param_names}
+
+
+__all__ = [
+    "PAPER_PARAMS", "ParamRows", "paper_params", "read_param_rows", "read_params",
+    "param_bounds", "row_effects", "row_param_names", "model_from_params",
+]
