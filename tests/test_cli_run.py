@@ -343,3 +343,14 @@ def test_no_input_is_a_usage_error(tmp_path):
     res = _invoke("run", "-o", str(tmp_path / "out"))
     assert res.exit_code == 2 and "give trial files" in res.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_help_lists_the_pipelines_stages_in_order():
+    """`armfit run --help` names the stages the pipeline runs (armfit.pipeline.STAGES), in
+    their order, so the help cannot drift from the code."""
+    from armfit.pipeline import STAGES
+    r = CliRunner().invoke(cli, ["run", "--help"], terminal_width=200)
+    assert r.exit_code == 0
+    text = " ".join(r.output.split())
+    listed = text.split("Stages, in order: ", 1)[1].split(".", 1)[0]
+    assert [s.strip() for s in listed.split(",")] == list(STAGES)

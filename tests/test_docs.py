@@ -317,6 +317,8 @@ def test_parse_console_block(tmp_path: Path) -> None:
 # ---------------------------------------------------------------------------
 
 LINK = re.compile(r"\]\(([^)\s]+)\)")
+#: A document named in the text rather than linked (``docs/cli.md``).
+DOC_NAME = re.compile(r"\bdocs/[\w.-]+\.md\b")
 
 
 def anchors_of(path: Path) -> set[str]:
@@ -340,9 +342,12 @@ def anchors_of(path: Path) -> set[str]:
 
 @pytest.mark.parametrize("doc", DOCS, ids=[str(p.relative_to(ROOT)) for p in DOCS])
 def test_doc_links(doc: Path) -> None:
-    """Every relative link names an existing file, and every #anchor an existing heading."""
-    bad = []
-    for target in LINK.findall(doc.read_text(encoding="utf-8")):
+    """Every relative link names an existing file, every #anchor an existing heading, and
+    every document named in the text (docs/<name>.md) exists."""
+    text = doc.read_text(encoding="utf-8")
+    bad = [f"{name}: no such document" for name in DOC_NAME.findall(text)
+           if not (ROOT / name).is_file()]
+    for target in LINK.findall(text):
         if re.match(r"[a-z]+:", target):
             continue  # http:, https:, mailto:
         file_part, _, anchor = target.partition("#")
@@ -453,3 +458,4 @@ def test_illustrations_use_real_options(doc: Path) -> None:
             if opt.startswith("-") and not NUMBER.fullmatch(opt) and opt not in known:
                 bad.append(f"{where}: {cmd.name} has no option {opt}")
     assert not bad, bad
+

@@ -49,12 +49,12 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, ou
     """Run every stage on raw trials and write all tables, figures and report.md into
     OUTDIR, e.g. ``armfit run raw/ -o results``.
 
-    Stages: ingest, estimate, fit-grip, fit-nominal, diagnose, then (if the diagnosis
-    names an effect missing from the model) the adopted model: Tables I and II again
-    with it, and everything after — fit-uncertainty, fit-trials, stability, compare,
-    figures and the report — from it. INPUT are trial files, folders or an `armfit
-    ingest` dataset. Nothing is left behind if a stage fails; an existing OUTDIR
-    is replaced only with --overwrite.
+    Stages, in order: ingest, estimate, fit-grip, fit-nominal, diagnose, adopt,
+    fit-uncertainty, fit-trials, stability, figures, compare, residuals, report.
+    adopt refits Tables I and II with the effects the diagnosis names (when it names
+    any), and every stage after it uses that adopted model. INPUT are trial files,
+    folders or an `armfit ingest` dataset. Nothing is left behind if a stage fails; an
+    existing OUTDIR is replaced only with --overwrite.
     """
     if not inputs and manifest is None:
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
