@@ -24,12 +24,22 @@ DB_PER_NEPER: float = 20.0 / math.log(10.0)
 #: Phase (deg) weighted like 1 dB of magnitude: 1 rad ↔ 1 neper, i.e. (180/π)/DB_PER_NEPER.
 UNIT_SE_DEG: float = math.degrees(1.0) / DB_PER_NEPER
 
+#: The device's peak force, N (PHANToM Premium 1.5a): a larger recorded force is
+#: warned about as saturation. The default of every reader and estimator.
+FORCE_LIMIT_N: float = 8.5
+
+#: The default frequency grid: from 0.1 Hz (the paper's lowest frequency; a trial must
+#: last 2/f_min) to 30 Hz, 40 log-spaced points per decade.
+GRID_HZ: tuple[float, float] = (0.1, 30.0)
+POINTS_PER_DECADE: int = 40
+
 #: Default fit bands (Hz) per axis, as the paper: X and Y 0.1–30 Hz, Z 0.1–10 Hz.
 PAPER_BANDS: dict[str, tuple[float, float]] = {
     "x": (0.1, 30.0), "y": (0.1, 30.0), "z": (0.1, 10.0)}
 
 
 __all__ = [
+    "FORCE_LIMIT_N", "GRID_HZ", "POINTS_PER_DECADE",
     "AXES", "PARAM_NAMES", "DEVICE_MASS_KG", "DB_PER_NEPER", "UNIT_SE_DEG",
     "PAPER_BANDS",
 ]

@@ -17,6 +17,7 @@ from armfit.cli.options import (
     skip_bad_option,
     verbosity,
 )
+from armfit.constants import FORCE_LIMIT_N, GRID_HZ
 from armfit.io.trials import TrialStream, ingest
 
 
@@ -28,11 +29,11 @@ from armfit.io.trials import TrialStream, ingest
 @click.option("--resample", is_flag=True,
               help="Resample trials whose sampling rate differs to the most common rate "
                    "(default: such a trial is an error).")
-@click.option("--f-min", "f_min", type=click.FloatRange(min=0, min_open=True), default=0.1,
+@click.option("--f-min", "f_min", type=click.FloatRange(min=0, min_open=True), default=GRID_HZ[0],
               show_default=True, metavar="HZ",
               help="Lowest frequency to be estimated; a trial must last at least 2/HZ s.")
 @click.option("--force-limit", "force_limit", type=click.FloatRange(min=0, min_open=True),
-              default=8.5, show_default=True, metavar="N",
+              default=FORCE_LIMIT_N, show_default=True, metavar="N",
               help="Device peak force; larger forces are warned about (saturation).")
 @overwrite_option
 @json_option

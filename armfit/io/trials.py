@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from armfit.constants import AXES
+from armfit.constants import AXES, FORCE_LIMIT_N, GRID_HZ
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path, check_output
 
@@ -591,7 +591,8 @@ def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
     return _nice_rate((t.size - 1) / (t[-1] - t[0]))
 
 
-def read_trial(source: TrialSource, *, f_min_hz: float = 0.1, force_limit_N: float = 8.5,
+def read_trial(source: TrialSource, *, f_min_hz: float = GRID_HZ[0],
+               force_limit_N: float = FORCE_LIMIT_N,
                warn: Warn | None = None, grip: bool = True) -> Trial:
     """Read and validate one trial (a raw file, or one row group of a dataset).
 
@@ -933,8 +934,8 @@ class TrialStream:
     skipped: list[Skipped] = field(default_factory=list)
     skip_bad: bool = False
     resample: bool = False
-    f_min_hz: float = 0.1
-    force_limit_N: float = 8.5
+    f_min_hz: float = GRID_HZ[0]
+    force_limit_N: float = FORCE_LIMIT_N
     warn: Warn | None = None
 
     def __len__(self) -> int:
@@ -1006,7 +1007,8 @@ def resample_trial(trial: Trial, fs: float) -> Trial:
 
 def open_trials(inputs: Sequence[str | os.PathLike], *,
                 manifest: str | os.PathLike | None = None, skip_bad: bool = False,
-                resample: bool = False, f_min_hz: float = 0.1, force_limit_N: float = 8.5,
+                resample: bool = False, f_min_hz: float = GRID_HZ[0],
+                force_limit_N: float = FORCE_LIMIT_N,
                 warn: Warn | None = None) -> TrialStream:
     """Discover the trials in ``inputs`` and return a stream that reads them one by one.
 
@@ -1056,7 +1058,8 @@ class IngestResult:
 
 def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
            manifest: str | os.PathLike | None = None, skip_bad: bool = False,
-           resample: bool = False, f_min_hz: float = 0.1, force_limit_N: float = 8.5,
+           resample: bool = False, f_min_hz: float = GRID_HZ[0],
+           force_limit_N: float = FORCE_LIMIT_N,
            overwrite: bool = False, warn: Warn | None = None,
            advance: Callable[[], object] | None = None,
            on_open: Callable[[TrialStream], object] | None = None) -> IngestResult:
