@@ -37,8 +37,11 @@ equally well".
 Stepwise search and verdict: :func:`diagnose` adds effects one at a time while the model
 is not adequate (:func:`adequacy`: every band within the noise, no band failing), each
 significant both statistically (the criterion above) and practically (:func:`practical`:
-it changes the response by more than the noise and a floor); standard errors are bounded
-by :func:`effective_se`. The statistics and choices are documented in docs/methods.md, "Diagnosis".
+it changes the response by more than the noise and a floor). Every standard error is the
+noise model's (:func:`armfit.noise.standard_errors` of each trial, on the whole grid):
+the joint fits, the screening and the rescue of a stuck trial weigh residuals by it, and
+every "× noise" is :func:`armfit.noise.rms_norm`. The statistics and choices are
+documented in docs/methods.md, "Diagnosis" and "The noise model".
 
 Failing bands: per frequency, the mean over trials of the normalised residual of the base
 fit, divided by its standard error across trials (a t statistic); runs of at least
@@ -55,14 +58,14 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy import special
 
-from armfit import blocklsq
+from armfit import blocklsq, noise
 from armfit.constants import AXES, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import UsageError
 from armfit.fitting import ParamSpace, analytic_guess, fit_response, log_errors
 from armfit.io.schema import finite_or_none
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
-from armfit.models.params import model_from_params
+from armfit.models.params import fit_band, model_from_params
 from armfit.spectra import Spectra
 from armfit.workers import process_pool
 
@@ -93,13 +96,6 @@ T_FAIL = 4.0
 MIN_RUN = 3
 #: Grid points with the largest improvement left out of the evidence (robustness).
 DROP_POINTS = 2
-#: Floors for standard errors (dB, deg), so a near-noiseless bin cannot dominate.
-SE_FLOOR_DB = 0.01
-SE_FLOOR_DEG = 0.06
-#: Largest standard errors of a trial's response (dB, deg): those of an estimate that is
-#: pure noise (Rayleigh magnitude: π/√6 · 20/ln 10 / 2 ≈ 5.57 dB; uniform phase: 180/√3).
-SE_CAP_DB = 5.57
-SE_CAP_DEG = 103.9
 #: Degrees weighted like 1 dB in unweighted comparisons (1 neper ↔ 1 rad).
 UNIT_DEG = float(UNIT_SE_DEG)
 
@@ -112,52 +108,6 @@ def residuals(h_meas: np.ndarray, h_model: np.ndarray) -> tuple[np.ndarray, np.n
     """Measured relative to model: (20 log10|Hm/Hmod| in dB, angle(Hm/Hmod) in deg)."""
     db, deg = log_errors(h_model, h_meas)
     return -db, -deg
-
-
-def effective_se(h: np.ndarray, se_db: np.ndarray, se_deg: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Standard errors (dB, deg) of trial responses ``h`` (T, n) that a fit can trust.
-
-    Bendat & Piersol's formula, ε = sqrt(1 − γ²)/(|γ| sqrt(2 n_d)), is a large-sample
-    result: where the (debiased) coherence is near 0 — little input power, as with
-    pseudo-random steps above a few Hz — it gives hundreds or thousands of dB, and a point
-    with such an error hides any misfit (its normalised residual is 0). Two bounds apply:
-
-    * no more than the spread of an estimate that is pure noise: a Rayleigh magnitude has
-      a standard deviation of :data:`SE_CAP_DB` (5.57 dB) in dB, a uniform phase
-      :data:`SE_CAP_DEG` (180/√3 = 103.9 deg);
-    * with three or more trials, no more than the trials' own scatter at that frequency
-      (1.4826 × the median absolute deviation across trials of 20 log10|H| and of the
-      phase about its circular mean): the measured scatter, which holds the noise plus
-      the differences between subjects, bounds the noise of one trial.
-
-    Non-finite entries stay NaN (no information; left out of the error summaries)."""
-    h = np.asarray(h, complex)
-    sdb = np.asarray(se_db, float).copy()
-    sdeg = np.asarray(se_deg, float).copy()
-    with np.errstate(all="ignore"):
-        sdb = np.minimum(sdb, SE_CAP_DB)
-        sdeg = np.minimum(sdeg, SE_CAP_DEG)
-        if h.ndim == 2 and h.shape[0] >= 3:
-            mag = 20 * np.log10(np.abs(h))
-            s_db = 1.4826 * np.nanmedian(np.abs(mag - np.nanmedian(mag, axis=0)), axis=0)
-            unit = h / np.abs(h)
-            ref = np.nansum(unit, axis=0)
-            dev = np.degrees(np.angle(unit * np.conj(ref / np.abs(ref))))
-            s_deg = 1.4826 * np.nanmedian(np.abs(dev), axis=0)
-            sdb = np.where(np.isfinite(s_db), np.minimum(sdb, np.maximum(s_db, SE_FLOOR_DB)),
-                           sdb)
-            sdeg = np.where(np.isfinite(s_deg),
-                            np.minimum(sdeg, np.maximum(s_deg, SE_FLOOR_DEG)), sdeg)
-    return sdb, sdeg
-
-
-def _floor(se_db, se_deg) -> tuple[np.ndarray, np.ndarray]:
-    sdb = np.asarray(se_db, float)
-    sdeg = np.asarray(se_deg, float)
-    sdb = np.where(np.isfinite(sdb), np.maximum(sdb, SE_FLOOR_DB), np.inf)
-    sdeg = np.where(np.isfinite(sdeg), np.maximum(sdeg, SE_FLOOR_DEG), np.inf)
-    return sdb, sdeg
 
 
 @dataclass(frozen=True)
@@ -177,29 +127,26 @@ class BandError:
 
 
 def band_error(f_hz, r_db, r_deg, se_db, se_deg, lo: float, hi: float) -> BandError:
-    """RMS errors over ``lo <= f <= hi`` of residual arrays (…, n_freq), pooled."""
+    """RMS errors over ``lo <= f <= hi`` of residual arrays (…, n_freq), pooled.
+
+    se_db, se_deg: the noise model's standard errors (:func:`armfit.noise.standard_errors`),
+    broadcastable to the residuals; ``rms_norm`` is :func:`armfit.noise.rms_norm` (a point
+    without a finite standard error or residual is left out, not counted as zero)."""
     f = np.asarray(f_hz, float)
     sel = (f >= lo) & (f <= hi)
-    sdb, sdeg = _floor(se_db, se_deg)
     rdb = np.asarray(r_db)[..., sel]
     rdeg = np.asarray(r_deg)[..., sel]
     if rdb.size == 0:
         nan = float("nan")
         return BandError(lo, hi, nan, nan, nan, 0)
-    # a point without a finite standard error carries no information: it is left out
-    # of the normalised error (not counted as a zero residual)
-    zdb = rdb / np.broadcast_to(sdb, np.shape(r_db))[..., sel]
-    zdeg = rdeg / np.broadcast_to(sdeg, np.shape(r_deg))[..., sel]
-    zdb = np.where(np.isfinite(np.broadcast_to(sdb, np.shape(r_db))[..., sel]), zdb, np.nan)
-    zdeg = np.where(np.isfinite(np.broadcast_to(sdeg, np.shape(r_deg))[..., sel]), zdeg,
-                    np.nan)
+    sdb = np.broadcast_to(se_db, np.shape(r_db))[..., sel]
+    sdeg = np.broadcast_to(se_deg, np.shape(r_deg))[..., sel]
+    zdb, zdeg = noise.normalised(rdb, rdeg, sdb, sdeg)
+    rms_norm = noise.rms_norm(rdb, rdeg, sdb, sdeg)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         mdb = np.nanmean(np.atleast_2d(zdb), axis=0)
         mdeg = np.nanmean(np.atleast_2d(zdeg), axis=0)
-        zall = np.concatenate([zdb.ravel(), zdeg.ravel()])
-        rms_norm = float(np.sqrt(np.nanmean(zall ** 2))) if np.isfinite(zall).any() \
-            else float("nan")
         mall = np.concatenate([mdb, mdeg])
         bias = float(np.sqrt(np.nanmean(mall ** 2))) if np.isfinite(mall).any() \
             else float("nan")
@@ -322,8 +269,9 @@ def trial_statistics(z_db: np.ndarray, z_deg: np.ndarray) -> tuple[np.ndarray, n
 class AxisData:
     """The trial-level measured responses of one axis on a common grid.
 
-    f_hz (n,) Hz; h (T, n) complex X/F in m/N; se_db, se_deg (T, n) standard errors;
-    starts: per trial the base parameters to start from (e.g. the grip fit of its grip).
+    f_hz (n,) Hz; h (T, n) complex X/F in m/N; se_db, se_deg (T, n) the trials' standard
+    errors as the spectra file holds them (:meth:`noise_se`: the noise model's); starts:
+    per trial the base parameters to start from (e.g. the grip fit of its grip).
     """
 
     axis: str
@@ -333,6 +281,13 @@ class AxisData:
     se_deg: np.ndarray
     starts: tuple[Mapping[str, float], ...]
     labels: tuple[str, ...] = ()
+
+    def noise_se(self, sel: np.ndarray | slice = slice(None)
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """The noise model's standard errors (dB, deg) of every trial, (T, n) on the
+        grid points ``sel`` (computed on the whole grid, then restricted)."""
+        sdb, sdeg = noise.standard_errors(self.se_db, self.se_deg)
+        return sdb[:, sel], sdeg[:, sel]
 
 
 @dataclass(frozen=True)
@@ -361,7 +316,7 @@ class _Joint:
         self.space = ParamSpace.of(model)
         self.f = data.f_hz[sel]
         self.h = data.h[:, sel]
-        sdb, sdeg = _floor(data.se_db[:, sel], data.se_deg[:, sel])
+        sdb, sdeg = data.noise_se(sel)
         self.w_db, self.w_deg = 1.0 / sdb, 1.0 / sdeg
         self.T = self.h.shape[0]
         self.nb = len(PARAM_NAMES)
@@ -486,7 +441,7 @@ def best_rows(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
     in normalised squared error. Returns (T, 5)."""
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
     f = data.f_hz[sel]
-    sdb, sdeg = _floor(data.se_db[:, sel], data.se_deg[:, sel])
+    sdb, sdeg = data.noise_se(sel)
     T = data.h.shape[0]
     rows = [np.broadcast_to(np.asarray(c, float), (T, len(PARAM_NAMES))) for c in candidates]
     errs = []
@@ -564,7 +519,9 @@ def _rescue(prob: _Joint, model: ClosedLoopModel, data: AxisData, sel, res, max_
     trial's) get new arm parameters from a single-trial fit
     (:func:`armfit.fitting.fit_response`): first a local one from the median arm
     parameters of the trials that fit, then, for a trial still far off, the global
-    search. The joint fit is refined again; the better of the two results is returned."""
+    search. The single-trial fit weighs the trial's residuals by the same noise model's
+    standard errors as the joint fit (it is given the whole grid and the band). The joint
+    fit is refined again; the better of the two results is returned."""
     per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
     limit = _OUTLIER * max(np.median(per), 2.0 * prob.f.size)
     bad = np.flatnonzero(per > limit)
@@ -576,23 +533,24 @@ def _rescue(prob: _Joint, model: ClosedLoopModel, data: AxisData, sel, res, max_
     shared = theta[0, prob.nb:]
     good = np.setdiff1d(np.arange(prob.T), bad)
     typical = np.exp(np.median(np.log(theta[good, : prob.nb]), axis=0)) if good.size else None
-    f, names = data.f_hz[sel], prob.space.names
+    names = prob.space.names
+    band = (float(prob.f[0]), float(prob.f[-1]))
 
     def place(i: int, fit) -> None:
         row = np.array([fit.params[n] for n in PARAM_NAMES])
         zb[i] = prob.space.clip_z(prob.space.to_z(np.concatenate([row, shared])))[: prob.nb]
 
     for i in bad:
-        kw = dict(se_db=data.se_db[i, sel], se_deg=data.se_deg[i, sel], strict=False,
+        kw = dict(se_db=data.se_db[i], se_deg=data.se_deg[i], band=band, strict=False,
                   intervals=False)
         if typical is not None:
             start = dict(zip(names, np.concatenate([typical, shared]), strict=True))
-            place(i, fit_response(model, f, data.h[i, sel], x0=start, global_search=False,
-                                  **kw))
+            place(i, fit_response(model, data.f_hz, data.h[i], x0=start,
+                                  global_search=False, **kw))
             r = prob.fun(x0).reshape(prob.T, -1)[i]
             if float(r @ r) <= limit:
                 continue
-        place(i, fit_response(model, f, data.h[i, sel], **kw))
+        place(i, fit_response(model, data.f_hz, data.h[i], **kw))
     res2 = _refine(prob, x0, max_nfev)
     return res2 if res2.cost < res.cost else res
 
@@ -739,7 +697,7 @@ def _union_bias(f, fit: JointFit, se_db, se_deg, ranges) -> float:
 
 
 def _errors(f, fit: JointFit, data: AxisData, sel, bands) -> tuple[BandError, ...]:
-    se_db, se_deg = data.se_db[:, sel], data.se_deg[:, sel]
+    se_db, se_deg = data.noise_se(sel)
     return tuple(band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, lo, hi) for lo, hi in bands)
 
 
@@ -780,7 +738,7 @@ def assess(data: AxisData, band: tuple[float, float], base: JointFit,
     """Failing bands of the base fit, the evidence for each candidate fit, the verdict."""
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
     f = data.f_hz[sel]
-    se_db, se_deg = _floor(data.se_db[:, sel], data.se_deg[:, sel])
+    se_db, se_deg = data.noise_se(sel)
     t_db, t_deg = trial_statistics(base.r_db / se_db, base.r_deg / se_deg)
     fails = failing_bands(f, t_db, t_deg, base.r_db.mean(axis=0), base.r_deg.mean(axis=0),
                           size_db=(base.r_db / se_db).mean(axis=0),
@@ -894,7 +852,6 @@ def axis_data(spectra, params, axis: str) -> AxisData | None:
         starts.append({n: float(r[n]) for n in PARAM_NAMES})
     names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if run is None else f"_run-{run}")
                   for s, g, run in labels)
-    sdb, sdeg = effective_se(H, sdb, sdeg)
     return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names)
 
 
@@ -951,7 +908,7 @@ def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray
              band: tuple[float, float], n_params: int, min_db: float = MIN_EFFECT_DB,
              min_deg: float = MIN_EFFECT_DEG) -> Adequacy:
     """Judge ``fit`` (residuals (T, n) on ``f``) against the noise ``se_db``, ``se_deg``
-    (floored, (T, n)). Adequate when no band fails and every band is within the noise:
+    (the noise model's, (T, n)). Adequate when no band fails and every band is within the noise:
     its RMS normalised error is at most :data:`NOISE_TOL`, or its systematic part
     (``bias_norm``) at most 1. A band fails (:func:`failing_bands`) where the trials'
     t statistic exceeds :data:`T_FAIL` on :data:`MIN_RUN` consecutive points and the mean
@@ -1126,7 +1083,7 @@ def _subset(data: AxisData, fit: JointFit, idx: np.ndarray,
     sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
                    tuple(data.starts[i] for i in idx))
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
-    sdb, sdeg = _floor(sub.se_db[:, sel], sub.se_deg[:, sel])
+    sdb, sdeg = sub.noise_se(sel)
     z = np.concatenate([fit.r_db[idx] / sdb, fit.r_deg[idx] / sdeg], axis=1)
     return sub, JointFit(fit.model, fit.base[idx], fit.shared, fit.shared_lo, fit.shared_hi,
                          fit.r_db[idx], fit.r_deg[idx], float(np.sum(z[np.isfinite(z)] ** 2)),
@@ -1170,7 +1127,7 @@ class _Search:
         self.max_steps, self.min_db, self.min_deg = max_steps, min_db, min_deg
         self.sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
         self.f = data.f_hz[self.sel]
-        self.se_db, self.se_deg = _floor(data.se_db[:, self.sel], data.se_deg[:, self.sel])
+        self.se_db, self.se_deg = data.noise_se(self.sel)
         self.fits: list[JointFit] = []
         self.added: list[Effect] = []
         self.steps: list[Step] = []
@@ -1631,17 +1588,25 @@ class Comparison:
     n_trials: int
 
 
-def _summary(axis, grip, level, label, f, r_db, r_deg, se_db, se_deg, band, params, n):
-    sdb, sdeg = _floor(se_db, se_deg)
-    r_db2, r_deg2 = np.atleast_2d(r_db), np.atleast_2d(r_deg)
-    z_db, z_deg = r_db2 / np.atleast_2d(sdb), r_deg2 / np.atleast_2d(sdeg)
+def _summary(axis, grip, level, label, f, r_db, r_deg, se_db, se_deg, band, params, n,
+             overall_band: tuple[float, float] | None = None) -> Comparison:
+    """One :class:`Comparison` from residuals (dB, deg; (n,) or (T, n)) on ``f`` and the
+    noise model's standard errors: failing bands and the :data:`BANDS` rows within
+    ``band``, the overall row over ``overall_band`` (default ``band``)."""
+    sel = (f >= band[0]) & (f <= band[1])
+    r_db2, r_deg2 = np.atleast_2d(r_db)[:, sel], np.atleast_2d(r_deg)[:, sel]
+    z_db, z_deg = noise.normalised(r_db2, r_deg2, np.atleast_2d(se_db)[:, sel],
+                                   np.atleast_2d(se_deg)[:, sel])
     t_db, t_deg = trial_statistics(z_db, z_deg)
-    fails = failing_bands(f, t_db, t_deg, r_db2.mean(axis=0), r_deg2.mean(axis=0),
+    fails = failing_bands(f[sel], t_db, t_deg, r_db2.mean(axis=0), r_deg2.mean(axis=0),
                           size_db=z_db.mean(axis=0), size_deg=z_deg.mean(axis=0))
-    overall = band_error(f, r_db, r_deg, se_db, se_deg, band[0], band[1])
-    bands = tuple(band_error(f, r_db, r_deg, se_db, se_deg, lo, hi) for lo, hi in BANDS
+    overall = band_error(f, r_db, r_deg, se_db, se_deg, *(overall_band or band))
+    within = (f[sel], np.asarray(r_db)[..., sel], np.asarray(r_deg)[..., sel],
+              np.asarray(se_db)[..., sel], np.asarray(se_deg)[..., sel])
+    bands = tuple(band_error(*within, lo, hi) for lo, hi in BANDS
                   if hi > band[0] and lo < band[1])
     return Comparison(axis, grip, level, label, overall, bands, tuple(fails), params, n)
+
 
 
 def _fit_effects_aggregate(base_model, theta, effects, f, h, se_db, se_deg, band):
@@ -1673,7 +1638,9 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
     between-subject differences do not count as model error (significance by a t test
     across trials). ``effects``: add these effects and refit (nested, warm-started; shared
     across trials at level "trial"); both the base and the extended model are reported.
-    ``band`` defaults to the whole grid.
+    ``band`` defaults to the whole grid; at levels "mean" and "median" the overall row of
+    a params row's model is then taken over the band it was fitted on (:func:`fit_band`),
+    so its ``rms_norm`` is the params file's (the same noise model on the same bins).
     """
     if level not in ("mean", "median", "trial"):
         raise UsageError(f"{{opt}} must be mean, median or trial, got {level!r}",
@@ -1699,7 +1666,7 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
             base_model, theta0 = model_from_params(_param_row(params, axis, None))
             shared0 = {k: v for k, v in theta0.items() if k not in PARAM_NAMES}
             fit = joint_fit(base_model, data, b, start, [shared0])
-            se = (data.se_db[:, sel], data.se_deg[:, sel])
+            se = data.noise_se(sel)
             out.append(_summary(axis, None, level, model_label(base_model), f, fit.r_db,
                                 fit.r_deg, *se, b, dict(fit.shared), data.h.shape[0]))
             if effects:
@@ -1733,20 +1700,20 @@ def compare(spectra, params, *, level: str = "mean", band: tuple[float, float] |
             prow = _param_row(params, axis, grip)
             model, theta = model_from_params(prow)
             b = band or (float(f[0]), float(f[-1]))
-            sel = (f >= b[0]) & (f <= b[1])
+            nse = noise.standard_errors(se_db, se_deg)
             with np.errstate(all="ignore"):
-                r_db, r_deg = residuals(h[sel], model.response(f[sel], theta))
+                r_db, r_deg = residuals(h, model.response(f, theta))
             n = int(rows.key("n")[0])
-            out.append(_summary(axis, grip, level, model_label(model), f[sel], r_db, r_deg,
-                                se_db[sel], se_deg[sel], b, {}, n))
+            out.append(_summary(axis, grip, level, model_label(model), f, r_db, r_deg, *nse,
+                                b, {}, n, None if band else fit_band(prow, f)))
             if effects:
                 model_e, th_e = _fit_effects_aggregate(model, theta, effects, f, h, se_db,
                                                        se_deg, b)
                 with np.errstate(all="ignore"):
-                    r_db, r_deg = residuals(h[sel], model_e.response(f[sel], th_e))
+                    r_db, r_deg = residuals(h, model_e.response(f, th_e))
                 eff_params = {k: v for k, v in th_e.items() if k not in PARAM_NAMES}
-                out.append(_summary(axis, grip, level, model_label(model_e), f[sel], r_db,
-                                    r_deg, se_db[sel], se_deg[sel], b, eff_params, n))
+                out.append(_summary(axis, grip, level, model_label(model_e), f, r_db,
+                                    r_deg, *nse, b, eff_params, n))
     return out
 
 

@@ -31,9 +31,11 @@ Convergence: a fit is converged when the optimiser is and, should it end more th
 :data:`MARKEDLY_LOWER` of its own (a local fit from ``x0`` then also refines the cheapest
 structured starts); otherwise its message names the local minimum and the better start.
 
-The "complex" cost's standard errors: invalid ones take the median of the valid ones, and
-the variance is pooled over 9 neighbouring bins (standard errors estimated from a few
-trials are themselves noisy; a bin with a chance 10× too small se would dominate).
+The "complex" cost's standard errors are those of the noise model
+(:func:`armfit.noise.standard_errors`: capped at pure noise, filled, pooled over
+neighbouring bins, floored), and ``rms_norm`` is its "× noise" statistic
+(:func:`armfit.noise.rms_norm`), the same number ``compare``, the diagnosis and the
+figures report for the same model on the same bins.
 
 Confidence intervals (95 %) are formed in log-parameter space and are the wider of two:
 
@@ -72,8 +74,8 @@ from functools import lru_cache
 
 import numpy as np
 from scipy import optimize, special
-from scipy.ndimage import uniform_filter1d
 
+from armfit import noise
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import params_frame
@@ -91,8 +93,6 @@ _N_SUBSET = 160         # log-spaced bins used while refining candidates
 _N_ANCHORS = 3          # structured starts (paper rows, effect-removed guess) refined
 _MAX_EFFECT_POINTS = 64  # combinations of the effects' starting values among the anchors
 _TOL = 1e-12            # ftol/xtol/gtol of the final polish
-#: Neighbouring bins over which the measurement's variance is pooled (see fit_response).
-SE_POOL_BINS = 9
 #: Contiguous frequency bands of the delete-a-band jackknife (:func:`band_jackknife`):
 #: six bands of equal log width, about half a decade each over 0.1–30 Hz. Chosen on
 #: time-domain simulated studies (benchmarks/interval_coverage.py): with 6 bands the
@@ -257,21 +257,18 @@ class _Problem:
         return np.where(np.isfinite(r), r, 1e6)
 
 
-def _standard_errors(se, n: int, fallback: float, pool: int) -> np.ndarray:
-    """Per-bin standard errors (bins sorted by frequency): invalid entries (NaN, ≤ 0) take
-    the median of the valid ones, then the variance is pooled over ``pool`` neighbouring
-    bins (se = √(moving mean of se²)); with no valid entry (or ``se`` None) every bin
-    takes ``fallback``."""
-    if se is None:
-        return np.full(n, fallback)
-    se = np.asarray(se, float)
-    ok = np.isfinite(se) & (se > 0)
-    if not ok.any():
-        return np.full(n, fallback)
-    se = np.where(ok, se, np.median(se[ok]))
-    if pool > 1:
-        se = np.sqrt(uniform_filter1d(se * se, pool, mode="nearest"))
-    return se
+def _weights(se_db, se_deg, order: np.ndarray, n: int
+             ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
+    """The noise model's standard errors (dB, deg) of a response whose bins are put in
+    frequency order by ``order`` (None without measured ones), and the standard errors
+    that weight the cost: the noise model's, or 1 dB and :data:`UNIT_SE_DEG` where there
+    is none (no standard errors given, or none valid)."""
+    if se_db is None or se_deg is None:
+        return None, None, np.ones(n), np.full(n, UNIT_SE_DEG)
+    sdb, sdeg = noise.standard_errors(np.asarray(se_db, float).ravel()[order],
+                                      np.asarray(se_deg, float).ravel()[order])
+    return (sdb, sdeg, np.where(np.isfinite(sdb), sdb, 1.0),
+            np.where(np.isfinite(sdeg), sdeg, UNIT_SE_DEG))
 
 
 # ---------------------------------------------------------------------------
@@ -462,7 +459,7 @@ def _subset(f: np.ndarray, n: int) -> np.ndarray:
 def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
                  cost: str = "complex", band: tuple[float, float] | None = None,
                  x0: Mapping[str, float] | None = None, global_search: bool = True,
-                 max_nfev: int | None = None, se_pool: int = SE_POOL_BINS,
+                 max_nfev: int | None = None,
                  strict: bool = True, intervals: bool = True,
                  jackknife_bands: int = JACKKNIFE_BANDS,
                  second_opinion: bool = True) -> FitResult:
@@ -472,10 +469,9 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     of 20 log10|H| (dB) and of the phase (deg), used by the "complex" cost; band: (lo, hi)
     Hz, bins outside are ignored (default: all); x0: warm start {name: value} (missing names
     take the typical value); global_search: False refines from x0 (or the typical values)
-    only; max_nfev: evaluation budget of the final polish (default 200 per parameter);
-    se_pool: standard errors estimated from a few trials are themselves noisy (with 3
-    subjects a bin's se can be 10× too small, and that bin then dominates the fit), so
-    the variance is pooled over ``se_pool`` neighbouring bins (1: use se as given).
+    only; max_nfev: evaluation budget of the final polish (default 200 per parameter).
+    The standard errors are the noise model's (:func:`armfit.noise.standard_errors`, on
+    the whole grid given, then restricted to the band); ``rms_norm`` is its "× noise".
 
     intervals: False skips the 95 % intervals (NaN), e.g. for bootstrap replicates;
     jackknife_bands: bands of the delete-a-band jackknife that widens them
@@ -508,12 +504,8 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     if sel.sum() <= n_par:
         raise UsageError(f"fit band {lo:g}-{hi:g} Hz holds {int(sel.sum())} usable bins; "
                          f"{n_par} parameters need at least {n_par + 1}")
-    sdb = _standard_errors(None if se_db is None else np.asarray(se_db, float).ravel()[order],
-                           f.size, 1.0, se_pool)[sel]
-    sdeg = _standard_errors(None if se_deg is None else
-                            np.asarray(se_deg, float).ravel()[order], f.size, UNIT_SE_DEG,
-                            se_pool)[sel]
-    prob = _Problem(model, space, f[sel], h[sel], 1.0 / sdb, 1.0 / sdeg, cost)
+    noise_db, noise_deg, wdb, wdeg = _weights(se_db, se_deg, order, f.size)
+    prob = _Problem(model, space, f[sel], h[sel], 1.0 / wdb[sel], 1.0 / wdeg[sel], cost)
     m = prob.f.size
 
     starts = _candidates(prob, x0, _N_SOBOL if global_search else 0)
@@ -588,10 +580,8 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
         db, deg = log_errors(hm, prob.h)
     rms_db = float(np.sqrt(np.mean(db**2)))
     rms_deg = float(np.sqrt(np.mean(deg**2)))
-    if se_db is None or se_deg is None:
-        rms_norm = float("nan")
-    else:
-        rms_norm = float(np.sqrt(np.mean(np.concatenate([db / sdb, deg / sdeg]) ** 2)))
+    rms_norm = float("nan") if noise_db is None else \
+        noise.rms_norm(db, deg, noise_db[sel], noise_deg[sel])
     stuck = at_bound(model.params, params)
     msg = res.message + (f"; at physical bound: {', '.join(stuck)}" if stuck else "")
     if not_best:

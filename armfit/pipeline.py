@@ -904,8 +904,9 @@ def report_markdown(run: _Context) -> str:
                             "significant"], cands)
 
     L += ["### Nominal models against the medians (compare.csv)", "",
-          "RMS magnitude error (dB) / phase error (deg) / normalised error (× noise) over "
-          "the whole grid and per band.", ""]
+          "RMS magnitude error (dB) / phase error (deg) / normalised error (× noise); "
+          "overall over each model's fit band (the rms × noise of Table II), and per band "
+          "over the whole grid.", ""]
     bands = [f"{lo:g}-{hi:g}" for lo, hi in BANDS]
     header = ["axis", "model", "overall"] + [f"{b} Hz" for b in bands]
     rows = []

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1] / "armfit"
 #: import from its own layer or below, never from above; the package itself
 #: (armfit/__init__.py, the public facade) is imported by nobody inside the package.
 LAYERS: dict[str, int] = {
-    "_version": 0, "constants": 0, "errors": 0, "data": 0, "workers": 0,
+    "_version": 0, "constants": 0, "errors": 0, "data": 0, "workers": 0, "noise": 0,
     "io": 1,
     "spectra": 2,
     "models": 3,

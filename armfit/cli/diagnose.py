@@ -95,7 +95,10 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
     if as_json:
         emit_json(result.to_dict())
         return
-    t = Table(title=f"model vs measurements ({level}); cells: RMS dB / deg / × noise")
+    title = f"model vs measurements ({level}); cells: RMS dB/deg/× noise"
+    if band is None and level != "trial":
+        title += "; overall: over each model's fit band"
+    t = Table(title=title)
     for c in ("axis", "grip N", "model", "overall"):
         t.add_column(c)
     band_names = [f"{b.lo_hz:g}–{b.hi_hz:g} Hz" for b in rows[0].bands]
@@ -103,7 +106,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
         t.add_column(name)
 
     def cell(b):
-        return f"{b.rms_db:.2f} / {b.rms_deg:.1f} / {b.rms_norm:.1f}" if b.n_points else "–"
+        return f"{b.rms_db:.2f}/{b.rms_deg:.1f}/{b.rms_norm:.2f}" if b.n_points else "–"
 
     for r in rows:
         t.add_row(r.axis, "" if r.grip_N is None else f"{r.grip_N:g}", r.model,
