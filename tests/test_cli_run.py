@@ -21,7 +21,7 @@ from click.testing import CliRunner
 
 from armfit import __version__
 from armfit.cli.main import cli
-from armfit.diagnose import BANDS
+from armfit.diagnosis import BANDS
 from armfit.models.params import model_from_params, read_params
 from armfit.spectra import Spectra
 

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 import tdsim
 
-from armfit.diagnose import (
+from armfit.diagnosis import (
     NOISE_TOL,
-    compare,
-    diagnose,
     diagnosis_to_dict,
     practical,
 )
+from armfit.diagnosis import compare_models as compare
+from armfit.diagnosis import diagnose_axes as diagnose
 from armfit.models.effects import EFFECTS
 
 SMALL = dict(subjects=2, axes=("x",), duration_s=(30.0, 35.0))

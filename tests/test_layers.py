@@ -1,5 +1,5 @@
 """The package's layers: data flows one way, io -> spectra -> models -> fitting / uncertainty /
-diagnose -> figures -> api -> pipeline -> cli, and no import cycle joins two components.
+diagnosis -> figures -> api -> pipeline -> cli, and no import cycle joins two components.
 
 Every ``import`` of an armfit module is read from the source with :mod:`ast`, at module
 level and inside functions alike (a function-local import is still a dependency).
@@ -22,7 +22,7 @@ LAYERS: dict[str, int] = {
     "io": 1,
     "spectra": 2,
     "models": 3,
-    "fitting": 4, "uncertainty": 4, "diagnose": 4, "simulation": 4, "tables": 4,
+    "fitting": 4, "uncertainty": 4, "diagnosis": 4, "simulation": 4, "tables": 4,
     "loop": 4, "paramsets": 4, "blocklsq": 4,
     "figures": 5, "adopt": 5,
     "api": 6,

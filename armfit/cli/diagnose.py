@@ -21,6 +21,7 @@ from armfit.cli.options import (
     overwrite_option,
     verbosity,
 )
+from armfit.diagnosis.tuning import MAX_STEPS, MIN_EFFECT_DB, MIN_EFFECT_DEG, SHARED_EFFECTS
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import check_output
 from armfit.models.effects import EFFECTS, get_effect
@@ -135,16 +136,18 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="Also write the JSON document to this file (atomically).")
 @jobs_option
-@click.option("--max-steps", type=click.IntRange(0, 10), default=3, show_default=True,
+@click.option("--max-steps", type=click.IntRange(0, 10), default=MAX_STEPS, show_default=True,
               help="At most this many effects added, one per step.")
-@click.option("--min-effect-db", type=click.FloatRange(0.0), default=0.5, show_default=True,
+@click.option("--min-effect-db", type=click.FloatRange(0.0), default=MIN_EFFECT_DB,
+              show_default=True,
               help="Practical floor: an effect must change the response by more than this "
                    "(dB, and more than the noise) somewhere in the band, or ...")
-@click.option("--min-effect-deg", type=click.FloatRange(0.0), default=3.0, show_default=True,
+@click.option("--min-effect-deg", type=click.FloatRange(0.0), default=MIN_EFFECT_DEG,
+              show_default=True,
               help="... by more than this in phase (deg).")
 @click.option("--share", "share", multiple=True, metavar="NAME",
               help="Effects whose parameters are compared across axes (repeatable; default: "
-                   "delay and lowpass, the apparatus effects).")
+                   f"{' and '.join(SHARED_EFFECTS)}, the apparatus effects).")
 @click.option("--no-share", is_flag=True, help="Compare no effect across axes.")
 @overwrite_option
 @json_option
