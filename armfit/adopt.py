@@ -1,6 +1,6 @@
 """The adopted model: what the diagnosis found becomes the model armfit delivers.
 
-After :func:`armfit.diagnose.diagnose`, each axis's **adopted model** is the paper's
+After :func:`armfit.diagnosis.diagnose_axes`, each axis's **adopted model** is the paper's
 5-parameter model plus the effects the stepwise search added on that axis
 (:func:`adopt`). Everything downstream — Tables I and II, the per-trial fits, the derived
 arm dynamics, W_max and Wu, the comparison, K_max and the robust certificate, the figures
@@ -226,7 +226,7 @@ def _finite(v: float) -> float | None:
 
 
 def _axis_adoption(d, policy: str) -> AxisAdoption:
-    """The adoption of one :class:`armfit.diagnose.AxisDiagnosis`."""
+    """The adoption of one :class:`armfit.diagnosis.AxisDiagnosis`."""
     axis = d.axis
     base_err = float(d.base_error.rms_norm) if d.base_error is not None else math.nan
     final = d.final_error or d.base_error
@@ -274,7 +274,7 @@ def adopt(diagnosis, policy: str = "auto") -> Adoption:
 
     Parameters
     ----------
-    diagnosis : armfit.api.Diagnosis or sequence of armfit.diagnose.AxisDiagnosis
+    diagnosis : armfit.api.Diagnosis or sequence of armfit.diagnosis.AxisDiagnosis
         The diagnosis of the base model.
     policy : {'auto', 'none'}
         'auto': adopt the effects the diagnosis added, up to the first with a parameter

@@ -23,7 +23,6 @@ from __future__ import annotations
 import importlib
 import json
 import os
-import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -35,15 +34,15 @@ from armfit import fitting as _fitting
 from armfit import uncertainty as _uncertainty
 from armfit.adopt import Adoption, adopt
 from armfit.constants import AXES
-from armfit.diagnose import (
+from armfit.diagnosis import (
     MAX_STEPS,
     MIN_EFFECT_DB,
     MIN_EFFECT_DEG,
     band_to_dict,
+    compare_models,
+    diagnose_axes,
     diagnosis_to_dict,
 )
-from armfit.diagnose import compare as compare_rows
-from armfit.diagnose import diagnose as diagnose_axes
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import write_params, write_wu, write_wu_table, wu_frame
 from armfit.io.atomic import atomic_path, write_text_atomic
@@ -579,7 +578,7 @@ class Comparisons:
 
     Attributes
     ----------
-    rows : tuple of armfit.diagnose.Comparison
+    rows : tuple of armfit.diagnosis.Comparison
         One per axis (× grip) and model (the base, then with the effects asked for).
     level : {'mean', 'median', 'trial'}
     """
@@ -611,7 +610,7 @@ class Comparisons:
 
 def compare_frame(rows) -> pd.DataFrame:
     """compare.csv as a DataFrame (:data:`armfit.io.schema.COMPARE_COLUMNS`) from
-    :class:`armfit.diagnose.Comparison` rows: one row per comparison and band, band
+    :class:`armfit.diagnosis.Comparison` rows: one row per comparison and band, band
     ``overall`` (the whole band compared) or ``LO-HI`` (Hz)."""
     out = []
     for r in rows:
@@ -654,7 +653,7 @@ def compare(spectra, model, *, level: str | None = None,
     m = ModelFit.of(model)
     if level is None:
         level = "mean" if m.which == "grip" else "median"
-    rows = compare_rows(sp, m.table, level=level, band=band, effects=_effects(effects))
+    rows = compare_models(sp, m.table, level=level, band=band, effects=_effects(effects))
     return Comparisons(tuple(rows), level)
 
 
@@ -669,7 +668,7 @@ class Diagnosis:
 
     Attributes
     ----------
-    axes : tuple of armfit.diagnose.AxisDiagnosis
+    axes : tuple of armfit.diagnosis.AxisDiagnosis
         Per axis: the verdict, the missing effect (or None), candidates best first,
         failing bands, base error, cross-axis coupling.
     spectra, model : Spectra, ModelFit
@@ -1134,17 +1133,3 @@ __all__ = [
     "read_weights", "simulate", "stability",
 ]
 
-
-def _bind_package_names() -> None:
-    """Make ``armfit.diagnose``, ``armfit.simulate`` (and ``armfit.stability``) the stages
-    of this module, not the submodules of the same names: importing a submodule binds it
-    on the package, so the names are bound again once the submodules are loaded (they stay
-    importable as modules: ``from armfit.diagnose import compare``)."""
-    package = sys.modules.get("armfit")
-    if package is not None:
-        for name in ("diagnose", "simulate", "stability"):
-            if name in globals():
-                setattr(package, name, globals()[name])
-
-
-_bind_package_names()

@@ -1,6 +1,6 @@
 """Bounded nonlinear least squares for block-arrow problems.
 
-The joint fits of the diagnosis (:mod:`armfit.diagnose`) have T trials, each with its own
+The joint fits of the diagnosis (:mod:`armfit.diagnosis`) have T trials, each with its own
 ``nb`` parameters, and ``k`` parameters shared by every trial. Their residual vector is
 trial-major (T blocks of m residuals) and their Jacobian has a block-arrow shape::
 

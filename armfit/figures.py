@@ -47,6 +47,7 @@ from matplotlib.lines import TICKDOWN, TICKUP, Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import FuncFormatter, Locator, LogLocator, NullFormatter, NullLocator
 
+from armfit import noise
 from armfit.constants import AXES
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import atomic_path, check_output
@@ -58,7 +59,7 @@ from armfit.loop import (
 )
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.literature import LiteratureModel, literature_models
-from armfit.models.params import model_from_params
+from armfit.models.params import fit_band, model_from_params
 from armfit.spectra import Spectra
 from armfit.uncertainty import WuWeight, arm_trials, derived_mass_kg, w_max
 
@@ -763,7 +764,11 @@ class Residuals:
 
     ``z_db[i]`` is (mag_db − 20 log10|H_model|)/se_db and ``z_deg[i]`` is the phase
     difference, wrapped to (−180, 180], over se_deg, for grip ``grips[i]`` (None: the
-    median over all grips), at ``freq_hz``. Dimensionless; |z| ≤ 2 is the noise band.
+    median over all grips), at ``freq_hz``; se_db, se_deg are the noise model's
+    (:func:`armfit.noise.standard_errors`). Dimensionless; |z| ≤ 2 is the noise band.
+    ``rms_norm[i]``: the model's "× noise" (:func:`armfit.noise.rms_norm`) over
+    ``bands[i]``, the band its params row was fitted on (the whole grid when the row
+    does not say) — the number the params file, ``compare`` and the report give.
     """
 
     axis: str
@@ -771,6 +776,8 @@ class Residuals:
     grips: tuple[float | None, ...]
     z_db: np.ndarray
     z_deg: np.ndarray
+    rms_norm: tuple[float, ...] = ()
+    bands: tuple[tuple[float, float], ...] = ()
 
 
 def normalised_residuals(spectra: pd.DataFrame, params: pd.DataFrame, axis: str, *,
@@ -785,7 +792,7 @@ def normalised_residuals(spectra: pd.DataFrame, params: pd.DataFrame, axis: str,
     pairs = _params_for(params, axis)
     if not pairs:
         raise BadInputError(f"no model row for axis {axis}", column="axis")
-    grips, zdb, zdeg, freq = [], [], [], None
+    grips, zdb, zdeg, freq, norms, bands = [], [], [], None, [], []
     for g, row in pairs:
         level = "median" if g is None else "mean"
         rows = _select(spectra, level=level, kind=kind, axis=axis)
@@ -804,11 +811,48 @@ def normalised_residuals(spectra: pd.DataFrame, params: pd.DataFrame, axis: str,
         model, theta = model_from_row(row)
         h = model.response(c.freq_hz, theta)
         dphi = (c.phase_deg - np.degrees(np.angle(h)) + 180.0) % 360.0 - 180.0
+        se_db, se_deg = noise.standard_errors(c.se_db, c.se_deg)
         with np.errstate(divide="ignore", invalid="ignore"):
-            zdb.append((c.mag_db - _db(h)) / c.se_db)
-            zdeg.append(dphi / c.se_deg)
+            r_db = c.mag_db - _db(h)
+        z_db, z_deg = noise.normalised(r_db, dphi, se_db, se_deg)
+        zdb.append(z_db)
+        zdeg.append(z_deg)
+        band = fit_band(row, freq) or (float(freq[0]), float(freq[-1]))
+        sel = (freq >= band[0]) & (freq <= band[1])
+        norms.append(noise.rms_norm(r_db[sel], dphi[sel], se_db[sel], se_deg[sel]))
+        bands.append(band)
         grips.append(g)
-    return Residuals(axis, freq, tuple(grips), np.vstack(zdb), np.vstack(zdeg))
+    return Residuals(axis, freq, tuple(grips), np.vstack(zdb), np.vstack(zdeg),
+                     tuple(norms), tuple(bands))
+
+
+def residual_labels(spectra: pd.DataFrame, params: pd.DataFrame, axis: str, *,
+                    kind: str = "measured") -> dict[float | None, str]:
+    """The legend labels of :func:`residual_figure` for the model rows of ``axis``.
+
+    Parameters
+    ----------
+    spectra : pandas.DataFrame or Spectra
+        The spectra the residuals are taken against.
+    params : pandas.DataFrame
+        A params table (grip fits or nominal fits).
+    axis : str
+        "x", "y" or "z".
+    kind : str, optional
+        Kind of the spectra rows ("measured" by default).
+
+    Returns
+    -------
+    dict
+        {grip in N (None for a nominal row): label}, e.g. ``"base (0.44× noise,
+        0.1–30 Hz)"``: the row's model and its "× noise" over its fit band
+        (:attr:`Residuals.rms_norm`, two decimals, as the report prints it).
+    """
+    res = normalised_residuals(spectra, params, axis, kind=kind)
+    names = {g: _model_label(r) for g, r in _params_for(params, axis)}
+    return {g: (f"{_grip_text(g)}: " if g is not None else "")
+            + f"{names[g]} ({norm:.2f}× noise, {lo:.3g}–{hi:.3g} Hz)"
+            for g, norm, (lo, hi) in zip(res.grips, res.rms_norm, res.bands, strict=True)}
 
 
 def _residual_scale(ax) -> None:
@@ -857,12 +901,9 @@ def residual_figure(spectra: pd.DataFrame, params: pd.DataFrame,
             if table is None:
                 continue
             res = normalised_residuals(spectra, table, ax_name, kind=kind)
-            names = {g: _model_label(r) for g, r in _params_for(table, ax_name)}
+            labels = residual_labels(spectra, table, ax_name, kind=kind)
             for i, g in enumerate(res.grips):
-                z = np.concatenate([res.z_db[i], res.z_deg[i]])
-                rms = float(np.sqrt(np.nanmean(z[np.isfinite(z)] ** 2)))
-                label = (f"{_grip_text(g)}: " if g is not None else "") + \
-                    f"{names[g]} (rms z {rms:.1f})"
+                label = labels[g]
                 gid = f"{which}:{ax_name}:{_grip_text(g)}".replace(" ", "")
                 col = colour[g]
                 lw = 0.9 if ls == "-" else 1.1
@@ -1122,5 +1163,6 @@ def stability_figure(params: pd.DataFrame, settings=None, *,
 __all__ = [
     "FORMATS", "Residuals", "bode_figure", "figure_format",
     "literature_figure", "model_from_row", "normalised_residuals", "residual_figure",
+    "residual_labels",
     "save_figure", "stability_figure", "uncertainty_figure",
 ]

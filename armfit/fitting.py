@@ -31,9 +31,11 @@ Convergence: a fit is converged when the optimiser is and, should it end more th
 :data:`MARKEDLY_LOWER` of its own (a local fit from ``x0`` then also refines the cheapest
 structured starts); otherwise its message names the local minimum and the better start.
 
-The "complex" cost's standard errors: invalid ones take the median of the valid ones, and
-the variance is pooled over 9 neighbouring bins (standard errors estimated from a few
-trials are themselves noisy; a bin with a chance 10× too small se would dominate).
+The "complex" cost's standard errors are those of the noise model
+(:func:`armfit.noise.standard_errors`: capped at pure noise, filled, pooled over
+neighbouring bins, floored), and ``rms_norm`` is its "× noise" statistic
+(:func:`armfit.noise.rms_norm`), the same number ``compare``, the diagnosis and the
+figures report for the same model on the same bins.
 
 Confidence intervals (95 %) are formed in log-parameter space and are the wider of two:
 
@@ -72,8 +74,8 @@ from functools import lru_cache
 
 import numpy as np
 from scipy import optimize, special
-from scipy.ndimage import uniform_filter1d
 
+from armfit import noise
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import params_frame
@@ -91,8 +93,6 @@ _N_SUBSET = 160         # log-spaced bins used while refining candidates
 _N_ANCHORS = 3          # structured starts (paper rows, effect-removed guess) refined
 _MAX_EFFECT_POINTS = 64  # combinations of the effects' starting values among the anchors
 _TOL = 1e-12            # ftol/xtol/gtol of the final polish
-#: Neighbouring bins over which the measurement's variance is pooled (see fit_response).
-SE_POOL_BINS = 9
 #: Contiguous frequency bands of the delete-a-band jackknife (:func:`band_jackknife`):
 #: six bands of equal log width, about half a decade each over 0.1–30 Hz. Chosen on
 #: time-domain simulated studies (benchmarks/interval_coverage.py): with 6 bands the
@@ -257,21 +257,18 @@ class _Problem:
         return np.where(np.isfinite(r), r, 1e6)
 
 
-def _standard_errors(se, n: int, fallback: float, pool: int) -> np.ndarray:
-    """Per-bin standard errors (bins sorted by frequency): invalid entries (NaN, ≤ 0) take
-    the median of the valid ones, then the variance is pooled over ``pool`` neighbouring
-    bins (se = √(moving mean of se²)); with no valid entry (or ``se`` None) every bin
-    takes ``fallback``."""
-    if se is None:
-        return np.full(n, fallback)
-    se = np.asarray(se, float)
-    ok = np.isfinite(se) & (se > 0)
-    if not ok.any():
-        return np.full(n, fallback)
-    se = np.where(ok, se, np.median(se[ok]))
-    if pool > 1:
-        se = np.sqrt(uniform_filter1d(se * se, pool, mode="nearest"))
-    return se
+def _weights(se_db, se_deg, order: np.ndarray, n: int
+             ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray, np.ndarray]:
+    """The noise model's standard errors (dB, deg) of a response whose bins are put in
+    frequency order by ``order`` (None without measured ones), and the standard errors
+    that weight the cost: the noise model's, or 1 dB and :data:`UNIT_SE_DEG` where there
+    is none (no standard errors given, or none valid)."""
+    if se_db is None or se_deg is None:
+        return None, None, np.ones(n), np.full(n, UNIT_SE_DEG)
+    sdb, sdeg = noise.standard_errors(np.asarray(se_db, float).ravel()[order],
+                                      np.asarray(se_deg, float).ravel()[order])
+    return (sdb, sdeg, np.where(np.isfinite(sdb), sdb, 1.0),
+            np.where(np.isfinite(sdeg), sdeg, UNIT_SE_DEG))
 
 
 # ---------------------------------------------------------------------------
@@ -462,7 +459,7 @@ def _subset(f: np.ndarray, n: int) -> np.ndarray:
 def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
                  cost: str = "complex", band: tuple[float, float] | None = None,
                  x0: Mapping[str, float] | None = None, global_search: bool = True,
-                 max_nfev: int | None = None, se_pool: int = SE_POOL_BINS,
+                 max_nfev: int | None = None,
                  strict: bool = True, intervals: bool = True,
                  jackknife_bands: int = JACKKNIFE_BANDS,
                  second_opinion: bool = True) -> FitResult:
@@ -472,10 +469,9 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     of 20 log10|H| (dB) and of the phase (deg), used by the "complex" cost; band: (lo, hi)
     Hz, bins outside are ignored (default: all); x0: warm start {name: value} (missing names
     take the typical value); global_search: False refines from x0 (or the typical values)
-    only; max_nfev: evaluation budget of the final polish (default 200 per parameter);
-    se_pool: standard errors estimated from a few trials are themselves noisy (with 3
-    subjects a bin's se can be 10× too small, and that bin then dominates the fit), so
-    the variance is pooled over ``se_pool`` neighbouring bins (1: use se as given).
+    only; max_nfev: evaluation budget of the final polish (default 200 per parameter).
+    The standard errors are the noise model's (:func:`armfit.noise.standard_errors`, on
+    the whole grid given, then restricted to the band); ``rms_norm`` is its "× noise".
 
     intervals: False skips the 95 % intervals (NaN), e.g. for bootstrap replicates;
     jackknife_bands: bands of the delete-a-band jackknife that widens them
@@ -493,6 +489,56 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     """
     if cost not in COSTS:
         raise UsageError(f"cost must be one of {', '.join(COSTS)}, got {cost!r}")
+    prob, sel, (noise_db, noise_deg) = _problem(model, f_hz, H, se_db, se_deg, band, cost)
+    space, m = prob.space, prob.f.size
+    budget = 200 * len(space.names) if max_nfev is None else int(max_nfev)
+    res, nfev, others = _search(prob, x0, global_search, budget)
+    converged = bool(res.status > 0 and np.all(np.isfinite(res.x)))
+    # Honest convergence: a fit far above the noise while another start reaches a
+    # markedly lower cost is a local minimum, not converged. The global search refined
+    # the structured starts already (and keeps its best end); a local fit from x0 gets
+    # their second opinion here.
+    not_best = ""
+    measured = cost == "complex" and se_db is not None and se_deg is not None
+    if converged and measured and _rms(res.fun) > FAR_FROM_NOISE:
+        not_best, n_other = _better_start(prob, res, others,
+                                          not global_search and second_opinion)
+        nfev += n_other
+        converged = not not_best
+    band_used = (float(prob.f[0]), float(prob.f[-1]))
+    if not converged and strict:
+        why = not_best or f"{res.message}"
+        raise ConvergenceError(f"fit did not converge in band {band_used[0]:g}-"
+                               f"{band_used[1]:g} Hz after {res.nfev} evaluations "
+                               f"({why}); no parameters reported")
+    theta = space.to_theta(res.x)
+    params = {n: float(v) for n, v in zip(space.names, theta, strict=True)}
+    if intervals:
+        ci_lo, ci_hi = _intervals(prob, res, measured, jackknife_bands)
+    else:
+        ci_lo = ci_hi = {n: float("nan") for n in space.names}
+
+    hm = model.response(prob.f, params)
+    with np.errstate(all="ignore"):
+        db, deg = log_errors(hm, prob.h)
+    rms_db = float(np.sqrt(np.mean(db**2)))
+    rms_deg = float(np.sqrt(np.mean(deg**2)))
+    rms_norm = float("nan") if noise_db is None else \
+        noise.rms_norm(db, deg, noise_db[sel], noise_deg[sel])
+    stuck = at_bound(model.params, params)
+    msg = res.message + (f"; at physical bound: {', '.join(stuck)}" if stuck else "")
+    if not_best:
+        msg = f"not converged: {not_best}; optimiser: {msg}"
+    return FitResult(model=model, params=params, ci_lo=ci_lo, ci_hi=ci_hi, rms_db=rms_db,
+                     rms_deg=rms_deg, rms_norm=rms_norm, band=band_used, n_points=m,
+                     cost=cost, converged=converged, message=msg, nfev=nfev,
+                     objective=float(2 * res.cost), at_bound=tuple(stuck))
+
+
+def _problem(model: ClosedLoopModel, f_hz, H, se_db, se_deg, band, cost: str):
+    """The least-squares problem of :func:`fit_response` on the usable bins of the band:
+    (problem, the selected bins of the frequency-sorted grid, the noise model's standard
+    errors (dB, deg) on that grid or (None, None) without measured ones)."""
     f = np.asarray(f_hz, float).ravel()
     h = np.asarray(H, complex).ravel()
     if f.shape != h.shape:
@@ -508,25 +554,26 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
     if sel.sum() <= n_par:
         raise UsageError(f"fit band {lo:g}-{hi:g} Hz holds {int(sel.sum())} usable bins; "
                          f"{n_par} parameters need at least {n_par + 1}")
-    sdb = _standard_errors(None if se_db is None else np.asarray(se_db, float).ravel()[order],
-                           f.size, 1.0, se_pool)[sel]
-    sdeg = _standard_errors(None if se_deg is None else
-                            np.asarray(se_deg, float).ravel()[order], f.size, UNIT_SE_DEG,
-                            se_pool)[sel]
-    prob = _Problem(model, space, f[sel], h[sel], 1.0 / sdb, 1.0 / sdeg, cost)
-    m = prob.f.size
+    noise_db, noise_deg, wdb, wdeg = _weights(se_db, se_deg, order, f.size)
+    prob = _Problem(model, space, f[sel], h[sel], 1.0 / wdb[sel], 1.0 / wdeg[sel], cost)
+    return prob, sel, (noise_db, noise_deg)
 
+
+def _search(prob: _Problem, x0: Mapping[str, float] | None, global_search: bool,
+            budget: int):
+    """The starts of :func:`fit_response` (global or from ``x0``) polished with at most
+    ``budget`` evaluations each: (the best result — converged first, then lowest cost —,
+    evaluations used, every point the search reached)."""
+    space = prob.space
     starts = _candidates(prob, x0, _N_SOBOL if global_search else 0)
     bounds = (space.zlo, space.zhi)
     nfev = 0
-    ends = np.empty((0, n_par))
+    ends = np.empty((0, len(space.names)))
     if global_search:
         z_starts, nfev, ends = _global_starts(prob, starts, n_fixed=len(starts) - _N_SOBOL,
                                               anchors=_anchors(prob))
     else:
         z_starts = starts[:1]
-
-    budget = 200 * n_par if max_nfev is None else int(max_nfev)
 
     def polish(z0):
         return optimize.least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=bounds,
@@ -541,65 +588,39 @@ def fit_response(model: ClosedLoopModel, f_hz, H, *, se_db=None, se_deg=None,
         others.append(r.x[None])
         if res is None or (r.status > 0, -r.cost) > (res.status > 0, -res.cost):
             res = r
-    converged = bool(res.status > 0 and np.all(np.isfinite(res.x)))
-    # Honest convergence: a fit far above the noise while another start reaches a
-    # markedly lower cost is a local minimum, not converged. The global search refined
-    # the structured starts already (and keeps its best end); a local fit from x0 gets
-    # their second opinion here.
-    not_best = ""
-    noise_ref = cost == "complex" and se_db is not None and se_deg is not None
-    if converged and noise_ref and _rms(res.fun) > FAR_FROM_NOISE:
-        if not global_search and second_opinion:
-            other, n_other = _second_opinion(prob, res.x, _anchors(prob))
-            nfev += n_other
-            if other is not None:
-                others.append(other.x[None])
-        pts = np.vstack(others)
-        ss = np.sum(prob.residuals_batch(pts) ** 2, axis=1)
-        i = int(np.argmin(ss))
-        if ss[i] < MARKEDLY_LOWER * 2 * res.cost:
-            converged = False
-            not_best = (f"a local minimum: this fit ends at {_rms(res.fun):.3g}× the "
-                        f"noise, another start reaches "
-                        f"{np.sqrt(ss[i] / res.fun.size):.3g}× "
-                        f"({_describe(space, pts[i])})")
-    band_used = (float(prob.f[0]), float(prob.f[-1]))
-    if not converged and strict:
-        why = not_best or f"{res.message}"
-        raise ConvergenceError(f"fit did not converge in band {band_used[0]:g}-"
-                               f"{band_used[1]:g} Hz after {res.nfev} evaluations "
-                               f"({why}); no parameters reported")
-    theta = space.to_theta(res.x)
-    params = {n: float(v) for n, v in zip(space.names, theta, strict=True)}
-    if intervals:
-        # residuals in units of measured noise: the jackknife widens the intervals only
-        # when the error exceeds the noise; without a noise reference, always
-        measured = cost == "complex" and se_db is not None and se_deg is not None
-        chi2_red = float(np.sum(res.fun ** 2)) / max(res.fun.size - n_par, 1)
-        jk = (band_jackknife(prob, res.x, jackknife_bands)
-              if jackknife_bands and (chi2_red > 1 or not measured) else None)
-        ci_lo, ci_hi = _jacobian_ci(space, res.x, res.jac, res.fun.reshape(-1, m),
-                                    absolute=measured, jackknife=jk)
-    else:
-        ci_lo = ci_hi = {n: float("nan") for n in space.names}
+    return res, nfev, others
 
-    hm = model.response(prob.f, params)
-    with np.errstate(all="ignore"):
-        db, deg = log_errors(hm, prob.h)
-    rms_db = float(np.sqrt(np.mean(db**2)))
-    rms_deg = float(np.sqrt(np.mean(deg**2)))
-    if se_db is None or se_deg is None:
-        rms_norm = float("nan")
-    else:
-        rms_norm = float(np.sqrt(np.mean(np.concatenate([db / sdb, deg / sdeg]) ** 2)))
-    stuck = at_bound(model.params, params)
-    msg = res.message + (f"; at physical bound: {', '.join(stuck)}" if stuck else "")
-    if not_best:
-        msg = f"not converged: {not_best}; optimiser: {msg}"
-    return FitResult(model=model, params=params, ci_lo=ci_lo, ci_hi=ci_hi, rms_db=rms_db,
-                     rms_deg=rms_deg, rms_norm=rms_norm, band=band_used, n_points=m,
-                     cost=cost, converged=converged, message=msg, nfev=nfev,
-                     objective=float(2 * res.cost), at_bound=tuple(stuck))
+
+def _better_start(prob: _Problem, res, others: list, ask: bool) -> tuple[str, int]:
+    """Whether a point the search reached (``others``; with ``ask``, also the second
+    opinion of the structured starts) has a cost below :data:`MARKEDLY_LOWER` of
+    ``res``'s: (the message naming it, or "" when none has; evaluations used)."""
+    n_other = 0
+    if ask:
+        other, n_other = _second_opinion(prob, res.x, _anchors(prob))
+        if other is not None:
+            others.append(other.x[None])
+    pts = np.vstack(others)
+    ss = np.sum(prob.residuals_batch(pts) ** 2, axis=1)
+    i = int(np.argmin(ss))
+    if ss[i] < MARKEDLY_LOWER * 2 * res.cost:
+        return (f"a local minimum: this fit ends at {_rms(res.fun):.3g}× the "
+                f"noise, another start reaches "
+                f"{np.sqrt(ss[i] / res.fun.size):.3g}× "
+                f"({_describe(prob.space, pts[i])})"), n_other
+    return "", n_other
+
+
+def _intervals(prob: _Problem, res, measured: bool, jackknife_bands: int):
+    """95 % intervals of :func:`fit_response` (module docstring): residuals in units of
+    measured noise widen by the jackknife only when the error exceeds the noise; without
+    a noise reference, always."""
+    n_par = len(prob.space.names)
+    chi2_red = float(np.sum(res.fun ** 2)) / max(res.fun.size - n_par, 1)
+    jk = (band_jackknife(prob, res.x, jackknife_bands)
+          if jackknife_bands and (chi2_red > 1 or not measured) else None)
+    return _jacobian_ci(prob.space, res.x, res.jac, res.fun.reshape(-1, prob.f.size),
+                        absolute=measured, jackknife=jk)
 
 
 #: A fit whose RMS normalised error exceeds this ("several times the noise") gets a
@@ -886,11 +907,28 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
     """
     if which not in STUDY_FITS:
         raise UsageError(f"which must be one of {', '.join(STUDY_FITS)}, got {which!r}")
-    how = STUDY_FITS[which]
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
     specs = effects_by_axis(effects)
     sp = Spectra.of(spectra)
     source = source if source is not None else sp.source
+    agg, measured = _study_aggregates(sp, STUDY_FITS[which], method, source)
+    keys, tasks = _study_tasks(agg, measured, which, source, bands=bands, specs=specs,
+                               bootstrap=(bootstrap, seed),
+                               options={"cost": cost, "max_nfev": max_nfev})
+    fits = []
+    for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs,
+                                                  preload=("armfit.fitting",)), strict=True):
+        fits.append(fit)
+        if on_fit is not None:
+            on_fit(axis, grip, fit)
+    return StudyFit(which, tuple(keys), tuple(fits))
+
+
+def _study_aggregates(sp: Spectra, how: str, method: str | None, source: str | None
+                      ) -> tuple[Spectra, Spectra]:
+    """The measured on-axis aggregates of level ``how`` of a study's spectra, and every
+    measured on-axis row (for the bootstrap's trials), of estimator ``method`` when the
+    spectra hold several."""
     measured = sp.select(kind="measured")
     measured = measured.take(measured.key("out_axis") == measured.key("axis"))
     agg = measured.select(level=how)
@@ -901,6 +939,17 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
     if _check_method(agg, method, source) is not None:
         agg = agg.select(method=method)
         measured = measured.select(method=method)
+    return agg, measured
+
+
+def _study_tasks(agg: Spectra, measured: Spectra, which: str, source: str | None, *,
+                 bands: Mapping[str, tuple[float, float]], specs: Mapping,
+                 bootstrap: tuple[int, int | None], options: Mapping
+                 ) -> tuple[list[tuple[str, float | None]], list[tuple]]:
+    """The (axis, grip) keys and the :func:`_fit_group` tasks of :func:`fit_study`: one
+    per aggregate (axis × grip for 'grip', axis for 'nominal'), in key order; with
+    ``bootstrap`` (replicates, seed) replicates > 0, each with its trials."""
+    how = STUDY_FITS[which]
     group_cols = ("axis", "grip_N") if which == "grip" else ("axis",)
     agg = agg.sorted(group_cols)
     groups: dict[tuple, list[int]] = {}
@@ -909,6 +958,7 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         groups.setdefault(key, []).append(i)
     keys: list[tuple[str, float | None]] = []
     tasks = []
+    n_boot, seed = bootstrap
     for key, rows in groups.items():
         axis = str(key[0])
         grip = float(key[1]) if which == "grip" else None
@@ -919,20 +969,15 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         f, h, se_db, se_deg = agg.row(rows[0])
         where = f"axis {axis}" + (f", grip {grip:g} N" if grip is not None else "")
         boot = None
-        if bootstrap:
+        if n_boot:
             trials = measured.select(level="trial", axis=axis, grip=grip)
-            boot = (*_trial_matrix(trials, f, source, where, how), how, bootstrap, seed)
+            boot = (*_trial_matrix(trials, f, source, where, how), how, n_boot, seed)
         keys.append((axis, grip))
         model = ClosedLoopModel.for_axis(axis, specs[axis][0], held=specs[axis][1])
         tasks.append((where, model, (f, h, se_db, se_deg),
-                      {"cost": cost, "band": bands[axis], "max_nfev": max_nfev}, boot))
-    fits = []
-    for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs,
-                                                  preload=("armfit.fitting",)), strict=True):
-        fits.append(fit)
-        if on_fit is not None:
-            on_fit(axis, grip, fit)
-    return StudyFit(which, tuple(keys), tuple(fits))
+                      {"cost": options["cost"], "band": bands[axis],
+                       "max_nfev": options["max_nfev"]}, boot))
+    return keys, tasks
 
 
 def _fit_group(task) -> FitResult:

@@ -64,7 +64,7 @@ from armfit._version import __version__
 from armfit.adopt import Adoption, adopt
 from armfit.api import compare_frame
 from armfit.constants import AXES, PAPER_BANDS
-from armfit.diagnose import BANDS, diagnose
+from armfit.diagnosis import BANDS, diagnose_axes
 from armfit.errors import ArmfitError, OutputError
 from armfit.fitting import fit_trials, grip_fit_starts, trial_fits_table
 from armfit.io.artifacts import write_params
@@ -381,7 +381,7 @@ def _fit(which: str) -> Callable[[_Context], str]:
             axes = [a for a in AXES if (back.table["axis"] == a).any()]
             # the diagnosis has worker processes of its own: its steps are long, and
             # the stages that wait for their pool tasks should not queue behind them
-            ctx.background = _Background(o.jobs, in_lane, "background", diagnose,
+            ctx.background = _Background(o.jobs, in_lane, "background", diagnose_axes,
                                          ctx.spectra, back.table, axes=axes, jobs=o.jobs)
             ctx.stack.callback(ctx.background.close)
         return (f"{len(back.table)} fit(s), cost {ctx.options.cost}, median rms "
@@ -904,8 +904,9 @@ def report_markdown(run: _Context) -> str:
                             "significant"], cands)
 
     L += ["### Nominal models against the medians (compare.csv)", "",
-          "RMS magnitude error (dB) / phase error (deg) / normalised error (× noise) over "
-          "the whole grid and per band.", ""]
+          "RMS magnitude error (dB) / phase error (deg) / normalised error (× noise); "
+          "overall over each model's fit band (the rms × noise of Table II), and per band "
+          "over the whole grid.", ""]
     bands = [f"{lo:g}-{hi:g}" for lo, hi in BANDS]
     header = ["axis", "model", "overall"] + [f"{b} Hz" for b in bands]
     rows = []

@@ -35,7 +35,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import tdsim  # noqa: E402
 
-from armfit.diagnose import compare, diagnose  # noqa: E402
+from armfit.diagnosis import compare_models as compare  # noqa: E402
+from armfit.diagnosis import diagnose_axes as diagnose  # noqa: E402
 from armfit.models.effects import EFFECTS, load_effect_file  # noqa: E402
 
 #: (label, study settings, truth {effect: params}, axes the effects act on)

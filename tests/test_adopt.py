@@ -166,7 +166,7 @@ def test_adopt_declines_an_effect_at_its_bound():
     only the nearest approximation), and the effects after it too."""
     from types import SimpleNamespace
 
-    from armfit.diagnose import MissingEffect
+    from armfit.diagnosis import MissingEffect
     err = SimpleNamespace(rms_norm=50.0)
     m1 = MissingEffect("delay", {"delay_s": 0.01}, {"delay_s": 0.0099}, {"delay_s": 0.0101},
                        (), 5.0)

@@ -30,6 +30,27 @@ def test_exports():
         assert getattr(armfit, name).__doc__, f"{name} has no docstring"
 
 
+def test_the_diagnosis_package_and_the_diagnose_stage_are_apart():
+    # the engine is the package armfit.diagnosis; armfit.diagnose and armfit.compare stay
+    # the API's stage functions (armfit.api) after every module of the package is loaded
+    import importlib
+    import pkgutil
+    import types
+
+    import armfit.api
+    import armfit.diagnosis as engine
+
+    for mod in pkgutil.iter_modules(engine.__path__):
+        importlib.import_module(f"armfit.diagnosis.{mod.name}")
+    assert isinstance(engine, types.ModuleType) and hasattr(engine, "__path__")
+    assert armfit.diagnose is armfit.api.diagnose
+    assert armfit.compare is armfit.api.compare
+    # the engine's own names differ from the stages': diagnose_axes, compare_models
+    assert not hasattr(engine, "diagnose")
+    assert isinstance(engine.compare, types.ModuleType)     # its submodule compare.py
+    assert callable(engine.diagnose_axes) and callable(engine.compare_models)
+
+
 def test_spectra_hold_the_study_once(spectra):
     # sample_data/study: 4 subjects x 3 axes x 3 grips = 36 trials, one file each (its README)
     trials = spectra.select(level="trial", kind="measured")

@@ -21,7 +21,7 @@ from click.testing import CliRunner
 
 from armfit import __version__
 from armfit.cli.main import cli
-from armfit.diagnose import BANDS
+from armfit.diagnosis import BANDS
 from armfit.models.params import model_from_params, read_params
 from armfit.spectra import Spectra
 
@@ -150,8 +150,9 @@ def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
     assert keys == ([("x", "base", b) for b in bands] + [("z", "base", b) for b in bands]
                     + [("z", "base+delay", b) for b in bands])
     assert set(comp["level"]) == {"median"} and set(comp["grip"]) == {""}
-    # analytic check of the overall rows: RMS over the grid of 20 log10|H_med / H_CL| (dB)
-    # and of angle(H_med / H_CL) (deg), H_CL of eq. 4 at the row's parameters
+    # analytic check of the overall rows: RMS over the row's fit band (band_lo_hz to
+    # band_hi_hz, stored to 10 digits) of 20 log10|H_med / H_CL| (dB) and of
+    # angle(H_med / H_CL) (deg), H_CL of eq. 4 at the row's parameters
     spectra = Spectra.read(out / "spectra.parquet").to_frame()
     for axis, model_file in (("x", "nominal_params_base.csv"),
                              ("z", "nominal_params_base.csv"), ("z", "nominal_params.csv")):
@@ -159,6 +160,8 @@ def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
         model, theta = model_from_params({**row.to_dict(), "axis": axis})
         med = spectra[(spectra["level"] == "median") & (spectra["kind"] == "measured")
                       & (spectra["axis"] == axis)].sort_values("freq_hz")
+        f = med["freq_hz"].to_numpy()
+        med = med[(f >= row["band_lo_hz"] * (1 - 1e-9)) & (f <= row["band_hi_hz"] * (1 + 1e-9))]
         h = med["re"].to_numpy() + 1j * med["im"].to_numpy()
         ratio = h / model.response(med["freq_hz"].to_numpy(), theta)
         rms_db = np.sqrt(np.mean((20 * np.log10(np.abs(ratio))) ** 2))
@@ -169,8 +172,11 @@ def test_compare_csv_matches_the_residuals_of_the_nominal_models(first):
         # CSV keeps 10 significant digits
         assert got["rms_db"] == pytest.approx(rms_db, rel=1e-8)
         assert got["rms_deg"] == pytest.approx(rms_deg, rel=1e-8)
-    z = comp[(comp["axis"] == "z") & (comp["band"] == "overall")].set_index("model")
-    # with the true effect modelled the systematic error goes: at least halved
+        # ... and its "× noise" is the params file's: the same noise model on the same bins
+        assert got["rms_norm"] == pytest.approx(float(row["rms_norm"]), rel=1e-8)
+    # with the true effect modelled the error goes where a delay shows most, 10-30 Hz
+    # (the base model's overall row covers only its fit band below 10 Hz): at least halved
+    z = comp[(comp["axis"] == "z") & (comp["band"] == "10-30")].set_index("model")
     assert z.loc["base+delay", "rms_norm"] < 0.5 * z.loc["base", "rms_norm"]
 
 

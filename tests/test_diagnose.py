@@ -1,4 +1,4 @@
-"""Tests of armfit.diagnose: residual summaries, failing bands in words, the joint fits and
+"""Tests of armfit.diagnosis: residual summaries, failing bands in words, the joint fits and
 the diagnosis of missing effects.
 
 Expected values come from analytic residual patterns, from the paper's Table I (the model
@@ -12,18 +12,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from armfit.diagnose import (
+from armfit.diagnosis import (
     AxisData,
     band_error,
-    compare,
-    describe,
-    diagnose,
+    describe_residual,
     diagnosis_to_dict,
     failing_bands,
     joint_fit,
     residuals,
     trial_statistics,
 )
+from armfit.diagnosis import compare_models as compare
+from armfit.diagnosis import diagnose_axes as diagnose
 from armfit.fitting import fit_study
 from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, h_cl
 from armfit.models.effects import EFFECTS
@@ -71,7 +71,7 @@ def test_describe_a_growing_phase_lag():
     # a pure delay of 10 ms: phase residual −360 f τ deg, magnitude exact
     f = np.geomspace(5, 30, 20)
     r_deg = -360 * f * 0.01
-    text = describe(f, np.zeros(20), r_deg, np.zeros(20, bool), np.ones(20, bool))
+    text = describe_residual(f, np.zeros(20), r_deg, np.zeros(20, bool), np.ones(20, bool))
     assert text.startswith("phase lags the model more and more with frequency")
     assert "magnitude fine" in text
 

@@ -15,14 +15,13 @@ import numpy as np
 import pytest
 import tdsim
 
-from armfit.diagnose import (
+from armfit.diagnosis import (
     NOISE_TOL,
-    compare,
-    diagnose,
     diagnosis_to_dict,
-    effective_se,
     practical,
 )
+from armfit.diagnosis import compare_models as compare
+from armfit.diagnosis import diagnose_axes as diagnose
 from armfit.models.effects import EFFECTS
 
 SMALL = dict(subjects=2, axes=("x",), duration_s=(30.0, 35.0))
@@ -125,20 +124,6 @@ def test_non_white_input_diagnose_agrees_with_compare(tmp_path):
     ratio = d.error_steps[0] / row.overall.rms_norm
     assert 0.5 <= ratio <= 2.0, (d.error_steps[0], row.overall.rms_norm)
     assert not d.adequate
-
-
-def test_effective_se_caps_a_runaway_standard_error():
-    # three trials, one point with a Bendat-Piersol error of 1400 dB (coherence at the
-    # debiasing floor): capped by the trials' scatter (1.4826 MAD of 0, 1, 2 dB = 1.48 dB)
-    h = np.array([[1.0, 1.0], [10 ** (1 / 20), 1.0], [10 ** (2 / 20), 1.0]], complex)
-    se_db = np.array([[0.1, 1400.0]] * 3)
-    se_deg = np.array([[1.0, 9000.0]] * 3)
-    sdb, sdeg = effective_se(h, se_db, se_deg)
-    assert sdb[0, 0] == pytest.approx(0.1)              # below the scatter: unchanged
-    assert sdb[0, 1] == pytest.approx(0.01)             # no scatter at all: the floor
-    # with a single trial only the pure-noise caps apply (Rayleigh 5.57 dB, 103.9 deg)
-    s1, d1 = effective_se(h[:1], se_db[:1], se_deg[:1])
-    assert s1[0, 1] == pytest.approx(5.57) and d1[0, 1] == pytest.approx(103.9)
 
 
 def test_practical_needs_a_run_above_noise_and_floor():

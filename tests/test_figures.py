@@ -318,20 +318,35 @@ def test_bode_errors(spectra, grip_params):
 # residual
 # ---------------------------------------------------------------------------
 
+def noise_se(se: np.ndarray, cap: float, floor: float) -> np.ndarray:
+    """The noise model's standard errors (docs/methods.md, "The noise model"), computed
+    here independently: capped, the variance averaged over 9 bins (the edge values
+    repeated beyond the grid), floored."""
+    var = np.pad(np.minimum(se, cap) ** 2, 4, mode="edge")
+    pooled = np.convolve(var, np.ones(9) / 9, mode="valid")
+    return np.maximum(np.sqrt(pooled), floor)
+
+
 def test_normalised_residual_values(spectra):
     # A wrong model (Table I's X 1 N row with k1 doubled) against the 1 N mean:
-    # z = (mean mag_db - 20 log10|H_CL|) / se_db, H_CL of eq. 4 evaluated here.
+    # z = (mean mag_db - 20 log10|H_CL|) / se_db, H_CL of eq. 4 evaluated here, se_db the
+    # noise model's (cap 5.57 dB / 103.9 deg, pooled over 9 bins, floor 0.01 dB / 0.06 deg).
     rows = table1()[(table1().axis == "x") & (table1().grip_N == 1)].copy()
     rows["k1"] *= 2
     res = figures.normalised_residuals(spectra, params_table(rows), "x")
     mean = spectra[(spectra.level == "mean") & (spectra.axis == "x") & (spectra.grip_N == 1)]
     h = h_cl(F, 0.1925, 2 * 85.48, 704.2, 7.410, 2.477, 0.09)
-    expected = (mean.mag_db.to_numpy() - 20 * np.log10(np.abs(h))) / mean.se_db.to_numpy()
+    se_db = noise_se(mean.se_db.to_numpy(), 5.57, 0.01)
+    se_deg = noise_se(mean.se_deg.to_numpy(), 103.9, 0.06)
+    expected = (mean.mag_db.to_numpy() - 20 * np.log10(np.abs(h))) / se_db
     assert res.grips == (1.0,)
     np.testing.assert_allclose(res.z_db[0], expected, rtol=1e-9)
     dphi = mean.phase_deg.to_numpy() - np.degrees(np.angle(h))
     dphi = (dphi + 180) % 360 - 180
-    np.testing.assert_allclose(res.z_deg[0], dphi / mean.se_deg.to_numpy(), rtol=1e-9)
+    np.testing.assert_allclose(res.z_deg[0], dphi / se_deg, rtol=1e-9)
+    # the "× noise" of the row: RMS of both z over the whole grid (the row names no band)
+    assert res.rms_norm[0] == pytest.approx(
+        np.sqrt(np.mean(np.concatenate([expected, dphi / se_deg]) ** 2)), rel=1e-9)
 
 
 def test_nominal_model_is_compared_with_the_median(spectra):
@@ -340,7 +355,8 @@ def test_nominal_model_is_compared_with_the_median(spectra):
     res = figures.normalised_residuals(spectra, params_table(nominal), "y")
     med = spectra[(spectra.level == "median") & (spectra.axis == "y")]
     h = h_cl(F, 0.4142, 98.27, 421.2, 5.720, 9.766, 0.095)  # Table II, Y axis; eq. 4
-    expected = (med.mag_db.to_numpy() - 20 * np.log10(np.abs(h))) / med.se_db.to_numpy()
+    expected = (med.mag_db.to_numpy() - 20 * np.log10(np.abs(h))) / \
+        noise_se(med.se_db.to_numpy(), 5.57, 0.01)
     assert res.grips == (None,)
     np.testing.assert_allclose(res.z_db[0], expected, rtol=1e-9)
 
@@ -371,7 +387,10 @@ def test_residual_figure(delayed):
     assert (xs.min(), xs.max()) == pytest.approx((5.0, 30.0))
     texts = legend_texts(fig)
     assert "noise band |z| ≤ 2" in texts and "failing band" in texts
-    assert any(t.startswith("1 N: model + delay (rms ") for t in texts)
+    # the legend gives each model's "× noise" over its band (here the whole grid)
+    res = figures.normalised_residuals(delayed, with_delay, "x")
+    label = f"1 N: model + delay ({res.rms_norm[0]:.2f}× noise, 0.1–30 Hz)"
+    assert label in texts
     # The simulator's truth has the delay: the phase residual of the base model grows to
     # 360 * 30 Hz * 0.01 s = 108 deg at 30 Hz, i.e. far outside the noise band, while the
     # model with the delay stays near it (data noise 1 deg per trial).

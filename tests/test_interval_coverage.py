@@ -43,7 +43,9 @@ def test_intervals_widen_to_cover_the_truth_when_the_error_exceeds_the_noise(y_a
         fit = fit_response(model, f, h, se_db=sdb, se_deg=sdeg, band=PAPER_BANDS["y"])
         noise = fit_response(model, f, h, se_db=sdb, se_deg=sdeg, band=PAPER_BANDS["y"],
                              jackknife_bands=0)
-        assert fit.rms_norm > 1.1          # the discretised data are not eq. 4 exactly
+        # the discretised data are not eq. 4 exactly: the error exceeds the noise (whose
+        # standard errors are floored at 0.01 dB, 0.06 deg), so the jackknife applies
+        assert fit.rms_norm > 1.0
         assert fit.params == pytest.approx(noise.params, rel=1e-9)
         for n in PARAM_NAMES:
             # the jackknife only ever widens the noise interval

@@ -1,5 +1,5 @@
 """The package's layers: data flows one way, io -> spectra -> models -> fitting / uncertainty /
-diagnose -> figures -> api -> pipeline -> cli, and no import cycle joins two components.
+diagnosis -> figures -> api -> pipeline -> cli, and no import cycle joins two components.
 
 Every ``import`` of an armfit module is read from the source with :mod:`ast`, at module
 level and inside functions alike (a function-local import is still a dependency).
@@ -18,11 +18,11 @@ ROOT = Path(__file__).resolve().parents[1] / "armfit"
 #: import from its own layer or below, never from above; the package itself
 #: (armfit/__init__.py, the public facade) is imported by nobody inside the package.
 LAYERS: dict[str, int] = {
-    "_version": 0, "constants": 0, "errors": 0, "data": 0, "workers": 0,
+    "_version": 0, "constants": 0, "errors": 0, "data": 0, "workers": 0, "noise": 0,
     "io": 1,
     "spectra": 2,
     "models": 3,
-    "fitting": 4, "uncertainty": 4, "diagnose": 4, "simulation": 4, "tables": 4,
+    "fitting": 4, "uncertainty": 4, "diagnosis": 4, "simulation": 4, "tables": 4,
     "loop": 4, "blocklsq": 4,
     "figures": 5, "adopt": 5,
     "api": 6,

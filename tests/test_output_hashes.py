@@ -50,9 +50,9 @@ EXPECTED: dict[str, str] = {
     "fit-uncertainty.stdout":
         "7acce02812cb51d19039cda6a48c0b11f5ea8d38283c7016a123d6327b88f10e",
     "compare.stdout":
-        "516323bd67968046d6f4ad69470323bb92a04760945e528d19ddfe424d677469",
+        "b9ea909c0d83d61174e52927e107954e637ecfa9487a8d5f47499e41ec73f809",
     "diagnose.stdout":
-        "979d09e3dc56bd36dd4c541638c914c7580deffa05076d9b8c8514f24a39f26e",
+        "a9e1d9bf2f2dfc4602ac4e75650dd0cbcf56e71417db5309d1f95a9c1f7d3c1b",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
@@ -62,13 +62,13 @@ EXPECTED: dict[str, str] = {
     "nominal.csv":
         "0053d5e5beda45559d72e0e56545143f4882f41b33beb1ecc59fdf3f831e0d37",
     "run/adoption.csv":
-        "b55f0a13253b42c415ea5bfba4589e66c3adf945902cd3606666bc9ca797269c",
+        "a03dd023790b6e27d056b12e9a0658e098fa0e3ddfd4d75e6ee17b5f5ad43866",
     "run/certificate.csv":
-        "752f009838dff8d3dadac45bd35ecad87adeb3492c0c6e4f861f498da97fd7c8",
+        "c7de9a4f8bc6659303ebcae12c5a8aa2059fac5fc589cc827bb4c7d5f6cd0990",
     "run/compare.csv":
-        "aa2b8b7b1f3d7f61adffdc5b570b08546bb6186b42752f92bfb4ae09b965e6c2",
+        "51b8a6179df1704365e6268b0e67b471f7eec0c3013364d104a636d2153bf86d",
     "run/diagnosis.json":
-        "979d09e3dc56bd36dd4c541638c914c7580deffa05076d9b8c8514f24a39f26e",
+        "a9e1d9bf2f2dfc4602ac4e75650dd0cbcf56e71417db5309d1f95a9c1f7d3c1b",
     "run/grip_params.csv":
         "0deb889a2d14ad30c8e5e6eb89eec8b31a2ab82be4883070caeb2339f5471125",
     "run/grip_params.tex":
@@ -78,13 +78,13 @@ EXPECTED: dict[str, str] = {
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.md":
-        "9265aa424ab94022276f8fde7a0027e9e253a2ebe4f8a5147e7e0a47c31c1c04",
+        "90746b97efeacde978bbd60d16d94583bef3e7ad0c200e8c897256bd7cdeb2f0",
     "run/spectra.parquet":
         "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
     "run/stability.csv":
-        "e7aeee8413f3c36b6898f177b293dbbf5a83f29150b95ff440a676bd51575796",
+        "66d8ba0e6d0e027d80bf246397f68a4e736edc64ebf10d6a5230bef283feaa57",
     "run/trial_params.csv":
-        "412a232790ac60fe532280f65fe8eb4b4403b0a48789c2ac7c7da9f747d344d4",
+        "c472ded99324406191766407550b6ab6b9062b22cf4b64c927a07fffd46b6408",
     "run/trials.parquet":
         "f11d71fa08bdbf7aaa708763a1b50612aec51f96af640c7cc23806c513ff7855",
     "run/wu.csv":

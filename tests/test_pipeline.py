@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from armfit.cli.main import cli
-from armfit.diagnose import BandError, Comparison
+from armfit.diagnosis import BandError, Comparison
 from armfit.errors import ConvergenceError, OutputError
 from armfit.pipeline import (
     COMPARE_COLUMNS,

@@ -21,6 +21,7 @@ from armfit.cli.options import (
     overwrite_option,
     verbosity,
 )
+from armfit.diagnosis.tuning import MAX_STEPS, MIN_EFFECT_DB, MIN_EFFECT_DEG, SHARED_EFFECTS
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import check_output
 from armfit.models.effects import EFFECTS, get_effect
@@ -95,7 +96,10 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
     if as_json:
         emit_json(result.to_dict())
         return
-    t = Table(title=f"model vs measurements ({level}); cells: RMS dB / deg / × noise")
+    title = f"model vs measurements ({level}); cells: RMS dB/deg/× noise"
+    if band is None and level != "trial":
+        title += "; overall: over each model's fit band"
+    t = Table(title=title)
     for c in ("axis", "grip N", "model", "overall"):
         t.add_column(c)
     band_names = [f"{b.lo_hz:g}–{b.hi_hz:g} Hz" for b in rows[0].bands]
@@ -103,7 +107,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
         t.add_column(name)
 
     def cell(b):
-        return f"{b.rms_db:.2f} / {b.rms_deg:.1f} / {b.rms_norm:.1f}" if b.n_points else "–"
+        return f"{b.rms_db:.2f}/{b.rms_deg:.1f}/{b.rms_norm:.2f}" if b.n_points else "–"
 
     for r in rows:
         t.add_row(r.axis, "" if r.grip_N is None else f"{r.grip_N:g}", r.model,
@@ -132,16 +136,18 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="Also write the JSON document to this file (atomically).")
 @jobs_option
-@click.option("--max-steps", type=click.IntRange(0, 10), default=3, show_default=True,
+@click.option("--max-steps", type=click.IntRange(0, 10), default=MAX_STEPS, show_default=True,
               help="At most this many effects added, one per step.")
-@click.option("--min-effect-db", type=click.FloatRange(0.0), default=0.5, show_default=True,
+@click.option("--min-effect-db", type=click.FloatRange(0.0), default=MIN_EFFECT_DB,
+              show_default=True,
               help="Practical floor: an effect must change the response by more than this "
                    "(dB, and more than the noise) somewhere in the band, or ...")
-@click.option("--min-effect-deg", type=click.FloatRange(0.0), default=3.0, show_default=True,
+@click.option("--min-effect-deg", type=click.FloatRange(0.0), default=MIN_EFFECT_DEG,
+              show_default=True,
               help="... by more than this in phase (deg).")
 @click.option("--share", "share", multiple=True, metavar="NAME",
               help="Effects whose parameters are compared across axes (repeatable; default: "
-                   "delay and lowpass, the apparatus effects).")
+                   f"{' and '.join(SHARED_EFFECTS)}, the apparatus effects).")
 @click.option("--no-share", is_flag=True, help="Compare no effect across axes.")
 @overwrite_option
 @json_option

@@ -329,7 +329,39 @@ def model_from_params(row) -> tuple[ClosedLoopModel, dict[str, float]]:
     return model, {n: float(row[n]) for n in model.param_names}
 
 
+def fit_band(row, f_hz=None) -> tuple[float, float] | None:
+    """The band a params row's model was fitted on.
+
+    Parameters
+    ----------
+    row : pandas.Series or Mapping
+        A row of a params file, with ``band_lo_hz`` and ``band_hi_hz`` (Hz): the first
+        and last frequency the fit used.
+    f_hz : array_like, optional
+        A frequency grid (Hz): the band is then given as its first and last grid point
+        within the row's band. A params file stores the band to 10 significant digits,
+        so a grid point within 1e-9 (relative) of an edge counts as inside.
+
+    Returns
+    -------
+    (float, float) or None
+        (lo, hi) in Hz; None when the row does not say (no such columns, not a finite
+        band with lo < hi, or no grid point inside it).
+    """
+    try:
+        lo, hi = float(row["band_lo_hz"]), float(row["band_hi_hz"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        return None
+    if f_hz is None:
+        return lo, hi
+    f = np.asarray(f_hz, float)
+    inside = f[(f >= lo * (1 - 1e-9)) & (f <= hi * (1 + 1e-9))]
+    return (float(inside.min()), float(inside.max())) if inside.size else None
+
+
 __all__ = [
     "PAPER_PARAMS", "ParamRows", "paper_params", "read_param_rows", "read_params",
-    "param_bounds", "row_effects", "row_param_names", "model_from_params",
+    "param_bounds", "row_effects", "row_param_names", "model_from_params", "fit_band",
 ]

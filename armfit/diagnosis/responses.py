@@ -1,0 +1,111 @@
+"""From armfit's files to arrays: the trials of one axis on a common grid, and their
+cross-axis motion."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from armfit import noise
+from armfit.constants import AXES, PARAM_NAMES
+from armfit.spectra import Spectra
+
+__all__ = ["AxisData", "axis_data", "cross_coupling", "param_row", "select_rows", "trial_responses"]
+
+
+@dataclass(frozen=True)
+class AxisData:
+    """The trial-level measured responses of one axis on a common grid.
+
+    f_hz (n,) Hz; h (T, n) complex X/F in m/N; se_db, se_deg (T, n) the trials' standard
+    errors as the spectra file holds them (:meth:`noise_se`: the noise model's); starts:
+    per trial the base parameters to start from (e.g. the grip fit of its grip).
+    """
+
+    axis: str
+    f_hz: np.ndarray
+    h: np.ndarray
+    se_db: np.ndarray
+    se_deg: np.ndarray
+    starts: tuple[Mapping[str, float], ...]
+    labels: tuple[str, ...] = ()
+
+    def noise_se(self, sel: np.ndarray | slice = slice(None)
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """The noise model's standard errors (dB, deg) of every trial, (T, n) on the
+        grid points ``sel`` (computed on the whole grid, then restricted)."""
+        sdb, sdeg = noise.standard_errors(self.se_db, self.se_deg)
+        return sdb[:, sel], sdeg[:, sel]
+
+
+def select_rows(spectra, *, level: str, kind: str, axis: str, grip: float | None = None,
+          out_axis: str | None = None) -> Spectra:
+    return Spectra.of(spectra).select(level=level, kind=kind, axis=axis, grip=grip,
+                                      out_axis=out_axis)
+
+
+def trial_responses(rows: Spectra) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                          list]:
+    """(f, H (T, n), se_db, se_deg, keys) of trial responses on one grid, in subject,
+    grip, run order; keys are (subject, grip_N, run) per trial."""
+    rows = rows.sorted(("subject", "grip_N", "run"))
+    f = rows.common_grid("trials")
+    labels = list(zip(rows.key("subject"), rows.key("grip_N"), rows.key("run"), strict=True))
+    return f, rows.h, rows.se_db, rows.se_deg, labels
+
+
+def param_row(params, axis: str, grip: float | None):
+    rows = params[params["axis"] == axis]
+    if grip is not None and "grip_N" in params.columns:
+        by_grip = rows[np.isclose(rows["grip_N"].to_numpy(float), grip)]
+        if len(by_grip):
+            return by_grip.iloc[0]
+        # nearest grip of the same axis
+        return rows.iloc[int(np.argmin(np.abs(rows["grip_N"].to_numpy(float) - grip)))]
+    return rows.iloc[0] if len(rows) else None
+
+
+def axis_data(spectra, params, axis: str) -> AxisData | None:
+    """Trial-level measured responses of ``axis`` with per-trial starts from ``params``
+    (the row of the trial's grip for grip fits, the axis row for nominal fits).
+    None when the spectra hold no trials of the axis or the params no row for it."""
+    rows = select_rows(spectra, level="trial", kind="measured", axis=axis)
+    if len(rows) == 0 or not (params["axis"] == axis).any():
+        return None
+    f, H, sdb, sdeg, labels = trial_responses(rows)
+    starts = []
+    for _subject, grip, _run in labels:
+        r = param_row(params, axis, float(grip))
+        starts.append({n: float(r[n]) for n in PARAM_NAMES})
+    names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if run is None else f"_run-{run}")
+                  for s, g, run in labels)
+    return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names)
+
+
+def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[str, float]:
+    """Off-axis motion relative to on-axis motion for force on ``data.axis``, in dB.
+
+    For each other position axis: the median over trials and over the band of
+    20 log10(|X_other/F| / |X_axis/F|), the on-axis responses those of ``data``. Absent
+    cross responses give no entry.
+    """
+    out = {}
+    axis, H_on = data.axis, data.h
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    for other in AXES:
+        if other == axis:
+            continue
+        rows = select_rows(spectra, level="trial", kind="cross", axis=axis, out_axis=other)
+        if len(rows) == 0:
+            continue
+        _, H_c, *_ = trial_responses(rows)
+        if H_c.shape != H_on.shape:
+            continue
+        with np.errstate(all="ignore"):
+            ratio = 20 * np.log10(np.abs(H_c[:, sel]) / np.abs(H_on[:, sel]))
+        if not np.isfinite(ratio).any():  # no signal on that axis (cells flagged no_signal)
+            continue
+        out[other] = float(np.nanmedian(ratio))
+    return out

@@ -1,0 +1,99 @@
+"""The diagnosis's results: a step of the stepwise search, an effect it added, a candidate's
+evidence and the verdict of one axis."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from armfit.diagnosis.bands import BandError, FailingBand
+
+__all__ = ["AxisDiagnosis", "Candidate", "MissingEffect", "Step", "short_params"]
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate effect's evidence."""
+
+    effect: str
+    params: dict[str, float]
+    params_lo: dict[str, float]
+    params_hi: dict[str, float]
+    rms_db_before: float
+    rms_db_after: float
+    rms_deg_before: float
+    rms_deg_after: float
+    rms_norm_before: float
+    rms_norm_after: float
+    failing_before: tuple[BandError, ...]
+    failing_after: tuple[BandError, ...]
+    failing_bias_before: float
+    failing_bias_after: float
+    lr: float
+    score: float
+    significant: bool
+    rss_reduction: float = 0.0
+
+
+@dataclass(frozen=True)
+class AxisDiagnosis:
+    """Verdict for one axis: the missing effect (or None), candidates best first."""
+
+    axis: str
+    band: tuple[float, float]
+    n_trials: int
+    missing_effect: str | None
+    tied_with: tuple[str, ...]
+    candidates: tuple[Candidate, ...]
+    failing: tuple[FailingBand, ...]
+    base_error: BandError
+    verdict: str
+    coupling: dict[str, float] = field(default_factory=dict)
+    missing_effects: tuple = ()
+    error_steps: tuple[float, ...] = ()
+    adequate: bool = False
+    steps: tuple = ()
+    final_error: BandError | None = None
+    final_bands: tuple[BandError, ...] = ()
+    final_failing: tuple[FailingBand, ...] = ()
+    stop: str = ""
+    shared: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One row of the stepwise search: the effect added (None for the base model), its
+    parameters as fitted at this step (with 95 % intervals; ``at_bound``: those within
+    1 % of a physical bound), the errors of the model after the step (RMS dB, deg and
+    normalised), ΔBIC against the previous step and the change the effect makes
+    (largest over the band, dB and deg)."""
+
+    effect: str | None
+    params: dict[str, float]
+    params_lo: dict[str, float]
+    params_hi: dict[str, float]
+    at_bound: tuple[str, ...]
+    rms_db: float
+    rms_deg: float
+    rms_norm: float
+    delta_bic: float
+    change_db: float = float("nan")
+    change_deg: float = float("nan")
+
+
+@dataclass(frozen=True)
+class MissingEffect:
+    """An effect the stepwise search added: its parameters in the final joint fit with
+    95 % intervals, those at a bound, and the error/noise after the step that added it."""
+
+    effect: str
+    params: dict[str, float]
+    params_lo: dict[str, float]
+    params_hi: dict[str, float]
+    at_bound: tuple[str, ...]
+    rms_norm_after: float
+
+
+def short_params(d: Mapping[str, float], effect: str) -> dict[str, float]:
+    pre = effect + "."
+    return {k[len(pre):]: float(v) for k, v in d.items() if k.startswith(pre)}

@@ -1,0 +1,61 @@
+"""Screening of candidate effects: each fitted jointly on a few trials spread over the axis,
+ranked by the cost it leaves; the best get the joint fit on all trials."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from armfit.diagnosis.fit import fit_extend
+from armfit.diagnosis.joint import JointFit
+from armfit.diagnosis.responses import AxisData
+from armfit.diagnosis.tuning import SCREEN_GAP, SCREEN_KEEP, SCREEN_SUBSET
+from armfit.models.effects import Effect
+
+__all__ = ["keep_screened", "rank_screened", "screen_candidate"]
+
+
+def keep_screened(screened: Sequence[tuple[Effect, JointFit]]) -> list[tuple[Effect, JointFit]]:
+    """The screened candidates (lowest subset cost first) that get the joint fit on all
+    trials: at most :data:`SCREEN_KEEP`, within :data:`SCREEN_GAP` of the best."""
+    if not screened:
+        return []
+    best = screened[0][1].rss
+    return [c for c in screened[:SCREEN_KEEP] if c[1].rss <= SCREEN_GAP * best]
+
+
+def _trial_subset(data: AxisData, fit: JointFit, idx: np.ndarray,
+            band: tuple[float, float]) -> tuple[AxisData, JointFit]:
+    """The trials ``idx`` of ``data`` and of ``fit`` (its residuals on ``band``), the
+    subset's residual sum of squares weighted as :func:`joint_fit` weighs it."""
+    sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
+                   tuple(data.starts[i] for i in idx))
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    sdb, sdeg = sub.noise_se(sel)
+    z = np.concatenate([fit.r_db[idx] / sdb, fit.r_deg[idx] / sdeg], axis=1)
+    return sub, JointFit(fit.model, fit.base[idx], fit.shared, fit.shared_lo, fit.shared_hi,
+                         fit.r_db[idx], fit.r_deg[idx], float(np.sum(z[np.isfinite(z)] ** 2)),
+                         int(z.size), fit.rho, fit.converged)
+
+
+def screen_candidate(data: AxisData, band: tuple[float, float], current: JointFit,
+           effect: Effect) -> JointFit:
+    """A cheap fit of ``current``'s model plus ``effect``: the same joint fit as
+    :func:`fit_extend` (arm parameters per trial, effects shared, from the effect's null
+    and starting points) on :data:`SCREEN_SUBSET` trials spread over the axis (one per
+    grip in the paper's design) instead of all. Candidates are ranked by the fraction of
+    the subset's cost they remove; the best :data:`SCREEN_KEEP` get the joint fit on all
+    trials, started from the screening's effect values. Returns the subset's fit."""
+    T = data.h.shape[0]
+    if T <= SCREEN_SUBSET:
+        return fit_extend(data, band, current, effect)
+    idx = np.unique(np.linspace(0, T - 1, SCREEN_SUBSET).round().astype(int))
+    sub, cur = _trial_subset(data, current, idx, band)
+    return fit_extend(sub, band, cur, effect, quick=True)
+
+
+def rank_screened(screened: list[tuple[Effect, JointFit]]) -> list[tuple[Effect, JointFit]]:
+    """Screening fits lowest subset cost first (the same subset for every candidate;
+    ties keep the library's order)."""
+    return sorted(screened, key=lambda t: t[1].rss)

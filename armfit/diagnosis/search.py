@@ -1,0 +1,455 @@
+"""The stepwise search: per axis, effects added one at a time while the model is not within
+the noise, and the axes' shared effects compared."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import special
+
+from armfit.constants import AXES
+from armfit.diagnosis.bands import BandError, band_error
+from armfit.diagnosis.evidence import (
+    Adequacy,
+    adequacy,
+    band_errors,
+    effect_size,
+    practical,
+    robust_lr,
+    union_bias,
+)
+from armfit.diagnosis.fit import fit_base, fit_borrowed, fit_extend
+from armfit.diagnosis.joint import JointFit
+from armfit.diagnosis.responses import AxisData, axis_data, cross_coupling
+from armfit.diagnosis.results import (
+    AxisDiagnosis,
+    Candidate,
+    MissingEffect,
+    Step,
+    short_params,
+)
+from armfit.diagnosis.screen import keep_screened, rank_screened, screen_candidate
+from armfit.diagnosis.tuning import (
+    MAX_STEPS,
+    MIN_EFFECT_DB,
+    MIN_EFFECT_DEG,
+    MIN_REDUCTION,
+    SHARED_EFFECTS,
+    SIGNIFICANT_BIC,
+    TIE_BIC,
+    TIE_FRACTION,
+)
+from armfit.diagnosis.verdict import verdict_text
+from armfit.models.arm import ClosedLoopModel, at_bound
+from armfit.models.effects import EFFECTS, Effect
+from armfit.spectra import Spectra
+from armfit.workers import process_pool
+
+__all__ = ["CandidateFit", "cross_axis_agreement", "diagnose_axes", "task_map"]
+
+
+@dataclass(frozen=True)
+class CandidateFit:
+    """A candidate effect of one step, fitted on all trials, with its evidence against
+    the current fit: ``score`` (ΔBIC), ``significant`` (statistically and practically),
+    ``error`` (the fit's errors over the band), ``rss_reduction`` (fraction of the cost it
+    removes), ``lr`` (the likelihood-ratio statistic D) and the largest change it makes
+    to the response (``change_db`` dB, ``change_deg`` deg)."""
+
+    effect: Effect
+    fit: JointFit
+    score: float
+    significant: bool
+    error: BandError
+    rss_reduction: float
+    lr: float
+    change_db: float
+    change_deg: float
+
+    @property
+    def at_bound(self) -> bool:
+        """Whether a parameter of the effect is within 1 % of a physical bound."""
+        return bool(at_bound(self.effect.params, short_params(self.fit.shared,
+                                                              self.effect.name)))
+
+
+class _Search:
+    """The state of the stepwise search on one axis (see :func:`diagnose_axes`)."""
+
+    def __init__(self, data: AxisData, band, effects, max_steps, min_db, min_deg):
+        self.data, self.band, self.effects = data, band, list(effects)
+        self.max_steps, self.min_db, self.min_deg = max_steps, min_db, min_deg
+        self.sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+        self.f = data.f_hz[self.sel]
+        self.se_db, self.se_deg = data.noise_se(self.sel)
+        self.fits: list[JointFit] = []
+        self.added: list[Effect] = []
+        self.steps: list[Step] = []
+        self.adequacies: list[Adequacy] = []
+        self.first_candidates: tuple[Candidate, ...] = ()
+        self.tied: tuple[str, ...] = ()
+        self.stop = ""
+        self.done = False
+
+    def n_params(self, fit: JointFit) -> int:
+        return fit.base.size + len(fit.shared)
+
+    def start(self, base: JointFit) -> None:
+        ad = self._adequacy(base)
+        self.fits.append(base)
+        self.adequacies.append(ad)
+        self.steps.append(Step(None, {}, {}, {}, (), ad.overall.rms_db, ad.overall.rms_deg,
+                               ad.overall.rms_norm, float("nan")))
+        self._check_stop()
+
+    def _check_stop(self) -> None:
+        if self.adequacies[-1].adequate:
+            self.done, self.stop = True, "adequate"
+        elif len(self.added) >= self.max_steps:
+            self.done, self.stop = True, "max-steps"
+        elif not self.remaining():
+            self.done, self.stop = True, "no-more-effects"
+
+    def remaining(self) -> list[Effect]:
+        # no effect twice: a second delay, lag or mass adds nothing a single one's
+        # parameters cannot, and two copies of a resonance or reflex are not identifiable
+        # from these responses (their order is arbitrary)
+        names = {e.name for e in self.added}
+        return [e for e in self.effects if e.name not in names]
+
+    def screen_candidate(self) -> list[tuple[Effect, JointFit]]:
+        """Screening fits (:func:`screen_candidate`) of the remaining effects, lowest cost first."""
+        return rank_screened([(e, screen_candidate(self.data, self.band, self.fits[-1], e))
+                      for e in self.remaining()])
+
+    def take(self, fits: Sequence[tuple[Effect, JointFit]],
+             screened: Sequence[tuple[Effect, JointFit]] = ()) -> None:
+        """Evaluate this step's candidate fits (on all trials); add the best significant
+        one or stop. ``screened``: candidates left at their screening fit (reported
+        among the candidates of the first step, never added)."""
+        cur = self.fits[-1]
+        cands = []
+        for eff, fit in fits:
+            lr, n_eff, reduction = robust_lr(cur, fit, self.se_db, self.se_deg)
+            score = float(lr - len(eff.params) * np.log(max(n_eff, 2.0)))
+            err = band_error(self.f, fit.r_db, fit.r_deg, self.se_db, self.se_deg,
+                             *self.band)
+            size_db, size_deg = effect_size(fit, eff, self.f)
+            prac, _ = practical(self.f, size_db, size_deg, self.se_db, self.se_deg,
+                                self.min_db, self.min_deg)
+            stat = bool(score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION)
+            cands.append(CandidateFit(eff, fit, score, stat and prac, err, reduction, lr,
+                                      float(np.nanmax(size_db, initial=0.0)),
+                                      float(np.nanmax(size_deg, initial=0.0))))
+        cands.sort(key=lambda c: c.score, reverse=True)
+        if not self.added:
+            self.first_candidates = tuple(self._candidate(c) for c in cands) + tuple(
+                self._screened_candidate(e, sc) for e, sc in screened)
+        # an effect with a parameter at a physical bound is only the library's nearest
+        # approximation: take it only when no significant candidate is free of bounds
+        free = [c for c in cands if c.significant and not c.at_bound]
+        best = free[0] if free else next((c for c in cands if c.significant), None)
+        if not self.added and best is not None:
+            self.tied = tuple(c.effect.name for c in cands
+                              if c.significant and c.effect is not best.effect
+                              and best.score - c.score < max(TIE_BIC,
+                                                             TIE_FRACTION * best.score))
+        if best is None:
+            self.done, self.stop = True, "nothing-significant"
+            return
+        self._append(best.effect, best.fit, self._adequacy(best.fit), best.score,
+                     best.change_db, best.change_deg)
+        self._check_stop()
+
+    def _adequacy(self, fit: JointFit) -> Adequacy:
+        return adequacy(self.f, fit, self.se_db, self.se_deg, self.band, self.n_params(fit),
+                        self.min_db, self.min_deg)
+
+    def _append(self, eff: Effect, fit: JointFit, ad: Adequacy, score: float,
+                change_db: float = float("nan"), change_deg: float = float("nan")) -> None:
+        """Record a step: ``eff`` added, the joint fit with it and its adequacy."""
+        err = ad.overall
+        p = short_params(fit.shared, eff.name)
+        self.added.append(eff)
+        self.fits.append(fit)
+        self.adequacies.append(ad)
+        self.steps.append(Step(eff.name, p, short_params(fit.shared_lo, eff.name),
+                               short_params(fit.shared_hi, eff.name),
+                               tuple(at_bound(eff.params, p)), err.rms_db, err.rms_deg,
+                               err.rms_norm, float(score), change_db, change_deg))
+
+    def _candidate(self, c: CandidateFit) -> Candidate:
+        eff, fit, err = c.effect, c.fit, c.error
+        base = self.fits[0]
+        fail_ranges = [(fb.lo_hz, fb.hi_hz) for fb in self.adequacies[0].failing]
+        be = self.adequacies[0].overall
+        return Candidate(
+            effect=eff.name, params=short_params(fit.shared, eff.name),
+            params_lo=short_params(fit.shared_lo, eff.name),
+            params_hi=short_params(fit.shared_hi, eff.name),
+            rms_db_before=be.rms_db, rms_db_after=err.rms_db,
+            rms_deg_before=be.rms_deg, rms_deg_after=err.rms_deg,
+            rms_norm_before=be.rms_norm, rms_norm_after=err.rms_norm,
+            failing_before=band_errors(self.f, base, self.data, self.sel, fail_ranges),
+            failing_after=band_errors(self.f, fit, self.data, self.sel, fail_ranges),
+            failing_bias_before=union_bias(self.f, base, self.se_db, self.se_deg,
+                                            fail_ranges),
+            failing_bias_after=union_bias(self.f, fit, self.se_db, self.se_deg,
+                                           fail_ranges),
+            lr=float(c.lr), score=float(c.score), rss_reduction=float(c.rss_reduction),
+            significant=bool(c.significant))
+
+    def borrow_model(self, agreement: Mapping[str, dict]) -> ClosedLoopModel | None:
+        """The model to refit from the axes' common values, or None: for an axis that is
+        not adequate, or that lacks a shared effect named on other axes."""
+        have = {e.name for e in self.added}
+        lack = [n for n in agreement if n not in have and n in EFFECTS
+                and len(self.added) < self.max_steps]
+        if self.adequacies[-1].adequate and not lack:
+            return None
+        if not agreement or (not lack and not any(n in have for n in agreement)):
+            return None
+        model = self.fits[-1].model
+        for n in lack:
+            if len(model.effects) < self.max_steps:
+                model = model.with_effect(EFFECTS[n])
+        return model
+
+    def borrow(self, fit: JointFit) -> None:
+        """Take the refit from the common values when it helps: same effects and a lower
+        cost (the last step's errors improve), or new effects that are significant in both
+        senses (each becomes a step)."""
+        cur = self.fits[-1]
+        new = [e for e in fit.model.effects if e.name not in {a.name for a in self.added}]
+        if fit.rss >= cur.rss:
+            return
+        if new:
+            lr, n_eff, reduction = robust_lr(cur, fit, self.se_db, self.se_deg)
+            k = sum(len(e.params) for e in new)
+            score = float(lr - k * np.log(max(n_eff, 2.0)))
+            prac = all(practical(self.f, *effect_size(fit, e, self.f), self.se_db,
+                                 self.se_deg, self.min_db, self.min_deg)[0] for e in new)
+            if not (score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION and prac):
+                return
+        ad = self._adequacy(fit)
+        err = ad.overall
+        if new:
+            for e in new:
+                self._append(e, fit, ad, score)
+        else:
+            last = self.steps[-1]
+            p = short_params(fit.shared, last.effect) if last.effect else {}
+            self.steps[-1] = replace(last, params=p or last.params,
+                                     params_lo=short_params(fit.shared_lo, last.effect or ""),
+                                     params_hi=short_params(fit.shared_hi, last.effect or ""),
+                                     rms_db=err.rms_db, rms_deg=err.rms_deg,
+                                     rms_norm=err.rms_norm)
+            self.fits[-1] = fit
+            self.adequacies[-1] = ad
+        self.stop = "adequate" if ad.adequate else self.stop
+
+    def _screened_candidate(self, eff: Effect, fit: JointFit) -> Candidate:
+        """A candidate that the screening ranked below the joint fits: its subset fit's
+        parameters, not significant (its error fields are NaN: not fitted on all)."""
+        nan = float("nan")
+        be = self.adequacies[0].overall
+        return Candidate(eff.name, short_params(fit.shared, eff.name), {}, {}, be.rms_db, nan,
+                         be.rms_deg, nan, be.rms_norm, nan, (), (), nan, nan, 0.0, nan,
+                         False, nan)
+
+    def result(self) -> AxisDiagnosis:
+        final = self.fits[-1]
+        ad = self.adequacies[-1]
+        missing = []
+        for i, eff in enumerate(self.added):
+            p = short_params(final.shared, eff.name)
+            missing.append(MissingEffect(
+                eff.name, p, short_params(final.shared_lo, eff.name),
+                short_params(final.shared_hi, eff.name), tuple(at_bound(eff.params, p)),
+                self.steps[i + 1].rms_norm))
+        errors = [s.rms_norm for s in self.steps]
+        for i in range(1, len(errors)):      # nested fits: never rises (guard rounding)
+            errors[i] = min(errors[i], errors[i - 1])
+        return AxisDiagnosis(
+            axis=self.data.axis, band=(float(self.f[0]), float(self.f[-1])),
+            n_trials=int(self.data.h.shape[0]),
+            missing_effect=missing[0].effect if missing else None, tied_with=self.tied,
+            candidates=self.first_candidates, failing=self.adequacies[0].failing,
+            base_error=self.adequacies[0].overall,
+            verdict=verdict_text(self.adequacies[0], ad, missing, errors, self.stop),
+            missing_effects=tuple(missing), error_steps=tuple(errors),
+            adequate=bool(ad.adequate), steps=tuple(self.steps),
+            final_error=ad.overall, final_bands=ad.bands, final_failing=ad.failing,
+            stop=self.stop)
+
+
+def _base_task(args):
+    data, band = args
+    return fit_base(data, band)
+
+
+def _screen_task(args):
+    data, band, current, effect = args
+    return screen_candidate(data, band, current, effect)
+
+
+def _extend_task(args):
+    data, band, current, effect, screened = args
+    return fit_extend(data, band, current, effect, screened)
+
+
+def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
+                  axes: Sequence[str] = AXES,
+                  effects: Sequence[Effect] | None = None, jobs: int = 1,
+                  max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
+                  min_effect_deg: float = MIN_EFFECT_DEG,
+                  share: Sequence[str] | None = None) -> list[AxisDiagnosis]:
+    """Diagnose every axis present in both ``spectra`` (a spectra DataFrame) and
+    ``params`` (a params DataFrame, grip or nominal fits) by a stepwise search.
+
+    Per axis: fit the base model to every trial (arm parameters per trial); while the
+    model is not adequate (:func:`adequacy`), fit the current model plus each remaining
+    effect (all effects refitted jointly, shared by the trials, warm-started), add the
+    candidate with the highest ΔBIC among those significant in both senses — ΔBIC >
+    :data:`SIGNIFICANT_BIC` with at least :data:`MIN_REDUCTION` of the cost removed, and
+    a change of the response larger than the noise and than ``min_effect_db`` /
+    ``min_effect_deg`` (:func:`practical`) — and repeat, at most ``max_steps`` times. No
+    effect is added twice. ``share``: effects whose parameters the axes' fits are
+    compared for agreement (default :data:`SHARED_EFFECTS`), see
+    :func:`cross_axis_agreement`.
+
+    ``band`` defaults to the whole grid of the spectra; ``jobs`` > 1 runs the fits of a
+    step (one per axis and candidate) in parallel processes — the results do not depend
+    on ``jobs``.
+    """
+    effects = list(EFFECTS.values()) if effects is None else list(effects)
+    spectra = Spectra.of(spectra)
+    searches: list[_Search] = []
+    for axis in axes:
+        data = axis_data(spectra, params, axis)
+        if data is None:
+            continue
+        b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
+        searches.append(_Search(data, b, effects, max_steps, min_effect_db, min_effect_deg))
+    if not searches:
+        return []
+    share = SHARED_EFFECTS if share is None else tuple(share)
+    with task_map(jobs) as run:
+        bases = list(run(_base_task, [(s.data, s.band) for s in searches]))
+        for s, base in zip(searches, bases, strict=True):
+            s.start(base)
+        while any(not s.done for s in searches):
+            _search_step([s for s in searches if not s.done], run)
+        _borrow_step(searches, run, share)
+    out = []
+    for s in searches:
+        d = s.result()
+        out.append(replace(d, coupling=cross_coupling(spectra, s.data, s.band)))
+    agreement = cross_axis_agreement(out, share)
+    if agreement:
+        out = [replace(d, shared=agreement) for d in out]
+    return out
+
+
+@contextlib.contextmanager
+def task_map(jobs: int) -> Iterator[Callable]:
+    """A ``map`` for the diagnosis's tasks: over ``jobs`` worker processes when ``jobs``
+    > 1 (one pool for the whole diagnosis, shut down on leaving), else the builtin
+    ``map`` here. The diagnosis's only use of worker processes."""
+    if jobs <= 1:
+        yield map
+        return
+    pool = process_pool(jobs, preload=("armfit.diagnosis",))
+    try:
+        yield pool.map
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def _search_step(live: Sequence[_Search], run: Callable) -> None:
+    """One step of every live search: cheap screening of every remaining effect (one
+    task per axis and effect), then joint fits of the best (one task each)."""
+    stasks = [(s, e) for s in live for e in s.remaining()]
+    sfits = list(run(_screen_task, [(s.data, s.band, s.fits[-1], e) for s, e in stasks]))
+    screened = {id(s): rank_screened([(e, sc) for (t, e), sc
+                                      in zip(stasks, sfits, strict=True) if t is s])
+                for s in live}
+    tasks = [(s, e, sc) for s in live for e, sc in keep_screened(screened[id(s)])]
+    fits = list(run(_extend_task, [(s.data, s.band, s.fits[-1], e, sc)
+                                   for s, e, sc in tasks]))
+    for s in live:
+        full = {e.name: fit for (t, e, _), fit in zip(tasks, fits, strict=True) if t is s}
+        s.take([(e, full[e.name]) for e, _ in screened[id(s)] if e.name in full],
+               screened=[(e, sc) for e, sc in screened[id(s)] if e.name not in full])
+
+
+def _borrow_step(searches: Sequence[_Search], run: Callable, share: Sequence[str]) -> None:
+    """An axis whose search ended inadequate, or without a shared effect the other axes
+    name, tries the axes' common values as a start (one joint fit each)."""
+    agreement = cross_axis_agreement([s.result() for s in searches], share)
+    tasks = [(s, s.borrow_model(agreement)) for s in searches]
+    tasks = [(s, m) for s, m in tasks if m is not None]
+    if tasks:
+        fits = list(run(_borrow_task, [(s.data, s.band, s.fits[-1], m, agreement)
+                                       for s, m in tasks]))
+        for (s, _), fit in zip(tasks, fits, strict=True):
+            s.borrow(fit)
+
+
+def _borrow_task(args):
+    data, band, current, model, agreement = args
+    return fit_borrowed(data, band, current, model, agreement)
+
+
+def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]
+                         ) -> dict[str, dict]:
+    """For each effect of ``share`` named on two or more axes: the precision-weighted
+    common value of each parameter (weights from the 95 % intervals, in the fitter's
+    search coordinate: log for log parameters), the χ² of the axes' values about it
+    (degrees of freedom: axes − 1) and whether the axes disagree (p < 0.01). The common
+    value is the one-step joint estimate: where each axis's cost is quadratic in the
+    parameter, the joint minimum of the summed costs is this weighted mean."""
+    out: dict[str, dict] = {}
+    for name in share:
+        named = [(d.axis, m) for d in results for m in d.missing_effects if m.effect == name]
+        if len(named) < 2:
+            continue
+        try:
+            eff = EFFECTS[name]
+        except KeyError:
+            continue
+        entry: dict = {"axes": [a for a, _ in named], "params": {}, "disagree": False}
+        for p in eff.params:
+            vals, ws = [], []
+            for _, m in named:
+                v, lo, hi = (m.params.get(p.name), m.params_lo.get(p.name),
+                             m.params_hi.get(p.name))
+                if v is None or lo is None or hi is None:
+                    continue
+                tr = (lambda x: np.log(max(x, 1e-300))) if p.log else (lambda x: x)
+                half = (tr(hi) - tr(lo)) / 2.0
+                if not (np.isfinite(half) and half > 0):
+                    continue
+                sd = half / special.ndtri(0.975)
+                vals.append(tr(v))
+                ws.append(1.0 / sd ** 2)
+            if len(vals) < 2:
+                continue
+            vals, ws = np.array(vals), np.array(ws)
+            common = float(np.sum(ws * vals) / np.sum(ws))
+            chi2 = float(np.sum(ws * (vals - common) ** 2))
+            pval = float(special.chdtrc(len(vals) - 1, chi2))
+            value = float(np.exp(common)) if p.log else common
+            # practically different: the values spread by more than 10 % of the value
+            # (log parameters) or than 10 % of the common value (linear ones)
+            spread = float(np.max(vals) - np.min(vals))
+            big = spread > (np.log(1.1) if p.log else 0.1 * abs(common))
+            entry["params"][p.name] = {"common": value, "chi2": chi2,
+                                       "dof": len(vals) - 1, "p": pval}
+            entry["disagree"] = bool(entry["disagree"] or (pval < 0.01 and big))
+        if entry["params"]:
+            out[name] = entry
+    return out

@@ -1,0 +1,54 @@
+"""The verdict of one axis in words."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from armfit.diagnosis.bands import BandError, FailingBand
+from armfit.diagnosis.evidence import Adequacy
+from armfit.diagnosis.results import MissingEffect
+
+__all__ = ["verdict_text"]
+
+
+def _where(bands: Sequence[BandError], failing: Sequence[FailingBand]) -> str:
+    parts = [f"{fb.lo_hz:.3g}–{fb.hi_hz:.3g} Hz ({fb.description})" for fb in failing]
+    covered = [(fb.lo_hz, fb.hi_hz) for fb in failing]
+    for b in bands:
+        if not any(lo <= b.hi_hz and hi >= b.lo_hz for lo, hi in covered):
+            parts.append(f"{b.lo_hz:g}–{b.hi_hz:g} Hz ({b.rms_norm:.1f}× noise, "
+                         f"{b.rms_db:.2f} dB / {b.rms_deg:.1f} deg RMS)")
+    return "; ".join(parts)
+
+
+def verdict_text(base: Adequacy, final: Adequacy, missing: Sequence[MissingEffect],
+                 errors: Sequence[float], stop: str) -> str:
+    """The verdict of one axis in words (see :func:`diagnose_axes`)."""
+    def eff_words(m: MissingEffect) -> str:
+        return m.effect + " (" + ", ".join(f"{k}={v:.4g}" for k, v in m.params.items()) + ")"
+    bounded = [m for m in missing if m.at_bound]
+    if final.adequate and not missing:
+        return (f"adequate: nothing missing — the 5-parameter model fits within the noise "
+                f"in every band (error {errors[0]:.2f}× noise)")
+    chain = " → ".join(f"{e:.3g}" for e in errors)
+    if final.adequate and not bounded:
+        return (f"adequate after adding {', '.join(eff_words(m) for m in missing)}: "
+                f"error/noise {chain}, within the noise in every band")
+    text = ("still inadequate" if not final.adequate else "within the noise, but")
+    if missing:
+        text += f" after adding {', '.join(eff_words(m) for m in missing)} (error/noise {chain})"
+    else:
+        text += (f": error {errors[0]:.2f}× noise and no library effect improves it "
+                 "significantly")
+    if not final.adequate:
+        where = _where(final.over, final.failing)
+        text += f"; misfit remains in {where}" if where else ""
+    for m in bounded:
+        text += (f"; {m.effect} has {', '.join(m.at_bound)} at a physical bound, so it is "
+                 f"only the library's nearest approximation, not the answer")
+    if not final.adequate or bounded:
+        text += ("; the missing physics may lie outside the effect library (write it as "
+                 "an effect file and rerun with --effects FILE)")
+        if stop == "max-steps":
+            text += "; the search stopped at --max-steps"
+    return text
