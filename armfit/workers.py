@@ -74,8 +74,11 @@ _FINAL = False
 
 
 def ignore_sigint() -> None:
-    """Pool initializer: a worker leaves SIGINT to the main process."""
+    """Pool initializer: a worker leaves SIGINT to the main process (it ignores it, and
+    unblocks it, as the thread that started the fork server had it blocked)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def start_method() -> str:
@@ -131,6 +134,11 @@ class _Pool(ProcessPoolExecutor):
             self._armfit_started = True
 
     def _armfit_start_all(self, failed: list) -> None:
+        # SIGINT blocked in this thread, and so in the processes started from it (the
+        # fork server, the resource tracker): Ctrl-C at a terminal reaches them too, and
+        # the fork server ignores SIGINT only once it has imported its modules
+        if hasattr(signal, "pthread_sigmask"):
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             with _STARTING:
                 if _FINAL:

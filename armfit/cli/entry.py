@@ -91,6 +91,11 @@ def _exit_now(exc: SystemExit) -> None:
         sys.stderr.flush()
     except (OSError, ValueError):
         raise exc from None
+    if _stopping:
+        # after a signal the workers were killed with tasks in their queues: the normal
+        # exit runs multiprocessing's exit handler, which releases the queues' semaphores
+        # (else the resource tracker reports them as leaked)
+        raise exc from None
     mp = sys.modules.get("multiprocessing")
     if mp is not None:
         for child in mp.active_children():
