@@ -39,7 +39,11 @@ Stopping. Workers ignore SIGINT (:func:`ignore_sigint`): Ctrl-C at a terminal re
 the whole process group, and only the main process decides what happens — it kills the
 workers (:func:`stop_workers`, which first lets a pool being started finish starting)
 and removes its partial outputs, so no worker prints a traceback of its own. The fork
-server and the resource tracker end by themselves when the main process exits.
+server and the resource tracker are started with SIGINT blocked (the fork server ignores
+it only once its imports are done), and end by themselves when the main process exits.
+
+A script that uses ``jobs`` > 1 needs the ``if __name__ == "__main__":`` guard, as with
+any pool whose workers do not fork the script's process.
 """
 
 from __future__ import annotations
