@@ -15,7 +15,8 @@ specs = list(project["dependencies"])
 for extra in project.get("optional-dependencies", {}).values():
     specs += extra
 for spec in specs:
-    m = re.fullmatch(r"\s*([A-Za-z0-9_.\-]+)\s*>=\s*([^,;\s]+).*", spec)
+    # extras (``name[extra]>=X``) are dropped: a constraint names the package only
+    m = re.fullmatch(r"\s*([A-Za-z0-9_.\-]+)(?:\[[^\]]*\])?\s*>=\s*([^,;\s]+).*", spec)
     if m is None:
         sys.exit(f"lower-bounds: no '>=' lower bound in {spec!r}")
     print(f"{m.group(1)}=={m.group(2)}")

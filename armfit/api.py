@@ -24,6 +24,7 @@ import importlib
 import json
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -193,12 +194,14 @@ def estimate_study_result(source, config: EstimateConfig | None = None, *,
                           manifest: PathLike | None = None, skip_bad: bool = False,
                           jobs: int = 1, on_open: Callable[[int], object] | None = None,
                           advance: Callable[[], object] | None = None,
-                          warn: Warn | None = None) -> StudySpectra:
+                          warn: Warn | None = None,
+                          executor: Executor | None = None) -> StudySpectra:
     """:func:`estimate` with everything it found: the spectra, the trials kept, the
     trials skipped and files ignored, the sampling rate and data warnings.
 
     ``source`` and the options are those of :func:`estimate`; ``on_open(n)`` is told the
-    number of trials found and ``advance()`` called once per trial (for progress bars).
+    number of trials found and ``advance()`` called once per trial (for progress bars);
+    ``executor`` as in :func:`estimate` (trials in memory are estimated here).
     """
     config = config or EstimateConfig()
     if isinstance(source, Trials) or (isinstance(source, Sequence)
@@ -207,7 +210,8 @@ def estimate_study_result(source, config: EstimateConfig | None = None, *,
     if isinstance(source, str | os.PathLike):
         source = [source]
     return estimate_study(list(source), config, manifest=manifest, skip_bad=skip_bad,
-                          jobs=jobs, on_open=on_open, advance=advance, warn=warn)
+                          jobs=jobs, on_open=on_open, advance=advance, warn=warn,
+                          executor=executor)
 
 
 def estimate(source, *, method: str = "h1", fmin: float = 0.1, fmax: float = 30.0,
@@ -215,7 +219,7 @@ def estimate(source, *, method: str = "h1", fmin: float = 0.1, fmax: float = 30.
              window: str = "hann", mp: Mapping[str, float] | None = None,
              coherence_min: float = 0.5, force_limit_N: float = 8.5,
              manifest: PathLike | None = None, skip_bad: bool = False, jobs: int = 1,
-             warn: Warn | None = None) -> Spectra:
+             warn: Warn | None = None, executor: Executor | None = None) -> Spectra:
     """Frequency responses of every trial, and their mean per axis × grip and median per
     axis (``armfit estimate``).
 
@@ -248,9 +252,15 @@ def estimate(source, *, method: str = "h1", fmin: float = 0.1, fmax: float = 30.
     skip_bad : bool
         Leave bad trials out (listed in ``meta["skipped"]``) instead of raising.
     jobs : int
-        Worker processes.
+        Worker processes (one trial file each).
     warn : callable, optional
         Receives data warnings.
+    executor : concurrent.futures.Executor, optional
+        Estimates the trial files instead of ``jobs`` worker processes: a process pool of yours, or
+        a ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
+        down; see :mod:`armfit.workers`). The result does not depend on it.
+        Each task reads its trial file itself: on a cluster, give paths every machine
+        can read.
 
     Returns
     -------
@@ -262,7 +272,7 @@ def estimate(source, *, method: str = "h1", fmin: float = 0.1, fmax: float = 30.
                              nperseg=nperseg, overlap=overlap, window=window, mp=mp,
                              coherence_min=coherence_min, force_limit_N=force_limit_N)
     return estimate_study_result(source, config, manifest=manifest, skip_bad=skip_bad,
-                                 jobs=jobs, warn=warn).spectra
+                                 jobs=jobs, warn=warn, executor=executor).spectra
 
 
 def read_spectra(path: PathLike) -> Spectra:
@@ -358,12 +368,13 @@ class ModelFit:
 
 
 def _fit(which: str, spectra, *, cost: str, bands, effects, bootstrap: int, seed,
-         method, max_nfev, on_fit, jobs: int) -> ModelFit:
+         method, max_nfev, on_fit, jobs: int, executor: Executor | None = None) -> ModelFit:
     sp = _spectra(spectra)
     study = _fitting.fit_study(sp, which=which, cost=cost, bands=bands,
                                effects=_fit_effects(effects), bootstrap=bootstrap,
                                seed=seed,
-                               method=method, max_nfev=max_nfev, on_fit=on_fit, jobs=jobs)
+                               method=method, max_nfev=max_nfev, on_fit=on_fit, jobs=jobs,
+                               executor=executor)
     return ModelFit(study.table(), which, study.fits, sp)
 
 
@@ -371,7 +382,8 @@ def fit_grip(spectra, *, cost: str = "complex",
              bands: Mapping[str, tuple[float, float]] | None = None,
              effects: Iterable[Effect | str] = (), bootstrap: int = 0, seed: int | None = 0,
              method: str | None = None, max_nfev: int | None = None,
-             on_fit: Callable | None = None, jobs: int = 1) -> ModelFit:
+             on_fit: Callable | None = None, jobs: int = 1,
+             executor: Executor | None = None) -> ModelFit:
     """Fit the closed loop H_CL (eq. 4) to each axis × grip mean (Table I, ``armfit
     fit-grip``).
 
@@ -398,6 +410,10 @@ def fit_grip(spectra, *, cost: str = "complex",
         ``on_fit(axis, grip, FitResult)`` after each fit.
     jobs : int
         Worker processes (one aggregate each); the result does not depend on it.
+    executor : concurrent.futures.Executor, optional
+        Runs the tasks instead of ``jobs`` worker processes: a process pool of yours, or
+        a ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
+        down; see :mod:`armfit.workers`). The result does not depend on it.
 
     Returns
     -------
@@ -410,7 +426,7 @@ def fit_grip(spectra, *, cost: str = "complex",
     """
     return _fit("grip", spectra, cost=cost, bands=bands, effects=effects,
                 bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
-                on_fit=on_fit, jobs=jobs)
+                on_fit=on_fit, jobs=jobs, executor=executor)
 
 
 def fit_nominal(spectra, *, cost: str = "complex",
@@ -418,7 +434,7 @@ def fit_nominal(spectra, *, cost: str = "complex",
                 effects: Iterable[Effect | str] = (), bootstrap: int = 0,
                 seed: int | None = 0, method: str | None = None,
                 max_nfev: int | None = None, on_fit: Callable | None = None,
-                jobs: int = 1) -> ModelFit:
+                jobs: int = 1, executor: Executor | None = None) -> ModelFit:
     """Fit H_CL (eq. 4) to each axis median over all trials (Table II, ``armfit
     fit-nominal``). Parameters as :func:`fit_grip`.
 
@@ -430,7 +446,7 @@ def fit_nominal(spectra, *, cost: str = "complex",
     """
     return _fit("nominal", spectra, cost=cost, bands=bands, effects=effects,
                 bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
-                on_fit=on_fit, jobs=jobs)
+                on_fit=on_fit, jobs=jobs, executor=executor)
 
 
 def read_model(path: PathLike) -> ModelFit:
@@ -511,7 +527,7 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
                     band: tuple[float, float] | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
                     check: Mapping[str, Mapping[str, WuWeight]] | None = None,
-                    jobs: int = 1) -> Uncertainty:
+                    jobs: int = 1, executor: Executor | None = None) -> Uncertainty:
     """W_max (eq. 6) of every trial's derived arm dynamics against the nominal H_ARM and
     the weight Wu(s) = K Π(s − z)/Π(s − p) (eq. 7, s in rad/s) per axis (Table III,
     ``armfit fit-uncertainty``).
@@ -538,6 +554,10 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
         {label: {axis: WuWeight}} further weights to evaluate on the same data.
     jobs : int
         Worker processes (one axis each); the result does not depend on it.
+    executor : concurrent.futures.Executor, optional
+        Runs the tasks instead of ``jobs`` worker processes: a process pool of yours, or
+        a ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
+        down; see :mod:`armfit.workers`). The result does not depend on it.
 
     Returns
     -------
@@ -554,7 +574,7 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
     nom = nominal.nominal if isinstance(nominal, AdoptedModel) else ModelFit.of(nominal)
     results = _uncertainty.fit_uncertainty(sp, nom.table, cost=cost, n_pairs=order,
                                            band=band, smooth_oct=smooth_oct, method=method,
-                                           given=check, jobs=jobs)
+                                           given=check, jobs=jobs, executor=executor)
     bad = [r.axis for r in results if not r.result.converged]
     if bad and cost == "paper":
         raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "
@@ -733,7 +753,8 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
              effects: Iterable[Effect | str] | None = None, jobs: int = 1,
              max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
              min_effect_deg: float = MIN_EFFECT_DEG,
-             share: Sequence[str] | None = None) -> Diagnosis:
+             share: Sequence[str] | None = None, executor: Executor | None = None
+             ) -> Diagnosis:
     """Find the physical effects the 5-parameter model is missing, per axis, step by step
     (``armfit diagnose``): while the model is not within the noise, add the library
     effect with the best significant ΔBIC that changes the response by more than the
@@ -759,6 +780,10 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
     share : sequence of str, optional
         Effects whose parameters are compared across axes (default: the apparatus
         effects delay and lowpass; ``()`` for none).
+    executor : concurrent.futures.Executor, optional
+        Runs the screening and joint fits instead of ``jobs`` (used as is, not shut
+        down; e.g. ``client.get_executor()`` of dask.distributed); the result does not
+        depend on it.
 
     Returns
     -------
@@ -774,7 +799,8 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
     results = diagnose_axes(sp, m.table, band=band,
                             effects=None if effects is None else _effects(effects),
                             jobs=jobs, max_steps=max_steps, min_effect_db=min_effect_db,
-                            min_effect_deg=min_effect_deg, share=share)
+                            min_effect_deg=min_effect_deg, share=share,
+                            executor=executor)
     if not results:
         raise BadInputError("holds no trial-level measured responses for the axes of the "
                             "model", file=sp.source, column="level")
@@ -825,7 +851,8 @@ def fit_trials(spectra, *, cost: str = "complex",
                bands: Mapping[str, tuple[float, float]] | None = None,
                effects: Iterable[Effect | str] = (), method: str | None = None,
                max_nfev: int | None = None, jobs: int = 1,
-               on_fit: Callable | None = None) -> TrialFits:
+               on_fit: Callable | None = None,
+               executor: Executor | None = None) -> TrialFits:
     """Fit H_CL (eq. 4) to every trial's measured response (``armfit fit-trials``): the
     population of arms that :func:`stability` takes.
 
@@ -838,6 +865,10 @@ def fit_trials(spectra, *, cost: str = "complex",
         Worker processes; the result does not depend on it.
     on_fit : callable, optional
         Called with each :class:`armfit.fitting.TrialFit`.
+    executor : concurrent.futures.Executor, optional
+        Runs the tasks instead of ``jobs`` worker processes: a process pool of yours, or
+        a ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
+        down; see :mod:`armfit.workers`). The result does not depend on it.
 
     Returns
     -------
@@ -847,7 +878,8 @@ def fit_trials(spectra, *, cost: str = "complex",
     sp = _spectra(spectra)
     objs = _fit_effects(effects)
     fits = _fitting.fit_trials(sp, cost=cost, bands=bands, effects=objs, method=method,
-                               max_nfev=max_nfev, jobs=jobs, on_fit=on_fit)
+                               max_nfev=max_nfev, jobs=jobs, on_fit=on_fit,
+                               executor=executor)
     return TrialFits(tuple(fits), objs, sp)
 
 
@@ -881,7 +913,8 @@ class AdoptedModel:
 
 
 def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "auto",
-                cost: str = "complex", trials: bool = True, jobs: int = 1) -> AdoptedModel:
+                cost: str = "complex", trials: bool = True, jobs: int = 1,
+                executor: Executor | None = None) -> AdoptedModel:
     """Fit the adopted model (:mod:`armfit.adopt`): the paper's model plus the effects
     the diagnosis names per axis, apparatus effects held at the diagnosis's joint fit.
 
@@ -899,6 +932,11 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
         Also fit every trial (needed by :func:`stability`).
     jobs : int
         Worker processes; the result does not depend on it.
+    executor : concurrent.futures.Executor, optional
+        Runs the fits instead of ``jobs`` worker processes: a process pool of yours, or
+        a ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
+        down; see :mod:`armfit.workers`). The result does not depend on it.
+        The diagnosis, which takes no executor, runs in ``jobs`` worker processes.
 
     Returns
     -------
@@ -907,21 +945,23 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
     sp = _spectra(spectra)
     base = None
     if diagnosis is None:
-        base = fit_grip(sp, cost=cost, jobs=jobs)
+        base = fit_grip(sp, cost=cost, jobs=jobs, executor=executor)
         diagnosis = diagnose(sp, base, jobs=jobs)
     elif diagnosis.model is not None and diagnosis.model.which == "grip":
         base = diagnosis.model
     ad = adopt(diagnosis, policy)
     bands = ad.bands
-    grip = fit_grip(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs)
-    nominal = fit_nominal(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs)
+    grip = fit_grip(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs,
+                    executor=executor)
+    nominal = fit_nominal(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs,
+                          executor=executor)
     per_trial = None
     if trials:
         keys = zip(grip.table["axis"], grip.table["grip_N"], strict=True)
         starts = _fitting.grip_fit_starts(keys, grip.fits)
         effects = ad.effects
         fits = _fitting.fit_trials(sp, cost=cost, bands=bands, effects=effects,
-                                   jobs=jobs, starts=starts)
+                                   jobs=jobs, starts=starts, executor=executor)
         per_trial = TrialFits(tuple(fits), effects, sp)
     return AdoptedModel(ad, grip, nominal, per_trial, base, diagnosis)
 

@@ -858,7 +858,7 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
               method: str | None = None, max_nfev: int | None = None,
               source: str | None = None,
               on_fit: Callable[[str, float | None, FitResult], None] | None = None,
-              jobs: int = 1) -> StudyFit:
+              jobs: int = 1, executor=None) -> StudyFit:
     """Fit H_CL (eq. 4, plus ``effects``) to every aggregate of a study's spectra.
 
     Parameters
@@ -891,6 +891,8 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
         ``on_fit(axis, grip, fit)`` after each fit.
     jobs : int
         Worker processes (one aggregate each); the result does not depend on it.
+    executor : concurrent.futures.Executor, optional
+        Runs the fits instead (used as is, see :mod:`armfit.workers`).
 
     Returns
     -------
@@ -917,7 +919,8 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
                                options={"cost": cost, "max_nfev": max_nfev})
     fits = []
     for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs,
-                                                  preload=("armfit.fitting",)), strict=True):
+                                                  preload=("armfit.fitting",),
+                                                  executor=executor), strict=True):
         fits.append(fit)
         if on_fit is not None:
             on_fit(axis, grip, fit)
@@ -1137,10 +1140,12 @@ def fit_trials(spectra, *, cost: str = "complex",
                effects: Sequence = (), method: str | None = None,
                max_nfev: int | None = None, jobs: int = 1, source: str | None = None,
                starts: Mapping[tuple[str, float], Mapping[str, float]] | None = None,
-               on_fit: Callable[[TrialFit], None] | None = None) -> list[TrialFit]:
+               on_fit: Callable[[TrialFit], None] | None = None,
+               executor=None) -> list[TrialFit]:
     """One fit of H_CL per trial (axis × subject × grip [× run]) of a spectra table, in
     that order (:func:`trial_groups`). Failed fits are kept, with their reason. ``jobs``
-    > 1 fits in that many worker processes (the results do not depend on it).
+    > 1 fits in that many worker processes, a :class:`concurrent.futures.Executor`
+    ``executor`` on it instead (:mod:`armfit.workers`); the results depend on neither.
 
     The trials of one axis and grip are alike, so each trial is first fitted locally
     from its grip's fit (``starts``: {(axis, grip_N): parameters}; by default the grip
@@ -1167,7 +1172,7 @@ def fit_trials(spectra, *, cost: str = "complex",
                     for k, v in starts.items()}
     def run(items: list) -> list:
         return map_tasks(_fit_trial_task, items, jobs, preload=("armfit.fitting",),
-                         chunksize=4)
+                         chunksize=4, executor=executor)
 
     out = run(tasks)
     medians = {}

@@ -30,12 +30,15 @@ subcommand, run in the order data flows (files written into OUTDIR in brackets):
 
 Everything after the diagnosis uses the adopted model (the base model where nothing is
 adopted), so the products are computed once, from the model that survived the
-diagnosis. With ``jobs`` > 1 the stages share ``jobs`` worker processes forked at the
-start (:func:`armfit.workers.shared_pool`): the estimate runs in them while this process
-ingests, the per-trial fits run in them while this process fits Wu, and the figures are
-drawn and written in them while the later stages go on (the report stage waits for
-them). The diagnosis, which starts from the grip fits, has ``jobs`` workers of its own
-while this process fits Table II. The results do not depend on ``jobs``.
+diagnosis. With ``jobs`` > 1 :func:`run_pipeline` starts one pool of ``jobs`` worker
+processes for the run (:func:`armfit.workers.process_pool`) and hands it to every stage:
+the estimate runs in it while this process ingests, the per-trial fits run in it while
+this process fits Wu, and the figures are drawn and written in it while the later stages
+go on (the report stage waits for them). Given an ``executor`` (e.g. a dask cluster's),
+the stages run their tasks on it instead, and the figures are drawn here. The diagnosis,
+which starts from the grip fits, runs in a thread of its own alongside Table II with
+``jobs`` worker processes of its own. The results depend on neither ``jobs`` nor the
+executor.
 
 Every later stage reads the files the earlier ones wrote (as the subcommands do), so
 ``armfit run`` gives the same numbers as the subcommands run one after the other with
@@ -50,10 +53,11 @@ import contextlib
 import importlib
 import math
 import os
+import threading
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -75,7 +79,7 @@ from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.models.params import read_param_rows
 from armfit.spectra import EstimateConfig, Spectra
 from armfit.tables import param_names, sig4, unit_of
-from armfit.workers import in_lane, shared_pool
+from armfit.workers import cancel_pools, executor_for
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
@@ -92,7 +96,8 @@ class RunOptions:
     manifest: trial manifest CSV (None: file names carry the identity); skip_bad: go on
     past bad trials; method: estimator of the measured dynamics ("h1" or "chebwin");
     cost: arm-fit cost ("complex" or "paper", eq. 5); wu_cost: Wu fit ("envelope" or
-    "paper", eq. 7); jobs: worker processes (estimate, diagnose); figures: draw the
+    "paper", eq. 7); jobs: worker processes (every stage with tasks to share out;
+    see :func:`run_pipeline` for an executor given instead); figures: draw the
     figures; overwrite: replace an existing OUTDIR; adopt: what the diagnosis found
     becomes the model ("auto") or not ("none"), see :mod:`armfit.adopt`; outside_loop:
     apparatus effects the stability loop leaves out (:func:`armfit.loop.loop_model`).
@@ -170,9 +175,15 @@ def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike],
 
 def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
                  options: RunOptions = RunOptions(), *, on_stage: OnStage | None = None,
-                 warn: Warn | None = None) -> RunResult:
+                 warn: Warn | None = None, executor: Executor | None = None) -> RunResult:
     """Run every stage on ``inputs`` (raw trial files, folders or a canonical dataset)
     and write the results into ``outdir``, atomically.
+
+    The stages' tasks run on ``executor`` when given (a
+    :class:`concurrent.futures.Executor`, used as is and never shut down; the figures are
+    then drawn in this process, and after a failure the tasks it already runs finish
+    first), else in one pool of ``options.jobs`` worker processes made for the run (none
+    with jobs 1); the diagnosis has ``options.jobs`` worker processes of its own.
 
     ``on_stage(stage)`` is called after each stage (e.g. to print its time); ``warn``
     receives data warnings (saturation). Raises OutputError (exit 73) before any work
@@ -185,7 +196,8 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
     tmp: Path | None = None
     try:
         with atomic_path(out, overwrite=options.overwrite, folder=True) as tmp:
-            result = _run_in(list(inputs), tmp, options, on_stage=on_stage, warn=warn)
+            result = _run_in(list(inputs), tmp, options, on_stage=on_stage, warn=warn,
+                             executor=executor)
     except ArmfitError as exc:
         # a message about a file of the temporary folder names it as it would be in OUTDIR
         text = str(exc)
@@ -221,18 +233,23 @@ class _Clock:
 
 
 class _Background:
-    """``fn(*args, **kwargs)``, started now in a background thread when ``jobs`` > 1
-    (the thread mostly waits for the shared worker pool, so the stages that do not need
-    the result run meanwhile in this process) and collected by :meth:`result`; with
-    ``jobs`` 1 it runs when collected. ``started`` is when it began (s, perf_counter)."""
+    """``fn(*args, **kwargs)``, started now in a thread of its own when ``parallel`` (the
+    thread mostly waits for worker processes, so the stages that do not need the result
+    run meanwhile in this process) and collected by :meth:`result`; else it runs when
+    collected. ``started`` is when it began (s, perf_counter)."""
 
-    def __init__(self, jobs: int, fn: Callable, /, *args, **kwargs):
+    def __init__(self, parallel: bool, fn: Callable, /, *args, **kwargs):
         self.call = (fn, args, kwargs)
         self.thread = None
+        self.ident: int | None = None       # of the thread, once it runs
         self.started = time.perf_counter()
-        if jobs > 1:
+        if parallel:
             self.thread = ThreadPoolExecutor(max_workers=1)
-            self.task = self.thread.submit(fn, *args, **kwargs)
+            self.task = self.thread.submit(self._in_thread, fn, args, kwargs)
+
+    def _in_thread(self, fn: Callable, args, kwargs):
+        self.ident = threading.get_ident()
+        return fn(*args, **kwargs)
 
     def result(self):
         if self.thread is None:
@@ -245,21 +262,36 @@ class _Background:
             self.close()
 
     def close(self) -> None:
-        """Wait for the thread (after a failure elsewhere, its pending work in the pool
-        has been cancelled, so it ends soon)."""
+        """Wait for the thread (after a failure elsewhere, its pending work in the run's
+        pool has been cancelled, so it ends soon)."""
         if self.thread is not None:
             self.thread.shutdown(wait=True, cancel_futures=True)
             self.thread = None
 
+    def stop(self) -> None:
+        """After a failure elsewhere: cancel the pending work of the pools the call made
+        for itself in its thread (:func:`armfit.workers.cancel_pools`; it then fails at
+        its next task), again until it has ended, and wait for the thread."""
+        if self.thread is None:
+            return
+        while not self.task.done():
+            if self.ident is not None:
+                cancel_pools(self.ident)
+            with contextlib.suppress(BaseException):
+                self.task.exception(timeout=0.05)
+        self.close()
+
 
 def _run_in(inputs: list, folder: Path, options: RunOptions, *,
-            on_stage: OnStage | None, warn: Warn | None) -> RunResult:
-    # one pool of worker processes for every stage, forked before any thread starts
-    with shared_pool(options.jobs, lanes=("main", "background")) as pool, \
-            contextlib.ExitStack() as stack:
+            on_stage: OnStage | None, warn: Warn | None,
+            executor: Executor | None = None) -> RunResult:
+    # the caller's executor, or one pool of worker processes for every stage of the run
+    with executor_for(executor, options.jobs) as pool, contextlib.ExitStack() as stack:
+        own = pool is not None and pool is not executor
         ctx = _Context(inputs, folder, options, warn=warn, stack=stack,
                        config=EstimateConfig(method=options.method),
-                       bands=dict(PAPER_BANDS), drawings=_Drawings(pool))
+                       bands=dict(PAPER_BANDS), drawings=_Drawings(pool if own else None),
+                       pool=pool)
         clock = _Clock(on_stage)
         try:
             for stage in PIPELINE:
@@ -268,7 +300,7 @@ def _run_in(inputs: list, folder: Path, options: RunOptions, *,
                     ctx.since = None
                     clock.done(stage.name, summary, since=since)
         except BaseException:
-            if pool is not None:   # the background stages stop at their next task
+            if own:   # the background stages stop at their next task
                 pool.shutdown(wait=True, cancel_futures=True)
             raise
         return RunResult(outdir=str(folder), files=tuple(sorted(ctx.files)),
@@ -294,6 +326,7 @@ class _Context:
     stack: contextlib.ExitStack
     config: EstimateConfig
     bands: dict[str, tuple[float, float]]
+    pool: Executor | None = None        # runs the stages' tasks (None: here, in turn)
     files: list[str] = field(default_factory=list)
     skipped: tuple[tuple[str, str], ...] = ()
     n_ingested: int = 0
@@ -302,7 +335,7 @@ class _Context:
     grip: api.ModelFit | None = None
     nominal: api.ModelFit | None = None
     estimating: _Background | None = None
-    background: _Background | None = None       # the diagnosis
+    diagnosing: _Background | None = None       # the diagnosis
     trial_fits: _Background | None = None
     uncertainty: api.Uncertainty | None = None
     drawn: list[str] = field(default_factory=list)
@@ -317,6 +350,18 @@ class _Context:
     trial_failed: list[tuple[str, str]] = field(default_factory=list)
     wall: dict | None = None            # the stability stage's results, for the report
     since: float | None = None          # start of a stage that ran alongside others
+
+    @property
+    def parallel(self) -> bool:
+        """Whether the stages run alongside each other (their tasks go to :attr:`pool`)."""
+        return self.pool is not None
+
+    def background(self, fn: Callable, /, *args, **kwargs) -> _Background:
+        """``fn(*args, **kwargs)`` as a :class:`_Background` of the run, stopped if the
+        run fails first."""
+        task = _Background(self.parallel, fn, *args, **kwargs)
+        self.stack.callback(task.stop)
+        return task
 
     def path(self, name: str) -> Path:
         """``folder / name``, recorded as a file of the run."""
@@ -338,9 +383,9 @@ def _ingest(ctx: _Context) -> str:
     """Validate the raw trials once, into the canonical dataset (trials.parquet); the
     estimate, which reads the same inputs, runs meanwhile in the worker processes."""
     o = ctx.options
-    ctx.estimating = _Background(o.jobs, api.estimate_study_result, ctx.inputs, ctx.config,
-                                 manifest=o.manifest, skip_bad=o.skip_bad, jobs=o.jobs)
-    ctx.stack.callback(ctx.estimating.close)
+    ctx.estimating = ctx.background(api.estimate_study_result, ctx.inputs, ctx.config,
+                                    manifest=o.manifest, skip_bad=o.skip_bad, jobs=o.jobs,
+                                    executor=ctx.pool)
     ing = ingest(ctx.inputs, ctx.path("trials.parquet"), manifest=o.manifest,
                  skip_bad=o.skip_bad, warn=ctx.warn)
     ctx.skipped = tuple((s.file, s.reason) for s in ing.skipped)
@@ -370,7 +415,7 @@ def _fit(which: str) -> Callable[[_Context], str]:
         from the grip fits as soon as they exist."""
         fit = api.fit_grip if which == "grip" else api.fit_nominal
         model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands,
-                    jobs=ctx.options.jobs)
+                    jobs=ctx.options.jobs, executor=ctx.pool)
         _warn_at_bound(which, model, ctx.warn)
         model.write(ctx.path(f"{which}_params.csv"), latex=ctx.path(f"{which}_params.tex"))
         back = replace(api.ModelFit.read(ctx.folder / f"{which}_params.csv"),
@@ -381,9 +426,8 @@ def _fit(which: str) -> Callable[[_Context], str]:
             axes = [a for a in AXES if (back.table["axis"] == a).any()]
             # the diagnosis has worker processes of its own: its steps are long, and
             # the stages that wait for their pool tasks should not queue behind them
-            ctx.background = _Background(o.jobs, in_lane, "background", diagnose_axes,
-                                         ctx.spectra, back.table, axes=axes, jobs=o.jobs)
-            ctx.stack.callback(ctx.background.close)
+            ctx.diagnosing = ctx.background(diagnose_axes, ctx.spectra, back.table,
+                                            axes=axes, jobs=o.jobs)
         return (f"{len(back.table)} fit(s), cost {ctx.options.cost}, median rms "
                 f"{_median(back.table['rms_db']):.2f} dB")
     return stage
@@ -397,14 +441,14 @@ def _fit_uncertainty(ctx: _Context) -> str:
     # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
     starts = grip_fit_starts(zip(ctx.grip.table["axis"], ctx.grip.table["grip_N"], strict=True),
                              ctx.grip.fits)
-    ctx.trial_fits = _Background(o.jobs, fit_trials, ctx.spectra, cost=o.cost,
-                                 jobs=o.jobs, source="spectra.parquet", starts=starts,
-                                 bands=ctx.bands, effects=_effects_of(ctx))
-    ctx.stack.callback(ctx.trial_fits.close)
+    ctx.trial_fits = ctx.background(fit_trials, ctx.spectra, cost=o.cost, jobs=o.jobs,
+                                    source="spectra.parquet", starts=starts,
+                                    bands=ctx.bands, effects=_effects_of(ctx),
+                                    executor=ctx.pool)
     wu_path = ctx.path("wu.csv")
     ctx.files += [p.name for p in wu_sidecar_paths(wu_path)]
     unc = api.fit_uncertainty(ctx.spectra, ctx.nominal, cost=ctx.options.wu_cost,
-                              jobs=ctx.options.jobs)
+                              jobs=ctx.options.jobs, executor=ctx.pool)
     unc.write(wu_path, latex=ctx.path("wu.tex"))
     ctx.uncertainty = unc
     return ", ".join(f"{r.axis}: {r.result.order} pair(s)" for r in unc.axes) + \
@@ -422,10 +466,10 @@ def _figures(ctx: _Context) -> str:
 def _diagnose(ctx: _Context) -> str:
     """The diagnosis started from the grip fits (diagnosis.json) and the adopted model of
     each axis (adoption.csv)."""
-    results = ctx.background.result()
+    results = ctx.diagnosing.result()
     ctx.diagnosis = api.Diagnosis(tuple(results), ctx.spectra, ctx.grip)
     ctx.diagnosis.write(ctx.path("diagnosis.json"))
-    ctx.since = ctx.background.started
+    ctx.since = ctx.diagnosing.started
     # every effect the stepwise search named on an axis, in order ("delay+lowpass")
     ctx.missing = {a: "+".join(names) or None for a, names in ctx.diagnosis.added.items()}
     ctx.adoption = adopt(ctx.diagnosis, ctx.options.adopt)
@@ -457,7 +501,8 @@ def _adopt(ctx: _Context) -> str:
             os.replace(src, ctx.path(f"{which}_params_base{ext}"))
     ctx.bands = ad.bands
     fitted = api.adopt_model(ctx.spectra, ctx.diagnosis, policy=ad.policy,
-                             cost=ctx.options.cost, trials=False, jobs=ctx.options.jobs)
+                             cost=ctx.options.cost, trials=False, jobs=ctx.options.jobs,
+                             executor=ctx.pool)
     for which in ("grip", "nominal"):
         model = getattr(fitted, which)
         _warn_at_bound(which, model, ctx.warn)
@@ -602,8 +647,9 @@ def _draw_task(args) -> None:
 
 
 class _Drawings:
-    """Figures drawn and written by the worker pool while the stages go on (with no pool,
-    at once); :meth:`wait` returns when all are written and raises the first failure."""
+    """Figures drawn and written by the run's worker pool while the stages go on (with no
+    pool of the run's own, at once, here); :meth:`wait` returns when all are written and
+    raises the first failure."""
 
     def __init__(self, pool):
         self.pool = pool
@@ -950,7 +996,7 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
         cost: str = "complex", wu_cost: str = "envelope", jobs: int = 1,
         figures: bool = True, overwrite: bool = False, adopt: str = "auto",
         outside_loop: Sequence[str] = (), on_stage: OnStage | None = None,
-        warn: Warn | None = None) -> RunResult:
+        warn: Warn | None = None, executor: Executor | None = None) -> RunResult:
     """Run every stage on raw trials and write all tables, figures and report.md into
     ``outdir`` (``armfit run``).
 
@@ -971,7 +1017,8 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
     wu_cost : {'envelope', 'paper'}
         Wu fit (see :func:`armfit.fit_uncertainty`).
     jobs : int
-        Worker processes (estimate, diagnose).
+        Worker processes: one pool for the stages' tasks (estimate, fits, Wu, figures),
+        and as many for the diagnosis.
     figures : bool
         Draw the figures.
     overwrite : bool
@@ -985,6 +1032,11 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
         Called with each finished :class:`Stage`.
     warn : callable, optional
         Receives data warnings.
+    executor : concurrent.futures.Executor, optional
+        Runs the stages' tasks instead of a pool of ``jobs`` workers, e.g. a
+        ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
+        down; see :func:`run_pipeline`). The trial files are read by its workers: on a
+        cluster, give paths every machine can read. The outputs do not depend on it.
 
     Returns
     -------
@@ -994,7 +1046,8 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
     options = RunOptions(manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
                          wu_cost=wu_cost, jobs=jobs, figures=figures, overwrite=overwrite,
                          adopt=adopt, outside_loop=tuple(outside_loop))
-    return run_pipeline(items, outdir, options, on_stage=on_stage, warn=warn)
+    return run_pipeline(items, outdir, options, on_stage=on_stage, warn=warn,
+                        executor=executor)
 def _warn_at_bound(which: str, model: api.ModelFit, warn: Warn | None) -> None:
     """One warning per fit with a parameter at a physical bound (column ``at_bound``)."""
     if warn is None:

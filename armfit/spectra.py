@@ -1772,14 +1772,17 @@ def _estimate_source(source, config: EstimateConfig):
 
 
 def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: bool = False,
-                   jobs: int = 1, on_open=None, advance=None, warn=None) -> StudySpectra:
+                   jobs: int = 1, on_open=None, advance=None, warn=None,
+                   executor=None) -> StudySpectra:
     """Estimate every trial of ``inputs`` (raw files, folders or a canonical dataset).
 
     Trials are found and checked for duplicates by :func:`armfit.io.trials.open_trials`,
-    read and validated one by one by :func:`armfit.io.trials.read_trial` (in ``jobs``
-    worker processes when > 1; results keep the input order), and must share one sampling
-    rate. Without ``skip_bad`` the first bad trial raises BadInputError; with it, bad
-    trials are listed in ``skipped``. ``warn(msg)`` receives saturation warnings,
+    read and validated one by one by :func:`armfit.io.trials.read_trial` (on
+    ``executor``, a :class:`concurrent.futures.Executor`, when given, else in ``jobs``
+    worker processes when > 1, see :mod:`armfit.workers`; each task reads its trial file
+    itself; results keep the input order), and must share one sampling rate. Without
+    ``skip_bad`` the first bad trial raises BadInputError; with it, bad trials are listed
+    in ``skipped``. ``warn(msg)`` receives saturation warnings,
     ``on_open(n)`` is told the number of trials found, ``advance()`` is called once per
     trial.
     """
@@ -1827,7 +1830,7 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     with contextlib.closing(iter_tasks(functools.partial(_estimate_source, config=config),
                                        sources, jobs, preload=("armfit.spectra",
                                                                "armfit.io.trials"),
-                                       chunksize=2)) as results:
+                                       chunksize=2, executor=executor)) as results:
         for res in results:
             handle(res)
             if advance is not None:

@@ -30,9 +30,7 @@ is a double real root. The numbers of zero and pole pairs are equal (N_n = N_d, 
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -40,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from scipy import optimize
+from threadpoolctl import threadpool_limits
 
 from armfit.constants import AXES
 from armfit.errors import BadInputError, ConvergenceError, UsageError
@@ -600,36 +599,6 @@ def _fit_order_paper(n: int, tgt: _Target, prev: np.ndarray | None
     return _ls_fit(sec_f, tgt.wdb, np.ones(tgt.f.size), best, lo, hi, max_nfev=1000)
 
 
-@contextlib.contextmanager
-def _blas_one_thread() -> Iterator[None]:
-    """Run the loaded OpenBLAS libraries single-threaded for the duration.
-
-    The fits below are thousands of tiny dense problems (SLSQP, trust-region SVDs of
-    ~160 × 21 matrices); OpenBLAS worker threads cost far more than they save there (a
-    fit runs tens of times slower on a busy 2-core machine). Without /proc or OpenBLAS
-    this does nothing.
-    """
-    restore = []
-    with contextlib.suppress(OSError, ValueError):
-        maps = Path("/proc/self/maps").read_text()
-        paths = sorted({ln.split()[-1] for ln in maps.splitlines()
-                        if "openblas" in ln and ln.split()[-1].startswith("/")})
-        for path in paths:
-            lib = ctypes.CDLL(path)
-            for suffix in ("64_", "", "_64_"):
-                get = getattr(lib, f"scipy_openblas_get_num_threads{suffix}", None)
-                put = getattr(lib, f"scipy_openblas_set_num_threads{suffix}", None)
-                if get is not None and put is not None:
-                    restore.append((put, int(get())))
-                    put(1)
-                    break
-    try:
-        yield
-    finally:
-        for put, n in restore:
-            put(n)
-
-
 def fit_wu(f_hz, wmax, *, n_pairs: int | None = None, cost: str = "envelope",
            band: tuple[float, float] | None = None, max_pairs: int = MAX_PAIRS,
            order_tol_db: float = 0.1, n_bins: int = 160, n_sub: int = 8) -> WuResult:
@@ -659,7 +628,10 @@ def fit_wu(f_hz, wmax, *, n_pairs: int | None = None, cost: str = "envelope",
         raise UsageError(f"order must be 0..{max_pairs} pairs, got {n_pairs}")
     if not 0 <= max_pairs <= MAX_PAIRS:
         raise UsageError(f"max_pairs must be 0..{MAX_PAIRS}, got {max_pairs}")
-    with _blas_one_thread():
+    # thousands of tiny dense problems (SLSQP, trust-region SVDs of ~160 x 21 matrices):
+    # BLAS worker threads cost far more than they save there (a fit runs tens of times
+    # slower on a busy 2-core machine), whichever BLAS numpy and scipy load
+    with threadpool_limits(limits=1, user_api="blas"):
         return _fit_wu(f_hz, wmax, n_pairs, cost, band, max_pairs, order_tol_db, n_bins, n_sub)
 
 
@@ -793,7 +765,7 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
                     band: tuple[float, float] | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
                     given: Mapping[str, Mapping[str, WuWeight]] | None = None,
-                    jobs: int = 1) -> list[AxisUncertainty]:
+                    jobs: int = 1, executor=None) -> list[AxisUncertainty]:
     """W_max (eq. 6) and Wu (eq. 7) for each axis with derived trial spectra and a
     nominal row.
 
@@ -802,7 +774,9 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
     file); ``band``: Hz, default 0.01–30 Hz, limited to the frequencies the spectra hold;
     ``smooth_oct``: smoothing width in octaves (None: raw W_max); ``given``:
     {label: {axis: WuWeight}} weights to evaluate on the same data; ``jobs`` > 1: the
-    axes' Wu fits in that many worker processes (the results do not depend on it).
+    axes' Wu fits in that many worker processes, or on ``executor`` (a
+    :class:`concurrent.futures.Executor`, used as is; see :mod:`armfit.workers`) when
+    given (the results depend on neither).
     Returns one :class:`AxisUncertainty` per axis, in x, y, z order.
     """
     if "grip_N" in params.columns:
@@ -840,7 +814,8 @@ def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | N
         prepared.append((axis, f, H.shape[0], raw, target, b))
     tasks = [(f, target, {"n_pairs": n_pairs, "cost": cost, "band": b})
              for _, f, _, _, target, b in prepared]
-    fits = map_tasks(_fit_wu_task, tasks, jobs, preload=("armfit.uncertainty",))
+    fits = map_tasks(_fit_wu_task, tasks, jobs, preload=("armfit.uncertainty",),
+                     executor=executor)
     out = []
     for (axis, f, n_trials, raw, target, b), res in zip(prepared, fits, strict=True):
         targets = {"wmax": raw} if smooth_oct is None else {"wmax": raw, "wmax_smoothed": target}

@@ -1,192 +1,330 @@
-"""Worker processes: one way to start a pool, one way to stop every worker at once.
+"""Where armfit's parallel work runs: an executor passed in, or worker processes of its own.
 
-Pools fork their workers at once when the caller has no other thread (they inherit the
-modules already imported), else use the ``forkserver`` start method where there is one
-(safe when the caller has threads of its own), else ``spawn``. Within
-:func:`shared_pool` (``armfit run``) every stage borrows one pool instead, forked once at
-the start, before the caller has threads, so nothing is started or imported again per
-stage. Workers ignore SIGINT: Ctrl-C at a terminal reaches the whole process group, and
-only the main process decides what happens (it stops the workers with
-:func:`stop_workers` and removes its partial outputs), so no worker prints a traceback
-of its own.
+Every parallel function of armfit (:func:`armfit.estimate`, :func:`armfit.fit_grip`,
+:func:`armfit.fit_nominal`, :func:`armfit.fit_trials`, :func:`armfit.fit_uncertainty`,
+:func:`armfit.run` and the engine functions under them) takes either
+
+- ``executor=``: any :class:`concurrent.futures.Executor` — a
+  :class:`~concurrent.futures.ProcessPoolExecutor` of the caller's, or a
+  ``dask.distributed`` client's ``client.get_executor()`` to spread the work over a
+  cluster. It is used as it is: armfit submits tasks to it (``map`` and ``submit``) and
+  never shuts it down; or
+- ``jobs=``: a number of worker processes. With ``jobs`` > 1 armfit starts a pool of
+  its own for the call (:func:`process_pool`) and shuts it down when the call ends,
+  cancelling what is pending if the call fails; with ``jobs`` 1 the tasks run one after
+  the other in the calling process.
+
+An executor given wins over ``jobs``. The tasks are module-level functions of picklable
+arguments, and each task's result depends only on its arguments, so the results are the
+same, bit for bit, whatever runs them.
+
+:func:`executor_for` turns "executor or jobs" into something with ``map`` and
+``submit``; :func:`iter_tasks` and :func:`map_tasks` run a list of tasks on it.
+
+Start method. armfit's pools start their workers with the ``forkserver`` method where
+Python offers it, except on macOS, and with ``spawn`` elsewhere (macOS, Windows): one
+rule, whatever threads the caller has or what it imported. The fork server is a fresh
+interpreter, started with the first pool of a process, that imports armfit's engine
+modules once (:data:`PRELOAD`); each worker is then forked from it in milliseconds, with
+those modules loaded. Forking the caller itself would be faster still at the first pool,
+but it copies one thread of a process that may have others (``armfit run``'s background
+stages, a dask client, a notebook) and can leave a lock of another thread held in the
+child; Python 3.12 warns about it, and 3.14 made the fork server the default on Linux.
+macOS keeps its own default, ``spawn`` (system libraries there are not safe to fork).
+
+A pool starts all its workers at its first task, in one go (the caller waits until each
+has run :func:`ignore_sigint`), so that a pool is never half started when it is stopped.
+
+Stopping. Workers ignore SIGINT (:func:`ignore_sigint`): Ctrl-C at a terminal reaches
+the whole process group, and only the main process decides what happens — it kills the
+workers (:func:`stop_workers`, which first lets a pool being started finish starting)
+and removes its partial outputs, so no worker prints a traceback of its own. The fork
+server and the resource tracker are started with SIGINT blocked (the fork server ignores
+it only once its imports are done), and end by themselves when the main process exits.
+
+A script that uses ``jobs`` > 1 needs the ``if __name__ == "__main__":`` guard, as with
+any pool whose workers do not fork the script's process.
 """
 
 from __future__ import annotations
 
 import contextlib
-import contextvars
+import multiprocessing
 import signal
 import sys
 import threading
+import weakref
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+
+__all__ = ["PRELOAD", "cancel_pools", "executor_for", "ignore_sigint", "iter_tasks",
+           "map_tasks", "process_pool", "start_method", "stop_workers"]
+
+#: Modules the fork server imports once for every worker it starts (the modules whose
+#: functions armfit's tasks run): workers start with them loaded.
+PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fitting",
+                            "armfit.uncertainty", "armfit.diagnose")
+
+#: The pools :func:`process_pool` made that are not shut down yet, each with the ident of
+#: the thread that made it (see :func:`cancel_pools`). A record only: no pool is handed
+#: out from here.
+_OPEN: weakref.WeakKeyDictionary[ProcessPoolExecutor, int] = weakref.WeakKeyDictionary()
+_OPEN_LOCK = threading.Lock()
+#: Held while a pool starts its workers; :func:`stop_workers` waits for it.
+_STARTING = threading.Lock()
+#: Set by ``stop_workers(final=True)``: no pool starts any more in this process.
+_FINAL = False
 
 
 def ignore_sigint() -> None:
-    """Pool initializer: a worker leaves SIGINT to the main process."""
+    """Pool initializer: a worker leaves SIGINT to the main process (it ignores it, and
+    unblocks it, as the thread that started the fork server had it blocked)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-#: The pools of :func:`shared_pool` while one is open, by lane.
-_SHARED: dict | None = None
-#: The lane whose pool :func:`process_pool` hands out (see :func:`in_lane`).
-_LANE: contextvars.ContextVar[str] = contextvars.ContextVar("armfit_pool_lane",
-                                                            default="main")
+def start_method() -> str:
+    """The start method of armfit's worker processes: ``"forkserver"`` where Python
+    offers it, except on macOS; ``"spawn"`` elsewhere (see the module docstring).
+
+    Returns
+    -------
+    str
+    """
+    if sys.platform != "darwin" and "forkserver" in multiprocessing.get_all_start_methods():
+        return "forkserver"
+    return "spawn"
 
 
-def in_lane(lane: str, fn, /, *args, **kwargs):
-    """``fn(*args, **kwargs)`` with :func:`process_pool` handing out the shared pool of
-    ``lane`` (a stage that runs in the background uses its own workers, so the stages
-    waited for are not queued behind it)."""
-    token = _LANE.set(lane)
-    try:
-        return fn(*args, **kwargs)
-    finally:
-        _LANE.reset(token)
+def _ready() -> None:
+    """The task that starts a worker (see :class:`_Pool`)."""
 
 
-class _Borrowed:
-    """The shared pool as a stage sees it: submit and map go to the pool; shutting it
-    down (or leaving its ``with`` block) is left to :func:`shared_pool`."""
+class _Pool(ProcessPoolExecutor):
+    """A ProcessPoolExecutor that starts all its workers at its first task and leaves the
+    record of open pools when shut down.
 
-    def __init__(self, pool):
-        self._pool = pool
+    The workers are started by a thread of their own holding :data:`_STARTING`, while the
+    caller waits for it: a signal then reaches the caller (the main thread) in the wait,
+    and :func:`stop_workers` in its handler waits until every worker is started, so it
+    kills them all (a worker that is being started when the main process ends would
+    fail, and print the failure, for want of its queues).
+    """
+
+    def __init__(self, jobs: int, mp_context) -> None:
+        super().__init__(max_workers=jobs, mp_context=mp_context, initializer=ignore_sigint)
+        self._armfit_jobs = jobs
+        self._armfit_lock = threading.Lock()
+        self._armfit_started = False
 
     def submit(self, fn, /, *args, **kwargs):
-        return self._pool.submit(fn, *args, **kwargs)
+        if not self._armfit_started:
+            self._armfit_start()
+        return super().submit(fn, *args, **kwargs)
 
-    def map(self, fn, *iterables, timeout=None, chunksize=1):
-        return self._pool.map(fn, *iterables, timeout=timeout, chunksize=chunksize)
+    def _armfit_start(self) -> None:
+        with self._armfit_lock:
+            if self._armfit_started:
+                return
+            failed: list[BaseException] = []
+            starter = threading.Thread(target=self._armfit_start_all, args=(failed,),
+                                       name="armfit-pool-start", daemon=True)
+            starter.start()
+            starter.join()
+            if failed:
+                raise failed[0]
+            self._armfit_started = True
+
+    def _armfit_start_all(self, failed: list) -> None:
+        # SIGINT blocked in this thread, and so in the processes started from it (the
+        # fork server, the resource tracker): Ctrl-C at a terminal reaches them too, and
+        # the fork server ignores SIGINT only once it has imported its modules
+        if hasattr(signal, "pthread_sigmask"):
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            with _STARTING:
+                if _FINAL:
+                    raise BrokenProcessPool("the worker processes were stopped")
+                # one task per worker: each submit starts a worker while none is idle
+                for fut in [super(_Pool, self).submit(_ready)
+                            for _ in range(self._armfit_jobs)]:
+                    fut.result()
+        except BaseException as exc:  # raised in the caller's thread
+            failed.append(exc)
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        """Nothing: the pool outlives the stage."""
+        with _OPEN_LOCK:
+            _OPEN.pop(self, None)
+        super().shutdown(wait=wait, cancel_futures=cancel_futures)
 
-    def __enter__(self):
-        return self
 
-    def __exit__(self, *exc) -> None:
-        return None
+def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
+    """A new pool of ``jobs`` worker processes that ignore SIGINT, started by
+    :func:`start_method` (all at its first task); the caller shuts it down.
+
+    Parameters
+    ----------
+    jobs : int
+        Worker processes (at least 1).
+    preload : sequence of str
+        Modules the fork server imports for its workers besides :data:`PRELOAD` (only
+        when this pool is the one that starts the server).
+
+    Returns
+    -------
+    concurrent.futures.ProcessPoolExecutor
+    """
+    ctx = multiprocessing.get_context(start_method())
+    if ctx.get_start_method() == "forkserver":
+        ctx.set_forkserver_preload(list(dict.fromkeys((*PRELOAD, *preload))))
+    pool = _Pool(max(1, int(jobs)), ctx)
+    with _OPEN_LOCK:
+        _OPEN[pool] = threading.get_ident()
+    return pool
 
 
 @contextlib.contextmanager
-def shared_pool(jobs: int, lanes: tuple[str, ...] = ("main",)):
-    """Within the block, :func:`process_pool` hands out a pool of ``jobs`` workers per
-    lane (none when ``jobs`` <= 1), all started now; code run with :func:`in_lane` gets
-    that lane's pool, other code the first lane's. Where the ``fork`` start method exists
-    the workers are forked at once, so call this before starting threads; elsewhere they
-    use the fork server. More workers than cores is deliberate: the system shares the
-    cores between the lanes, where one queue would make the waited-for tasks wait behind
-    the background ones. Yields the first lane's pool (None without one); all are shut
-    down (pending tasks cancelled) at the end."""
-    global _SHARED
-    if jobs <= 1 or _SHARED is not None:
+def executor_for(executor: Executor | None = None, jobs: int = 1, *,
+                 tasks: int | None = None, preload: Sequence[str] = ()
+                 ) -> Iterator[Executor | None]:
+    """The executor to run tasks on, for the ``with`` block.
+
+    Parameters
+    ----------
+    executor : concurrent.futures.Executor, optional
+        Yielded as it is, and not shut down at the end of the block.
+    jobs : int
+        Without ``executor``: with ``jobs`` > 1 (and more than one task), a new
+        :func:`process_pool` of ``min(jobs, tasks)`` workers, shut down at the end of the
+        block (pending tasks cancelled; waited for). Else None: run the tasks here.
+    tasks : int, optional
+        How many tasks will run, when known.
+    preload : sequence of str
+        See :func:`process_pool`.
+
+    Yields
+    ------
+    concurrent.futures.Executor or None
+    """
+    if executor is not None:
+        yield executor
+        return
+    n = int(jobs) if tasks is None else min(int(jobs), int(tasks))
+    if n <= 1:
         yield None
         return
-    pools = {lane: _new_pool(jobs) for lane in lanes}   # before any thread: forked now
-    _SHARED = pools
+    pool = process_pool(n, preload)
     try:
-        yield _Lanes(pools)
+        yield pool
     finally:
-        _SHARED = None
-        for pool in pools.values():
-            pool.shutdown(wait=True, cancel_futures=True)
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
-class _Lanes:
-    """The pools of :func:`shared_pool` as its caller holds them: shutting down stops
-    every lane."""
+def iter_tasks(fn: Callable, tasks: Iterable, jobs: int = 1, preload: Sequence[str] = (),
+               chunksize: int = 1, *, executor: Executor | None = None) -> Iterator:
+    """``fn(t)`` for each of ``tasks``, yielded in task order as they are done.
 
-    def __init__(self, pools: dict):
-        self._pools = pools
+    Parameters
+    ----------
+    fn : callable
+        A module-level function (picklable) of one argument.
+    tasks : iterable
+        Its arguments.
+    jobs, preload
+        Without ``executor``: see :func:`executor_for` (with one task or none, it runs
+        here).
+    chunksize : int
+        Tasks sent to a process pool at a time (other executors may ignore it).
+    executor : concurrent.futures.Executor, optional
+        Runs every task (even a single one); never shut down here.
 
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        for pool in self._pools.values():
-            pool.shutdown(wait=wait, cancel_futures=cancel_futures)
-
-    def submit(self, fn, /, *args, **kwargs):
-        return next(iter(self._pools.values())).submit(fn, *args, **kwargs)
-
-
-def process_pool(jobs: int, preload: tuple[str, ...] = ()):
-    """A ProcessPoolExecutor of ``jobs`` workers that ignore SIGINT: forked at once when
-    the caller has no other thread, else started by the fork server (``preload`` names
-    modules it imports once for every worker), else spawned. Within :func:`shared_pool`,
-    that pool instead (its shutdown is a no-op)."""
-    if _SHARED is not None:
-        return _Borrowed(_SHARED.get(_LANE.get(), next(iter(_SHARED.values()))))
-    return _new_pool(jobs, preload)
-
-
-def iter_tasks(fn, tasks, jobs: int, preload: tuple[str, ...] = (), chunksize: int = 1):
-    """``fn(t)`` for each of ``tasks``, yielded in task order as they are done: in a
-    :func:`process_pool` of up to ``jobs`` workers when ``jobs`` > 1 and there is more
-    than one task (``fn`` must be picklable), else here. The first error of a task, in
-    task order, is raised; pending tasks are then cancelled."""
+    Yields
+    ------
+    object
+        ``fn(t)``, in the order of ``tasks``. The first error of a task, in task order,
+        is raised; pending tasks are then cancelled (also when the caller stops early
+        and closes the generator).
+    """
     tasks = list(tasks)
-    if jobs <= 1 or len(tasks) <= 1:
+    if executor is None and (jobs <= 1 or len(tasks) <= 1):
         yield from map(fn, tasks)
         return
-    pool = process_pool(min(jobs, len(tasks)), preload)
-    try:
-        yield from pool.map(fn, tasks, chunksize=chunksize)
-    finally:
-        pool.shutdown(cancel_futures=True)
-
-
-def map_tasks(fn, tasks, jobs: int, preload: tuple[str, ...] = (),
-              chunksize: int = 1) -> list:
-    """The list of :func:`iter_tasks`."""
-    return list(iter_tasks(fn, tasks, jobs, preload, chunksize))
-
-
-def _new_pool(jobs: int, preload: tuple[str, ...] = ()):
-    """A pool of its own for :func:`process_pool` and :func:`shared_pool`."""
-    import concurrent.futures as cf
-    import multiprocessing as mp
-    if "fork" in mp.get_all_start_methods() and threading.active_count() == 1:
-        # no other thread: fork every worker now (they inherit the modules already
-        # imported, where a fork server imports them again)
-        pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("fork"),
-                                      initializer=ignore_sigint)
-        pool.submit(int).result()
-        return pool
-    if "forkserver" in mp.get_all_start_methods():
-        ctx = mp.get_context("forkserver")
-        if preload:
-            ctx.set_forkserver_preload(list(preload))
-    else:
-        ctx = mp.get_context("spawn")
-    return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=ignore_sigint)
-
-
-def stop_workers() -> None:
-    """Kill every worker process this process started (all pools) and the fork server.
-
-    Safe to call from a signal handler and when no pool was ever started.
-    """
-    mp = sys.modules.get("multiprocessing")
-    if mp is None:
-        return
-    try:
-        children = mp.active_children()
-    except Exception:  # pragma: no cover - interpreter shutting down
-        children = []
-    for p in children:
+    with executor_for(executor, jobs, tasks=len(tasks), preload=preload) as ex:
+        results = ex.map(fn, tasks, chunksize=chunksize)
         try:
-            p.kill()
-        except Exception:  # pragma: no cover - already gone
-            pass
-    for p in children:
-        try:
-            p.join(timeout=2.0)
-        except Exception:  # pragma: no cover
-            pass
-    fs = sys.modules.get("multiprocessing.forkserver")
-    server = getattr(fs, "_forkserver", None)
-    stop = getattr(server, "_stop_unlocked", None)
-    lock = getattr(server, "_lock", None)
-    if stop is not None and lock is not None and lock.acquire(blocking=False):
-        try:
-            stop()
-        except Exception:  # pragma: no cover - already stopped
-            pass
+            yield from results
         finally:
-            lock.release()
+            close = getattr(results, "close", None)   # cancels what is pending
+            if close is not None:
+                close()
+
+
+def map_tasks(fn: Callable, tasks: Iterable, jobs: int = 1, preload: Sequence[str] = (),
+              chunksize: int = 1, *, executor: Executor | None = None) -> list:
+    """The list of :func:`iter_tasks` (same parameters).
+
+    Returns
+    -------
+    list
+        ``[fn(t) for t in tasks]``.
+    """
+    return list(iter_tasks(fn, tasks, jobs, preload, chunksize, executor=executor))
+
+
+def cancel_pools(thread: int) -> None:
+    """Shut down every open pool of :func:`process_pool` made in the thread whose ident
+    is ``thread``, cancelling its pending tasks and waiting for those running: the
+    function running in that thread (e.g. a stage run in the background) then fails at
+    its next task instead of finishing its work.
+
+    Parameters
+    ----------
+    thread : int
+        A :func:`threading.get_ident` value.
+    """
+    with _OPEN_LOCK:
+        pools = [p for p, t in _OPEN.items() if t == thread]
+    for pool in pools:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def stop_workers(final: bool = False) -> None:
+    """Kill every child process of this process started by :mod:`multiprocessing` (every
+    worker of every pool; the command line's answer to SIGINT and SIGTERM) and reap them.
+
+    A pool being started is let finish starting first (at most 30 s), so none of its
+    workers is missed. Uses only the public :class:`multiprocessing.Process` objects of
+    :func:`multiprocessing.active_children`; safe in a signal handler of the main thread
+    (pools start their workers from threads of their own), and does nothing when no
+    worker was ever started. The pools themselves then fail their pending tasks (their
+    owners shut them down on the way out).
+
+    Parameters
+    ----------
+    final : bool
+        The process is ending: no pool starts workers any more (a stage still running in
+        another thread fails at once instead of starting new ones).
+    """
+    global _FINAL
+    mp = sys.modules.get("multiprocessing")
+    got = _STARTING.acquire(timeout=30.0)
+    try:
+        if final:
+            _FINAL = True
+        if mp is None:
+            return
+        try:
+            children = mp.active_children()
+        except Exception:  # pragma: no cover - interpreter shutting down
+            children = []
+        for p in children:
+            with contextlib.suppress(Exception):   # already gone
+                p.kill()
+        for p in children:
+            with contextlib.suppress(Exception):
+                p.join(timeout=2.0)
+    finally:
+        if got:
+            _STARTING.release()

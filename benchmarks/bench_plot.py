@@ -129,8 +129,8 @@ def run_stage(repeat: int) -> None:
             print(f"round {r + 1}: wall {walls[-1]:5.2f} s, CPU {cpus[-1]:5.2f} s")
     print(f"best: wall {min(walls):5.2f} s, CPU {min(cpus):5.2f} s (target <= 2 s)")
     # as `armfit run --jobs 2` draws them: each figure a task of the run's worker pool
-    # (forked before the data exist, so the figure's inputs travel to the worker)
-    with workers.shared_pool(2) as pool, tempfile.TemporaryDirectory() as tmp:
+    # (the figure's inputs travel to the worker)
+    with workers.executor_for(jobs=2) as pool, tempfile.TemporaryDirectory() as tmp:
         tasks = [("bode_figure", (spectra, grip), Path(tmp) / "bode.png"),
                  ("uncertainty_figure", (spectra, nominal, wu), Path(tmp) / "unc.png"),
                  ("literature_figure", (grip.iloc[0],), Path(tmp) / "lit.png")]

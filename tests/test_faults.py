@@ -320,7 +320,7 @@ def _start_estimate(study: Path, out: Path):
 
     def workers_up() -> bool:
         kids.update(_descendants(proc.pid))
-        return len(kids) >= 2  # the 2 workers (forked from the command: no fork server)
+        return len(kids) >= 2  # the fork server and the resource tracker, then 2 workers
     assert _wait_for(workers_up, step=0.02), "no worker processes appeared"
     # the workers start at once: signal while they work
     time.sleep(0.05)

@@ -163,3 +163,213 @@ def test_imports_inside_functions_and_relative_ones_are_read(tmp_path, monkeypat
     path = ROOT / "io" / "trials.py"  # a module path inside the package, for `package`
     monkeypatch.setattr(Path, "read_text", lambda self, encoding=None: source)
     assert [m for m, _ in _imports(path)] == expected
+
+
+# ---------------------------------------------------------------------------
+# No private multiprocessing API, no names rebound on the package
+# ---------------------------------------------------------------------------
+
+def _is_private(name: str) -> bool:
+    """``_x`` is private; ``__x__`` (a dunder) is not."""
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def _module_named(node: ast.AST) -> str | None:
+    """The module an expression names by its dotted name as a string: the argument of
+    ``sys.modules[...]``, ``sys.modules.get(...)`` or ``importlib.import_module(...)``."""
+    def const(n):
+        return n.value if isinstance(n, ast.Constant) and isinstance(n.value, str) else None
+    if isinstance(node, ast.Subscript) and ast.unparse(node.value) == "sys.modules":
+        return const(node.slice)
+    if isinstance(node, ast.Call) and node.args:
+        fn = ast.unparse(node.func)
+        if fn in ("sys.modules.get", "importlib.import_module", "import_module",
+                  "__import__"):
+            return const(node.args[0])
+    return None
+
+
+class _Names(ast.NodeVisitor):
+    """The names a module binds to a module object of ``root`` (the dotted module name,
+    or None for a name of a module outside ``root``): by import, or by assignment from
+    ``sys.modules``/``import_module`` or from another such name."""
+
+    def __init__(self, root: str):
+        self.root = root
+        self.bound: dict[str, str] = {}
+
+    def of(self, node: ast.AST) -> str | None:
+        """The module of ``root`` that ``node`` evaluates to, if it is one."""
+        if isinstance(node, ast.Name):
+            return self.bound.get(node.id)
+        named = _module_named(node)
+        if named is not None and named.split(".")[0] == self.root:
+            return named
+        if isinstance(node, ast.Attribute) and not _is_private(node.attr):
+            base = self.of(node.value)      # a private attribute is reported itself
+            if base is not None:
+                return f"{base}.{node.attr}"
+        return None
+
+    def visit_Import(self, node: ast.Import) -> None:
+        for a in node.names:
+            if a.name.split(".")[0] == self.root:
+                if a.asname:
+                    self.bound[a.asname] = a.name
+                else:
+                    self.bound[a.name.split(".")[0]] = self.root
+
+    def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
+        if node.level == 0 and node.module and node.module.split(".")[0] == self.root:
+            for a in node.names:
+                self.bound[a.asname or a.name] = f"{node.module}.{a.name}"
+
+    def visit_Assign(self, node: ast.Assign | ast.NamedExpr) -> None:
+        mod = self.of(node.value)
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+        for t in targets:
+            if isinstance(t, ast.Name) and mod is not None:
+                self.bound[t.id] = mod
+
+    visit_NamedExpr = visit_Assign
+
+
+def _private_multiprocessing(source: str) -> list[str]:
+    """Every use of a private name of :mod:`multiprocessing` in ``source``: an import of
+    one (``from multiprocessing.util import _exit_function``, ``import
+    multiprocessing._x``), an attribute ``_x`` read from a multiprocessing module object
+    (however the name was bound: import, ``sys.modules``, ``import_module``), or
+    ``getattr(<that object>, "_x")``. Returns "line: code" strings."""
+    tree = ast.parse(source)
+    names = _Names("multiprocessing")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import | ast.ImportFrom | ast.Assign | ast.NamedExpr):
+            names.visit(node)
+    found = []
+    for node in ast.walk(tree):
+        bad = False
+        if isinstance(node, ast.Import):
+            bad = any(a.name.split(".")[0] == "multiprocessing"
+                      and any(_is_private(p) for p in a.name.split(".")) for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module \
+                and node.module.split(".")[0] == "multiprocessing":
+            bad = any(_is_private(p) for p in node.module.split(".")) or \
+                any(_is_private(a.name) for a in node.names)
+        elif isinstance(node, ast.Attribute):
+            bad = _is_private(node.attr) and names.of(node.value) is not None
+        elif isinstance(node, ast.Call) and ast.unparse(node.func) in ("getattr", "hasattr",
+                                                                      "setattr") \
+                and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant) \
+                and isinstance(node.args[1].value, str):
+            bad = _is_private(node.args[1].value) and names.of(node.args[0]) is not None
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                and node.value.split(".")[0] == "multiprocessing":
+            bad = any(_is_private(p) for p in node.value.split("."))   # sys.modules["..."]
+        if bad:
+            found.append(f"{node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def _package_rebinding(source: str) -> list[str]:
+    """Every statement of ``source`` that binds or deletes a name on the ``armfit``
+    package object from outside it: ``setattr(package, ...)``/``delattr``, ``package.x
+    = ...`` (also augmented, annotated, deleted), ``vars(package)[...] = ...`` or
+    ``package.__dict__[...] = ...``, where ``package`` is ``sys.modules["armfit"]``,
+    ``sys.modules.get("armfit")``, ``import_module("armfit")``, ``import armfit`` (as
+    any name) or a name assigned one of these. Returns "line: code" strings."""
+    tree = ast.parse(source)
+    names = _Names("armfit")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import | ast.ImportFrom | ast.Assign | ast.NamedExpr):
+            names.visit(node)
+
+    def package(node: ast.AST) -> bool:
+        return names.of(node) == "armfit"
+
+    def target(t: ast.AST) -> bool:
+        if isinstance(t, ast.Attribute):
+            return package(t.value)
+        if isinstance(t, ast.Subscript):
+            v = t.value
+            return (isinstance(v, ast.Attribute) and v.attr == "__dict__"
+                    and package(v.value)) or (isinstance(v, ast.Call)
+                                              and ast.unparse(v.func) == "vars"
+                                              and len(v.args) == 1 and package(v.args[0]))
+        if isinstance(t, ast.Tuple | ast.List):
+            return any(target(e) for e in t.elts)
+        return False
+
+    found = []
+    for node in ast.walk(tree):
+        bad = False
+        if isinstance(node, ast.Call) and ast.unparse(node.func) in ("setattr", "delattr") \
+                and node.args:
+            bad = package(node.args[0])
+        elif isinstance(node, ast.Assign):
+            bad = any(target(t) for t in node.targets)
+        elif isinstance(node, ast.AugAssign | ast.AnnAssign):
+            bad = target(node.target)
+        elif isinstance(node, ast.Delete):
+            bad = any(target(t) for t in node.targets)
+        if bad:
+            found.append(f"{node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def _scan(check) -> list[str]:
+    return [f"{path.relative_to(ROOT.parent)}:{hit}" for path in sorted(ROOT.rglob("*.py"))
+            for hit in check(path.read_text(encoding="utf-8"))]
+
+
+def test_no_module_uses_a_private_name_of_multiprocessing():
+    """Only multiprocessing's public API (private names change between Python versions
+    without notice): none of the package's modules touches one."""
+    assert _scan(_private_multiprocessing) == []
+
+
+def test_no_module_rebinds_a_name_of_the_package():
+    """The package's names are what armfit/__init__.py says (its lazy exports): no
+    module binds a name on the package object from outside."""
+    assert _scan(_package_rebinding) == []
+
+
+#: Code the checks above must catch, with the lines they report (the first two are
+#: what armfit.workers.stop_workers and armfit.cli.entry._exit_now once did).
+PRIVATE_MP = [
+    ('fs = sys.modules.get("multiprocessing.forkserver")\n'
+     'server = getattr(fs, "_forkserver", None)\n',
+     ["2: getattr(fs, '_forkserver', None)"]),
+    ('mp_util = sys.modules.get("multiprocessing.util")\n'
+     'getattr(mp_util, "_exit_function", lambda: None)()\n',
+     ["2: getattr(mp_util, '_exit_function', lambda: None)"]),
+    ("import multiprocessing as mp\nmp.util._exit_function()\n",
+     ["2: mp.util._exit_function"]),
+    ("import multiprocessing.forkserver\nmultiprocessing.forkserver._forkserver._stop()\n",
+     ["2: multiprocessing.forkserver._forkserver"]),
+    ("from multiprocessing import util\nutil._run_finalizers()\n",
+     ["2: util._run_finalizers"]),
+    ("from multiprocessing.util import _exit_function\n",
+     ["1: from multiprocessing.util import _exit_function"]),
+    ("import multiprocessing\nmultiprocessing.active_children()\nobj._private\n", []),
+    ('sys.modules["multiprocessing.forkserver"]._forkserver\n',
+     ["1: sys.modules['multiprocessing.forkserver']._forkserver"]),
+]
+
+REBINDING = [
+    ('package = sys.modules.get("armfit")\nsetattr(package, "diagnose", f)\n',
+     ["2: setattr(package, 'diagnose', f)"]),
+    ('sys.modules["armfit"].x = 1\n', ["1: sys.modules['armfit'].x = 1"]),
+    ("import armfit.spectra\narmfit.estimate = None\n", ["2: armfit.estimate = None"]),
+    ("import armfit as pkg\nvars(pkg)['run'] = None\n", ["2: vars(pkg)['run'] = None"]),
+    ("import armfit.spectra as sp\nsp.x = 1\nglobals()['y'] = 2\n", []),
+]
+
+
+@pytest.mark.parametrize("source, expected", PRIVATE_MP)
+def test_the_multiprocessing_check_finds_private_names(source, expected):
+    assert _private_multiprocessing(source) == expected
+
+
+@pytest.mark.parametrize("source, expected", REBINDING)
+def test_the_rebinding_check_finds_names_bound_on_the_package(source, expected):
+    assert _package_rebinding(source) == expected

@@ -34,7 +34,7 @@ def _on_signal(signum, frame) -> None:
     # the pools' helper threads fail when their workers are killed: the user asked for
     # the stop, so their errors are not printed (the one line below is)
     threading.excepthook = lambda args: None
-    stop_workers()
+    stop_workers(final=True)
     if signum == signal.SIGTERM:
         raise Terminated()
     raise KeyboardInterrupt()
@@ -75,8 +75,9 @@ def _exit_now(exc: SystemExit) -> None:
     Every output is written, closed and renamed into place by then, and the worker
     pools are shut down; what remains is freeing some 10^5 objects (arrays, tables,
     figures, modules), which takes about half a second. Standard output and error are
-    flushed first; if that fails (a closed pipe), the normal exit reports it. The exit
-    handler of :mod:`multiprocessing` still runs (it reaps any fork server)."""
+    flushed first; if that fails (a closed pipe), the normal exit reports it. Worker
+    processes still running are waited for (:func:`multiprocessing.active_children`);
+    the fork server ends by itself when this process does."""
     code = exc.code
     if code is None:
         status = 0
@@ -90,8 +91,14 @@ def _exit_now(exc: SystemExit) -> None:
         sys.stderr.flush()
     except (OSError, ValueError):
         raise exc from None
-    mp_util = sys.modules.get("multiprocessing.util")
-    if mp_util is not None:  # multiprocessing's own exit: joins children, stops the fork server
-        getattr(mp_util, "_exit_function", lambda: None)()
+    if _stopping:
+        # after a signal the workers were killed with tasks in their queues: the normal
+        # exit runs multiprocessing's exit handler, which releases the queues' semaphores
+        # (else the resource tracker reports them as leaked)
+        raise exc from None
+    mp = sys.modules.get("multiprocessing")
+    if mp is not None:
+        for child in mp.active_children():
+            child.join()
     import os
     os._exit(status)

@@ -8,6 +8,7 @@ import click
 
 from armfit.api import estimate_config, estimate_study_result
 from armfit.cli.options import (
+    cluster_executor,
     emit_json,
     jobs_option,
     json_option,
@@ -16,6 +17,7 @@ from armfit.cli.options import (
     output_option,
     overwrite_option,
     progress,
+    scheduler_option,
     skip_bad_option,
 )
 from armfit.constants import AXES, DEVICE_MASS_KG
@@ -76,11 +78,12 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,
               metavar="FILE", help="Also write the table as CSV.")
 @jobs_option
+@scheduler_option
 @overwrite_option
 @json_option
 def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, nperseg,
-            overlap, window, mp, coherence_min, force_limit, csv_path, jobs, overwrite,
-            as_json):
+            overlap, window, mp, coherence_min, force_limit, csv_path, jobs, scheduler,
+            overwrite, as_json):
     """Estimate frequency responses of every trial and their mean and median, e.g.
     ``armfit estimate trials.parquet -o spectra.parquet``.
 
@@ -103,6 +106,7 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
                              nperseg=nperseg, overlap=overlap, window=window, mp=mp,
                              coherence_min=coherence_min, force_limit_N=force_limit)
     with contextlib.ExitStack() as stack:
+        executor = stack.enter_context(cluster_executor(scheduler))
         bar = {}
 
         def on_open(n_trials: int) -> None:
@@ -111,7 +115,8 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
         result = estimate_study_result(list(paths), config, manifest=manifest,
                                        skip_bad=skip_bad, jobs=jobs, on_open=on_open,
                                        advance=lambda: bar["advance"](),
-                                       warn=lambda text: message(f"warning: {text}"))
+                                       warn=lambda text: message(f"warning: {text}"),
+                                       executor=executor)
     meta = result.meta
     result.write(output, overwrite=overwrite)
     if csv_path is not None:

@@ -26,12 +26,15 @@ from armfit.uncertainty import MAX_PAIRS, read_wu
 from .options import (
     band_option,
     clean,
+    cluster_executor,
     effects_file_option,
     emit_json,
+    jobs_option,
     json_option,
     message,
     output_option,
     overwrite_option,
+    scheduler_option,
 )
 
 
@@ -86,12 +89,14 @@ def _pairs(reps) -> list[list[float]]:
               help="Also evaluate this Wu CSV against the data ('paper': Table III).")
 @click.option("--latex", type=click.Path(dir_okay=False), default=None,
               help="Also write a Table III-style LaTeX table of the fitted weights.")
+@jobs_option
+@scheduler_option
 @json_option
 @overwrite_option
 def command(spectra: str, nominal: str, output: str, cost: str, order: int | None,
             band: str | None, smooth: str | None, method: str | None,
-            check_weights: str | None, latex: str | None, as_json: bool,
-            overwrite: bool) -> None:
+            check_weights: str | None, latex: str | None, jobs: int,
+            scheduler: str | None, as_json: bool, overwrite: bool) -> None:
     """Fit the multiplicative uncertainty weight Wu per axis (Table III).
 
     SPECTRA is the Parquet file of `armfit estimate`; its trial rows of kind "derived"
@@ -122,8 +127,10 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
             if stack is not None:
                 stack.close()
 
-    unc = api_fit_uncertainty(data, params, cost=cost, order=order, band=band_hz,
-                              smooth_oct=smooth_oct, method=method, check=given)
+    with cluster_executor(scheduler) as executor:
+        unc = api_fit_uncertainty(data, params, cost=cost, order=order, band=band_hz,
+                                  smooth_oct=smooth_oct, method=method, check=given,
+                                  jobs=jobs, executor=executor)
     results = unc.axes
     for r in results:
         res = r.result

@@ -33,6 +33,34 @@ manifest_option = click.option(
 jobs_option = click.option(
     "-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
     help="Worker processes.")
+scheduler_option = click.option(
+    "--scheduler", default=None, metavar="ADDRESS",
+    help="Run the tasks on the dask cluster whose scheduler is at ADDRESS (e.g. "
+         "tcp://host:8786) instead of --jobs worker processes; needs armfit[dask].")
+
+
+@contextmanager
+def cluster_executor(address: str | None) -> Iterator[Any]:
+    """The executor of a ``dask.distributed`` client connected to the scheduler at
+    ``address`` for the ``with`` block (closed at its end), or None without an address.
+    Raises UsageError (exit 2, one line) when dask.distributed is not installed or the
+    scheduler cannot be reached."""
+    if address is None:
+        yield None
+        return
+    try:
+        from distributed import Client
+    except ImportError:
+        raise UsageError("--scheduler needs dask.distributed: pip install armfit[dask]"
+                         ) from None
+    try:
+        client = Client(address)
+    except (OSError, ValueError, TypeError) as exc:
+        raise UsageError(f"--scheduler {address}: cannot reach the dask scheduler "
+                         f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+                         ) from None
+    with client:
+        yield client.get_executor()
 effect_option = click.option(
     "--effect", "effects", multiple=True, metavar="NAME",
     help="Add a physical effect to the model (repeatable; see `armfit effects`).")

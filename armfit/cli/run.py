@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from armfit.cli.options import (
+    cluster_executor,
     effects_file_option,
     emit_json,
     jobs_option,
@@ -13,6 +14,7 @@ from armfit.cli.options import (
     message,
     outside_loop_option,
     overwrite_option,
+    scheduler_option,
     skip_bad_option,
 )
 from armfit.fitting import COSTS
@@ -41,11 +43,12 @@ from armfit.spectra import METHODS
                    "product; none: the paper's 5-parameter model throughout.")
 @outside_loop_option
 @jobs_option
+@scheduler_option
 @click.option("--no-figures", is_flag=True, help="Skip the figures (faster).")
 @overwrite_option
 @json_option
 def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, outside_loop,
-            jobs, no_figures, overwrite, as_json):
+            jobs, scheduler, no_figures, overwrite, as_json):
     """Run every stage on raw trials and write all tables, figures and report.md into
     OUTDIR, e.g. ``armfit run raw/ -o results``.
 
@@ -58,12 +61,13 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, ou
     """
     if not inputs and manifest is None:
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
-    result = run(
-        list(inputs), outdir, manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
-        wu_cost=wu_cost, jobs=jobs, figures=not no_figures, overwrite=overwrite,
-        adopt=adopt, outside_loop=outside_loop,
-        on_stage=lambda s: message(f"{s.name}: {s.seconds:.1f} s — {s.summary}"),
-        warn=lambda text: message(f"warning: {text}"))
+    with cluster_executor(scheduler) as executor:
+        result = run(
+            list(inputs), outdir, manifest=manifest, skip_bad=skip_bad, method=method,
+            cost=cost, wu_cost=wu_cost, jobs=jobs, figures=not no_figures,
+            overwrite=overwrite, adopt=adopt, outside_loop=outside_loop,
+            on_stage=lambda s: message(f"{s.name}: {s.seconds:.1f} s — {s.summary}"),
+            warn=lambda text: message(f"warning: {text}"), executor=executor)
     for f, reason in result.skipped:
         message(f"skipped {f}: {reason}")
     for axis, verdict in result.verdicts.items():

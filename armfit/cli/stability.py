@@ -18,6 +18,7 @@ from armfit.cli.options import (
     axis_bands_option,
     bands_by_axis,
     clean,
+    cluster_executor,
     effect_items,
     effects_file_option,
     emit_json,
@@ -28,6 +29,7 @@ from armfit.cli.options import (
     output_option,
     outside_loop_option,
     overwrite_option,
+    scheduler_option,
 )
 from armfit.constants import PAPER_BANDS
 from armfit.errors import BadInputError, UsageError
@@ -226,10 +228,11 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
 @click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",
               help="Evaluation budget of each final local fit [default: 200 per parameter].")
 @jobs_option
+@scheduler_option
 @json_option
 @overwrite_option
 def fit_trials_command(spectra, output, cost, band, effects, method, max_nfev, jobs,
-                       as_json, overwrite):
+                       scheduler, as_json, overwrite):
     """Fit the arm model to every trial (subject x axis x grip [x run]).
 
     SPECTRA is the Parquet file of `armfit estimate`; its rows of level "trial" and kind
@@ -251,8 +254,10 @@ def fit_trials_command(spectra, output, cost, band, effects, method, max_nfev, j
         else:
             message(f"fit {who}: rms {tf.fit.rms_db:.3g} dB, {tf.fit.rms_deg:.3g} deg")
 
-    result = api_fit_trials(data, cost=cost, bands=bands, effects=effect_objs, method=method,
-                            max_nfev=max_nfev, jobs=jobs, on_fit=report)
+    with cluster_executor(scheduler) as executor:
+        result = api_fit_trials(data, cost=cost, bands=bands, effects=effect_objs,
+                                method=method, max_nfev=max_nfev, jobs=jobs, on_fit=report,
+                                executor=executor)
     fits = result.fits
     df = result.to_frame()
     result.write(output, overwrite=overwrite)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -46,7 +47,7 @@ from armfit.diagnosis.verdict import verdict_text
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
 from armfit.spectra import Spectra
-from armfit.workers import process_pool
+from armfit.workers import executor_for
 
 __all__ = ["CandidateFit", "cross_axis_agreement", "diagnose_axes", "task_map"]
 
@@ -306,7 +307,8 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
                   effects: Sequence[Effect] | None = None, jobs: int = 1,
                   max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
                   min_effect_deg: float = MIN_EFFECT_DEG,
-                  share: Sequence[str] | None = None) -> list[AxisDiagnosis]:
+                  share: Sequence[str] | None = None,
+                  executor: Executor | None = None) -> list[AxisDiagnosis]:
     """Diagnose every axis present in both ``spectra`` (a spectra DataFrame) and
     ``params`` (a params DataFrame, grip or nominal fits) by a stepwise search.
 
@@ -322,8 +324,9 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     :func:`cross_axis_agreement`.
 
     ``band`` defaults to the whole grid of the spectra; ``jobs`` > 1 runs the fits of a
-    step (one per axis and candidate) in parallel processes — the results do not depend
-    on ``jobs``.
+    step (one per axis and candidate) in parallel processes, or ``executor`` (any
+    :class:`concurrent.futures.Executor`, e.g. a dask client's) runs them — the results
+    do not depend on ``jobs`` or the executor.
     """
     effects = list(EFFECTS.values()) if effects is None else list(effects)
     spectra = Spectra.of(spectra)
@@ -337,7 +340,7 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     if not searches:
         return []
     share = SHARED_EFFECTS if share is None else tuple(share)
-    with task_map(jobs) as run:
+    with task_map(jobs, executor) as run:
         bases = list(run(_base_task, [(s.data, s.band) for s in searches]))
         for s, base in zip(searches, bases, strict=True):
             s.start(base)
@@ -355,18 +358,13 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
 
 
 @contextlib.contextmanager
-def task_map(jobs: int) -> Iterator[Callable]:
-    """A ``map`` for the diagnosis's tasks: over ``jobs`` worker processes when ``jobs``
-    > 1 (one pool for the whole diagnosis, shut down on leaving), else the builtin
-    ``map`` here. The diagnosis's only use of worker processes."""
-    if jobs <= 1:
-        yield map
-        return
-    pool = process_pool(jobs, preload=("armfit.diagnosis",))
-    try:
-        yield pool.map
-    finally:
-        pool.shutdown(cancel_futures=True)
+def task_map(jobs: int, executor: Executor | None = None) -> Iterator[Callable]:
+    """A ``map`` for the diagnosis's tasks: ``executor.map`` when an executor is given
+    (used as is, not shut down), else over ``jobs`` worker processes when ``jobs`` > 1
+    (one pool for the whole diagnosis, shut down on leaving), else the builtin ``map``
+    here (:func:`armfit.workers.executor_for`). The diagnosis's only use of workers."""
+    with executor_for(executor, jobs, preload=("armfit.diagnosis",)) as pool:
+        yield map if pool is None else pool.map
 
 
 def _search_step(live: Sequence[_Search], run: Callable) -> None:

@@ -1,0 +1,94 @@
+"""Scale-out on dask: a dask.distributed client's executor serves as any executor.
+
+One local cluster of two worker processes (one thread each) serves the module. Each
+result is compared with the same call run in this process (jobs=1): array- and
+frame-equal, or byte-equal for the files the command line writes.
+"""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+
+import armfit
+from armfit.cli.main import cli
+
+distributed = pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Two worker processes (processes=True: tasks and results are pickled to and from
+    other interpreters, as on a cluster of machines)."""
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def executor(cluster):
+    with distributed.Client(cluster) as client:
+        yield client.get_executor()
+
+
+@pytest.fixture(scope="module")
+def small_study(tmp_path_factory):
+    """2 subjects, axis x, grips 1 and 2 N, 26 s trials (armfit.simulate, seed 5)."""
+    root = tmp_path_factory.mktemp("dask") / "study"
+    armfit.simulate(subjects=2, axes=("x",), grips_N=(1.0, 2.0), duration_s=(26.0, 26.0),
+                    seed=5).write(root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def serial_spectra(small_study):
+    return armfit.estimate(small_study)
+
+
+def test_the_cluster_runs_tasks_in_other_processes(cluster, executor):
+    import os
+    pids = set(executor.map(lambda _: os.getpid(), range(8)))
+    assert os.getpid() not in pids and 1 <= len(pids) <= 2   # its 2 worker processes
+
+
+def test_estimate_on_dask_is_the_same(small_study, serial_spectra, executor):
+    spectra = armfit.estimate(small_study, executor=executor)
+    pd.testing.assert_frame_equal(spectra.to_frame(), serial_spectra.to_frame())
+
+
+def test_fit_trials_on_dask_is_the_same(serial_spectra, executor):
+    fits = armfit.fit_trials(serial_spectra, executor=executor)
+    ref = armfit.fit_trials(serial_spectra)
+    pd.testing.assert_frame_equal(fits.to_frame(), ref.to_frame())
+    assert [t.fit.params for t in fits.fits] == [t.fit.params for t in ref.fits]
+
+
+def test_diagnose_on_dask_is_the_same(serial_spectra, executor):
+    """The diagnosis's screening and joint fits on the cluster: the same verdicts,
+    steps and errors as in this process."""
+    grip = armfit.fit_grip(serial_spectra)
+    on_dask = armfit.diagnose(serial_spectra, grip, executor=executor).to_dict()
+    here = armfit.diagnose(serial_spectra, grip).to_dict()
+    assert on_dask == here
+
+
+def test_run_on_dask_writes_the_same_files(small_study, executor, tmp_path):
+    """Every stage's tasks on the cluster (the diagnosis in this process, jobs=1):
+    every file the same bytes as the run in this process."""
+    local = armfit.run(small_study, tmp_path / "local", figures=False)
+    remote = armfit.run(small_study, tmp_path / "dask", figures=False, executor=executor)
+    assert remote.files == local.files
+    assert [f for f in local.files if (tmp_path / "local" / f).read_bytes()
+            != (tmp_path / "dask" / f).read_bytes()] == []
+
+
+def test_cli_scheduler_option(small_study, cluster, tmp_path):
+    out_local, out_dask = tmp_path / "local.parquet", tmp_path / "dask.parquet"
+    runner = CliRunner()
+    res = runner.invoke(cli, ["estimate", str(small_study), "-o", str(out_local)])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(cli, ["estimate", str(small_study), "-o", str(out_dask),
+                              "--scheduler", cluster.scheduler_address])
+    assert res.exit_code == 0, res.output
+    assert out_dask.read_bytes() == out_local.read_bytes()

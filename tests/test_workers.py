@@ -1,0 +1,144 @@
+"""Executors passed in and pools of armfit's own (armfit.workers).
+
+An executor given is used as it is and never shut down by armfit; a pool armfit makes is
+shut down by armfit; the results are the same whatever runs the tasks (compared with the
+same call run in this process, jobs=1).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import sys
+import threading
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import armfit
+from armfit import workers
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+@pytest.fixture(scope="module")
+def small_study(tmp_path_factory):
+    """2 subjects, axis x, grips 1 and 2 N, 26 s trials (armfit.simulate, seed 5)."""
+    root = tmp_path_factory.mktemp("workers") / "study"
+    armfit.simulate(subjects=2, axes=("x",), grips_N=(1.0, 2.0), duration_s=(26.0, 26.0),
+                    seed=5).write(root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def serial_spectra(small_study):
+    """The study estimated in this process (jobs=1): the reference."""
+    return armfit.estimate(small_study)
+
+
+def test_start_method_is_the_fork_server_where_python_offers_it():
+    # the rule of armfit.workers: forkserver except on macOS, else spawn
+    expected = ("forkserver" if sys.platform != "darwin"
+                and "forkserver" in mp.get_all_start_methods() else "spawn")
+    assert workers.start_method() == expected
+
+
+def test_an_executor_given_is_used_and_not_shut_down():
+    with ThreadPoolExecutor(max_workers=2) as given:
+        with workers.executor_for(given, jobs=8) as ex:
+            assert ex is given
+        # still open after the block: armfit never shuts down the caller's executor
+        assert workers.map_tasks(_square, [1, 2, 3], executor=given) == [1, 4, 9]
+        assert given.submit(_square, 4).result() == 16
+
+
+def test_a_pool_of_its_own_is_shut_down_at_the_end_of_the_block():
+    with workers.executor_for(jobs=2) as pool:
+        assert isinstance(pool, ProcessPoolExecutor)
+        assert list(pool.map(_square, range(4))) == [0, 1, 4, 9]
+    with pytest.raises(RuntimeError, match="after shutdown"):
+        pool.submit(_square, 2)
+
+
+def test_one_worker_or_one_task_runs_here():
+    with workers.executor_for(jobs=1) as ex:
+        assert ex is None
+    with workers.executor_for(jobs=4, tasks=1) as ex:
+        assert ex is None
+    assert workers.map_tasks(_square, [3], jobs=4) == [9]
+
+
+def test_a_pool_starts_all_its_workers_at_its_first_task():
+    before = set(mp.active_children())
+    pool = workers.process_pool(2)
+    try:
+        assert set(mp.active_children()) == before   # nothing started yet
+        assert pool.submit(_square, 5).result() == 25
+        started = set(mp.active_children()) - before
+        assert len(started) == 2                     # both workers, not one per task
+    finally:
+        pool.shutdown()
+    assert set(mp.active_children()) - before == set()
+
+
+def test_cancel_pools_stops_the_pools_a_thread_made():
+    made = {}
+
+    def in_thread():
+        made["pool"] = workers.process_pool(2)
+        made["ident"] = threading.get_ident()
+
+    t = threading.Thread(target=in_thread)
+    t.start()
+    t.join()
+    other = workers.process_pool(2)          # made here: not touched
+    try:
+        workers.cancel_pools(made["ident"])
+        with pytest.raises(RuntimeError, match="after shutdown"):
+            made["pool"].submit(_square, 2)
+        assert other.submit(_square, 3).result() == 9
+    finally:
+        other.shutdown()
+
+
+def test_estimate_on_a_process_pool_of_the_callers_is_the_same(small_study, serial_spectra):
+    with ProcessPoolExecutor(max_workers=2) as pool:
+        spectra = armfit.estimate(small_study, executor=pool)
+        assert pool.submit(_square, 6).result() == 36   # still usable: not shut down
+    pd.testing.assert_frame_equal(spectra.to_frame(), serial_spectra.to_frame())
+
+
+def test_fits_on_a_thread_pool_are_the_same(serial_spectra):
+    """fit_grip, fit_trials and fit_uncertainty with an executor given give the frames
+    of the same calls run here (jobs=1)."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        grip = armfit.fit_grip(serial_spectra, executor=pool)
+        trials = armfit.fit_trials(serial_spectra, executor=pool)
+        nominal = armfit.fit_nominal(serial_spectra, executor=pool)
+        unc = armfit.fit_uncertainty(serial_spectra, nominal, executor=pool)
+    pd.testing.assert_frame_equal(grip.to_frame(), armfit.fit_grip(serial_spectra).to_frame())
+    pd.testing.assert_frame_equal(trials.to_frame(),
+                                  armfit.fit_trials(serial_spectra).to_frame())
+    ref = armfit.fit_uncertainty(serial_spectra, armfit.fit_nominal(serial_spectra))
+    pd.testing.assert_frame_equal(unc.to_frame(), ref.to_frame())
+    for a, b in zip(unc.axes, ref.axes, strict=True):
+        assert np.array_equal(a.wmax_raw, b.wmax_raw, equal_nan=True)
+
+
+def test_scheduler_without_dask_is_one_line_and_exit_2(small_study, tmp_path, monkeypatch):
+    """`--scheduler` needs the optional extra; without it: the documented usage exit (2)
+    and one line saying what to install, no traceback."""
+    from click.testing import CliRunner
+
+    from armfit.cli.main import cli
+    monkeypatch.setitem(sys.modules, "distributed", None)   # `import distributed` fails
+    res = CliRunner().invoke(cli, ["estimate", str(small_study), "-o",
+                                   str(tmp_path / "s.parquet"), "--scheduler",
+                                   "tcp://127.0.0.1:8786"])
+    assert res.exit_code == 2
+    assert res.stderr == ("armfit: error: --scheduler needs dask.distributed: "
+                          "pip install armfit[dask]\n")
+    assert not (tmp_path / "s.parquet").exists()
