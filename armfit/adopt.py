@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from armfit.constants import AXES, PAPER_BANDS
+from armfit.constants import AXES, GRID_HZ, PAPER_BANDS
 from armfit.errors import UsageError
 from armfit.models.arm import APPARATUS_STAGES
 from armfit.models.effects import get_effect
@@ -90,7 +90,7 @@ class AxisAdoption:
     axis: str
     effects: tuple[str, ...] = ()
     held: tuple[HeldValue, ...] = ()
-    band_hz: tuple[float, float] = (0.1, 30.0)
+    band_hz: tuple[float, float] = GRID_HZ
     adequate: bool = True
     rms_norm_base: float = math.nan
     rms_norm_adopted: float = math.nan

@@ -34,7 +34,7 @@ import pandas as pd
 from armfit import fitting as _fitting
 from armfit import uncertainty as _uncertainty
 from armfit.adopt import Adoption, adopt
-from armfit.constants import AXES
+from armfit.constants import AXES, GRID_HZ
 from armfit.diagnosis import (
     MAX_STEPS,
     MIN_EFFECT_DB,
@@ -133,8 +133,10 @@ class Trials:
 
 
 def read_trials(paths: PathLike | Sequence[PathLike], *, manifest: PathLike | None = None,
-                skip_bad: bool = False, resample: bool = False, f_min_hz: float = 0.1,
-                force_limit_N: float = 8.5, warn: Warn | None = None) -> Trials:
+                skip_bad: bool = False, resample: bool = False,
+                f_min_hz: float = EstimateConfig.fmin,
+                force_limit_N: float = EstimateConfig.force_limit_N,
+                warn: Warn | None = None) -> Trials:
     """Read raw trial files, folders or a canonical dataset into memory.
 
     Parameters
@@ -177,10 +179,14 @@ def read_trials(paths: PathLike | Sequence[PathLike], *, manifest: PathLike | No
 # Spectra
 # ---------------------------------------------------------------------------
 
-def estimate_config(*, method: str = "h1", fmin: float = 0.1, fmax: float = 30.0,
-                    per_decade: int = 40, nperseg: int | None = None, overlap: float = 0.5,
-                    window: str = "hann", mp: Mapping[str, float] | None = None,
-                    coherence_min: float = 0.5, force_limit_N: float = 8.5
+def estimate_config(*, method: str = EstimateConfig.method,
+                    fmin: float = EstimateConfig.fmin, fmax: float = EstimateConfig.fmax,
+                    per_decade: int = EstimateConfig.per_decade,
+                    nperseg: int | None = None, overlap: float = EstimateConfig.overlap,
+                    window: str = EstimateConfig.window,
+                    mp: Mapping[str, float] | None = None,
+                    coherence_min: float = EstimateConfig.coherence_min,
+                    force_limit_N: float = EstimateConfig.force_limit_N
                     ) -> EstimateConfig:
     """The estimator options of :func:`estimate` as an :class:`EstimateConfig`
     (frequencies in Hz, masses in kg, forces in N; see :func:`estimate`)."""
@@ -214,10 +220,13 @@ def estimate_study_result(source, config: EstimateConfig | None = None, *,
                           executor=executor)
 
 
-def estimate(source, *, method: str = "h1", fmin: float = 0.1, fmax: float = 30.0,
-             per_decade: int = 40, nperseg: int | None = None, overlap: float = 0.5,
-             window: str = "hann", mp: Mapping[str, float] | None = None,
-             coherence_min: float = 0.5, force_limit_N: float = 8.5,
+def estimate(source, *, method: str = EstimateConfig.method,
+             fmin: float = EstimateConfig.fmin, fmax: float = EstimateConfig.fmax,
+             per_decade: int = EstimateConfig.per_decade, nperseg: int | None = None,
+             overlap: float = EstimateConfig.overlap, window: str = EstimateConfig.window,
+             mp: Mapping[str, float] | None = None,
+             coherence_min: float = EstimateConfig.coherence_min,
+             force_limit_N: float = EstimateConfig.force_limit_N,
              manifest: PathLike | None = None, skip_bad: bool = False, jobs: int = 1,
              warn: Warn | None = None, executor: Executor | None = None) -> Spectra:
     """Frequency responses of every trial, and their mean per axis × grip and median per
@@ -357,7 +366,7 @@ class ModelFit:
                 raise UsageError("this model holds no spectra to draw; use "
                                  "armfit.figures.bode_figure(spectra, model.table)")
             return _figures().bode_figure(self.spectra, self.table)
-        f = np.geomspace(0.1, 30.0, 400)
+        f = np.geomspace(*GRID_HZ, 400)
         for _, row in self.table.iterrows():
             model, theta = model_from_params(row)
             grip = f" {float(row['grip_N']):g} N" if "grip_N" in row else ""

@@ -48,7 +48,7 @@ from matplotlib.patches import Patch
 from matplotlib.ticker import FuncFormatter, Locator, LogLocator, NullFormatter, NullLocator
 
 from armfit import noise
-from armfit.constants import AXES
+from armfit.constants import AXES, GRID_HZ
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import atomic_path, check_output
 from armfit.loop import (
@@ -1019,7 +1019,7 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
     solid colour line. Magnitude in dB re 1 m/N and phase in degrees over ``f_hz``
     (default 0.1–30 Hz, the band of the fits).
     """
-    f = np.geomspace(0.1, 30.0, 400) if f_hz is None else np.asarray(f_hz, dtype=float)
+    f = np.geomspace(*GRID_HZ, 400) if f_hz is None else np.asarray(f_hz, dtype=float)
     lit = literature_models() if models is None else list(models)
     model, theta = model_from_row(row)
     if label is None:

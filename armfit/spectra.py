@@ -49,7 +49,14 @@ import scipy.fft
 from scipy.ndimage import uniform_filter1d
 
 from armfit._version import __version__
-from armfit.constants import AXES, DB_PER_NEPER, DEVICE_MASS_KG
+from armfit.constants import (
+    AXES,
+    DB_PER_NEPER,
+    DEVICE_MASS_KG,
+    FORCE_LIMIT_N,
+    GRID_HZ,
+    POINTS_PER_DECADE,
+)
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path
 from armfit.io.schema import (
@@ -300,7 +307,8 @@ def derived_spectra(force, pos, fs: float, mp: float, *, segments: int = 4,
 # Common grid
 # ---------------------------------------------------------------------------
 
-def log_grid(fmin: float = 0.1, fmax: float = 30.0, per_decade: int = 40) -> np.ndarray:
+def log_grid(fmin: float = GRID_HZ[0], fmax: float = GRID_HZ[1],
+             per_decade: int = POINTS_PER_DECADE) -> np.ndarray:
     """Log-spaced frequencies (Hz) from fmin to fmax inclusive, ``per_decade`` per decade
     (rounded so both ends are on the grid)."""
     if not 0 < fmin < fmax:
@@ -633,9 +641,9 @@ class EstimateConfig:
     """
 
     method: str = "h1"
-    fmin: float = 0.1
-    fmax: float = 30.0
-    per_decade: int = 40
+    fmin: float = GRID_HZ[0]
+    fmax: float = GRID_HZ[1]
+    per_decade: int = POINTS_PER_DECADE
     nperseg: int | None = None
     overlap: float = 0.5
     window: str = "hann"
@@ -645,7 +653,7 @@ class EstimateConfig:
     mp: Mapping[str, float] = field(default_factory=lambda: dict(DEVICE_MASS_KG))
     coherence_min: float = 0.5
     drift_factor: float = 3.0
-    force_limit_N: float = 8.5
+    force_limit_N: float = FORCE_LIMIT_N
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -1908,3 +1916,15 @@ def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,
         "aggregation": "mean and median of 20 log10|H| and of the phase (each trial within "
                        "pi of the trials' circular mean)",
     }
+
+
+__all__ = [
+    "METHODS", "MEDIAN_SE_FACTOR", "BinSpectra", "welch_overlap_factor", "enbw_bins",
+    "welch_spectra", "frf_h1", "chebwin_spectra", "frf_chebwin", "tfestimate_segment",
+    "derived_arm_signals", "derived_spectra", "log_grid", "GridResponse", "band_bins",
+    "bendat_piersol_se", "debiased_coherence", "NEGLIGIBLE_FORCE_POWER", "usable_bins",
+    "to_grid", "saturated", "drifting", "EstimateConfig", "Response", "TrialResponses",
+    "check_band", "estimate_trial", "NO_SIGNAL", "no_signal_messages", "aggregate",
+    "aggregate_spread", "spectra_table", "WRITE_ROWS", "Spectra", "write_parts",
+    "row_counts", "StudySpectra", "estimate_study", "estimate_trials", "study_metadata",
+]

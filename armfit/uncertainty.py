@@ -901,3 +901,12 @@ def read_weights_and_bands(path_or_name: str | Path):
         except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
             pass
     return w, bands, str(p)
+
+
+__all__ = [
+    "PAPER_BAND_HZ", "PAPER_WEIGHTS", "MAX_PAIRS", "ZETA_MIN", "WuWeight", "read_wu",
+    "wu_response", "smooth_fractional_octave", "relative_error", "w_max",
+    "EnvelopeCheck", "check_envelope", "WuResult", "fit_wu", "nominal_arm_response",
+    "arm_trials", "derived_trials", "AxisUncertainty", "fit_uncertainty",
+    "derived_mass_kg", "summary_table", "points_table", "read_weights_and_bands",
+]

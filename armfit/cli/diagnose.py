@@ -225,3 +225,8 @@ def _print_steps(results, doc, con) -> None:
         word = "disagree" if e["disagree"] else "agree"
         con.print(f"{name} on axes {', '.join(e['axes'])}: the axes {word}; common value "
                   f"{vals}", highlight=False)
+
+
+__all__ = [
+    "effects_command", "compare_command", "diagnose_command",
+]

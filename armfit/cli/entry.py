@@ -102,3 +102,8 @@ def _exit_now(exc: SystemExit) -> None:
             child.join()
     import os
     os._exit(status)
+
+
+__all__ = [
+    "install_signal_handlers", "main",
+]

@@ -23,8 +23,13 @@ from armfit.cli.options import (
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
+from armfit.spectra import EstimateConfig
 
 WINDOWS = ("hann", "hamming", "blackman", "blackmanharris", "boxcar")
+
+
+#: The defaults of every option: those of the estimator configuration.
+_DEFAULTS = EstimateConfig()
 
 
 def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
@@ -50,30 +55,33 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
 @output_option
 @manifest_option
 @skip_bad_option
-@click.option("--method", type=click.Choice(["h1", "chebwin"]), default="h1",
+@click.option("--method", type=click.Choice(["h1", "chebwin"]), default=_DEFAULTS.method,
               show_default=True,
               help="Measured-dynamics estimator: Welch H1 (best on simulated truth) or the "
                    "paper's whole-record FFT ratio with 100 dB Chebyshev windows.")
-@click.option("--fmin", type=click.FloatRange(min=0, min_open=True), default=0.1,
+@click.option("--fmin", type=click.FloatRange(min=0, min_open=True), default=_DEFAULTS.fmin,
               show_default=True, metavar="HZ", help="Lowest grid frequency.")
-@click.option("--fmax", type=click.FloatRange(min=0, min_open=True), default=30.0,
+@click.option("--fmax", type=click.FloatRange(min=0, min_open=True), default=_DEFAULTS.fmax,
               show_default=True, metavar="HZ", help="Highest grid frequency (<= Nyquist).")
-@click.option("--per-decade", type=click.IntRange(1, 1000), default=40, show_default=True,
+@click.option("--per-decade", type=click.IntRange(1, 1000), default=_DEFAULTS.per_decade,
+              show_default=True,
               help="Grid points per decade (log-spaced, band-averaged).")
 @click.option("--nperseg", type=click.IntRange(8), default=None, metavar="SAMPLES",
               help="H1 segment length [default: power of 2 lasting >= 2/fmin, halved down "
                    "to 1/fmin while a trial holds fewer than 4 segments].")
-@click.option("--overlap", type=click.FloatRange(0, 1, max_open=True), default=0.5,
+@click.option("--overlap", type=click.FloatRange(0, 1, max_open=True), default=_DEFAULTS.overlap,
               show_default=True, help="H1 segment overlap (fraction).")
-@click.option("--window", type=click.Choice(WINDOWS), default="hann", show_default=True,
+@click.option("--window", type=click.Choice(WINDOWS), default=_DEFAULTS.window,
+              show_default=True,
               help="H1 window.")
 @click.option("--mp", "mp", callback=_parse_mp, metavar="AXIS=KG,...",
               help="Device mass per axis for the derived arm dynamics [default: the paper's "
                    "x=0.09,y=0.095,z=0.091].")
-@click.option("--coherence-min", type=click.FloatRange(0, 1), default=0.5, show_default=True,
+@click.option("--coherence-min", type=click.FloatRange(0, 1), default=_DEFAULTS.coherence_min,
+              show_default=True,
               help="Grid points with lower coherence are flagged low_coherence.")
 @click.option("--force-limit", "force_limit", type=click.FloatRange(min=0, min_open=True),
-              default=8.5, show_default=True, metavar="N",
+              default=_DEFAULTS.force_limit_N, show_default=True, metavar="N",
               help="Device peak force; trials reaching it are flagged saturation.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,
               metavar="FILE", help="Also write the table as CSV.")
@@ -138,3 +146,8 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
             "grid": {"fmin_hz": fmin, "fmax_hz": fmax, "points": len(meta["grid_hz"])},
             **counts,
         })
+
+
+__all__ = [
+    "WINDOWS", "command",
+]

@@ -171,3 +171,8 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
             "summary_rows": [{k: clean(v) for k, v in row.items()}
                              for row in summary.to_dict("records")],
         })
+
+
+__all__ = [
+    "command",
+]

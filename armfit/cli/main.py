@@ -122,6 +122,6 @@ def _register() -> None:
 _register()
 
 
-def main() -> None:  # pragma: no cover - console entry point
-    from armfit.cli.entry import main as entry_main
-    entry_main()
+__all__ = [
+    "log", "ArmfitGroup", "cli",
+]

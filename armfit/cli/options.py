@@ -240,3 +240,13 @@ def iterate(items: Iterable[T], total: int, description: str) -> Iterator[T]:
         for item in items:
             yield item
             advance()
+
+
+__all__ = [
+    "T", "output_option", "overwrite_option", "json_option", "skip_bad_option",
+    "manifest_option", "jobs_option", "scheduler_option", "cluster_executor",
+    "effect_option", "outside_loop_option", "fit_effect_option", "effect_items",
+    "BAND_HELP", "parse_band", "parse_bands", "band_option", "axis_bands_option",
+    "bands_by_axis", "clean", "effects_file_option", "effect_files", "verbosity",
+    "message", "emit_json", "progress", "iterate",
+]

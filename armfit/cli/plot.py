@@ -197,7 +197,7 @@ def literature_command(model_path, axis, grip, output, overwrite):
               metavar="D", help="Computation delay d of the top row, samples.")
 @output_option
 @overwrite_option
-def stability_command(params, sample_time, damping, delay, output, overwrite):
+def plot_stability_command(params, sample_time, damping, delay, output, overwrite):
     """K_max per subject and grip, and against servo rate for d = 0, 1, 2.
 
     PARAMS: any parameters file armfit writes (fit-trials for the population), or a
@@ -214,5 +214,5 @@ def stability_command(params, sample_time, damping, delay, output, overwrite):
 
 __all__ = [
     "AXIS_CHOICE", "command", "bode_command", "residual_command", "uncertainty_command",
-    "literature_command", "stability_command",
+    "literature_command", "plot_stability_command",
 ]

@@ -90,3 +90,8 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, ou
             "timings_s": {s.name: round(s.seconds, 3) for s in result.stages},
             "total_s": round(result.wall_s, 3),
         })
+
+
+__all__ = [
+    "command",
+]

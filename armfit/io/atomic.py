@@ -41,7 +41,7 @@ from pathlib import Path
 
 from armfit.errors import OutputError
 
-log = logging.getLogger("armfit")
+_log = logging.getLogger("armfit")
 
 #: Bytes of the destination name kept in a temporary name.
 SHORT_BYTES = 40
@@ -126,7 +126,7 @@ def clean_stale(folder: str | os.PathLike, dest_name: str) -> list[str]:
         _remove(path)
         done.append(f"removed {path}, left by a run that stopped (pid {m['pid']})")
     for line in done:
-        log.info(line)
+        _log.info(line)
     return done
 
 
@@ -365,6 +365,6 @@ def write_text_atomic(path: str | os.PathLike, text: str, *, overwrite: bool = F
 
 
 __all__ = [
-    "log", "SHORT_BYTES", "temp_name", "clean_stale", "check_output",
+    "SHORT_BYTES", "temp_name", "clean_stale", "check_output",
     "exchange_folders", "atomic_path", "write_text_atomic",
 ]

@@ -69,6 +69,7 @@ from pathlib import Path
 
 import numpy as np
 
+from armfit.constants import GRID_HZ
 from armfit.errors import EffectDefinitionError, NoInputError, UsageError
 from armfit.models.arm import BASE_PARAMS, DEVICE_MASS_KG, STAGE_NAMES, Param
 
@@ -80,7 +81,7 @@ ENTRY_POINT_GROUP = "armfit.effects"
 
 #: Probe frequencies (Hz) of the registration checks: the paper's fit band, 0.1–30 Hz,
 #: 40 points log-spaced.
-PROBE_HZ = np.geomspace(0.1, 30.0, 40)
+PROBE_HZ = np.geomspace(*GRID_HZ, 40)
 
 #: Largest relative change |H_null/H_base − 1| of the closed-loop response an effect may
 #: cause at its null values (probe band, base parameters at their typical values, every
