@@ -114,3 +114,22 @@ def solver_stops_at_budget(monkeypatch):
         return res
 
     monkeypatch.setattr(fitting.optimize, "least_squares", stopped)
+
+
+@pytest.fixture(scope="session")
+def small_study(tmp_path_factory) -> Path:
+    """2 subjects, axis x, grips 1 and 2 N, 26 s trials (armfit.simulate, seed 5): a study
+    small enough to run on every executor."""
+    import armfit
+    root = tmp_path_factory.mktemp("small") / "study"
+    armfit.simulate(subjects=2, axes=("x",), grips_N=(1.0, 2.0), duration_s=(26.0, 26.0),
+                    seed=5).write(root)
+    return root
+
+
+@pytest.fixture(scope="session")
+def serial_spectra(small_study):
+    """:func:`small_study` estimated in this process (jobs=1): the reference of the
+    executor tests."""
+    import armfit
+    return armfit.estimate(small_study)

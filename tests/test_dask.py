@@ -32,20 +32,6 @@ def executor(cluster):
         yield client.get_executor()
 
 
-@pytest.fixture(scope="module")
-def small_study(tmp_path_factory):
-    """2 subjects, axis x, grips 1 and 2 N, 26 s trials (armfit.simulate, seed 5)."""
-    root = tmp_path_factory.mktemp("dask") / "study"
-    armfit.simulate(subjects=2, axes=("x",), grips_N=(1.0, 2.0), duration_s=(26.0, 26.0),
-                    seed=5).write(root)
-    return root
-
-
-@pytest.fixture(scope="module")
-def serial_spectra(small_study):
-    return armfit.estimate(small_study)
-
-
 def test_the_cluster_runs_tasks_in_other_processes(cluster, executor):
     import os
     pids = set(executor.map(lambda _: os.getpid(), range(8)))

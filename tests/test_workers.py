@@ -24,21 +24,6 @@ def _square(x: int) -> int:
     return x * x
 
 
-@pytest.fixture(scope="module")
-def small_study(tmp_path_factory):
-    """2 subjects, axis x, grips 1 and 2 N, 26 s trials (armfit.simulate, seed 5)."""
-    root = tmp_path_factory.mktemp("workers") / "study"
-    armfit.simulate(subjects=2, axes=("x",), grips_N=(1.0, 2.0), duration_s=(26.0, 26.0),
-                    seed=5).write(root)
-    return root
-
-
-@pytest.fixture(scope="module")
-def serial_spectra(small_study):
-    """The study estimated in this process (jobs=1): the reference."""
-    return armfit.estimate(small_study)
-
-
 def test_start_method_is_the_fork_server_where_python_offers_it():
     # the rule of armfit.workers: forkserver except on macOS, else spawn
     expected = ("forkserver" if sys.platform != "darwin"
