@@ -245,7 +245,7 @@ class RunConfig:
     receives data warnings (None: they are dropped).
     """
 
-    inputs: tuple
+    inputs: tuple[str | os.PathLike, ...]
     folder: Path
     options: RunOptions
     estimate: EstimateConfig
@@ -484,7 +484,9 @@ class Reported(StageResult):
 def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
     """Validate the raw trials once, into the canonical dataset (trials.parquet); the
     estimate, which reads the same inputs, starts first and runs meanwhile in the worker
-    processes."""
+    processes. (Estimating from trials.parquet instead would read each trial once, but
+    only after the dataset is complete, when ingest ends: the two would run one after
+    the other, and the run would take longer.)"""
     o = config.options
     estimating = workers.start(api.estimate_study_result, list(config.inputs),
                                config.estimate, manifest=o.manifest, skip_bad=o.skip_bad,
