@@ -49,7 +49,7 @@ from armfit.io.artifacts import write_params, write_wu, write_wu_table, wu_frame
 from armfit.io.atomic import atomic_path, write_text_atomic
 from armfit.io.rawwrite import trial_filename, write_trial
 from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
-from armfit.io.trials import Skipped, Trial, open_trials, write_dataset
+from armfit.io.trials import Skipped, Trial, Warn, open_trials, write_dataset
 from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.models.effects import Effect, get_effect
 from armfit.models.params import model_from_params, read_param_rows, read_params
@@ -59,7 +59,6 @@ from armfit.tables import caption_for, latex_table, wu_latex
 from armfit.uncertainty import AxisUncertainty, WuWeight, read_weights_and_bands, read_wu
 
 PathLike = str | os.PathLike
-Warn = Callable[[str], object]
 
 
 def _figures():
@@ -581,7 +580,7 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
     """
     sp = _spectra(spectra)
     nom = nominal.nominal if isinstance(nominal, AdoptedModel) else ModelFit.of(nominal)
-    results = _uncertainty.fit_uncertainty(sp, nom.table, cost=cost, n_pairs=order,
+    results = _uncertainty.fit_weights(sp, nom.table, cost=cost, n_pairs=order,
                                            band=band, smooth_oct=smooth_oct, method=method,
                                            given=check, jobs=jobs, executor=executor)
     bad = [r.axis for r in results if not r.result.converged]
@@ -886,7 +885,7 @@ def fit_trials(spectra, *, cost: str = "complex",
     """
     sp = _spectra(spectra)
     objs = _fit_effects(effects)
-    fits = _fitting.fit_trials(sp, cost=cost, bands=bands, effects=objs, method=method,
+    fits = _fitting.fit_trial_models(sp, cost=cost, bands=bands, effects=objs, method=method,
                                max_nfev=max_nfev, jobs=jobs, on_fit=on_fit,
                                executor=executor)
     return TrialFits(tuple(fits), objs, sp)
@@ -969,7 +968,7 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
         keys = zip(grip.table["axis"], grip.table["grip_N"], strict=True)
         starts = _fitting.grip_fit_starts(keys, grip.fits)
         effects = ad.effects
-        fits = _fitting.fit_trials(sp, cost=cost, bands=bands, effects=effects,
+        fits = _fitting.fit_trial_models(sp, cost=cost, bands=bands, effects=effects,
                                    jobs=jobs, starts=starts, executor=executor)
         per_trial = TrialFits(tuple(fits), effects, sp)
     return AdoptedModel(ad, grip, nominal, per_trial, base, diagnosis)

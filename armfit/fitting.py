@@ -1086,7 +1086,7 @@ def fit_trial(key: tuple[str, str, float, int | None], rows, *, cost: str = "com
     """Fit H_CL (eq. 4, plus ``effects``) to one trial's measured response ``rows`` =
     (f_hz, H in m/N, se_db, se_deg), as :func:`trial_groups` gives it, with
     :func:`fit_response`: with the global search, or with ``x0`` a local fit from those
-    parameter values only (kept even when it did not converge: :func:`fit_trials`
+    parameter values only (kept even when it did not converge: :func:`fit_trial_models`
     decides). A fit that fails (no convergence, too few usable bins, repeated
     frequencies) is returned with ``fit`` None and its reason, not raised. ``held``:
     {``effect.param``: value} of effect parameters held fixed."""
@@ -1135,7 +1135,7 @@ def _misfit(fit: FitResult) -> float:
     return fit.rms_norm if np.isfinite(fit.rms_norm) else fit.rms_db
 
 
-def fit_trials(spectra, *, cost: str = "complex",
+def fit_trial_models(spectra, *, cost: str = "complex",
                bands: Mapping[str, tuple[float, float]] | None = None,
                effects: Sequence = (), method: str | None = None,
                max_nfev: int | None = None, jobs: int = 1, source: str | None = None,
@@ -1214,7 +1214,7 @@ def _grip_starts(spectra, cost, bands, effects, method, source
 
 def grip_fit_starts(keys, fits: Sequence[FitResult]) -> dict[tuple[str, float], dict[str, float]]:
     """{(axis, grip_N): parameters} of converged grip fits, the starts of
-    :func:`fit_trials`; ``keys`` (axis, grip_N) in the order of ``fits`` (the fits
+    :func:`fit_trial_models`; ``keys`` (axis, grip_N) in the order of ``fits`` (the fits
     themselves, not a rounded CSV: the same start, the same bits)."""
     return {(axis, float(grip)): dict(fit.params)
             for (axis, grip), fit in zip(keys, fits, strict=True)
@@ -1226,7 +1226,7 @@ def trial_fits_table(fits: Sequence[TrialFit], effects=()):
     (:func:`armfit.io.artifacts.params_columns`) with ``subject`` after ``axis``, ``run``
     after ``grip_N`` and a last column ``reason`` (empty for a fit; for a failed trial its
     reason, with empty parameters and ``converged`` false). ``effects``: the models'
-    effects as :func:`fit_trials` took them (names the effects of a failed trial)."""
+    effects as :func:`fit_trial_models` took them (names the effects of a failed trial)."""
     import pandas as pd
 
     specs = effects_by_axis(effects)
@@ -1255,5 +1255,5 @@ def trial_fits_table(fits: Sequence[TrialFit], effects=()):
 
 __all__ = ["COSTS", "PAPER_BANDS", "STUDY_FITS", "FitResult", "StudyFit", "analytic_guess",
            "bootstrap_fit", "exact_response", "fit_response", "fit_study", "log_errors",
-           "TRIAL_KEYS", "TrialFit", "fit_trial", "fit_trials",
+           "TRIAL_KEYS", "TrialFit", "fit_trial", "fit_trial_models",
            "trial_fits_table", "trial_groups"]

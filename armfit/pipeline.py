@@ -1,44 +1,58 @@
 """The one-shot pipeline of ``armfit run``: raw trials in, every table, figure and a report out.
 
-The pipeline is a table of stages (:data:`PIPELINE`), each the API call of its own
-subcommand, run in the order data flows (files written into OUTDIR in brackets):
+Each stage is a function of the typed results of the stages before it, the run's frozen
+configuration (:class:`RunConfig`: inputs, options, the estimator's configuration, the
+paper's fit bands, the folder written) and where its tasks run (the run's executor); it
+returns a frozen result. :func:`run_pipeline` calls them in the order data flows, in
+one straight function, and times each one (files written into OUTDIR in brackets):
 
-- ingest: :func:`armfit.io.trials.ingest` (trials.parquet);
-- estimate: :func:`armfit.api.estimate_study_result` (spectra.parquet);
+- ingest: :func:`armfit.io.trials.ingest` (trials.parquet) → :class:`Ingested`;
+- estimate: :func:`armfit.api.estimate_study_result` (spectra.parquet) →
+  :class:`Estimated`;
 - fit-grip, fit-nominal: :func:`armfit.fit_grip`, :func:`armfit.fit_nominal` of the
-  paper's 5-parameter model (grip_params.csv/.tex, nominal_params.csv/.tex);
+  paper's 5-parameter model (grip_params.csv/.tex, nominal_params.csv/.tex) →
+  :class:`GripFits` (with the diagnosis it starts), :class:`NominalFits`;
 - diagnose: :func:`armfit.diagnose` started from the grip fits (diagnosis.json), and
-  the adopted model of each axis, :func:`armfit.adopt.adopt` (adoption.csv);
+  the adopted model of each axis, :func:`armfit.adopt.adopt` (adoption.csv) →
+  :class:`Diagnosed`;
 - adopt, when an effect is adopted: Tables I and II again with the adopted model (the
-  base model's move to grip_params_base.csv/.tex and nominal_params_base.csv/.tex);
+  base model's move to grip_params_base.csv/.tex and nominal_params_base.csv/.tex) →
+  :class:`Models`, the model every later stage uses (the base model's when nothing is
+  adopted);
 - fit-uncertainty: :func:`armfit.fit_uncertainty` of the adopted nominal (wu.csv,
   wu_summary.csv, wu_wmax.csv, wu.tex), with the same convergence policy as ``armfit
-  fit-uncertainty``;
-- fit-trials: :func:`armfit.fitting.fit_trials` with the adopted model, one fit per
-  trial, each started from its grip's fit (trial_params.csv);
+  fit-uncertainty`` → :class:`UncertaintyFit` (with the per-trial fits it starts);
+- fit-trials: :func:`armfit.fitting.fit_trial_models` with the adopted model, one fit per
+  trial, each started from its grip's fit (trial_params.csv) → :class:`TrialsFitted`;
 - stability: :func:`armfit.loop.stability_table` of the per-trial fits at the
   defaults (stability.csv), the certificate of the nominal models against Wu capped by
   the trials (certificate.csv), and :func:`armfit.figures.stability_figure`
-  (figures/stability.png);
+  (figures/stability.png) → :class:`StabilityChecked`;
 - figures: Figs. 5–7 of :mod:`armfit.figures` (figures/bode.png, uncertainty.png,
-  literature.png);
+  literature.png) → :class:`Drawn`;
 - compare: :func:`armfit.compare` of each nominal model (base, adopted) with the
-  medians (compare.csv);
-- residuals: :func:`armfit.figures.residual_figure` per axis (figures/residual_<axis>.png);
-- report: :func:`report_markdown` (report.md), from the stages' typed results and the
-  configuration they used.
+  medians (compare.csv) → :class:`Compared`;
+- residuals: :func:`armfit.figures.residual_figure` per axis (figures/residual_<axis>.png)
+  → :class:`Drawn`;
+- report: :func:`armfit.report.report_markdown` (report.md) of a
+  :class:`armfit.report.RunRecord` made of the results above and the configuration.
 
 Everything after the diagnosis uses the adopted model (the base model where nothing is
 adopted), so the products are computed once, from the model that survived the
 diagnosis. With ``jobs`` > 1 :func:`run_pipeline` starts one pool of ``jobs`` worker
-processes for the run (:func:`armfit.workers.process_pool`) and hands it to every stage:
-the estimate runs in it while this process ingests, the per-trial fits run in it while
-this process fits Wu, and the figures are drawn and written in it while the later stages
-go on (the report stage waits for them). Given an ``executor`` (e.g. a dask cluster's),
-the stages run their tasks on it instead, and the figures are drawn here. The diagnosis,
-which starts from the grip fits, runs in a thread of its own alongside Table II with
-``jobs`` worker processes of its own. The results depend on neither ``jobs`` nor the
-executor.
+processes for the run (:func:`armfit.workers.process_pool`) and hands it to every stage.
+Work that runs alongside later stages is a future returned by the stage that starts it
+and passed to the stage that needs its result, which waits for it: the ingest stage
+starts the estimate (it runs in the pool while this process ingests), the fit-grip
+stage starts the diagnosis (in a thread of its own, with ``jobs`` worker processes of
+its own, alongside Table II), the fit-uncertainty stage starts the per-trial fits (in
+the pool while this process fits Wu); the figures are drawn and written in the pool
+while the later stages go on, and the report stage waits for them. Given an
+``executor`` (e.g. a dask cluster's), the stages run their tasks on it instead, and the
+figures are drawn here. With neither (jobs 1) a future runs when it is waited on. The
+results depend on neither ``jobs`` nor the executor. If a stage fails, the pool's
+pending tasks are cancelled and the futures still running are stopped before the error
+propagates.
 
 Every later stage reads the files the earlier ones wrote (as the subcommands do), so
 ``armfit run`` gives the same numbers as the subcommands run one after the other with
@@ -51,7 +65,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib
-import math
 import os
 import threading
 import time
@@ -60,33 +73,44 @@ from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Generic, TypeVar
 
 import numpy as np
 
 from armfit import api
-from armfit._version import __version__
 from armfit.adopt import Adoption, adopt
 from armfit.api import compare_frame
 from armfit.constants import AXES, PAPER_BANDS
-from armfit.diagnosis import BANDS, diagnose_axes
+from armfit.diagnosis import diagnose_axes
 from armfit.errors import ArmfitError, OutputError
-from armfit.fitting import fit_trials, grip_fit_starts, trial_fits_table
+from armfit.fitting import TrialFit, fit_trial_models, grip_fit_starts, trial_fits_table
 from armfit.io.artifacts import write_params
 from armfit.io.atomic import atomic_path, check_output, write_text_atomic
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
-from armfit.io.trials import ingest
+from armfit.io.trials import Warn, ingest
 from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.models.params import read_param_rows
-from armfit.spectra import EstimateConfig, Spectra
-from armfit.tables import param_names, sig4, unit_of
+from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
+from armfit.spectra import EstimateConfig, Spectra, StudySpectra
 from armfit.workers import cancel_pools, executor_for
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
 
-__all__ = ["COMPARE_COLUMNS", "FIGURES", "PIPELINE", "STAGES", "PipelineStage",
-           "RunOptions", "RunResult", "Stage", "check_outdir", "compare_frame",
-           "report_markdown", "run", "run_pipeline"]
+#: Stage names, in the order they are reported (``adopt`` only when an effect is adopted,
+#: ``figures`` and ``residuals`` only with figures on). With jobs > 1 the diagnosis runs
+#: in worker processes from the end of fit-grip on, alongside fit-nominal.
+STAGES: tuple[str, ...] = ("ingest", "estimate", "fit-grip", "fit-nominal", "diagnose",
+                           "adopt", "fit-uncertainty", "fit-trials", "stability",
+                           "figures", "compare", "residuals", "report")
+
+__all__ = ["COMPARE_COLUMNS", "FIGURES", "STABILITY_FIGURE", "STAGES", "Background",
+           "Compared", "Diagnosed", "Drawn", "Estimated", "GripFits", "Ingested", "Models",
+           "NominalFits", "Reported", "RunConfig", "RunOptions", "RunResult", "StabilityChecked",
+           "Stage", "StageResult", "TrialsFitted", "UncertaintyFit", "check_outdir",
+           "compare_frame", "run", "run_pipeline"]
+
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True)
@@ -149,7 +173,6 @@ class RunResult:
 
 
 OnStage = Callable[[Stage], object]
-Warn = Callable[[str], object]
 
 
 # ---------------------------------------------------------------------------
@@ -208,50 +231,52 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
 
 
 # ---------------------------------------------------------------------------
-# The stages, writing into a given (empty) folder
+# What the stages share: the configuration, and where their work runs
 # ---------------------------------------------------------------------------
 
-class _Clock:
-    """Times stages and reports each one as it finishes: a stage lasts from the end of
-    the previous one, unless it is given its own start (a stage that ran alongside)."""
+@dataclass(frozen=True)
+class RunConfig:
+    """The configuration of one run, read by every stage.
 
-    def __init__(self, on_stage: OnStage | None):
-        self.stages: list[Stage] = []
-        self.on_stage = on_stage
-        self.start = self.t0 = time.perf_counter()
+    inputs: the inputs as given; folder: the (empty) folder the stages write into;
+    options: the run's options; estimate: the estimator's configuration; bands: the
+    paper's fit bands {axis: (lo, hi) Hz}, those of the base model's fits; warn:
+    receives data warnings (None: they are dropped).
+    """
 
-    def done(self, name: str, summary: str, *, since: float | None = None) -> None:
-        now = time.perf_counter()
-        stage = Stage(name, now - (self.t0 if since is None else since), summary)
-        self.stages.append(stage)
-        self.t0 = now
-        if self.on_stage is not None:
-            self.on_stage(stage)
+    inputs: tuple[str | os.PathLike, ...]
+    folder: Path
+    options: RunOptions
+    estimate: EstimateConfig
+    bands: Mapping[str, tuple[float, float]]
+    warn: Warn | None = None
 
-    def wall(self) -> float:
-        return time.perf_counter() - self.start
+    def path(self, name: str) -> Path:
+        """``folder / name``."""
+        return self.folder / name
 
 
-class _Background:
-    """``fn(*args, **kwargs)``, started now in a thread of its own when ``parallel`` (the
-    thread mostly waits for worker processes, so the stages that do not need the result
-    run meanwhile in this process) and collected by :meth:`result`; else it runs when
-    collected. ``started`` is when it began (s, perf_counter)."""
+class Background(Generic[_T]):
+    """A future: ``fn(*args, **kwargs)``, started now in a thread of its own when
+    ``parallel`` (the thread mostly waits for worker processes, so the stages that do not
+    need the result run meanwhile in this process) and collected by :meth:`result`; else
+    it runs when collected. ``started`` is when it began (s, perf_counter)."""
 
-    def __init__(self, parallel: bool, fn: Callable, /, *args, **kwargs):
+    def __init__(self, parallel: bool, fn: Callable[..., _T], /, *args, **kwargs):
         self.call = (fn, args, kwargs)
-        self.thread = None
+        self.thread: ThreadPoolExecutor | None = None
         self.ident: int | None = None       # of the thread, once it runs
         self.started = time.perf_counter()
         if parallel:
             self.thread = ThreadPoolExecutor(max_workers=1)
             self.task = self.thread.submit(self._in_thread, fn, args, kwargs)
 
-    def _in_thread(self, fn: Callable, args, kwargs):
+    def _in_thread(self, fn: Callable[..., _T], args, kwargs) -> _T:
         self.ident = threading.get_ident()
         return fn(*args, **kwargs)
 
-    def result(self):
+    def result(self) -> _T:
+        """The result, once the call has ended (its error if it failed)."""
         if self.thread is None:
             self.started = time.perf_counter()
             fn, args, kwargs = self.call
@@ -280,361 +305,6 @@ class _Background:
             with contextlib.suppress(BaseException):
                 self.task.exception(timeout=0.05)
         self.close()
-
-
-def _run_in(inputs: list, folder: Path, options: RunOptions, *,
-            on_stage: OnStage | None, warn: Warn | None,
-            executor: Executor | None = None) -> RunResult:
-    # the caller's executor, or one pool of worker processes for every stage of the run
-    with executor_for(executor, options.jobs) as pool, contextlib.ExitStack() as stack:
-        own = pool is not None and pool is not executor
-        ctx = _Context(inputs, folder, options, warn=warn, stack=stack,
-                       config=EstimateConfig(method=options.method),
-                       bands=dict(PAPER_BANDS), drawings=_Drawings(pool if own else None),
-                       pool=pool)
-        clock = _Clock(on_stage)
-        try:
-            for stage in PIPELINE:
-                if stage.when(ctx):
-                    summary, since = stage.run(ctx), ctx.since
-                    ctx.since = None
-                    clock.done(stage.name, summary, since=since)
-        except BaseException:
-            if own:   # the background stages stop at their next task
-                pool.shutdown(wait=True, cancel_futures=True)
-            raise
-        return RunResult(outdir=str(folder), files=tuple(sorted(ctx.files)),
-                         trials=len(ctx.estimated.trials), skipped=ctx.skipped,
-                         verdicts={d.axis: d.verdict for d in ctx.diagnosis.axes},
-                         missing=ctx.missing, refitted=ctx.refitted,
-                         adoption=ctx.adoption, stages=tuple(clock.stages), wall_s=clock.wall())
-
-
-# ---------------------------------------------------------------------------
-# The stages as data: what each does, on what, and when it runs
-# ---------------------------------------------------------------------------
-
-@dataclass
-class _Context:
-    """What the stages of one run share: the inputs and options, the configuration they
-    use, the files written so far, and each stage's typed result."""
-
-    inputs: list
-    folder: Path
-    options: RunOptions
-    warn: Warn | None
-    stack: contextlib.ExitStack
-    config: EstimateConfig
-    bands: dict[str, tuple[float, float]]
-    pool: Executor | None = None        # runs the stages' tasks (None: here, in turn)
-    files: list[str] = field(default_factory=list)
-    skipped: tuple[tuple[str, str], ...] = ()
-    n_ingested: int = 0
-    estimated: object = None            # spectra.StudySpectra
-    spectra: Spectra | None = None      # as read back from spectra.parquet
-    grip: api.ModelFit | None = None
-    nominal: api.ModelFit | None = None
-    estimating: _Background | None = None
-    diagnosing: _Background | None = None       # the diagnosis
-    trial_fits: _Background | None = None
-    uncertainty: api.Uncertainty | None = None
-    drawn: list[str] = field(default_factory=list)
-    drawings: _Drawings | None = None
-    diagnosis: api.Diagnosis | None = None
-    refitted: dict[str, tuple[str, ...]] = field(default_factory=dict)
-    adoption: Adoption | None = None
-    base_grip: api.ModelFit | None = None       # the 5-parameter tables, when adopted
-    base_nominal: api.ModelFit | None = None
-    comparisons: api.Comparisons | None = None
-    missing: dict[str, str | None] = field(default_factory=dict)
-    trial_failed: list[tuple[str, str]] = field(default_factory=list)
-    wall: dict | None = None            # the stability stage's results, for the report
-    since: float | None = None          # start of a stage that ran alongside others
-
-    @property
-    def parallel(self) -> bool:
-        """Whether the stages run alongside each other (their tasks go to :attr:`pool`)."""
-        return self.pool is not None
-
-    def background(self, fn: Callable, /, *args, **kwargs) -> _Background:
-        """``fn(*args, **kwargs)`` as a :class:`_Background` of the run, stopped if the
-        run fails first."""
-        task = _Background(self.parallel, fn, *args, **kwargs)
-        self.stack.callback(task.stop)
-        return task
-
-    def path(self, name: str) -> Path:
-        """``folder / name``, recorded as a file of the run."""
-        self.files.append(name)
-        return self.folder / name
-
-
-@dataclass(frozen=True)
-class PipelineStage:
-    """One stage of ``armfit run``: its name (as reported), the function that does it
-    and returns a one-line summary, and when it runs."""
-
-    name: str
-    run: Callable[[_Context], str]
-    when: Callable[[_Context], bool] = lambda ctx: True
-
-
-def _ingest(ctx: _Context) -> str:
-    """Validate the raw trials once, into the canonical dataset (trials.parquet); the
-    estimate, which reads the same inputs, runs meanwhile in the worker processes."""
-    o = ctx.options
-    ctx.estimating = ctx.background(api.estimate_study_result, ctx.inputs, ctx.config,
-                                    manifest=o.manifest, skip_bad=o.skip_bad, jobs=o.jobs,
-                                    executor=ctx.pool)
-    ing = ingest(ctx.inputs, ctx.path("trials.parquet"), manifest=o.manifest,
-                 skip_bad=o.skip_bad, warn=ctx.warn)
-    ctx.skipped = tuple((s.file, s.reason) for s in ing.skipped)
-    ctx.n_ingested = len(ing.trials)
-    return f"{len(ing.trials)} trial(s)" + (f", {len(ctx.skipped)} skipped"
-                                            if ctx.skipped else "")
-
-
-def _estimate(ctx: _Context) -> str:
-    """Estimate from the same inputs (so that a message names the user's files) into
-    spectra.parquet; later stages read that file back, as the subcommands do."""
-    config = ctx.config
-    est = ctx.estimating.result()
-    ctx.since = ctx.estimating.started
-    seen = {f for f, _ in ctx.skipped}
-    ctx.skipped += tuple((f, r) for f, r in est.skipped if f not in seen)
-    est.write(ctx.path("spectra.parquet"))
-    ctx.estimated = est
-    ctx.spectra = Spectra.read(ctx.folder / "spectra.parquet")
-    return (f"{len(est.trials)} trial(s), method {config.method}, "
-            f"{len(config.grid())} frequencies {config.fmin:g}-{config.fmax:g} Hz")
-
-
-def _fit(which: str) -> Callable[[_Context], str]:
-    def stage(ctx: _Context) -> str:
-        """Tables I and II of the base model (params CSV and LaTeX); the diagnosis starts
-        from the grip fits as soon as they exist."""
-        fit = api.fit_grip if which == "grip" else api.fit_nominal
-        model = fit(ctx.spectra, cost=ctx.options.cost, bands=ctx.bands,
-                    jobs=ctx.options.jobs, executor=ctx.pool)
-        _warn_at_bound(which, model, ctx.warn)
-        model.write(ctx.path(f"{which}_params.csv"), latex=ctx.path(f"{which}_params.tex"))
-        back = replace(api.ModelFit.read(ctx.folder / f"{which}_params.csv"),
-                       fits=model.fits, spectra=ctx.spectra)
-        setattr(ctx, which, back)
-        if which == "grip":
-            o = ctx.options
-            axes = [a for a in AXES if (back.table["axis"] == a).any()]
-            # the diagnosis has worker processes of its own: its steps are long, and
-            # the stages that wait for their pool tasks should not queue behind them
-            ctx.diagnosing = ctx.background(diagnose_axes, ctx.spectra, back.table,
-                                            axes=axes, jobs=o.jobs)
-        return (f"{len(back.table)} fit(s), cost {ctx.options.cost}, median rms "
-                f"{_median(back.table['rms_db']):.2f} dB")
-    return stage
-
-
-def _fit_uncertainty(ctx: _Context) -> str:
-    """W_max and Wu (Table III) of the adopted nominal, apparatus effects removed: wu.csv,
-    wu_summary.csv, wu_wmax.csv, wu.tex. The per-trial fits run meanwhile in the worker
-    processes."""
-    o = ctx.options
-    # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
-    starts = grip_fit_starts(zip(ctx.grip.table["axis"], ctx.grip.table["grip_N"], strict=True),
-                             ctx.grip.fits)
-    ctx.trial_fits = ctx.background(fit_trials, ctx.spectra, cost=o.cost, jobs=o.jobs,
-                                    source="spectra.parquet", starts=starts,
-                                    bands=ctx.bands, effects=_effects_of(ctx),
-                                    executor=ctx.pool)
-    wu_path = ctx.path("wu.csv")
-    ctx.files += [p.name for p in wu_sidecar_paths(wu_path)]
-    unc = api.fit_uncertainty(ctx.spectra, ctx.nominal, cost=ctx.options.wu_cost,
-                              jobs=ctx.options.jobs, executor=ctx.pool)
-    unc.write(wu_path, latex=ctx.path("wu.tex"))
-    ctx.uncertainty = unc
-    return ", ".join(f"{r.axis}: {r.result.order} pair(s)" for r in unc.axes) + \
-        f", cost {ctx.options.wu_cost}"
-
-
-def _figures(ctx: _Context) -> str:
-    """The paper's Figs. 5-7 (they need no diagnosis)."""
-    (ctx.folder / "figures").mkdir(exist_ok=True)  # the stability figure may be there
-    paper = _paper_figures(ctx)
-    ctx.drawn += paper
-    return f"{len(paper)} figure(s): Figs. 5, 6, 7"
-
-
-def _diagnose(ctx: _Context) -> str:
-    """The diagnosis started from the grip fits (diagnosis.json) and the adopted model of
-    each axis (adoption.csv)."""
-    results = ctx.diagnosing.result()
-    ctx.diagnosis = api.Diagnosis(tuple(results), ctx.spectra, ctx.grip)
-    ctx.diagnosis.write(ctx.path("diagnosis.json"))
-    ctx.since = ctx.diagnosing.started
-    # every effect the stepwise search named on an axis, in order ("delay+lowpass")
-    ctx.missing = {a: "+".join(names) or None for a, names in ctx.diagnosis.added.items()}
-    ctx.adoption = adopt(ctx.diagnosis, ctx.options.adopt)
-    text = ctx.adoption.to_frame().to_csv(index=False, float_format="%.10g",
-                                          lineterminator="\n")
-    write_text_atomic(ctx.path("adoption.csv"), text)
-    for a in ctx.adoption.axes:
-        if a.adopted:
-            key = "+".join(a.effects)
-            ctx.refitted[key] = (*ctx.refitted.get(key, ()), a.axis)
-    return "; ".join(f"{a}: {e or 'no missing effect'}" for a, e in ctx.missing.items())
-
-
-def _effects_of(ctx: _Context):
-    """The fitters' ``effects`` of the adopted model ({axis: items}; () for none)."""
-    return ctx.adoption.effects if ctx.adoption is not None and ctx.adoption.anything \
-        else ()
-
-
-def _adopt(ctx: _Context) -> str:
-    """Tables I and II again with the adopted model (the band of the diagnosis on the
-    adopted axes, apparatus effects held at its joint fit); the base model's tables are
-    kept as grip_params_base.csv/.tex and nominal_params_base.csv/.tex."""
-    ad = ctx.adoption
-    ctx.base_grip, ctx.base_nominal = ctx.grip, ctx.nominal
-    for which in ("grip", "nominal"):
-        for ext in (".csv", ".tex"):
-            src = ctx.folder / f"{which}_params{ext}"
-            os.replace(src, ctx.path(f"{which}_params_base{ext}"))
-    ctx.bands = ad.bands
-    fitted = api.adopt_model(ctx.spectra, ctx.diagnosis, policy=ad.policy,
-                             cost=ctx.options.cost, trials=False, jobs=ctx.options.jobs,
-                             executor=ctx.pool)
-    for which in ("grip", "nominal"):
-        model = getattr(fitted, which)
-        _warn_at_bound(which, model, ctx.warn)
-        model.write(ctx.folder / f"{which}_params.csv",
-                    latex=ctx.folder / f"{which}_params.tex")
-        setattr(ctx, which, replace(api.ModelFit.read(ctx.folder / f"{which}_params.csv"),
-                                    fits=model.fits, spectra=ctx.spectra))
-    return "; ".join(f"{' + '.join(ad[a].effects)} on {a}" for a in ad.adopted_axes)
-
-
-def _compare(ctx: _Context) -> str:
-    """Each nominal model (base, and adopted where it differs) against the axis medians
-    (compare.csv)."""
-    base = ctx.base_nominal or ctx.nominal
-    rows = list(api.compare(ctx.spectra, base, level="median").rows)
-    if ctx.base_nominal is not None:
-        adopted = ctx.nominal.table[ctx.nominal.table["axis"].isin(
-            ctx.adoption.adopted_axes)]
-        rows += api.compare(ctx.spectra, replace(ctx.nominal, table=adopted),
-                            level="median").rows
-    ctx.comparisons = api.Comparisons(tuple(rows), "median")
-    ctx.comparisons.write(ctx.path("compare.csv"))
-    return f"{len(rows)} model(s) x axis against the medians"
-
-
-def _residuals(ctx: _Context) -> str:
-    """Residual figures: they need the diagnosis (failing bands) and the refits."""
-    res = _residual_figures(ctx)
-    ctx.drawn += res
-    return f"{len(res)} figure(s)"
-
-
-def _report(ctx: _Context) -> str:
-    """report.md, from the results above and the configuration they used."""
-    ctx.drawings.wait()
-    if ctx.wall and ctx.wall["figure"]:
-        ctx.drawn.append(ctx.wall["figure"])
-    ctx.files += ctx.drawn
-    ctx.files.append("report.md")
-    write_text_atomic(ctx.folder / "report.md", report_markdown(ctx))
-    return "report.md"
-
-
-def _fit_trials(ctx: _Context) -> str:
-    """One fit per trial (trial_params.csv): the population the stability stage uses."""
-    fits = ctx.trial_fits.result()
-    ctx.since = ctx.trial_fits.started
-    write_params(trial_fits_table(fits), ctx.path("trial_params.csv"))
-    ctx.trial_failed = [(f"{t.axis} {t.subject} {t.grip_N:g} N", t.reason) for t in fits
-                        if t.fit is None]
-    return f"{len(fits) - len(ctx.trial_failed)} trial fit(s)" + (
-        f", {len(ctx.trial_failed)} failed" if ctx.trial_failed else "")
-
-
-def _stability(ctx: _Context) -> str:
-    """The stiffest stable virtual wall of every trial's fit at the defaults
-    (stability.csv), the certificate of the nominal models against the fitted Wu, capped
-    by the trials it covers (certificate.csv), K_max of the base and adopted nominal
-    models, and the stability figure."""
-    settings = WallSettings()
-    loop = ctx.options.outside_loop
-    rows = read_param_rows(str(ctx.folder / "trial_params.csv"))
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", RuntimeWarning)
-        table = stability_table(rows.table, settings, source="trial_params.csv",
-                                outside_loop=loop)
-    text = table.to_csv(index=False, float_format="%.10g", lineterminator="\n")
-    write_text_atomic(ctx.path("stability.csv"), text)
-    summary = axis_summary(table)
-    wu_summary = ctx.uncertainty.summary()
-    bands = {}
-    for _, r in wu_summary[(wu_summary["weight"] == "fitted")
-                           & (wu_summary["target"] == "wmax")].iterrows():
-        bands[r["axis"]] = (float(r["band_lo_hz"]), float(r["band_hi_hz"]))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        cert = stability_table(ctx.nominal.table, settings, weights=ctx.uncertainty.weights,
-                               weights_band_hz=bands, outside_loop=loop,
-                               members=rows.table)
-        base = None
-        if ctx.base_nominal is not None:
-            base = stability_table(ctx.base_nominal.table, settings)
-    text = cert.to_csv(index=False, float_format="%.10g", lineterminator="\n")
-    write_text_atomic(ctx.path("certificate.csv"), text)
-    figure = None
-    if ctx.options.figures:
-        figure = ctx.drawings.draw(ctx.folder, STABILITY_FIGURE, "stability_figure",
-                                   rows.table, settings)
-        # listed after the paper's and the residual figures (see _report)
-    ctx.wall = {"settings": settings, "summary": summary, "failed": ctx.trial_failed,
-                "certificate": cert, "warnings": [str(w.message) for w in caught],
-                "figure": figure, "n_models": len(table), "base_nominal": base,
-                "in_loop": _loop_effects(ctx), "outside_loop": tuple(loop)}
-    return "; ".join(f"{a}: K_max min {s['k_max_min_N_per_m'] / 1e3:.3g} kN/m"
-                     for a, s in summary.items()) + (f"; {figure}" if figure else "")
-
-
-def _loop_effects(ctx: _Context) -> dict[str, tuple[str, ...]]:
-    """{axis: the adopted effects inside the stability loop}."""
-    if ctx.adoption is None:
-        return {}
-    drop = set(ctx.options.outside_loop)
-    return {a.axis: tuple(e for e in a.effects if e not in drop) for a in ctx.adoption.axes}
-
-
-#: The stages of ``armfit run``, in the order they run; names as reported (:data:`STAGES`).
-PIPELINE: tuple[PipelineStage, ...] = (
-    PipelineStage("ingest", _ingest),
-    PipelineStage("estimate", _estimate),
-    PipelineStage("fit-grip", _fit("grip")),
-    PipelineStage("fit-nominal", _fit("nominal")),
-    PipelineStage("diagnose", _diagnose),
-    PipelineStage("adopt", _adopt, lambda ctx: ctx.adoption.anything),
-    PipelineStage("fit-uncertainty", _fit_uncertainty),
-    PipelineStage("fit-trials", _fit_trials),
-    PipelineStage("stability", _stability),
-    PipelineStage("figures", _figures, lambda ctx: ctx.options.figures),
-    PipelineStage("compare", _compare),
-    PipelineStage("residuals", _residuals, lambda ctx: ctx.options.figures),
-    PipelineStage("report", _report),
-)
-
-#: Stage names, in the order they are reported (``adopt`` only when an effect is adopted,
-#: ``figures`` and ``residuals`` only with figures on). With jobs > 1 the diagnosis runs
-#: in worker processes from the end of fit-grip on, alongside fit-nominal.
-STAGES: tuple[str, ...] = tuple(stage.name for stage in PIPELINE)
-
-
-def _median(values) -> float:
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    return float(np.median(v)) if v.size else float("nan")
 
 
 def _draw_task(args) -> None:
@@ -670,326 +340,524 @@ class _Drawings:
             fut.result()
 
 
-def _paper_figures(ctx: _Context) -> list[str]:
-    """Fig. 5 (bode: measured dynamics with the grip fits, all axes), Fig. 6 (derived
-    dynamics, nominal H_ARM, W_max and |Wu|) and Fig. 7 (the X axis 1 N H_ARM, else the
-    first grip fit, against Table IV). Returns the paths written, relative to OUTDIR."""
-    grip, draw = ctx.grip.table, ctx.drawings.draw
+@dataclass(frozen=True)
+class _Workers:
+    """Where the stages' work runs: ``executor`` runs their tasks (None: here, in turn),
+    ``drawings`` draws the figures, and ``stack`` stops the background work still running
+    when the run ends (:meth:`Background.stop`)."""
+
+    executor: Executor | None
+    drawings: _Drawings
+    stack: contextlib.ExitStack
+
+    def start(self, fn: Callable[..., _T], /, *args, **kwargs) -> Background[_T]:
+        """``fn(*args, **kwargs)`` as a :class:`Background` of the run (alongside the next
+        stages when the run has an executor), stopped if the run fails first."""
+        task = Background(self.executor is not None, fn, *args, **kwargs)
+        self.stack.callback(task.stop)
+        return task
+
+
+# ---------------------------------------------------------------------------
+# The stages' results
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, kw_only=True)
+class StageResult:
+    """What every stage returns besides its own results: the files it wrote (relative to
+    OUTDIR), a one-line summary, and when it started if it ran alongside earlier stages
+    (s, perf_counter; None: it started when the stage before it ended)."""
+
+    files: tuple[str, ...] = ()
+    summary: str = ""
+    started: float | None = None
+
+
+@dataclass(frozen=True)
+class Ingested(StageResult):
+    """ingest: trials validated into trials.parquet, those skipped (file, reason), and the
+    estimate started alongside (a future of the study's spectra)."""
+
+    n_trials: int
+    skipped: tuple[tuple[str, str], ...]
+    estimating: Background[StudySpectra]
+
+
+@dataclass(frozen=True)
+class Estimated(StageResult):
+    """estimate: the study's spectra (``study``, every trial kept), the spectra as read
+    back from spectra.parquet, and every trial left out (ingest's, then the estimate's)."""
+
+    study: StudySpectra
+    spectra: Spectra
+    skipped: tuple[tuple[str, str], ...]
+
+
+@dataclass(frozen=True)
+class GripFits(StageResult):
+    """fit-grip: Table I of the base model (as read back from grip_params.csv), and the
+    diagnosis started from it (a future)."""
+
+    grip: api.ModelFit
+    diagnosing: Background[api.Diagnosis]
+
+
+@dataclass(frozen=True)
+class NominalFits(StageResult):
+    """fit-nominal: Table II of the base model (as read back from nominal_params.csv)."""
+
+    nominal: api.ModelFit
+
+
+@dataclass(frozen=True)
+class Diagnosed(StageResult):
+    """diagnose: the diagnosis, the adopted model of each axis, {axis: the effects the
+    search added, "+"-joined, or None} and {effects: axes} adopted."""
+
+    diagnosis: api.Diagnosis
+    adoption: Adoption
+    missing: Mapping[str, str | None]
+    refitted: Mapping[str, tuple[str, ...]]
+
+
+@dataclass(frozen=True)
+class Models(StageResult):
+    """The model every stage after the diagnosis uses: Tables I and II (the adopted
+    model's after adopt), the base model's when an effect is adopted, and the fit bands
+    of ``grip`` and ``nominal``."""
+
+    grip: api.ModelFit
+    nominal: api.ModelFit
+    bands: Mapping[str, tuple[float, float]]
+    base_grip: api.ModelFit | None = None
+    base_nominal: api.ModelFit | None = None
+
+
+@dataclass(frozen=True)
+class UncertaintyFit(StageResult):
+    """fit-uncertainty: W_max and Wu (Table III), and the per-trial fits started
+    alongside (a future)."""
+
+    uncertainty: api.Uncertainty
+    trial_fits: Background[list[TrialFit]]
+
+
+@dataclass(frozen=True)
+class TrialsFitted(StageResult):
+    """fit-trials: trial_params.csv written; the trials without a fit (who, reason)."""
+
+    failed: tuple[tuple[str, str], ...]
+
+
+@dataclass(frozen=True)
+class StabilityChecked(StageResult):
+    """stability: the stiffest stable wall of every trial's fit and the certificate."""
+
+    wall: Wall
+
+
+@dataclass(frozen=True)
+class Drawn(StageResult):
+    """figures, residuals: the figures drawn (relative to OUTDIR; written once the
+    report stage has waited for them)."""
+
+    figures: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Compared(StageResult):
+    """compare: each nominal model against the axis medians."""
+
+    comparisons: api.Comparisons
+
+
+@dataclass(frozen=True)
+class Reported(StageResult):
+    """report: report.md written (``files`` also lists the figures, written by then)."""
+
+
+# ---------------------------------------------------------------------------
+# The stages, in the order they run
+# ---------------------------------------------------------------------------
+
+def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
+    """Validate the raw trials once, into the canonical dataset (trials.parquet); the
+    estimate, which reads the same inputs, starts first and runs meanwhile in the worker
+    processes. (Estimating from trials.parquet instead would read each trial once, but
+    only after the dataset is complete, when ingest ends: the two would run one after
+    the other, and the run would take longer.)"""
+    o = config.options
+    estimating = workers.start(api.estimate_study_result, list(config.inputs),
+                               config.estimate, manifest=o.manifest, skip_bad=o.skip_bad,
+                               jobs=o.jobs, executor=workers.executor)
+    ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
+                 skip_bad=o.skip_bad, warn=config.warn)
+    skipped = tuple((s.file, s.reason) for s in ing.skipped)
+    return Ingested(len(ing.trials), skipped, estimating, files=("trials.parquet",),
+                    summary=f"{len(ing.trials)} trial(s)"
+                    + (f", {len(skipped)} skipped" if skipped else ""))
+
+
+def _estimate(config: RunConfig, ingested: Ingested) -> Estimated:
+    """Wait for the estimate ingest started (from the same inputs, so that a message
+    names the user's files) and write spectra.parquet; later stages read that file back,
+    as the subcommands do."""
+    est = ingested.estimating.result()
+    seen = {f for f, _ in ingested.skipped}
+    skipped = ingested.skipped + tuple((f, r) for f, r in est.skipped if f not in seen)
+    est.write(config.path("spectra.parquet"))
+    spectra = Spectra.read(config.path("spectra.parquet"))
+    c = config.estimate
+    return Estimated(est, spectra, skipped, files=("spectra.parquet",),
+                     started=ingested.estimating.started,
+                     summary=f"{len(est.trials)} trial(s), method {c.method}, "
+                             f"{len(c.grid())} frequencies {c.fmin:g}-{c.fmax:g} Hz")
+
+
+def _fit_table(which: str, config: RunConfig, workers: _Workers,
+               spectra: Spectra) -> api.ModelFit:
+    """Table I ("grip") or II ("nominal") of the base model, written (params CSV and
+    LaTeX) and read back, as the subcommands do."""
+    fit = api.fit_grip if which == "grip" else api.fit_nominal
+    model = fit(spectra, cost=config.options.cost, bands=config.bands,
+                jobs=config.options.jobs, executor=workers.executor)
+    _warn_at_bound(which, model, config.warn)
+    model.write(config.path(f"{which}_params.csv"), latex=config.path(f"{which}_params.tex"))
+    return replace(api.ModelFit.read(config.path(f"{which}_params.csv")), fits=model.fits,
+                   spectra=spectra)
+
+
+def _fit_summary(model: api.ModelFit, cost: str) -> str:
+    return (f"{len(model.table)} fit(s), cost {cost}, median rms "
+            f"{_median(model.table['rms_db']):.2f} dB")
+
+
+def _diagnosis(spectra: Spectra, grip: api.ModelFit, axes: Sequence[str],
+               jobs: int) -> api.Diagnosis:
+    """The diagnosis of ``axes`` started from the grip fits."""
+    return api.Diagnosis(tuple(diagnose_axes(spectra, grip.table, axes=axes, jobs=jobs)),
+                         spectra, grip)
+
+
+def _fit_grip(config: RunConfig, workers: _Workers, spectra: Spectra) -> GripFits:
+    """Table I of the base model; the diagnosis starts from it at once. It has worker
+    processes of its own: its steps are long, and the stages that wait for their pool
+    tasks should not queue behind them."""
+    grip = _fit_table("grip", config, workers, spectra)
+    axes = [a for a in AXES if (grip.table["axis"] == a).any()]
+    diagnosing = workers.start(_diagnosis, spectra, grip, axes, config.options.jobs)
+    return GripFits(grip, diagnosing, files=("grip_params.csv", "grip_params.tex"),
+                    summary=_fit_summary(grip, config.options.cost))
+
+
+def _fit_nominal(config: RunConfig, workers: _Workers, spectra: Spectra) -> NominalFits:
+    """Table II of the base model."""
+    nominal = _fit_table("nominal", config, workers, spectra)
+    return NominalFits(nominal, files=("nominal_params.csv", "nominal_params.tex"),
+                       summary=_fit_summary(nominal, config.options.cost))
+
+
+def _diagnose(config: RunConfig, grip: GripFits) -> Diagnosed:
+    """Wait for the diagnosis fit-grip started (diagnosis.json) and adopt the model of
+    each axis (adoption.csv)."""
+    diagnosis = grip.diagnosing.result()
+    diagnosis.write(config.path("diagnosis.json"))
+    # every effect the stepwise search named on an axis, in order ("delay+lowpass")
+    missing = {a: "+".join(names) or None for a, names in diagnosis.added.items()}
+    adoption = adopt(diagnosis, config.options.adopt)
+    text = adoption.to_frame().to_csv(index=False, float_format="%.10g",
+                                      lineterminator="\n")
+    write_text_atomic(config.path("adoption.csv"), text)
+    refitted: dict[str, tuple[str, ...]] = {}
+    for a in adoption.axes:
+        if a.adopted:
+            key = "+".join(a.effects)
+            refitted[key] = (*refitted.get(key, ()), a.axis)
+    return Diagnosed(diagnosis, adoption, missing, refitted,
+                     files=("diagnosis.json", "adoption.csv"),
+                     started=grip.diagnosing.started,
+                     summary="; ".join(f"{a}: {e or 'no missing effect'}"
+                                       for a, e in missing.items()))
+
+
+def _base_models(config: RunConfig, grip: GripFits, nominal: NominalFits) -> Models:
+    """The model of every later stage when nothing is adopted: the base model's."""
+    return Models(grip.grip, nominal.nominal, config.bands)
+
+
+def _adopt(config: RunConfig, workers: _Workers, spectra: Spectra, grip: GripFits,
+           nominal: NominalFits, diagnosed: Diagnosed) -> Models:
+    """Tables I and II again with the adopted model (the band of the diagnosis on the
+    adopted axes, apparatus effects held at its joint fit); the base model's tables are
+    kept as grip_params_base.csv/.tex and nominal_params_base.csv/.tex."""
+    ad, o = diagnosed.adoption, config.options
+    files = []
+    for which in ("grip", "nominal"):
+        for ext in (".csv", ".tex"):
+            os.replace(config.path(f"{which}_params{ext}"),
+                       config.path(f"{which}_params_base{ext}"))
+            files.append(f"{which}_params_base{ext}")
+    fitted = api.adopt_model(spectra, diagnosed.diagnosis, policy=ad.policy, cost=o.cost,
+                             trials=False, jobs=o.jobs, executor=workers.executor)
+    refit = {}
+    for which in ("grip", "nominal"):
+        model = getattr(fitted, which)
+        _warn_at_bound(which, model, config.warn)
+        model.write(config.path(f"{which}_params.csv"),
+                    latex=config.path(f"{which}_params.tex"))
+        refit[which] = replace(api.ModelFit.read(config.path(f"{which}_params.csv")),
+                               fits=model.fits, spectra=spectra)
+    return Models(refit["grip"], refit["nominal"], ad.bands, grip.grip, nominal.nominal,
+                  files=tuple(files),
+                  summary="; ".join(f"{' + '.join(ad[a].effects)} on {a}"
+                                    for a in ad.adopted_axes))
+
+
+def _effects_of(adoption: Adoption):
+    """The fitters' ``effects`` of the adopted model ({axis: items}; () for none)."""
+    return adoption.effects if adoption.anything else ()
+
+
+def _fit_uncertainty(config: RunConfig, workers: _Workers, spectra: Spectra,
+                     models: Models, adoption: Adoption) -> UncertaintyFit:
+    """W_max and Wu (Table III) of the adopted nominal, apparatus effects removed: wu.csv,
+    wu_summary.csv, wu_wmax.csv, wu.tex. The per-trial fits start first and run meanwhile
+    in the worker processes."""
+    o = config.options
+    # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
+    grip = models.grip
+    starts = grip_fit_starts(zip(grip.table["axis"], grip.table["grip_N"], strict=True),
+                             grip.fits)
+    trial_fits = workers.start(fit_trial_models, spectra, cost=o.cost, jobs=o.jobs,
+                               source="spectra.parquet", starts=starts, bands=models.bands,
+                               effects=_effects_of(adoption), executor=workers.executor)
+    wu_path = config.path("wu.csv")
+    unc = api.fit_uncertainty(spectra, models.nominal, cost=o.wu_cost, jobs=o.jobs,
+                              executor=workers.executor)
+    unc.write(wu_path, latex=config.path("wu.tex"))
+    return UncertaintyFit(unc, trial_fits,
+                          files=("wu.csv", *(p.name for p in wu_sidecar_paths(wu_path)),
+                                 "wu.tex"),
+                          summary=", ".join(f"{r.axis}: {r.result.order} pair(s)"
+                                            for r in unc.axes) + f", cost {o.wu_cost}")
+
+
+def _fit_trials(config: RunConfig, uncertainty: UncertaintyFit) -> TrialsFitted:
+    """Wait for the per-trial fits fit-uncertainty started (trial_params.csv): the
+    population the stability stage uses."""
+    fits = uncertainty.trial_fits.result()
+    write_params(trial_fits_table(fits), config.path("trial_params.csv"))
+    failed = tuple((f"{t.axis} {t.subject} {t.grip_N:g} N", t.reason) for t in fits
+                   if t.fit is None)
+    return TrialsFitted(failed, files=("trial_params.csv",),
+                     started=uncertainty.trial_fits.started,
+                     summary=f"{len(fits) - len(failed)} trial fit(s)"
+                     + (f", {len(failed)} failed" if failed else ""))
+
+
+def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: Adoption,
+               uncertainty: api.Uncertainty, trials: TrialsFitted) -> StabilityChecked:
+    """The stiffest stable virtual wall of every trial's fit at the defaults
+    (stability.csv), the certificate of the nominal models against the fitted Wu, capped
+    by the trials it covers (certificate.csv), K_max of the base and adopted nominal
+    models, and the stability figure."""
+    settings = WallSettings()
+    loop = config.options.outside_loop
+    rows = read_param_rows(str(config.path("trial_params.csv")))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        table = stability_table(rows.table, settings, source="trial_params.csv",
+                                outside_loop=loop)
+    text = table.to_csv(index=False, float_format="%.10g", lineterminator="\n")
+    write_text_atomic(config.path("stability.csv"), text)
+    summary = axis_summary(table)
+    wu_summary = uncertainty.summary()
+    bands = {}
+    for _, r in wu_summary[(wu_summary["weight"] == "fitted")
+                           & (wu_summary["target"] == "wmax")].iterrows():
+        bands[r["axis"]] = (float(r["band_lo_hz"]), float(r["band_hi_hz"]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        cert = stability_table(models.nominal.table, settings, weights=uncertainty.weights,
+                               weights_band_hz=bands, outside_loop=loop,
+                               members=rows.table)
+        base = None
+        if models.base_nominal is not None:
+            base = stability_table(models.base_nominal.table, settings)
+    text = cert.to_csv(index=False, float_format="%.10g", lineterminator="\n")
+    write_text_atomic(config.path("certificate.csv"), text)
+    figure = None
+    if config.options.figures:
+        # listed after the paper's and the residual figures (see _report)
+        figure = workers.drawings.draw(config.folder, STABILITY_FIGURE, "stability_figure",
+                                       rows.table, settings)
+    wall = Wall(settings=settings, summary=summary, failed=trials.failed, certificate=cert,
+                warnings=tuple(str(w.message) for w in caught), figure=figure,
+                n_models=len(table), base_nominal=base,
+                in_loop=_loop_effects(adoption, loop), outside_loop=tuple(loop))
+    return StabilityChecked(wall, files=("stability.csv", "certificate.csv"),
+                     summary="; ".join(f"{a}: K_max min {s['k_max_min_N_per_m'] / 1e3:.3g} "
+                                       "kN/m" for a, s in summary.items())
+                     + (f"; {figure}" if figure else ""))
+
+
+def _loop_effects(adoption: Adoption, outside: Sequence[str]) -> dict[str, tuple[str, ...]]:
+    """{axis: the adopted effects inside the stability loop}."""
+    drop = set(outside)
+    return {a.axis: tuple(e for e in a.effects if e not in drop) for a in adoption.axes}
+
+
+def _figures(config: RunConfig, workers: _Workers, spectra: Spectra, models: Models,
+             uncertainty: api.Uncertainty) -> Drawn:
+    """The paper's Figs. 5-7 (they need no diagnosis): Fig. 5 (bode: measured dynamics
+    with the grip fits, all axes), Fig. 6 (derived dynamics, nominal H_ARM, W_max and
+    |Wu|) and Fig. 7 (the X axis 1 N H_ARM, else the first grip fit, against Table IV)."""
+    config.path("figures").mkdir(exist_ok=True)  # the stability figure may be there
+    grip, draw, folder = models.grip.table, workers.drawings.draw, config.folder
     rows = grip[(grip["axis"] == "x") & np.isclose(grip["grip_N"].to_numpy(float), 1.0)]
-    return [draw(ctx.folder, FIGURES[0], "bode_figure", ctx.spectra, grip),
-            draw(ctx.folder, FIGURES[1], "uncertainty_figure", ctx.spectra,
-                 ctx.nominal.table, ctx.uncertainty.weights),
-            draw(ctx.folder, FIGURES[2], "literature_figure",
-                 (rows if len(rows) else grip).iloc[0])]
+    paper = (draw(folder, FIGURES[0], "bode_figure", spectra, grip),
+             draw(folder, FIGURES[1], "uncertainty_figure", spectra,
+                  models.nominal.table, uncertainty.weights),
+             draw(folder, FIGURES[2], "literature_figure",
+                  (rows if len(rows) else grip).iloc[0]))
+    return Drawn(figures=paper, summary=f"{len(paper)} figure(s): Figs. 5, 6, 7")
 
 
-def _residual_figures(ctx: _Context) -> list[str]:
-    """One residual figure per diagnosed axis: the base nominal model solid, the adopted
-    nominal model dashed where it differs, the diagnosis's failing bands shaded."""
-    base = (ctx.base_nominal or ctx.nominal).table
-    adopted = ctx.adoption.adopted_axes if ctx.adoption is not None else ()
+def _compare(config: RunConfig, spectra: Spectra, models: Models,
+             adoption: Adoption) -> Compared:
+    """Each nominal model (base, and adopted where it differs) against the axis medians
+    (compare.csv)."""
+    base = models.base_nominal or models.nominal
+    rows = list(api.compare(spectra, base, level="median").rows)
+    if models.base_nominal is not None:
+        nominal = models.nominal
+        adopted = nominal.table[nominal.table["axis"].isin(adoption.adopted_axes)]
+        rows += api.compare(spectra, replace(nominal, table=adopted), level="median").rows
+    comparisons = api.Comparisons(tuple(rows), "median")
+    comparisons.write(config.path("compare.csv"))
+    return Compared(comparisons, files=("compare.csv",),
+                    summary=f"{len(rows)} model(s) x axis against the medians")
+
+
+def _residuals(config: RunConfig, workers: _Workers, spectra: Spectra, models: Models,
+               diagnosed: Diagnosed) -> Drawn:
+    """One residual figure per diagnosed axis (they need the diagnosis and the refits):
+    the base nominal model solid, the adopted nominal model dashed where it differs, the
+    diagnosis's failing bands shaded."""
+    base = (models.base_nominal or models.nominal).table
+    adopted = diagnosed.adoption.adopted_axes
     out = []
-    for d in sorted(ctx.diagnosis.axes, key=lambda d: d.axis):
+    for d in sorted(diagnosed.diagnosis.axes, key=lambda d: d.axis):
         bands = {d.axis: [(fb.lo_hz, fb.hi_hz) for fb in d.failing]}
-        out.append(ctx.drawings.draw(ctx.folder, f"figures/residual_{d.axis}.png",
-                                     "residual_figure", ctx.spectra, base,
-                                     ctx.nominal.table if d.axis in adopted else None,
-                                     axis=d.axis, bands=bands))
-    return out
+        out.append(workers.drawings.draw(config.folder, f"figures/residual_{d.axis}.png",
+                                         "residual_figure", spectra, base,
+                                         models.nominal.table if d.axis in adopted else None,
+                                         axis=d.axis, bands=bands))
+    return Drawn(figures=tuple(out), summary=f"{len(out)} figure(s)")
+
+
+def _report(config: RunConfig, workers: _Workers, written: Sequence[str],
+            estimated: Estimated, diagnosed: Diagnosed, models: Models,
+            uncertainty: api.Uncertainty, stability: StabilityChecked, compared: Compared,
+            drawn: Sequence[str]) -> Reported:
+    """Wait for the figures, then write report.md from the results above and the
+    configuration they used (``written``: the files of the stages before)."""
+    workers.drawings.wait()
+    wall = stability.wall
+    figures = (*drawn, *((wall.figure,) if wall.figure else ()))
+    record = RunRecord(
+        inputs=tuple(str(p) for p in config.inputs), options=config.options,
+        config=config.estimate, n_trials=len(estimated.study.trials),
+        skipped=estimated.skipped, grip=models.grip, nominal=models.nominal,
+        base_grip=models.base_grip, base_nominal=models.base_nominal, bands=models.bands,
+        uncertainty=uncertainty, diagnosis=diagnosed.diagnosis,
+        adoption=diagnosed.adoption, comparisons=compared.comparisons, wall=wall,
+        figures=figures, files=(*written, *figures, "report.md"))
+    write_text_atomic(config.path("report.md"), report_markdown(record))
+    return Reported(files=(*figures, "report.md"), summary="report.md")
 
 
 # ---------------------------------------------------------------------------
-# report.md
+# The run: the stages in order, timed
 # ---------------------------------------------------------------------------
 
-def _md_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> list[str]:
-    def cell(v) -> str:
-        return str(v).replace("|", "\\|")
-    lines = ["| " + " | ".join(header) + " |",
-             "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]
-    return lines + [""]
+R = TypeVar("R", bound=StageResult)
 
 
-def _num(v, fmt: str = ".3g") -> str:
-    if v is None:
-        return "–"
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        return str(v)
-    return "–" if not math.isfinite(x) else format(x, fmt)
+class _Clock:
+    """Times stages and reports each one as it finishes: a stage lasts from the end of
+    the previous one, unless it started earlier (a stage that ran alongside others). Keeps
+    the files the stages wrote."""
+
+    def __init__(self, on_stage: OnStage | None):
+        self.stages: list[Stage] = []
+        self.files: list[str] = []
+        self.on_stage = on_stage
+        self.start = self.t0 = time.perf_counter()
+
+    def done(self, name: str, result: R) -> R:
+        """Record the stage ``name`` that returned ``result``; returns ``result``."""
+        now = time.perf_counter()
+        since = self.t0 if result.started is None else result.started
+        stage = Stage(name, now - since, result.summary)
+        self.stages.append(stage)
+        self.files += result.files
+        self.t0 = now
+        if self.on_stage is not None:
+            self.on_stage(stage)
+        return result
+
+    def wall(self) -> float:
+        return time.perf_counter() - self.start
 
 
-def _params_rows(df) -> tuple[list[str], list[list[str]]]:
-    names = param_names(df)
-    grip = "grip_N" in df.columns
-    header = ["axis"] + (["grip (N)"] if grip else []) + \
-        [f"{n} ({unit_of(n).replace('*', '·')})" for n in names] + \
-        ["rms dB", "rms deg", "rms × noise"]
-    rows = []
-    for _, r in df.iterrows():
-        rows.append([str(r["axis"])] + ([f"{float(r['grip_N']):g}"] if grip else [])
-                    + [sig4(float(r[n])) for n in names]
-                    + [_num(r["rms_db"], ".2f"), _num(r["rms_deg"], ".1f"),
-                       _num(r["rms_norm"], ".2f")])
-    return header, rows
+def _run_in(inputs: list, folder: Path, options: RunOptions, *,
+            on_stage: OnStage | None, warn: Warn | None,
+            executor: Executor | None = None) -> RunResult:
+    config = RunConfig(tuple(inputs), folder, options, EstimateConfig(method=options.method),
+                       dict(PAPER_BANDS), warn)
+    # the caller's executor, or one pool of worker processes for every stage of the run
+    with executor_for(executor, options.jobs) as pool, contextlib.ExitStack() as stack:
+        own = pool is not None and pool is not executor
+        workers = _Workers(pool, _Drawings(pool if own else None), stack)
+        try:
+            return _stages(config, workers, _Clock(on_stage))
+        except BaseException:
+            if own:   # the background stages stop at their next task
+                pool.shutdown(wait=True, cancel_futures=True)
+            raise
 
 
-def _pairs_text(reps) -> str:
-    return "; ".join(f"{r.real:.4g} ± {abs(r.imag):.4g}j" for r in reps) or "–"
-
-
-def _bands_text(bands: Mapping[str, tuple[float, float]]) -> str:
-    """Fit bands in words, axes of one band together: "x, y 0.1–30 Hz and z 0.1–10 Hz"."""
-    groups: dict[tuple[float, float], list[str]] = {}
-    for axis in AXES:
-        if axis in bands:
-            groups.setdefault(tuple(bands[axis]), []).append(axis)
-    return " and ".join(f"{', '.join(axes)} {lo:g}–{hi:g} Hz"
-                        for (lo, hi), axes in groups.items())
-
-
-def adoption_markdown(run: _Context) -> list[str]:
-    """The report's opening section: the adopted model per axis, why, and what changed
-    because of it (lines of Markdown)."""
-    ad = run.adoption
-    L = ["## Adopted model", ""]
-    if not ad.anything:
-        why = ("adoption is off (`--adopt none`)" if ad.policy == "none"
-               else "the diagnosis found nothing missing")
-        L += [f"Nothing adopted: {why}. Every table, weight and stability answer below "
-              "comes from the paper's 5-parameter model.", ""]
-        declined = [a for a in ad.axes if a.declined]
-        L += [f"- {a.sentence()}." for a in declined]
-        return L + ([""] if declined else [])
-    L += ["The diagnosis's model becomes the model of every product below (Tables I–III, "
-          "per-trial fits, compare, K_max, certificate, figures); the paper's 5-parameter "
-          "tables are kept as `*_base` files. Apparatus effects (stage output or device) "
-          "are held at the diagnosis's joint fit over all trials of the axis; arm effects "
-          "are fitted per row (`adoption.csv`).", ""]
-    L += [f"- {a.sentence()}." for a in ad.axes]
-    L.append("")
-    wall = run.wall or {}
-    base, cert = wall.get("base_nominal"), wall.get("certificate")
-    if base is not None and cert is not None:
-        rows = []
-        for axis in ad.adopted_axes:
-            b = base[base["axis"] == axis]["k_max_N_per_m"]
-            c = cert[cert["axis"] == axis]["k_max_N_per_m"]
-            t = wall["summary"].get(axis, {}).get("k_max_min_N_per_m", math.nan)
-            loop = wall.get("in_loop", {}).get(axis, ())
-            rows.append([axis.upper(), _kn(b.iloc[0] if len(b) else math.nan),
-                         _kn(c.iloc[0] if len(c) else math.nan), _kn(t),
-                         ", ".join(loop) or "none"])
-        L += ["What changed because of it — the stiffest stable wall at the defaults "
-              "(1 kHz, B = 0, d = 1):", ""]
-        L += _md_table(["axis", "K_max base nominal (kN/m)",
-                        "K_max adopted nominal (kN/m)",
-                        "K_max min over trials, adopted (kN/m)",
-                        "adopted effects in the loop"], rows)
-    return L
-
-
-def _kn(v) -> str:
-    return _num(float(v) / 1e3 if v is not None else None, ".3g")
-
-
-def report_markdown(run: _Context) -> str:
-    """The text of report.md: what was done with the configuration each stage used, the
-    tables, the diagnosis per axis in words, the figures. Built from the stages' typed
-    results; no timestamps or timings (re-running gives the same text)."""
-    options, config = run.options, run.config
-    inputs = [str(p) for p in run.inputs]
-    n_trials, skipped = len(run.estimated.trials), run.skipped
-    grip, nominal = run.grip.table, run.nominal.table
-    wu_summary, weights = run.uncertainty.summary(), run.uncertainty.weights
-    diagnosis = run.diagnosis.to_dict()
-    adoption = run.adoption
-    compare_rows = run.comparisons.to_frame()
-    figures, files = run.drawn, sorted(run.files)
-    cmd = ["armfit run", *inputs, "-o OUTDIR"]
-    if options.manifest:
-        cmd.append(f"--manifest {options.manifest}")
-    if options.skip_bad:
-        cmd.append("--skip-bad")
-    cmd += [f"--method {options.method}", f"--cost {options.cost}",
-            f"--wu-cost {options.wu_cost}"]
-    if not options.figures:
-        cmd.append("--no-figures")
-    if options.adopt != "auto":
-        cmd.append(f"--adopt {options.adopt}")
-    cmd += [f"--outside-loop {e}" for e in options.outside_loop]
-    L = ["# armfit report", "",
-         f"armfit {__version__} — human arm dynamics and variability models by the method "
-         "of Fu & Çavuşoğlu, ICRA 2010.", "",
-         "```", " ".join(cmd), "```", ""]
-    L += adoption_markdown(run)
-    L += ["## What was done", ""]
-    skipped_text = ""
-    if skipped:
-        skipped_text = f"; {len(skipped)} skipped: " + "; ".join(
-            f"`{f}` ({r})" for f, r in skipped)
-    adopted = adoption.adopted_axes
-    adopt_text = ("; ".join(f"`{' + '.join(adoption[a].effects)}` on {a}" for a in adopted)
-                  if adopted else "nothing adopted")
-    steps = [
-        f"**ingest** — {n_trials} trial(s) validated against the trial contract into "
-        f"`trials.parquet`{skipped_text}.",
-        f"**estimate** — measured dynamics X/F with the `{config.method}` estimator, "
-        f"derived arm dynamics Xa/Fa (tfestimate, {config.derived_segments} segments), on "
-        f"{config.per_decade} points per decade {config.fmin:g}–{config.fmax:g} Hz; mean "
-        "per axis × grip and median per axis → `spectra.parquet`.",
-        f"**fit-grip** — eq. 4 (the paper's 5-parameter model) fitted to each axis × grip "
-        f"mean (Table I), cost `{options.cost}`, bands {_bands_text(PAPER_BANDS)}"
-        f" → `grip_params{'_base' if adopted else ''}.csv/.tex`.",
-        f"**fit-nominal** — the same fitted to each axis median (Table II) → "
-        f"`nominal_params{'_base' if adopted else ''}.csv/.tex`.",
-        "**diagnose** — stepwise search over the whole grid, started from the grip fits: "
-        "the base model and the effects added one at a time, fitted to every trial, "
-        "until the model is within the noise → `diagnosis.json`.",
-        f"**adopt** — the model the diagnosis found becomes the model of the products "
-        f"below: {adopt_text} → `adoption.csv`"
-        + (f"; Tables I and II refitted with it, bands {_bands_text(run.bands)} → "
-           "`grip_params.csv/.tex`, `nominal_params.csv/.tex`." if adopted else "."),
-        f"**fit-uncertainty** — W_max (eq. 6) of every trial's derived arm dynamics "
-        f"against the nominal H_ARM{' (apparatus effects removed)' if adopted else ''}, "
-        f"Wu (eq. 7) fitted with cost `{options.wu_cost}` → `wu.csv`, "
-        "`wu_summary.csv`, `wu_wmax.csv`, `wu.tex`.",
-        "**fit-trials** — the same model fitted to every trial → `trial_params.csv`.",
-        "**stability** — K_max of every trial's model and the robust certificate of the "
-        "nominal models → `stability.csv`, `certificate.csv`.",
-        "**compare** — each nominal model against the axis medians, overall and per band "
-        "→ `compare.csv`.",
-        ("**figures** — " + ", ".join(f"`{f}`" for f in figures) + ".") if figures
-        else "**figures** — skipped (`--no-figures`).",
-    ]
-    L += [f"{i}. {s}" for i, s in enumerate(steps, 1)] + [""]
-
-    which = "adopted model" if adopted else "the paper's 5-parameter model"
-    L += [f"## Grip-dependent parameters (Table I, {which})", "",
-          "Fits to the mean over subjects per axis and grip; 95 % intervals are in "
-          "`grip_params.csv` and `grip_params.tex`" + (" (‡: held at the diagnosis's "
-                                                         "value)" if adopted else "")
-          + ".", ""]
-    L += _md_table(*_params_rows(grip))
-    L += [f"## Nominal parameters (Table II, {which})", "",
-          "Fits to the median over all trials of an axis.", ""]
-    L += _md_table(*_params_rows(nominal))
-    if adopted:
-        L += ["## The paper's 5-parameter model (base model, not adopted)", "",
-              "Kept for comparison with the paper: the same fits without the adopted "
-              "effects (`grip_params_base.csv`, `nominal_params_base.csv`). On the "
-              "adopted axes the diagnosis found this model inadequate: its parameters "
-              "partly imitate the missing effects.", "", "Table I, base model:", ""]
-        L += _md_table(*_params_rows(run.base_grip.table))
-        L += ["Table II, base model:", ""]
-        L += _md_table(*_params_rows(run.base_nominal.table))
-
-    L += ["## Uncertainty weights (Table III)", "",
-          "Wu(s) = K Π(s − z)/Π(s − p), s in rad/s; coverage is the share of grid points "
-          "where |Wu| ≥ W_max, tightness 20 log10|Wu| − 20 log10 W_max.", ""]
-    fitted = wu_summary[(wu_summary["weight"] == "fitted") & (wu_summary["target"] == "wmax")]
-    rows = []
-    for _, r in fitted.iterrows():
-        w = weights[r["axis"]]
-        rows.append([r["axis"], _num(r["n_trials"], "g"), _num(r["order"], "g"),
-                     f"{w.gain:.4g}", _pairs_text(w.zeros), _pairs_text(w.poles),
-                     f"{_num(r['band_lo_hz'], 'g')}–{_num(r['band_hi_hz'], 'g')}",
-                     _num(r["coverage_pct"], ".1f"), _num(r["tightness_median_db"], ".2f"),
-                     _num(r["tightness_max_db"], ".2f")])
-    L += _md_table(["axis", "trials", "pairs", "K", "zeros (rad/s)", "poles (rad/s)",
-                    "band (Hz)", "coverage %", "tightness median dB", "tightness max dB"],
-                   rows)
-
-    L += ["## Diagnosis", "",
-          "Per axis: the base model fitted to every trial (arm parameters per trial), then "
-          "effects added one at a time (parameters shared by the trials) while the model "
-          "is not within the noise; an effect is named when its ΔBIC is significant and it "
-          "changes the response by more than the noise (see `diagnosis.json`).", ""]
-    for axis, d in diagnosis["axes"].items():
-        L += [f"### Axis {axis.upper()}", "",
-              f"**Verdict:** {d['verdict']}.", "",
-              f"{d['n_trials']} trials, {_num(d['band_hz'][0], 'g')}–"
-              f"{_num(d['band_hz'][1], 'g')} Hz; base model error "
-              f"{_num(d['base_error']['rms_db'], '.2f')} dB / "
-              f"{_num(d['base_error']['rms_deg'], '.1f')} deg / "
-              f"{_num(d['base_error']['rms_norm'], '.2f')} × noise (RMS).", ""]
-        if d["failing_bands"]:
-            L += ["Where the base model fails:", ""]
-            L += [f"- {_num(fb['lo_hz'], '.3g')}–{_num(fb['hi_hz'], '.3g')} Hz: "
-                  f"{fb['description']}" for fb in d["failing_bands"]] + [""]
-        else:
-            L += ["The base model fails in no band (it fits within the noise).", ""]
-        steps = d.get("steps", [])
-        if len(steps) > 1:
-            L += ["Stepwise search (one effect added per step, all added effects refitted "
-                  "jointly); the error falls step by step:", ""]
-            L += _md_table(["step", "effect added", "parameters", "RMS dB", "RMS deg",
-                            "× noise", "ΔBIC"], [
-                [str(i), st["effect"] or "base model",
-                 ", ".join(f"{k}={v:.4g}" + (" (at bound)" if k in st["at_bound"] else "")
-                           for k, v in st["params"].items()),
-                 f"{st['rms_db']:.2f}", f"{st['rms_deg']:.1f}", f"{st['rms_norm']:.2f}",
-                 "" if st["delta_bic"] is None else f"{st['delta_bic']:.1f}"]
-                for i, st in enumerate(steps)])
-        if "adequate" in d:
-            L += [f"Adequate (within the noise in every band): "
-                  f"{'yes' if d['adequate'] else 'no'}.", ""]
-        if d["tied_with"]:
-            L += ["About as good as the first effect: "
-                  + ", ".join(f"`{t}`" for t in d["tied_with"]) + ".", ""]
-        # candidates of the first step; those the screening left out have null errors
-        cands = [[c["effect"], ", ".join(f"{k}={v:.4g}" for k, v in c["params"].items()),
-                  f"{c['rms_db_before']:.2f} → {_num(c['rms_db_after'], '.2f')}",
-                  f"{c['rms_deg_before']:.1f} → {_num(c['rms_deg_after'], '.1f')}",
-                  _num(c["score"], ".1f"), "yes" if c["significant"] else "no"]
-                 for c in d["candidates"]]
-        if cands:
-            L += _md_table(["candidate", "parameters", "RMS dB", "RMS deg", "ΔBIC",
-                            "significant"], cands)
-
-    L += ["### Nominal models against the medians (compare.csv)", "",
-          "RMS magnitude error (dB) / phase error (deg) / normalised error (× noise); "
-          "overall over each model's fit band (the rms × noise of Table II), and per band "
-          "over the whole grid.", ""]
-    bands = [f"{lo:g}-{hi:g}" for lo, hi in BANDS]
-    header = ["axis", "model", "overall"] + [f"{b} Hz" for b in bands]
-    rows = []
-    for (axis, model), g in compare_rows.groupby(["axis", "model"], sort=False):
-        cells = {r["band"]: f"{_num(r['rms_db'], '.2f')} / {_num(r['rms_deg'], '.1f')} / "
-                            f"{_num(r['rms_norm'], '.2f')}" for _, r in g.iterrows()}
-        rows.append([axis, model, cells.get("overall", "–")]
-                    + [cells.get(b, "–") for b in bands])
-    L += _md_table(header, rows)
-
-    if run.wall is not None:
-        L += stability_markdown(run.wall)
-
-    if figures:
-        L += ["## Figures", ""]
-        captions = {
-            "figures/bode.png": "Measured dynamics X/F per axis with the grip fits "
-                                "(the paper's Fig. 5)",
-            "figures/uncertainty.png": "Derived arm dynamics with the nominal H_ARM, "
-                                       "W_max and |Wu| (Fig. 6)",
-            "figures/literature.png": "H_ARM of the X axis at 1 N grip against the "
-                                      "literature models of Table IV (Fig. 7)",
-            STABILITY_FIGURE: "Stiffest stable virtual wall per subject and grip, and "
-                              "against servo rate for d = 0, 1, 2",
-        }
-        for f in figures:
-            cap = captions.get(f)
-            if cap is None:
-                axis = f.rsplit("_", 1)[1].split(".")[0]
-                eff = " + ".join(adoption[axis].effects)
-                cap = (f"Normalised residual of the nominal model, axis {axis.upper()}"
-                       + (f", adopted model with `{eff}` dashed" if eff else "")
-                       + "; failing bands of the diagnosis shaded")
-            L += [f"### {cap}", "", f"![{cap}]({f})", ""]
-
-    L += ["## Files", ""] + [f"- `{f}`" for f in files] + [""]
-    return "\n".join(L)
+def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
+    """Every stage of :data:`STAGES`, in order, each given the results it needs."""
+    figures = config.options.figures
+    ingested = clock.done("ingest", _ingest(config, workers))
+    estimated = clock.done("estimate", _estimate(config, ingested))
+    spectra = estimated.spectra
+    grip = clock.done("fit-grip", _fit_grip(config, workers, spectra))
+    nominal = clock.done("fit-nominal", _fit_nominal(config, workers, spectra))
+    diagnosed = clock.done("diagnose", _diagnose(config, grip))
+    adoption = diagnosed.adoption
+    models = (clock.done("adopt", _adopt(config, workers, spectra, grip, nominal, diagnosed))
+              if adoption.anything else _base_models(config, grip, nominal))
+    unc = clock.done("fit-uncertainty",
+                     _fit_uncertainty(config, workers, spectra, models, adoption))
+    trials = clock.done("fit-trials", _fit_trials(config, unc))
+    stability = clock.done("stability", _stability(config, workers, models, adoption,
+                                                   unc.uncertainty, trials))
+    paper = (clock.done("figures", _figures(config, workers, spectra, models,
+                                            unc.uncertainty)) if figures else Drawn())
+    compared = clock.done("compare", _compare(config, spectra, models, adoption))
+    residuals = (clock.done("residuals", _residuals(config, workers, spectra, models,
+                                                    diagnosed)) if figures else Drawn())
+    clock.done("report", _report(config, workers, tuple(clock.files), estimated, diagnosed,
+                                 models, unc.uncertainty, stability, compared,
+                                 (*paper.figures, *residuals.figures)))
+    return RunResult(outdir=str(config.folder), files=tuple(sorted(clock.files)),
+                     trials=len(estimated.study.trials), skipped=estimated.skipped,
+                     verdicts={d.axis: d.verdict for d in diagnosed.diagnosis.axes},
+                     missing=diagnosed.missing, refitted=diagnosed.refitted,
+                     adoption=adoption, stages=tuple(clock.stages), wall_s=clock.wall())
 
 
 def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = "h1",
@@ -1048,6 +916,7 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
                          adopt=adopt, outside_loop=tuple(outside_loop))
     return run_pipeline(items, outdir, options, on_stage=on_stage, warn=warn,
                         executor=executor)
+
 def _warn_at_bound(which: str, model: api.ModelFit, warn: Warn | None) -> None:
     """One warning per fit with a parameter at a physical bound (column ``at_bound``)."""
     if warn is None:
@@ -1061,71 +930,8 @@ def _warn_at_bound(which: str, model: api.ModelFit, warn: Warn | None) -> None:
                  "(within 1 % of its range); the value is a limit, not an estimate")
 
 
-# ---------------------------------------------------------------------------
-# fit-trials and stability stages
-# ---------------------------------------------------------------------------
 
-#: The stability figure written by ``run`` (figures on), relative to OUTDIR.
-STABILITY_FIGURE = "figures/stability.png"
-
-
-def stability_markdown(wall: Mapping) -> list[str]:
-    """The report's section on the stiffest stable virtual wall (lines of Markdown)."""
-    st = wall["settings"]
-    rate = 1.0 / st.sample_time_s
-    L = ["## Stiffest stable virtual wall (stability.csv)", "",
-         f"One fit per trial (`trial_params.csv`, {wall['n_models']} fitted), then K_max: "
-         f"the largest wall stiffness K for which the sampled loop F[k] = −(K x[k−d] + "
-         f"B (x[k−d] − x[k−d−1])/T) with each arm is stable for every K′ ≤ K (exact "
-         f"zero-order-hold discretisation; see `armfit stability`). Defaults: "
-         f"{rate:g} Hz servo, B = {st.damping_Ns_per_m:g} N·s/m, d = {st.delay_samples} "
-         "sample(s).", ""]
-    for axis, s in wall["summary"].items():
-        L.append(f"- A {rate / 1e3:g} kHz device with {st.delay_samples} sample(s) of delay "
-                 f"renders walls up to {s['k_max_min_N_per_m'] / 1e3:.3g} kN/m on "
-                 f"{axis.upper()} for every subject and grip ({s['n_models']} trials; "
-                 f"limited by {s['limiting']}); median {s['k_max_median_N_per_m'] / 1e3:.3g}"
-                 f" kN/m, 5th percentile {s['k_max_p05_N_per_m'] / 1e3:.3g} kN/m.")
-    L.append("")
-    for who, why in wall["failed"]:
-        L.append(f"- Trial {who} has no fit ({why}) and is not in the population.")
-    for text in wall["warnings"]:
-        L.append(f"- Warning: {text}.")
-    loop = wall.get("in_loop") or {}
-    if any(loop.values()) or wall.get("outside_loop"):
-        L += ([""] if L[-1] else []) + ["Effects in the loop: " + "; ".join(
-            f"{a.upper()} {', '.join(e) or 'none'}" for a, e in loop.items())
-            + (" (left out with --outside-loop: " + ", ".join(wall["outside_loop"]) + ")"
-               if wall.get("outside_loop") else
-               " (a latency or lag in the position path is in the loop, since the wall "
-               "reads the same sensor; `--outside-loop EFFECT` leaves one out)") + "."]
-    cert = wall["certificate"]
-    if "k_robust_N_per_m" in cert.columns:
-        L += ([""] if L[-1] else []) + [
-              "Robust certificate of the nominal models against the fitted Wu "
-              "(max |Wu T| < 1, T the complementary sensitivity seen by the arm's "
-              "multiplicative uncertainty; `certificate.csv`), evaluated from the band's "
-              "low edge up to the Nyquist frequency, Wu continued beyond its band, and "
-              "capped at the smallest K_max of the trials it covers:", ""]
-        for _, r in cert.iterrows():
-            if math.isfinite(r["k_robust_N_per_m"]):
-                why = {"member": f"capped at trial {r['limiting_member']} (its K_max)",
-                       "weight beyond band": f"bound at {r['f_binding_hz']:.3g} Hz, above "
-                                             "the weight's band",
-                       "weight": f"bound at {r['f_binding_hz']:.3g} Hz",
-                       "nominal K_max": "the nominal's own K_max"}.get(r["limited_by"], "")
-                margin = r.get("beyond_margin", math.nan)
-                check = ""
-                if isinstance(margin, float) and math.isfinite(margin):
-                    check = (f"; above the band the trials stay within "
-                             f"{margin:.4f} × |Wu|" + ("" if margin <= 1 else
-                                                       " — beyond the weight: the "
-                                                       "assumption does not hold"))
-                L.append(f"- {r['axis'].upper()}: holds for K up to "
-                         f"{r['k_robust_N_per_m'] / 1e3:.3g} kN/m ({why}; peak at K = 0: "
-                         f"{r['wu_t_peak_k0']:.2f}{check}).")
-            else:
-                L.append(f"- {r['axis'].upper()}: holds for no K at all (max |Wu T| is "
-                         f"{r['wu_t_peak_k0']:.2f} > 1 already at K = 0, at "
-                         f"{r['f_peak_k0_hz']:.3g} Hz).")
-    return L + [""]
+def _median(values) -> float:
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else float("nan")

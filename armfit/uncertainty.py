@@ -16,7 +16,7 @@ The pieces:
   tight as it can (``cost="envelope"``, the default).
 * :func:`check_envelope` — coverage and tightness of any weight against a W_max.
 * :func:`nominal_arm_response`, :func:`derived_trials`, :func:`arm_trials`,
-  :func:`fit_uncertainty` — from a spectra table and a nominal-parameters table to the
+  :func:`fit_weights` — from a spectra table and a nominal-parameters table to the
   per-axis results (no file I/O); the nominal row's apparatus effects are removed from
   the trials' derived dynamics first (:func:`arm_trials`).
 
@@ -761,7 +761,7 @@ def _fit_wu_task(args) -> WuResult:
     return fit_wu(f, target, **kw)
 
 
-def fit_uncertainty(spectra, params, *, cost: str = "envelope", n_pairs: int | None = None,
+def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None = None,
                     band: tuple[float, float] | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
                     given: Mapping[str, Mapping[str, WuWeight]] | None = None,
@@ -907,6 +907,6 @@ __all__ = [
     "PAPER_BAND_HZ", "PAPER_WEIGHTS", "MAX_PAIRS", "ZETA_MIN", "WuWeight", "read_wu",
     "wu_response", "smooth_fractional_octave", "relative_error", "w_max",
     "EnvelopeCheck", "check_envelope", "WuResult", "fit_wu", "nominal_arm_response",
-    "arm_trials", "derived_trials", "AxisUncertainty", "fit_uncertainty",
+    "arm_trials", "derived_trials", "AxisUncertainty", "fit_weights",
     "derived_mass_kg", "summary_table", "points_table", "read_weights_and_bands",
 ]

@@ -5,7 +5,7 @@ Trials are synthetic derived arm dynamics: H_ARM of a Table I row (axis x grip) 
 parameter scaled by a per-subject log-normal factor (sd 0.15), times (1 + estimator noise
 of 5 % rms); the nominal is Table II. Two grids: the log grid `armfit estimate` writes
 (40 points per decade, 0.1–30 Hz) and the paper's 0.01 Hz bins (0.01–30 Hz, 3000 bins).
-Timed: `fit_uncertainty` from in-memory tables (W_max, automatic order search over 0–5
+Timed: `fit_weights` from in-memory tables (W_max, automatic order search over 0–5
 pairs, envelope checks), default envelope cost and the paper's cost.
 
 Run: .venv/bin/python benchmarks/bench_uncertainty.py
@@ -20,7 +20,7 @@ import pandas as pd
 
 from armfit.data import paper_table
 from armfit.models.arm import h_arm
-from armfit.uncertainty import fit_uncertainty
+from armfit.uncertainty import fit_weights
 
 COLS = dict(Ma="Ma_kg", k1="k1_N_per_m", k2="k2_N_per_m", b1="b1_Ns_per_m", b2="b2_Ns_per_m")
 
@@ -63,7 +63,7 @@ def main() -> None:
             best, best_cpu = np.inf, np.inf
             for _ in range(2):
                 t0, c0 = time.perf_counter(), time.process_time()
-                res = fit_uncertainty(spectra, params, cost=cost)
+                res = fit_weights(spectra, params, cost=cost)
                 best = min(best, time.perf_counter() - t0)
                 best_cpu = min(best_cpu, time.process_time() - c0)
             orders = ", ".join(f"{r.axis}:{r.result.order}" for r in res)

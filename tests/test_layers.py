@@ -1,5 +1,7 @@
 """The package's layers: data flows one way, io -> spectra -> models -> fitting / uncertainty /
-diagnosis -> figures -> api -> pipeline -> cli, and no import cycle joins two components.
+diagnosis -> figures -> api -> report -> pipeline -> cli, and no import cycle joins two
+components; no function is longer than 100 lines, and every module names its public API
+(``__all__``).
 
 Every ``import`` of an armfit module is read from the source with :mod:`ast`, at module
 level and inside functions alike (a function-local import is still a dependency).
@@ -17,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1] / "armfit"
 #: Layer of each component (a top-level module or subpackage of armfit). A module may
 #: import from its own layer or below, never from above; the package itself
 #: (armfit/__init__.py, the public facade) is imported by nobody inside the package.
-LAYERS: dict[str, int] = {
+LAYERS: dict[str, float] = {
     "_version": 0, "constants": 0, "errors": 0, "data": 0, "workers": 0, "noise": 0,
     "io": 1,
     "spectra": 2,
@@ -26,6 +28,7 @@ LAYERS: dict[str, int] = {
     "loop": 4, "blocklsq": 4,
     "figures": 5, "adopt": 5,
     "api": 6,
+    "report": 6.5,        # report.md from the typed results; the pipeline imports it
     "pipeline": 7,
     "cli": 8,
     "armfit": 9,
@@ -373,3 +376,94 @@ def test_the_multiprocessing_check_finds_private_names(source, expected):
 @pytest.mark.parametrize("source, expected", REBINDING)
 def test_the_rebinding_check_finds_names_bound_on_the_package(source, expected):
     assert _package_rebinding(source) == expected
+
+
+# ---------------------------------------------------------------------------
+# Size of functions, and every module's public names
+# ---------------------------------------------------------------------------
+
+#: The longest a function or method of the package may be, in lines (``end_lineno -
+#: lineno + 1`` of its ``def``, body, docstring and comments included).
+MAX_FUNCTION_LINES = 100
+
+
+def _long_functions(source: str, limit: int = MAX_FUNCTION_LINES) -> list[str]:
+    """"name: lines" of every function or method of ``source`` (nested ones included)
+    longer than ``limit`` lines."""
+    return [f"{node.name}: {node.end_lineno - node.lineno + 1}"
+            for node in ast.walk(ast.parse(source))
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+            and node.end_lineno - node.lineno + 1 > limit]
+
+
+def _declares_all(source: str) -> bool:
+    """Whether ``source`` binds ``__all__`` at module level."""
+    for node in ast.parse(source).body:
+        targets = (node.targets if isinstance(node, ast.Assign)
+                   else [node.target] if isinstance(node, ast.AnnAssign | ast.AugAssign)
+                   else [])
+        if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
+            return True
+    return False
+
+
+def test_no_function_is_longer_than_100_lines():
+    """A long function is split into well-named parts (report.md's renderer, once 195
+    lines, is a function per section)."""
+    assert _scan(_long_functions) == []
+
+
+def test_the_length_check_counts_every_line_of_a_function():
+    # a def line, a docstring of 2 lines and 98 statements: 101 lines; one fewer: 100
+    body = '    """Two\n    lines."""\n' + "    x = 1\n" * 98
+    assert _long_functions("def f():\n" + body) == ["f: 101"]
+    assert _long_functions("def f():\n" + body[:-len("    x = 1\n")]) == []
+    nested = "class A:\n    async def m(self):\n" + "        x = 1\n" * 100
+    assert _long_functions(nested) == ["m: 101"]
+
+
+def test_every_module_declares_its_public_names():
+    missing = [str(path.relative_to(ROOT.parent)) for path in sorted(ROOT.rglob("*.py"))
+               if not _declares_all(path.read_text(encoding="utf-8"))]
+    assert missing == []
+
+
+@pytest.mark.parametrize("module", ["pipeline.py", "report.py"])
+def test_the_pipeline_and_the_report_declare_their_public_names(module):
+    assert _declares_all((ROOT / module).read_text(encoding="utf-8"))
+
+
+@pytest.mark.parametrize("source, expected", [
+    ("__all__ = ['f']\n", True),
+    ("__all__: list[str] = []\n", True),
+    ("x = 1\ndef f():\n    __all__ = ['f']\n", False),   # not at module level
+    ("ALL = ['f']\n", False),
+])
+def test_the_all_check_reads_module_level_bindings(source, expected):
+    assert _declares_all(source) is expected
+
+
+#: Names every module of a kind defines by protocol: each subcommand module's click
+#: ``command`` (loaded lazily by name, armfit.cli.main) and each effect file's ``EFFECTS``
+#: list (the built-in library is loaded like a user's file, armfit.models.effects).
+PROTOCOL_NAMES = {"command", "EFFECTS"}
+
+
+def test_no_public_name_is_defined_in_two_modules():
+    """One name, one object: a public class, function or constant is defined in one
+    module only (an engine function is not named like the API stage above it)."""
+    where: dict[str, list[str]] = {}
+    for path in sorted(ROOT.rglob("*.py")):
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+                names = [node.name]
+            elif isinstance(node, ast.Assign):
+                names = [t.id for t in node.targets if isinstance(t, ast.Name)]
+            elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                names = [node.target.id]
+            else:
+                continue
+            for name in names:
+                if not name.startswith("_") and name not in PROTOCOL_NAMES:
+                    where.setdefault(name, []).append(_module_name(path))
+    assert {n: m for n, m in where.items() if len(m) > 1} == {}

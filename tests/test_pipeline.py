@@ -14,11 +14,11 @@ from armfit.errors import ConvergenceError, OutputError
 from armfit.pipeline import (
     COMPARE_COLUMNS,
     RunOptions,
-    _md_table,
     check_outdir,
     compare_frame,
     run_pipeline,
 )
+from armfit.report import md_table
 
 
 def _band(lo, hi, k):
@@ -50,7 +50,7 @@ def test_compare_frame_flattens_rows_per_band_base_first():
 
 def test_md_table_escapes_pipes():
     # markdown table syntax: a literal | inside a cell must be written \|
-    assert _md_table(["a", "b"], [["|Wu|", 1]]) == ["| a | b |", "|---|---|",
+    assert md_table(["a", "b"], [["|Wu|", 1]]) == ["| a | b |", "|---|---|",
                                                    "| \\|Wu\\| | 1 |", ""]
 
 

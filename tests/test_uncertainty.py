@@ -24,7 +24,7 @@ from armfit.uncertainty import (
     WuWeight,
     check_envelope,
     derived_trials,
-    fit_uncertainty,
+    fit_weights,
     fit_wu,
     read_wu,
     smooth_fractional_octave,
@@ -276,7 +276,7 @@ def test_fit_uncertainty_from_tables():
     spectra, params, _ = _spectra_and_params(deltas)
     f, h, labels = derived_trials(spectra, "x")
     assert h.shape == (3, F_LOG.size) and labels[0] == "sub-00_grip-1N"
-    (res,) = fit_uncertainty(spectra, params, given={"flat": {"x": WuWeight(0.3, [], [])}})
+    (res,) = fit_weights(spectra, params, given={"flat": {"x": WuWeight(0.3, [], [])}})
     np.testing.assert_allclose(res.wmax_raw, np.max(np.abs(deltas), axis=0), rtol=1e-9)
     assert res.n_trials == 3 and res.band_hz == pytest.approx(BAND)
     assert res.checks[("fitted", "wmax")].coverage_pct == 100.0
@@ -290,9 +290,9 @@ def test_fit_uncertainty_from_tables():
 def test_fit_uncertainty_rejects_grip_params_and_missing_axis():
     spectra, params, _ = _spectra_and_params([0.1 * np.ones(F_LOG.size)])
     with pytest.raises(BadInputError, match="column 'grip_N'.*fit-nominal"):
-        fit_uncertainty(spectra, params.assign(grip_N=1.0))
+        fit_weights(spectra, params.assign(grip_N=1.0))
     with pytest.raises(BadInputError, match=r"no axis has both .*axes: x.*axes: y"):
-        fit_uncertainty(spectra, params.assign(axis="y"))
+        fit_weights(spectra, params.assign(axis="y"))
 
 
 # --- the Wu CSV -------------------------------------------------------------------------

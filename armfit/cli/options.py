@@ -15,7 +15,7 @@ from armfit.errors import UsageError
 from armfit.io.schema import finite_or_none, json_default
 from armfit.models.effects import EFFECTS, load_effect_files
 
-T = TypeVar("T")
+_T = TypeVar("_T")
 
 output_option = click.option(
     "-o", "--output", "output", required=True, type=click.Path(dir_okay=True),
@@ -234,7 +234,7 @@ def progress(total: int, description: str) -> Iterator[Any]:
         yield lambda n=1: bar.advance(task, n)
 
 
-def iterate(items: Iterable[T], total: int, description: str) -> Iterator[T]:
+def iterate(items: Iterable[_T], total: int, description: str) -> Iterator[_T]:
     """Iterate with a progress bar (see :func:`progress`)."""
     with progress(total, description) as advance:
         for item in items:
@@ -243,7 +243,7 @@ def iterate(items: Iterable[T], total: int, description: str) -> Iterator[T]:
 
 
 __all__ = [
-    "T", "output_option", "overwrite_option", "json_option", "skip_bad_option",
+    "output_option", "overwrite_option", "json_option", "skip_bad_option",
     "manifest_option", "jobs_option", "scheduler_option", "cluster_executor",
     "effect_option", "outside_loop_option", "fit_effect_option", "effect_items",
     "BAND_HELP", "parse_band", "parse_bands", "band_option", "axis_bands_option",

@@ -2,7 +2,7 @@
 with these arms; ``armfit fit-trials``: one fit per trial, the population it needs.
 
 Both check their outputs first, read their inputs, call the library
-(:func:`armfit.loop.stability_table`, :func:`armfit.fitting.fit_trials`) and write
+(:func:`armfit.loop.stability_table`, :func:`armfit.fitting.fit_trial_models`) and write
 atomically.
 """
 

@@ -64,7 +64,8 @@ _GRIP = re.compile(r"(\d+(?:\.\d+)?)N")
 _LABEL = re.compile(r"[A-Za-z0-9]+")
 _NAME_HELP = "sub-<label>_axis-<x|y|z>_grip-<g>N[_run-<k>].<csv|csv.gz|parquet>"
 
-Warn = Callable[[str], None]
+#: A receiver of data warnings (one line each), e.g. the CLI's stderr printer.
+Warn = Callable[[str], object]
 
 
 @dataclass(frozen=True)
