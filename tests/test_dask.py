@@ -22,7 +22,7 @@ def cluster():
     """Two worker processes (processes=True: tasks and results are pickled to and from
     other interpreters, as on a cluster of machines)."""
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as c:
+                                  dashboard_address=":0") as c:
         yield c
 
 
