@@ -326,3 +326,16 @@ def test_usage_errors(tmp_path, runner, study):
     res = _ingest(runner, study, "-o", tmp_path / "t.parquet", "--f-min", "0")
     assert res.exit_code == 2
 
+
+
+def test_a_second_manifest_is_refused(tmp_path, runner):
+    """Two --manifest options: exit 2 (a usage error, docs/cli.md) naming both files, and
+    no output written, rather than the second silently replacing the first."""
+    for name in ("m1.csv", "m2.csv"):
+        (tmp_path / name).write_text("file,subject,axis,grip_N\n", encoding="utf-8")
+    out = tmp_path / "t.parquet"
+    r = _ingest(runner, "--manifest", tmp_path / "m1.csv", "--manifest", tmp_path / "m2.csv",
+                "-o", out)
+    assert r.exit_code == 2
+    assert "m1.csv" in r.output and "m2.csv" in r.output and "Traceback" not in r.output
+    assert not out.exists()

@@ -27,9 +27,18 @@ json_option = click.option(
 skip_bad_option = click.option(
     "--skip-bad", is_flag=True,
     help="Go on past bad trials, listing each with its reason (default: stop at the first).")
+def _one_manifest(ctx, param, value):
+    """The one ``--manifest`` given (None without): a second one is refused, not
+    silently put in place of the first."""
+    if len(value) > 1:
+        raise click.BadParameter(f"given {len(value)} times ({', '.join(value)}); give one "
+                                 "manifest (join the files into one CSV)", ctx, param)
+    return value[0] if value else None
+
+
 manifest_option = click.option(
-    "--manifest", type=click.Path(dir_okay=False),
-    help="CSV with columns file,subject,axis,grip_N[,run]; paths relative to it.")
+    "--manifest", type=click.Path(dir_okay=False), multiple=True, callback=_one_manifest,
+    help="CSV with columns file,subject,axis,grip_N[,run]; paths relative to it. Once.")
 jobs_option = click.option(
     "-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
     help="Worker processes.")
