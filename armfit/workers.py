@@ -64,7 +64,7 @@ __all__ = ["PRELOAD", "cancel_pools", "executor_for", "ignore_sigint", "iter_tas
 #: Modules the fork server imports once for every worker it starts (the modules whose
 #: functions armfit's tasks run): workers start with them loaded.
 PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fitting",
-                            "armfit.uncertainty", "armfit.diagnose")
+                            "armfit.uncertainty", "armfit.diagnosis")
 
 #: The pools :func:`process_pool` made that are not shut down yet, each with the ident of
 #: the thread that made it (see :func:`cancel_pools`). A record only: no pool is handed

@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from scipy import interpolate, signal
+from scipy import interpolate
 from test_cli_stability import GRID  # noise-free spectra rows of one trial
 from test_cli_stability import _trial as _spectra_rows
+from test_stability import _independent_k_max as k_max_by_roots
 
 from armfit.cli.main import cli
 from armfit.errors import EffectDefinitionError, UsageError
@@ -296,32 +297,13 @@ def test_plant_from_model_refuses_an_effect_without_rational():
 def _independent_k_max(arm, mp, k_spring, T=1e-3):
     """K_max of the wall C(z) = K z⁻¹ (one sample of delay, B = 0) on
     X/F = 1/(Z_ARM + Mp s² + k), Z_ARM = (b1 s + k1)(Ma s² + b2 s + k2) /
-    (Ma s² + (b1 + b2) s + k1 + k2) (eq. 3), built here from the formula:
-    scipy.signal.cont2discrete (ZOH, T) gives num_d/den_d; the loop is stable when every
-    root of den_d(z)·z + K·num_d(z) lies inside the unit circle. The first unstable K on
-    a log scan (60 per decade from 10 N/m) is bisected to 0.1 %."""
+    (Ma s² + (b1 + b2) s + k1 + k2) (eq. 3), built here from the formula; the sampled loop
+    is then solved by test_stability's independent route (scipy.signal.cont2discrete ZOH,
+    roots of the characteristic polynomial on a log scan of K, bisection)."""
     Ma, k1, k2, b1, b2 = (arm[n] for n in NAMES)
     zden = np.array([Ma, b1 + b2, k1 + k2])
-    num = zden
     den = np.polyadd(np.polymul([b1, k1], [Ma, b2, k2]), np.polymul([mp, 0.0, k_spring], zden))
-    numd, dend, _ = signal.cont2discrete((num, den), T, method="zoh")
-    numd, dend = np.atleast_1d(np.squeeze(numd)), np.atleast_1d(np.squeeze(dend))
-
-    def stable(K):
-        return np.max(np.abs(np.roots(np.polyadd(np.polymul(dend, [1.0, 0.0]), K * numd)))) < 1
-
-    assert stable(0.0)
-    lo = 0.0
-    for hi in np.geomspace(10.0, 1e7, 360):
-        if not stable(hi):
-            break
-        lo = hi
-    else:
-        return math.inf
-    while hi - lo > 1e-3 * hi:
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if stable(mid) else (lo, mid)
-    return 0.5 * (lo + hi)
+    return k_max_by_roots(zden, den, T, B=0.0, d=1)
 
 
 #: Springs per axis of the hand-written params file (N/m).

@@ -127,3 +127,11 @@ def test_scheduler_without_dask_is_one_line_and_exit_2(small_study, tmp_path, mo
     assert res.stderr == ("armfit: error: --scheduler needs dask.distributed: "
                           "pip install armfit[dask]\n")
     assert not (tmp_path / "s.parquet").exists()
+
+
+def test_every_preloaded_module_exists():
+    """The fork server imports workers.PRELOAD and silently skips a name it cannot import
+    (multiprocessing.forkserver), so a stale name would only cost each pool's workers an
+    import: every name must be a module of the package."""
+    import importlib.util
+    assert [m for m in workers.PRELOAD if importlib.util.find_spec(m) is None] == []

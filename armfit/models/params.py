@@ -148,7 +148,7 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
     for col, default in PARAMS_OPTIONAL.items():   # absent in files of older versions
         if col not in table.columns:
             table[col] = default
-    names = [c for c in param_bounds(table, p)]
+    names = list(param_bounds(table, p))
     for col in [f"{n}{sfx}" for n in names for sfx in ("_lo", "_hi")] + list(PARAMS_STATS):
         if col not in table.columns:
             raise BadInputError("missing column; expected a file written by fit-grip or "
