@@ -698,7 +698,8 @@ class Diagnosis:
     ----------
     axes : tuple of armfit.diagnosis.AxisDiagnosis
         Per axis: the verdict, the missing effect (or None), candidates best first,
-        failing bands, base error, cross-axis coupling.
+        failing bands, base error, cross-axis coupling, and the candidates left out
+        because their own code failed (``failed_candidates``).
     spectra, model : Spectra, ModelFit
         The inputs (for :meth:`plot`).
     """
@@ -777,7 +778,10 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
     band : (float, float), optional
         Band in Hz (default: the whole grid).
     effects : sequence of Effect or str, optional
-        Candidates (default: the whole effect library).
+        Candidates (default: the whole effect library). A candidate whose own code
+        fails in its fit (its term raises, or is NaN or infinite on the band) is left
+        out with the reason (``failed_candidates`` of its axis) and the search goes on
+        with the others.
     jobs : int
         Worker processes; the result does not depend on it.
     max_steps : int

@@ -77,7 +77,7 @@ from scipy import optimize, special
 
 from armfit import noise
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
-from armfit.errors import BadInputError, ConvergenceError, UsageError
+from armfit.errors import BadInputError, ConvergenceError, EffectDefinitionError, UsageError
 from armfit.io.artifacts import params_frame
 from armfit.io.schema import params_columns
 from armfit.models.arm import ClosedLoopModel, at_bound, laplace, union_param_names
@@ -1101,6 +1101,8 @@ def fit_trial(key: tuple[str, str, float, int | None], rows, *, cost: str = "com
         fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, cost=cost, band=band,
                            max_nfev=max_nfev, x0=x0, global_search=x0 is None,
                            strict=x0 is None)
+    except EffectDefinitionError:   # the model itself is broken, not this trial's data
+        raise
     except (ConvergenceError, UsageError, BadInputError) as exc:
         return TrialFit(axis, subject, grip, run, None, str(exc).splitlines()[0])
     return TrialFit(axis, subject, grip, run, fit)
@@ -1207,6 +1209,8 @@ def _grip_starts(spectra, cost, bands, effects, method, source
     try:
         study = fit_study(spectra, which="grip", cost=cost, bands=bands, effects=effects,
                           method=method, source=source)
+    except EffectDefinitionError:   # the model itself is broken, not the grip fits' data
+        raise
     except (ConvergenceError, UsageError, BadInputError):
         return {}
     return grip_fit_starts(study.keys, study.fits)

@@ -562,6 +562,10 @@ def _diagnose(config: RunConfig, grip: GripFits) -> Diagnosed:
     each axis (adoption.csv)."""
     diagnosis = grip.diagnosing.result()
     diagnosis.write(config.path("diagnosis.json"))
+    for d in diagnosis.axes:
+        for c in d.failed_candidates:
+            if config.warn is not None:
+                config.warn(f"diagnose {d.axis}: candidate {c.effect} left out: {c.reason}")
     # every effect the stepwise search named on an axis, in order ("delay+lowpass")
     missing = {a: "+".join(names) or None for a, names in diagnosis.added.items()}
     adoption = adopt(diagnosis, config.options.adopt)

@@ -450,8 +450,8 @@ def _diagnosis_section(diagnosis: api.Diagnosis) -> list[str]:
 
 
 def _axis_diagnosis(d: AxisDiagnosis) -> list[str]:
-    """One axis: verdict, base error, failing bands, the stepwise search, adequacy, ties
-    and the first step's candidates."""
+    """One axis: verdict, base error, failing bands, the stepwise search, adequacy, ties,
+    the first step's candidates and those left out because their code failed."""
     e = d.base_error
     L = [f"### Axis {d.axis.upper()}", "",
          f"**Verdict:** {d.verdict}.", "",
@@ -478,6 +478,9 @@ def _axis_diagnosis(d: AxisDiagnosis) -> list[str]:
     if d.candidates:
         L += md_table(["candidate", "parameters", "RMS dB", "RMS deg", "ΔBIC",
                        "significant"], [_candidate_row(c) for c in d.candidates])
+    if d.failed_candidates:
+        L += ["Candidates left out (their own code failed):", ""]
+        L += [f"- `{c.effect}`: {c.reason}" for c in d.failed_candidates] + [""]
     return L
 
 

@@ -219,6 +219,9 @@ def _print_steps(results, doc, con) -> None:
             con.print("  cross-axis motion (off-axis / on-axis, median): " + ", ".join(
                 f"{k} {v:+.1f} dB" for k, v in d.coupling.items()), highlight=False)
         con.print(f"  verdict: {d.verdict}", highlight=False)
+        for c in d.failed_candidates:
+            con.print(f"  candidate {c.effect} left out: {c.reason}", highlight=False,
+                      markup=False, soft_wrap=True)
     for name, e in doc.get("shared_effects", {}).items():
         vals = ", ".join(f"{p} {v['common']:.4g} (χ² {v['chi2']:.1f}, p {v['p']:.2g})"
                          for p, v in e["params"].items())

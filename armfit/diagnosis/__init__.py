@@ -102,6 +102,7 @@ from armfit.diagnosis.responses import (
 from armfit.diagnosis.results import (
     AxisDiagnosis,
     Candidate,
+    FailedCandidate,
     MissingEffect,
     Step,
 )
@@ -134,7 +135,7 @@ from armfit.diagnosis.verdict import (
 
 __all__ = [
     "Adequacy", "AxisData", "AxisDiagnosis", "BANDS", "BandError", "Candidate", "Comparison",
-    "FailingBand", "JointFit", "MAX_STEPS", "MIN_EFFECT_DB", "MIN_EFFECT_DEG", "MIN_REDUCTION",
+    "FailedCandidate", "FailingBand", "JointFit", "MAX_STEPS", "MIN_EFFECT_DB", "MIN_EFFECT_DEG", "MIN_REDUCTION",
     "MIN_RUN", "MissingEffect", "NOISE_TOL", "SHARED_EFFECTS", "SIGNIFICANT_BIC", "Step",
     "T_FAIL", "adequacy", "axis_data", "band_error", "band_to_dict", "best_rows",
     "compare_models", "cross_axis_agreement", "cross_coupling", "describe_residual",

@@ -241,5 +241,8 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
             "final_error": None if d.final_error is None else band_to_dict(d.final_error),
             "final_bands": [band_to_dict(b) for b in d.final_bands],
             "final_failing_bands": [asdict(fb) for fb in d.final_failing]}
+        if d.failed_candidates:     # (only when one failed: other documents are unchanged)
+            axes[d.axis]["failed_candidates"] = [
+                {"effect": c.effect, "reason": c.reason} for c in d.failed_candidates]
     shared = next((d.shared for d in results if d.shared), {})
     return {"axes": axes, "shared_effects": shared}

@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 
 from armfit.diagnosis.bands import BandError, FailingBand
 
-__all__ = ["AxisDiagnosis", "Candidate", "MissingEffect", "Step", "short_params"]
+__all__ = ["AxisDiagnosis", "Candidate", "FailedCandidate", "MissingEffect", "Step",
+           "short_params"]
 
 
 @dataclass(frozen=True)
@@ -36,8 +37,19 @@ class Candidate:
 
 
 @dataclass(frozen=True)
+class FailedCandidate:
+    """A candidate effect left out of the search because its own code broke the fit:
+    its term raised, or was NaN or infinite on the band. ``reason``: the one-line
+    message, naming the file that defines the effect."""
+
+    effect: str
+    reason: str
+
+
+@dataclass(frozen=True)
 class AxisDiagnosis:
-    """Verdict for one axis: the missing effect (or None), candidates best first."""
+    """Verdict for one axis: the missing effect (or None), candidates best first, and
+    the candidates left out because their code failed (``failed_candidates``)."""
 
     axis: str
     band: tuple[float, float]
@@ -58,6 +70,7 @@ class AxisDiagnosis:
     final_failing: tuple[FailingBand, ...] = ()
     stop: str = ""
     shared: dict = field(default_factory=dict)
+    failed_candidates: tuple[FailedCandidate, ...] = ()
 
 
 @dataclass(frozen=True)

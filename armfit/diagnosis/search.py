@@ -28,6 +28,7 @@ from armfit.diagnosis.responses import AxisData, axis_data, cross_coupling
 from armfit.diagnosis.results import (
     AxisDiagnosis,
     Candidate,
+    FailedCandidate,
     MissingEffect,
     Step,
     short_params,
@@ -44,6 +45,7 @@ from armfit.diagnosis.tuning import (
     TIE_FRACTION,
 )
 from armfit.diagnosis.verdict import verdict_text
+from armfit.errors import EffectDefinitionError
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
 from armfit.spectra import Spectra
@@ -92,6 +94,7 @@ class _Search:
         self.adequacies: list[Adequacy] = []
         self.first_candidates: tuple[Candidate, ...] = ()
         self.tied: tuple[str, ...] = ()
+        self.failed: dict[str, str] = {}
         self.stop = ""
         self.done = False
 
@@ -118,8 +121,12 @@ class _Search:
         # no effect twice: a second delay, lag or mass adds nothing a single one's
         # parameters cannot, and two copies of a resonance or reflex are not identifiable
         # from these responses (their order is arbitrary)
-        names = {e.name for e in self.added}
+        names = {e.name for e in self.added} | set(self.failed)
         return [e for e in self.effects if e.name not in names]
+
+    def fail(self, failure: FailedCandidate) -> None:
+        """Leave a candidate out of this and every later step: its own code failed."""
+        self.failed.setdefault(failure.effect, failure.reason)
 
     def screen_candidate(self) -> list[tuple[Effect, JointFit]]:
         """Screening fits (:func:`screen_candidate`) of the remaining effects, lowest cost first."""
@@ -158,8 +165,9 @@ class _Search:
                               if c.significant and c.effect is not best.effect
                               and best.score - c.score < max(TIE_BIC,
                                                              TIE_FRACTION * best.score))
-        if best is None:
-            self.done, self.stop = True, "nothing-significant"
+        if best is None:   # (every candidate left may have failed: none remains)
+            self.done = True
+            self.stop = "nothing-significant" if self.remaining() else "no-more-effects"
             return
         self._append(best.effect, best.fit, self._adequacy(best.fit), best.score,
                      best.change_db, best.change_deg)
@@ -284,7 +292,8 @@ class _Search:
             missing_effects=tuple(missing), error_steps=tuple(errors),
             adequate=bool(ad.adequate), steps=tuple(self.steps),
             final_error=ad.overall, final_bands=ad.bands, final_failing=ad.failing,
-            stop=self.stop)
+            stop=self.stop, failed_candidates=tuple(FailedCandidate(n, r)
+                                                    for n, r in self.failed.items()))
 
 
 def _base_task(args):
@@ -294,12 +303,18 @@ def _base_task(args):
 
 def _screen_task(args):
     data, band, current, effect = args
-    return screen_candidate(data, band, current, effect)
+    try:
+        return screen_candidate(data, band, current, effect)
+    except EffectDefinitionError as exc:     # the effect's own code broke the fit
+        return FailedCandidate(effect.name, str(exc))
 
 
 def _extend_task(args):
     data, band, current, effect, screened = args
-    return fit_extend(data, band, current, effect, screened)
+    try:
+        return fit_extend(data, band, current, effect, screened)
+    except EffectDefinitionError as exc:     # the effect's own code broke the fit
+        return FailedCandidate(effect.name, str(exc))
 
 
 def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
@@ -322,6 +337,11 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     effect is added twice. ``share``: effects whose parameters the axes' fits are
     compared for agreement (default :data:`SHARED_EFFECTS`), see
     :func:`cross_axis_agreement`.
+
+    A candidate whose own code breaks its fit (an :class:`EffectDefinitionError`: its
+    term raised, or was NaN or infinite on the band) is left out of this and every later
+    step with the message as reason (:attr:`AxisDiagnosis.failed_candidates`); the
+    search goes on with the other candidates.
 
     ``band`` defaults to the whole grid of the spectra; ``jobs`` > 1 runs the fits of a
     step (one per axis and candidate) in parallel processes, or ``executor`` (any
@@ -372,16 +392,25 @@ def _search_step(live: Sequence[_Search], run: Callable) -> None:
     task per axis and effect), then joint fits of the best (one task each)."""
     stasks = [(s, e) for s in live for e in s.remaining()]
     sfits = list(run(_screen_task, [(s.data, s.band, s.fits[-1], e) for s, e in stasks]))
+    for (s, _), sc in zip(stasks, sfits, strict=True):
+        if isinstance(sc, FailedCandidate):
+            s.fail(sc)
     screened = {id(s): rank_screened([(e, sc) for (t, e), sc
-                                      in zip(stasks, sfits, strict=True) if t is s])
+                                      in zip(stasks, sfits, strict=True)
+                                      if t is s and not isinstance(sc, FailedCandidate)])
                 for s in live}
     tasks = [(s, e, sc) for s in live for e, sc in keep_screened(screened[id(s)])]
     fits = list(run(_extend_task, [(s.data, s.band, s.fits[-1], e, sc)
                                    for s, e, sc in tasks]))
+    for (s, _, _), fit in zip(tasks, fits, strict=True):
+        if isinstance(fit, FailedCandidate):
+            s.fail(fit)
     for s in live:
-        full = {e.name: fit for (t, e, _), fit in zip(tasks, fits, strict=True) if t is s}
+        full = {e.name: fit for (t, e, _), fit in zip(tasks, fits, strict=True)
+                if t is s and not isinstance(fit, FailedCandidate)}
         s.take([(e, full[e.name]) for e, _ in screened[id(s)] if e.name in full],
-               screened=[(e, sc) for e, sc in screened[id(s)] if e.name not in full])
+               screened=[(e, sc) for e, sc in screened[id(s)]
+                         if e.name not in full and e.name not in s.failed])
 
 
 def _borrow_step(searches: Sequence[_Search], run: Callable, share: Sequence[str]) -> None:
@@ -394,12 +423,16 @@ def _borrow_step(searches: Sequence[_Search], run: Callable, share: Sequence[str
         fits = list(run(_borrow_task, [(s.data, s.band, s.fits[-1], m, agreement)
                                        for s, m in tasks]))
         for (s, _), fit in zip(tasks, fits, strict=True):
-            s.borrow(fit)
+            if fit is not None:
+                s.borrow(fit)
 
 
 def _borrow_task(args):
     data, band, current, model, agreement = args
-    return fit_borrowed(data, band, current, model, agreement)
+    try:
+        return fit_borrowed(data, band, current, model, agreement)
+    except EffectDefinitionError:   # an effect's own code broke the refit: keep the search's
+        return None
 
 
 def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]

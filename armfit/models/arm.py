@@ -216,6 +216,10 @@ class ClosedLoopModel:
     Mp s², ``output`` multiplies X/F. The fitter, the tables and the CLI only see
     :attr:`params` and :meth:`response`; they never learn effect names.
 
+    Every effect term is evaluated through :meth:`armfit.models.effects.Effect.evaluate`,
+    which refuses a term that raises or is NaN or infinite (an EffectDefinitionError
+    naming the effect and its file), so no response of the model is made of one.
+
     Parameter names: the five base names, then ``<effect>.<param>`` for each effect.
     ``held`` fixes some effect parameters at given values (pairs of a qualified name and
     its value): they are not searched by a fit (:attr:`params` and :attr:`param_names`
@@ -336,7 +340,7 @@ class ClosedLoopModel:
         z = z_arm(f_hz, **base)
         for e, v in zip(self.effects, eff, strict=True):
             if e.stage == "arm":
-                z = z + e.term(s, v, self.mp)
+                z = z + e.evaluate(s, v, self.mp)
         return 1.0 / z
 
     def response(self, f_hz, theta) -> np.ndarray:
@@ -347,9 +351,9 @@ class ClosedLoopModel:
         factor = np.ones_like(s)
         for e, v in zip(self.effects, eff, strict=True):
             if e.stage in ("arm", "device"):
-                z = z + e.term(s, v, self.mp)
+                z = z + e.evaluate(s, v, self.mp)
             else:
-                factor = factor * e.term(s, v, self.mp)
+                factor = factor * e.evaluate(s, v, self.mp)
         return factor / z
 
     def _effect_terms(self, s, eff: Sequence[Mapping[str, float]], stages: Sequence[str]
@@ -363,9 +367,9 @@ class ClosedLoopModel:
             if e.stage not in stages:
                 continue
             if e.stage == "output":
-                factor = factor * e.term(s, v, self.mp)
+                factor = factor * e.evaluate(s, v, self.mp)
             else:
-                dz = dz + e.term(s, v, self.mp)
+                dz = dz + e.evaluate(s, v, self.mp)
         return factor, dz
 
     def remove_effects(self, f_hz, H, effect_values: Mapping[str, float]) -> np.ndarray:

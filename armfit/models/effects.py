@@ -55,14 +55,25 @@ an ``EFFECTS`` list), and the files loaded with :func:`load_effect_file` (the CL
 (:func:`check_effect`); a bad one raises :class:`armfit.errors.EffectDefinitionError`
 naming the file and what is wrong; with ``rational``, (R1) must hold on the probe grid
 within :data:`RATIONAL_RTOL`.
+
+Every model evaluates an effect through :meth:`Effect.evaluate`, the one place where a
+user's code runs (with :meth:`Effect.rational_form` and the loading of its file): what
+that code prints on stdout goes to stderr (stdout holds armfit's data, e.g. ``--json``),
+an exception it raises becomes an :class:`~armfit.errors.EffectDefinitionError` naming
+the file, the effect and the exception (exit 65; the traceback is chained to it), and a
+term that is NaN or infinite at a frequency where its inputs are finite is refused the
+same way, so that no fit, comparison, diagnosis or stability result is made of a
+non-finite model.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import math
 import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -172,6 +183,47 @@ class Effect:
     def param_names(self) -> tuple[str, ...]:
         return tuple(p.name for p in self.params)
 
+    def evaluate(self, s: np.ndarray, values: Mapping[str, np.ndarray | float], mp: float
+                 ) -> np.ndarray:
+        """The term at ``s``, as every model evaluates it: ``term(s, values, mp)``,
+        checked.
+
+        Parameters
+        ----------
+        s : ndarray
+            j·2π·f, rad/s.
+        values : mapping
+            The effect's own parameter values: numbers, or arrays that broadcast
+            against ``s``.
+        mp : float
+            Device mass, kg.
+
+        Returns
+        -------
+        ndarray
+            What ``term`` returned, as an array.
+
+        Raises
+        ------
+        EffectDefinitionError
+            ``term`` raised (the message names the file, the effect and the exception,
+            which is chained to it), returned something other than numbers, or is NaN
+            or infinite at a frequency f > 0 where every value is finite. A user's
+            ``term`` runs with stdout sent to stderr.
+        """
+        if _builtin(self):
+            out = self.term(s, values, mp)
+        else:
+            out = _call_user(self, "term", self.term, s, values, mp)
+        arr = np.asarray(out)
+        if arr.dtype.kind not in "biufc":
+            raise EffectDefinitionError(f"effect {self.name!r}: term returned "
+                                        f"{type(out).__name__} of {arr.dtype}, not numbers",
+                                        file=_source(self))
+        if not np.all(np.isfinite(arr)):
+            _refuse_non_finite(self, s, values, arr)
+        return arr
+
     def rational_form(self, values: Mapping[str, float], mp: float
                       ) -> tuple[np.ndarray, np.ndarray, float]:
         """The term as (num, den, delay_s) with term(s) = num(s)/den(s)·exp(−s·delay_s)
@@ -195,8 +247,13 @@ class Effect:
         """
         if self.rational is None:
             raise UsageError(f"effect {self.name!r} declares no rational form")
-        return _rational_parts(self, {k: float(v) for k, v in values.items()}, float(mp),
-                               "")
+        try:
+            return _rational_parts(self, {k: float(v) for k, v in values.items()},
+                                   float(mp), "")
+        except EffectDefinitionError as exc:
+            if exc.file is not None:
+                raise
+            raise EffectDefinitionError(exc.detail, file=_source(self)) from exc
 
     def __reduce_ex__(self, protocol):
         # A registered effect travels to worker processes by reference (its name and
@@ -204,13 +261,138 @@ class Effect:
         # importable there: the worker loads that file itself.
         origin = EFFECTS.origin_of(self)
         if origin is not None:
-            return (_restore_effect, (self.name, origin))
+            return (_restore_effect, (self.name, origin, EFFECTS.label_of(self.name)))
         return super().__reduce_ex__(protocol)
 
 
 def _is_number(v) -> bool:
     return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
             and bool(np.isfinite(v)))
+
+
+# ---------------------------------------------------------------------------
+# Running a user's code: stdout to stderr, exceptions and non-finite terms refused
+# ---------------------------------------------------------------------------
+
+#: The module of the built-in effects: their code is armfit's (an exception there is a
+#: bug of armfit, not an error in a user's file).
+_LIBRARY = "armfit.models.library"
+
+_IN_USER_CODE = threading.local()     # .depth: user code running in this thread
+_SWITCH_LOCK = threading.Lock()
+_switch: _StdoutSwitch | None = None
+_switch_users = 0
+
+
+class _StdoutSwitch:
+    """``sys.stdout`` while a user's effect code runs: what a thread inside that code
+    writes goes to ``sys.stderr``, what the other threads write to the stdout it
+    replaced (which holds armfit's data)."""
+
+    def __init__(self, stdout) -> None:
+        self.stdout = stdout
+
+    def _target(self):
+        return sys.stderr if getattr(_IN_USER_CODE, "depth", 0) else self.stdout
+
+    def write(self, text):
+        return self._target().write(text)
+
+    def writelines(self, lines):
+        return self._target().writelines(lines)
+
+    def flush(self):
+        return self._target().flush()
+
+    def __getattr__(self, name):
+        return getattr(self._target(), name)
+
+
+@contextlib.contextmanager
+def _user_stdout() -> Iterator[None]:
+    """Send what this thread prints on stdout to stderr for the ``with`` block (a user's
+    effect file loading, or its ``term`` or ``rational`` running); other threads keep
+    their stdout."""
+    global _switch, _switch_users
+    with _SWITCH_LOCK:
+        if _switch_users == 0:
+            _switch = _StdoutSwitch(sys.stdout)
+            sys.stdout = _switch
+        _switch_users += 1
+    _IN_USER_CODE.depth = getattr(_IN_USER_CODE, "depth", 0) + 1
+    try:
+        yield
+    finally:
+        _IN_USER_CODE.depth -= 1
+        with _SWITCH_LOCK:
+            _switch_users -= 1
+            if _switch_users == 0:
+                if sys.stdout is _switch:
+                    sys.stdout = _switch.stdout
+                _switch = None
+
+
+def _builtin(e: Effect) -> bool:
+    """Whether ``e``'s term is armfit's own (the built-in library's)."""
+    return getattr(e.term, "__module__", None) == _LIBRARY
+
+
+def _source(e: Effect) -> str | None:
+    """Where ``e`` was defined, for messages: the file as it was given (or the entry
+    point) of a registered effect, the library's module for a built-in one, else the
+    file of its ``term`` function."""
+    label = EFFECTS.label_of(e.name) if EFFECTS.origin_of(e) is not None else None
+    if label is None:
+        code = getattr(e.term, "__code__", None)
+        label = _LIBRARY if _builtin(e) else getattr(code, "co_filename", None)
+    return label
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc)
+    return f"{type(exc).__name__}: {text.splitlines()[0]}" if text.strip() else \
+        type(exc).__name__
+
+
+def _call_user(e: Effect, what: str, fn: Callable, *args, where: str = ""):
+    """``fn(*args)``, the user's ``term`` or ``rational`` of ``e``, with stdout sent to
+    stderr and numpy's floating-point warnings off (what it returns is checked); whatever
+    it raises becomes one EffectDefinitionError line naming the file, the effect and the
+    exception (chained to it, for the traceback of ``-v``)."""
+    with _user_stdout(), np.errstate(all="ignore"):
+        try:
+            return fn(*args)
+        except (Exception, SystemExit) as exc:  # the user's code: whatever it raised
+            raise EffectDefinitionError(
+                f"effect {e.name!r} raised {_first_line(exc)} (in its {what}"
+                f"{', ' + where if where else ''})", file=_source(e)) from exc
+
+
+def _refuse_non_finite(e: Effect, s, values: Mapping, out: np.ndarray) -> None:
+    """Raise EffectDefinitionError for the first point where ``out`` (the term at ``s``
+    and ``values``) is NaN or infinite while s ≠ 0 and every value is finite; return
+    quietly when every such point has a non-finite input (not the term's doing)."""
+    shape = out.shape
+    try:
+        sb = np.broadcast_to(np.asarray(s), shape)
+        vb = {k: np.broadcast_to(np.asarray(v), shape) for k, v in values.items()}
+    except ValueError:      # inputs that do not broadcast to the output: blame the term
+        sb, vb = None, {}
+    blame = ~np.isfinite(out)
+    if sb is not None:
+        blame &= np.isfinite(sb) & (sb != 0)
+    for v in vb.values():
+        blame &= np.isfinite(v)
+    if not blame.any():
+        return
+    i = tuple(np.argwhere(blame)[0])
+    what = "NaN" if np.isnan(out[i]) else "infinite"
+    at = "" if sb is None else f" at {abs(complex(sb[i])) / (2 * np.pi):.4g} Hz"
+    vals = ", ".join(f"{k}={float(np.real(v[i])):.6g}" for k, v in vb.items())
+    raise EffectDefinitionError(
+        f"effect {e.name!r} is {what}{at}{' (' + vals + ')' if vals else ''}; its term "
+        "must be finite at every frequency of the band for every value within the "
+        "parameters' bounds", file=_source(e))
 
 
 def _check_structure(e: Effect) -> None:
@@ -273,13 +455,8 @@ def _check_structure(e: Effect) -> None:
 def _probe_term(e: Effect, values: Mapping[str, float], mp: float, where: str
                 ) -> np.ndarray:
     s = 2j * np.pi * PROBE_HZ
-    try:
-        with np.errstate(all="ignore"):
-            out = e.term(s, dict(values), mp)
-    except Exception as exc:  # the user's code: report whatever it raised, in one line
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        raise EffectDefinitionError(f"effect {e.name!r}: term raised {type(exc).__name__}"
-                                    f"{': ' + msg if msg else ''} {where}") from None
+    with np.errstate(all="ignore"):
+        out = _call_user(e, "term", e.term, s, dict(values), mp, where=where)
     try:
         arr = np.asarray(out, dtype=complex)
     except (TypeError, ValueError):
@@ -323,13 +500,7 @@ def _rational_parts(e: Effect, values: Mapping[str, float], mp: float, where: st
     """Call ``e.rational`` and check what it returns: (num, den, delay_s) (see
     :meth:`Effect.rational_form`); any problem is one EffectDefinitionError line."""
     at = f" {where}" if where else ""
-    try:
-        out = e.rational(dict(values), mp)
-    except Exception as exc:  # the user's code: report whatever it raised, in one line
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        raise EffectDefinitionError(f"effect {e.name!r}: rational raised "
-                                    f"{type(exc).__name__}{': ' + msg if msg else ''}{at}"
-                                    ) from None
+    out = _call_user(e, "rational", e.rational, dict(values), mp, where=where)
     if not isinstance(out, (tuple, list)) or len(out) not in (2, 3):
         got = f"{len(out)} items" if isinstance(out, (tuple, list)) else type(out).__name__
         raise EffectDefinitionError(f"effect {e.name!r}: rational must return (num, den) or "
@@ -408,7 +579,7 @@ def check_effect(e: Effect) -> None:
         s = 2j * np.pi * PROBE_HZ
         batch = {k: np.array([[v], [v]]) for k, v in typical.items()}
         try:
-            with np.errstate(all="ignore"):
+            with np.errstate(all="ignore"), _user_stdout():
                 out = np.asarray(e.term(s, batch, mp))
             ok = out.shape == (2, s.size)
         except Exception:
@@ -492,6 +663,12 @@ class EffectRegistry(Mapping):
             return self._origins[effect.name]
         return None
 
+    def label_of(self, name: str) -> str | None:
+        """Where effect ``name`` came from, as messages name it: the file as it was
+        given, the entry point and its package, or the built-in library's module (None
+        for a name not registered)."""
+        return self._labels.get(name)
+
     def describe_origin(self, name: str) -> str:
         """Where effect ``name`` came from, in words: "the built-in library", the entry
         point, or the file as it was given."""
@@ -538,7 +715,7 @@ class EffectRegistry(Mapping):
             try:
                 check_effect(e)
             except EffectDefinitionError as exc:
-                raise EffectDefinitionError(exc.detail, file=label) from None
+                raise EffectDefinitionError(exc.detail, file=label) from exc
         for e in effects:
             self._effects[e.name] = e
             self._origins[e.name] = origin
@@ -558,46 +735,49 @@ class EffectRegistry(Mapping):
             else:
                 self._files.pop(origin[1], None)
 
-    def load_file(self, path) -> list[Effect]:
-        """See :func:`load_effect_file`."""
+    def load_file(self, path, *, label: str | None = None) -> list[Effect]:
+        """See :func:`load_effect_file`; ``label``: how messages name the file (default
+        ``path`` as given; a worker process names it as the command line did)."""
         self._ready()
         p = Path(path)
+        label = str(p) if label is None else label
         if not p.is_file():
-            raise NoInputError(f"{p}: no such effects file" + (" (it is a folder)"
-                                                              if p.is_dir() else ""))
+            raise NoInputError(f"{label}: no such effects file" + (" (it is a folder)"
+                                                                  if p.is_dir() else ""))
         key = str(p.resolve())
         if key in self._files:
             return [self._effects[n] for n in self._files[key]]
-        module = _import_file(p, key)
-        effects = self.register_source(module, ("file", key), label=str(p))
+        module = _import_file(p, key, label)
+        effects = self.register_source(module, ("file", key), label=label)
         self._files[key] = [e.name for e in effects]
         return effects
 
 
-def _import_file(path: Path, key: str):
-    """Execute a Python file as a fresh module; any failure becomes one line naming it."""
+def _import_file(path: Path, key: str, label: str):
+    """Execute a Python file as a fresh module (what it prints on stdout goes to
+    stderr); any failure becomes one line naming it (``label``)."""
     mod_name = "armfit_user_effects_" + hashlib.sha1(key.encode()).hexdigest()[:12]
     try:
         spec = importlib.util.spec_from_file_location(mod_name, path)
         if spec is None or spec.loader is None:
             raise EffectDefinitionError("cannot be imported as a Python file (give a .py "
-                                        "file)", file=str(path))
+                                        "file)", file=label)
         module = importlib.util.module_from_spec(spec)
         sys.modules[mod_name] = module
-        spec.loader.exec_module(module)
+        with _user_stdout():
+            spec.loader.exec_module(module)
     except EffectDefinitionError as exc:
         sys.modules.pop(mod_name, None)
-        raise EffectDefinitionError(exc.detail if exc.file in (None, str(path)) else str(exc),
-                                    file=str(path)) from None
+        raise EffectDefinitionError(exc.detail if exc.file in (None, label, str(path))
+                                    else str(exc), file=label) from exc
     except SyntaxError as exc:
         sys.modules.pop(mod_name, None)
         raise EffectDefinitionError(f"cannot import: SyntaxError: {exc.msg} (line "
-                                    f"{exc.lineno})", file=str(path)) from None
+                                    f"{exc.lineno})", file=label) from exc
     except (Exception, SystemExit) as exc:  # the user's code: whatever it raised
         sys.modules.pop(mod_name, None)
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        raise EffectDefinitionError(f"cannot import: {type(exc).__name__}"
-                                    + (f": {msg}" if msg else ""), file=str(path)) from None
+        raise EffectDefinitionError(f"cannot import: {_first_line(exc)}",
+                                    file=label) from exc
     return module
 
 
@@ -612,13 +792,13 @@ def _load_entry_points(registry: EffectRegistry) -> None:
         label = f"entry point '{ep.name} = {ep.value}'" + (
             f" of {dist.metadata['Name']} {dist.version}" if dist is not None else "")
         try:
-            obj = ep.load()
+            with _user_stdout():
+                obj = ep.load()
         except EffectDefinitionError as exc:
-            raise EffectDefinitionError(exc.detail, file=label) from None
+            raise EffectDefinitionError(exc.detail, file=label) from exc
         except Exception as exc:  # an installed package's code: whatever it raised
-            msg = str(exc).splitlines()[0] if str(exc) else ""
-            raise EffectDefinitionError(f"cannot import: {type(exc).__name__}"
-                                        + (f": {msg}" if msg else ""), file=label) from None
+            raise EffectDefinitionError(f"cannot import: {_first_line(exc)}",
+                                        file=label) from exc
         registry.register_source(obj, ("entry-point", label), label=label)
 
 
@@ -649,11 +829,12 @@ def load_effect_files(paths: Iterable) -> list[str]:
     return new
 
 
-def _restore_effect(name: str, origin: Origin) -> Effect:
+def _restore_effect(name: str, origin: Origin, label: str | None = None) -> Effect:
     """Unpickle a registered effect (see :meth:`Effect.__reduce_ex__`), loading the file
-    it came from first when this process has not seen it."""
+    it came from first when this process has not seen it (``label``: the file as the
+    process that pickled it names it)."""
     if name not in EFFECTS and origin[0] == "file":
-        load_effect_file(origin[1])
+        EFFECTS.load_file(origin[1], label=label)
     return EFFECTS[name]
 
 
