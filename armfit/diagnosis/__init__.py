@@ -135,8 +135,9 @@ from armfit.diagnosis.verdict import (
 
 __all__ = [
     "Adequacy", "AxisData", "AxisDiagnosis", "BANDS", "BandError", "Candidate", "Comparison",
-    "FailedCandidate", "FailingBand", "JointFit", "MAX_STEPS", "MIN_EFFECT_DB", "MIN_EFFECT_DEG", "MIN_REDUCTION",
-    "MIN_RUN", "MissingEffect", "NOISE_TOL", "SHARED_EFFECTS", "SIGNIFICANT_BIC", "Step",
+    "FailedCandidate", "FailingBand", "JointFit", "MAX_STEPS", "MIN_EFFECT_DB",
+    "MIN_EFFECT_DEG", "MIN_REDUCTION", "MIN_RUN", "MissingEffect", "NOISE_TOL",
+    "SHARED_EFFECTS", "SIGNIFICANT_BIC", "Step",
     "T_FAIL", "adequacy", "axis_data", "band_error", "band_to_dict", "best_rows",
     "compare_models", "cross_axis_agreement", "cross_coupling", "describe_residual",
     "diagnose_axes", "diagnosis_to_dict", "effect_size", "failing_bands", "fit_base",
