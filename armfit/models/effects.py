@@ -220,7 +220,7 @@ class Effect:
             raise EffectDefinitionError(f"effect {self.name!r}: term returned "
                                         f"{type(out).__name__} of {arr.dtype}, not numbers",
                                         file=_source(self))
-        if not np.all(np.isfinite(arr)):
+        if not np.isfinite(arr).all():
             _refuse_non_finite(self, s, values, arr)
         return arr
 
