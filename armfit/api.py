@@ -152,7 +152,7 @@ def read_trials(paths: PathLike | Sequence[PathLike], *, manifest: PathLike | No
     f_min_hz : float
         Lowest frequency to be estimated, Hz: a trial must last at least 2/f_min_hz s.
     force_limit_N : float
-        Device peak force, N; larger forces are warned about.
+        Device peak force, N; forces reaching it are warned about (saturation).
     warn : callable, optional
         Receives data warnings (saturation, resampling).
 

@@ -45,7 +45,9 @@ class ArmfitError(ValueError):
     text may hold ``{opt}``, filled with ``option`` (e.g. ``overwrite=True`` or
     ``method=``), and ``{opt:NAME}``, filled with the bare parameter name NAME. The
     command line shows the same message with each option's flag instead
-    (:meth:`render`).
+    (:meth:`render`), and a command that has no such option names none: a part of the
+    message written ``{?...}`` (e.g. ``{?; lower {opt:fmin}}``) is left out when an
+    option in it cannot be named.
     """
 
     exit_code = EXIT_INTERNAL
@@ -60,20 +62,38 @@ class ArmfitError(ValueError):
         """The main option's parameter name (``option`` up to any ``=``), or None."""
         return None if self.option is None else self.option.split("=", 1)[0]
 
-    def render(self, spell: Callable[[str, str], str]) -> str:
-        """The message with every option written as ``spell(name, python_spelling)``."""
-        text = self.template
-        if self.option is not None:
-            text = text.replace("{opt}", spell(self.option_name, self.option))
-        if "{opt:" in text:
-            text = re.sub(r"\{opt:([A-Za-z_][A-Za-z0-9_]*)\}",
-                          lambda m: spell(m.group(1), m.group(1)), text)
-        return text
+    def render(self, spell: Callable[[str, str], str | None]) -> str:
+        """The message with every option written as ``spell(name, python_spelling)``.
+
+        ``spell`` returns None for an option that cannot be named (a command without
+        it): a ``{?...}`` part holding it is left out; elsewhere the option's Python
+        name is written bare (never a flag the command lacks)."""
+        def fill(m: re.Match) -> str:
+            if m.group(1) is None:          # {opt}
+                if self.option is None:
+                    return m.group(0)
+                return spell(self.option_name, self.option) or self.option_name
+            return spell(m.group(1), m.group(1)) or m.group(1)
+
+        def clause(m: re.Match) -> str:
+            names = [(n, n) if n else (self.option_name, self.option)
+                     for n in re.findall(_OPT, m.group(1))]
+            if any(p is None or spell(n, p) is None for n, p in names):
+                return ""
+            return re.sub(_OPT, fill, m.group(1))
+
+        text = re.sub(_CLAUSE, clause, self.template)
+        return re.sub(_OPT, fill, text)
 
     def with_option(self, spelling: str) -> str:
         """The message with the main option written as ``spelling`` (e.g. a flag)."""
         return self.render(lambda name, python: spelling if name == self.option_name
                            else python)
+
+
+#: ``{opt}`` or ``{opt:NAME}`` in a message; a ``{?...}`` part of a message.
+_OPT = r"\{opt(?::([A-Za-z_][A-Za-z0-9_]*))?\}"
+_CLAUSE = r"\{\?((?:[^{}]|\{opt(?::[A-Za-z_][A-Za-z0-9_]*)?\})*)\}"
 
 
 class UsageError(ArmfitError):
@@ -110,8 +130,10 @@ class BadInputError(ArmfitError):
 
     @property
     def detail(self) -> str:
-        """The message without its leading file name (column, row and what is wrong)."""
-        text = str(self)
+        """The message without its leading file name (column, row and what is wrong): the
+        reason a skipped trial is listed with. It names no option (a ``{?...}`` part of
+        the message is left out), since it is read apart from the command that runs."""
+        text = self.render(lambda name, python: None)
         if self.file and text.startswith(self.file):
             text = text[len(self.file):].lstrip(",: ")
         return text

@@ -85,7 +85,7 @@ from armfit.diagnosis import diagnose_axes
 from armfit.errors import ArmfitError, OutputError
 from armfit.fitting import TrialFit, fit_trial_models, grip_fit_starts, trial_fits_table
 from armfit.io.artifacts import write_params
-from armfit.io.atomic import atomic_path, check_output, write_text_atomic
+from armfit.io.atomic import atomic_path, check_output, resolved_path, write_text_atomic
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import Warn, ingest
 from armfit.loop import WallSettings, axis_summary, stability_table
@@ -187,9 +187,9 @@ def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike],
     named = [*inputs, *([manifest] if manifest is not None else [])]
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder; give a folder for OUTDIR")
-    out_res = out.resolve()
+    out_res = resolved_path(out)
     for inp in named:
-        inp_res = Path(inp).resolve()
+        inp_res = resolved_path(inp)
         if inp_res == out_res or out_res in inp_res.parents:
             raise OutputError(f"{out}: holds the input {inp}; choose another OUTDIR")
     check_output(out, overwrite=overwrite, inputs=inputs, manifest=manifest, folder=True)

@@ -59,6 +59,7 @@ from armfit.constants import (
 )
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path
+from armfit.io.numbers import parse_numbers
 from armfit.io.schema import (
     COUNTED_FLAGS,
     CSV_FLOAT_FORMAT,
@@ -69,7 +70,7 @@ from armfit.io.schema import (
     SPECTRA_VALUES,
     json_default,
 )
-from armfit.io.trials import Trial, open_trials, read_trial
+from armfit.io.trials import Trial, open_trials, read_trial, saturated_samples
 from armfit.workers import iter_tasks
 
 METHODS = ("h1", "chebwin")
@@ -607,8 +608,9 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
 # ---------------------------------------------------------------------------
 
 def saturated(force, limit_N: float) -> bool:
-    """True when |F| reaches the device's force limit (N) anywhere in the record."""
-    return bool(np.nanmax(np.abs(np.asarray(force, dtype=float))) >= limit_N)
+    """True when |F| reaches the device's force limit (N) anywhere in the record (the
+    rule of :func:`armfit.io.trials.saturated_samples`)."""
+    return bool(saturated_samples(force, limit_N).any())
 
 
 def drifting(pos, fs: float, fmin: float, factor: float = 3.0) -> bool:
@@ -730,28 +732,27 @@ class TrialResponses:
 def check_band(fs: float, n_samples: int, config: EstimateConfig, source: str = "") -> None:
     """Raise UsageError if fmax is above Nyquist, BadInputError if the record (or the
     estimator's segment) lasts less than one period of fmin."""
+    # a command without --fmin/--fmax (armfit run: a fixed grid) names neither
     if config.fmax > fs / 2:
-        raise UsageError(f"{source + ': ' if source else ''}{{opt:fmax}} {config.fmax:g} Hz is "
-                         f"above the Nyquist frequency {fs / 2:g} Hz (sampling rate "
-                         f"{fs:g} Hz)")
+        raise UsageError(f"{source + ': ' if source else ''}{{?{{opt:fmax}} }}"
+                         f"{config.fmax:g} Hz is above the Nyquist frequency {fs / 2:g} Hz "
+                         f"(sampling rate {fs:g} Hz)")
     need = 1.0 / config.fmin
+    low = f"too short for {{?{{opt:fmin}} }}{config.fmin:g} Hz"
     if config.method == "h1":
         seg = config.h1_nperseg(fs, n_samples)
         if seg > n_samples:
             raise BadInputError(
-                f"too short for {{opt:fmin}} {config.fmin:g} Hz: {n_samples / fs:g} s, H1 "
-                f"segments need {seg / fs:g} s; raise {{opt:fmin}} or lower {{opt:nperseg}}",
-                file=source or None)
+                f"{low}: {n_samples / fs:g} s, H1 segments need {seg / fs:g} s"
+                "{?; raise {opt:fmin} or lower {opt:nperseg}}", file=source or None)
     if n_samples / fs < need:
-        raise BadInputError(f"too short for {{opt:fmin}} {config.fmin:g} Hz: "
-                            f"{n_samples / fs:g} s, needs at least {need:g} s",
+        raise BadInputError(f"{low}: {n_samples / fs:g} s, needs at least {need:g} s",
                             file=source or None)
     seg = tfestimate_segment(n_samples - 2, config.derived_segments)[0]
     if seg / fs < need:
         raise BadInputError(
-            f"too short for {{opt:fmin}} {config.fmin:g} Hz: derived-arm segments last "
-            f"{seg / fs:g} s (record {n_samples / fs:g} s), need {need:g} s",
-            file=source or None)
+            f"{low}: derived-arm segments last {seg / fs:g} s (record "
+            f"{n_samples / fs:g} s), need {need:g} s", file=source or None)
 
 
 def _flag_strings(coh: np.ndarray, threshold: float, trial_flags: Sequence[str]
@@ -1326,7 +1327,7 @@ class Spectra:
             if c not in df.columns:
                 raise BadInputError("missing column; not a spectra table written by "
                                     "`armfit estimate`", file=source, column=c)
-        df = _complete(df)
+        df = _complete(_numbers(df, source))
         n_rows = len(df)
         keys_df = df[list(SPECTRA_KEYS)]
         if n_rows:
@@ -1538,6 +1539,36 @@ class Spectra:
         ax.set_xlabel("Frequency (Hz)")
         ax.set_ylabel("Magnitude (dB re 1 m/N)" if db else "Phase (deg)")
         return ax
+
+
+#: Numeric columns of the spectra table; ``run`` and ``n`` hold whole numbers.
+_NUMERIC: tuple[str, ...] = ("grip_N", "run", "freq_hz", "re", "im", *SPECTRA_VALUES, "n")
+
+
+def _numbers(df, source: str | None):
+    """``df`` with its numeric columns as numbers: a column held as text (a table read
+    from CSV, a Parquet string column) is read by :func:`armfit.io.numbers.parse_numbers`,
+    so ``1_5`` is refused, not read as 15. Raises BadInputError naming the column and
+    row of a cell that is not a number (or, in ``run`` and ``n``, not a whole number)."""
+    out = {}
+    for c in _NUMERIC:
+        if c not in df.columns:
+            continue
+        dtype = df[c].dtype
+        whole = c in ("run", "n")
+        if pd.api.types.is_numeric_dtype(dtype) and not pd.api.types.is_bool_dtype(dtype) \
+                and (not whole or pd.api.types.is_integer_dtype(dtype)):
+            continue
+        v = parse_numbers(df[c], file=source, column=c)
+        if whole:
+            bad = np.flatnonzero(~(np.isnan(v) if c == "run" else np.zeros(v.size, bool))
+                                 & ~(np.isfinite(v) & (v == np.round(v)) & (v >= 0)))
+            if bad.size:
+                raise BadInputError(f"{cell(df[c].iloc[bad[0]])} is not a whole number",
+                                    file=source, column=c, row=int(bad[0]) + 1)
+            v = pd.arrays.IntegerArray(np.nan_to_num(v).astype(np.int64), np.isnan(v))
+        out[c] = v
+    return df.assign(**out) if out else df
 
 
 def _complete(df):
@@ -1784,11 +1815,12 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
                    executor=None) -> StudySpectra:
     """Estimate every trial of ``inputs`` (raw files, folders or a canonical dataset).
 
-    Trials are found and checked for duplicates by :func:`armfit.io.trials.open_trials`,
-    read and validated one by one by :func:`armfit.io.trials.read_trial` (on
+    Trials are found by :func:`armfit.io.trials.open_trials`, read and validated one by
+    one by :func:`armfit.io.trials.read_trial` (on
     ``executor``, a :class:`concurrent.futures.Executor`, when given, else in ``jobs``
     worker processes when > 1, see :mod:`armfit.workers`; each task reads its trial file
-    itself; results keep the input order), and must share one sampling rate. Without
+    itself; results keep the input order), must share one sampling rate, and are
+    checked for duplicates among the trials estimated. Without
     ``skip_bad`` the first bad trial raises BadInputError; with it, bad trials are listed
     in ``skipped``. ``warn(msg)`` receives saturation warnings,
     ``on_open(n)`` is told the number of trials found, ``advance()`` is called once per
@@ -1828,6 +1860,13 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
             if not skip_bad:
                 raise BadInputError(text)
             skipped.append((tr.source, text.split(": ", 1)[1]))
+            return
+        try:    # a duplicate of a trial estimated before (not of one that was bad)
+            stream.admit((tr.subject, tr.axis, tr.grip_N, tr.run), tr.source)
+        except BadInputError as exc:
+            if not skip_bad:
+                raise
+            skipped.append((tr.source, exc.detail))
             return
         kept.append(tr)
 

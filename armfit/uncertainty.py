@@ -41,8 +41,9 @@ from scipy import optimize
 from threadpoolctl import threadpool_limits
 
 from armfit.constants import AXES
-from armfit.errors import BadInputError, ConvergenceError, UsageError
+from armfit.errors import BadInputError, ConvergenceError, UsageError, cell
 from armfit.io.artifacts import read_wu_rows
+from armfit.io.numbers import parse_columns, parse_number
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS, wu_sidecar_paths
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
@@ -834,7 +835,11 @@ def derived_mass_kg(spectra, axis: str) -> float | None:
     file's metadata (None if it does not say)."""
     meta = getattr(spectra, "meta", None) or {}
     mp = (meta.get("mp_kg") or {}).get(axis) if isinstance(meta, Mapping) else None
-    return None if mp is None else float(mp)
+    try:
+        return None if mp is None else parse_number(mp)
+    except ValueError:
+        raise BadInputError(f"metadata 'mp_kg' of axis {axis}: {cell(mp)} is not a number",
+                            file=getattr(spectra, "source", None)) from None
 
 
 def summary_table(results: Sequence[AxisUncertainty], *, smooth_oct: float | None = None):
@@ -892,12 +897,15 @@ def read_weights_and_bands(path_or_name: str | Path):
     summary, _ = wu_sidecar_paths(p)
     if summary.is_file():
         try:
-            s = pd.read_csv(summary)
+            s = parse_columns(pd.read_csv(summary), ("band_lo_hz", "band_hi_hz"),
+                              file=str(summary))
             s = s[(s["weight"] == "fitted") & (s["target"] == "wmax")]
             for _, r in s.iterrows():
                 lo, hi = float(r["band_lo_hz"]), float(r["band_hi_hz"])
                 if r["axis"] in bands and 0 < lo < hi:
                     bands[r["axis"]] = (lo, hi)
+        except BadInputError:
+            raise
         except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
             pass
     return w, bands, str(p)

@@ -203,10 +203,10 @@ def test_force_limit_is_a_warning(tmp_path, runner, write_trial, good_columns):
     path = write_trial(tmp_path / f"{NAME}.csv", cols)
     res = _ingest(runner, path, "-o", tmp_path / "t.parquet")
     assert res.exit_code == 0, res.stderr
-    assert (f"warning: {path}, column 'force_y_N', row 100: |force| exceeds the device "
+    assert (f"warning: {path}, column 'force_y_N', row 100: |force| reaches the device "
             "limit 8.5 N in 1 sample(s)") in res.stderr
     res = _ingest(runner, path, "-o", tmp_path / "u.parquet", "--force-limit", "10")
-    assert "exceeds the device limit" not in res.stderr
+    assert "the device limit" not in res.stderr
     res = runner.invoke(cli, ["-q", "ingest", str(path), "-o", str(tmp_path / "v.parquet")])
     assert res.exit_code == 0 and res.stderr == ""  # -q silences warnings and messages
 

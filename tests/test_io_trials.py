@@ -157,7 +157,7 @@ def test_force_limit_warns_not_raises(tmp_path, write_trial, make_columns):
     warnings = []
     read_trial(discover([path])[0][0], warn=warnings.append)
     assert len(warnings) == 1
-    assert "column 'force_z_N', row 42: |force| exceeds the device limit 8.5 N" in warnings[0]
+    assert "column 'force_z_N', row 42: |force| reaches the device limit 8.5 N" in warnings[0]
     warnings.clear()
     read_trial(discover([path])[0][0], force_limit_N=10.0, warn=warnings.append)
     assert warnings == []

@@ -23,6 +23,7 @@ from armfit.cli.options import (
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
+from armfit.io.numbers import parse_number
 from armfit.spectra import EstimateConfig
 
 WINDOWS = ("hann", "hamming", "blackman", "blackmanharris", "boxcar")
@@ -40,7 +41,7 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
         axis, sep, num = item.partition("=")
         axis = axis.strip().lower()
         try:
-            mass = float(num)
+            mass = parse_number(num)
         except ValueError:
             mass = float("nan")
         if not sep or axis not in AXES or not mass > 0:

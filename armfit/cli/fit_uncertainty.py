@@ -19,6 +19,7 @@ from armfit.api import ModelFit
 from armfit.api import fit_uncertainty as api_fit_uncertainty
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
+from armfit.io.numbers import parse_number
 from armfit.io.schema import wu_sidecar_paths
 from armfit.spectra import Spectra
 from armfit.uncertainty import MAX_PAIRS, read_wu
@@ -43,7 +44,7 @@ def _parse_octaves(value: str | None) -> float | None:
         return None
     num, sep, den = value.partition("/")
     try:
-        width = float(num) / float(den) if sep else float(num)
+        width = parse_number(num) / parse_number(den) if sep else parse_number(num)
     except (ValueError, ZeroDivisionError):
         width = float("nan")
     if not (math.isfinite(width) and 0 < width <= 2):

@@ -34,7 +34,7 @@ from armfit.io.trials import TrialStream, ingest
               help="Lowest frequency to be estimated; a trial must last at least 2/HZ s.")
 @click.option("--force-limit", "force_limit", type=click.FloatRange(min=0, min_open=True),
               default=FORCE_LIMIT_N, show_default=True, metavar="N",
-              help="Device peak force; larger forces are warned about (saturation).")
+              help="Device peak force; forces reaching it are warned about (saturation).")
 @overwrite_option
 @json_option
 def command(paths, output, manifest, skip_bad, resample, f_min, force_limit, overwrite,

@@ -67,12 +67,31 @@ def _report(ctx: click.Context, exc: BaseException, internal: bool = False) -> N
     verbose = (ctx.obj or {}).get("verbosity", 0) > 0
     if verbose:
         traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
-    text = cli_message(exc) if isinstance(exc, ArmfitError) else str(exc)
+    # the command that raised names the options by its own flags, and none it lacks
+    text = cli_message(exc, _raising_command(ctx, exc)) if isinstance(exc, ArmfitError) \
+        else str(exc)
     msg = text.splitlines()[0] if text else type(exc).__name__
     if internal:
         msg = f"internal error ({type(exc).__name__}): {msg}" + (
             "" if verbose else " (run with -v for the traceback)")
     click.echo(f"armfit: error: {msg}", err=True)
+
+
+def _raising_command(ctx: click.Context, exc: BaseException) -> click.Command | None:
+    """The innermost command running when ``exc`` was raised (``plot bode``'s ``bode``):
+    the last context on the traceback, else the group's subcommand."""
+    found = None
+    tb = exc.__traceback__
+    while tb is not None:
+        local = tb.tb_frame.f_locals.get("ctx")
+        if isinstance(local, click.Context) and local.command is not None:
+            found = local.command
+        tb = tb.tb_next
+    if found is not None and found is not ctx.command:
+        return found
+    name = ctx.invoked_subcommand
+    return ctx.command.get_command(ctx, name) \
+        if name and isinstance(ctx.command, click.Group) else None
 
 
 @click.group(cls=ArmfitGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -12,6 +12,7 @@ import click
 
 from armfit.constants import AXES
 from armfit.errors import UsageError
+from armfit.io.numbers import parse_number
 from armfit.io.schema import finite_or_none, json_default
 from armfit.models.effects import EFFECTS, load_effect_files
 
@@ -125,7 +126,7 @@ def parse_band(text: str, *, per_axis: bool = False, option: str = "--band"
         axis = axis.strip().lower()
     lo_s, colon, hi_s = rng.partition(":")
     try:
-        lo, hi = float(lo_s), float(hi_s)
+        lo, hi = parse_number(lo_s), parse_number(hi_s)
     except ValueError:
         lo = hi = float("nan")
     ok = colon and 0 < lo < hi < float("inf")

@@ -20,6 +20,7 @@ from armfit.cli.options import (
 from armfit.constants import AXES
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
+from armfit.io.numbers import parse_number
 from armfit.io.rawwrite import POSITION_UNITS, RAW_FORMATS
 from armfit.models.effects import parse_effect_spec
 from armfit.simulation import EffectSetting, StudyConfig
@@ -29,7 +30,7 @@ _DEFAULTS = StudyConfig()
 
 def _numbers(text: str, option: str) -> tuple[float, ...]:
     try:
-        return tuple(float(v) for v in text.split(",") if v.strip())
+        return tuple(parse_number(v) for v in text.split(",") if v.strip())
     except ValueError:
         raise UsageError(f"{option} {text!r}: expected comma-separated numbers") from None
 

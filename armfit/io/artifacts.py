@@ -19,6 +19,7 @@ import pandas as pd
 from armfit.constants import AXES
 from armfit.errors import BadInputError, NoInputError, cell
 from armfit.io.atomic import atomic_path
+from armfit.io.numbers import parse_numbers
 from armfit.io.schema import (
     CSV_FLOAT_FORMAT,
     PARAMS_HELD,
@@ -157,8 +158,8 @@ def read_wu_rows(path: str | os.PathLike, *, require_stable: bool = True
                                 row=int(bad[0]) + 1)
     nums = {}
     for col in ("index", "real", "imag"):
-        v = pd.to_numeric(df[col].str.strip().replace("", "0" if col == "imag" else "nan"),
-                          errors="coerce").to_numpy(float)
+        v = parse_numbers(df[col].str.strip().replace("", "0" if col == "imag" else "nan"),
+                          errors="coerce")
         bad = np.flatnonzero(~np.isfinite(v))
         if bad.size:
             raise BadInputError(f"expected a finite number, got {cell(df[col].iloc[bad[0]])}",

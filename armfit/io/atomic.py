@@ -138,11 +138,29 @@ def _why(path: Path, exc: OSError, what: str = "cannot write") -> OutputError:
     return OutputError(f"{path}: {what}: {_reason(exc)}")
 
 
+def resolved_path(path: str | os.PathLike) -> Path:
+    """The file or folder a path leads to, its symbolic links resolved; a path that
+    cannot be resolved (a loop of links) as its absolute self.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError):   # RuntimeError: a loop of links (Python < 3.13)
+        return Path(os.path.abspath(path))
+
+
 def _same(a: Path, b: Path) -> bool:
     try:
         return os.path.samefile(a, b)
     except OSError:
-        return a.resolve() == b.resolve()
+        return resolved_path(a) == resolved_path(b)
 
 
 def check_output(path: str | os.PathLike, *, overwrite: bool,
@@ -158,11 +176,11 @@ def check_output(path: str | os.PathLike, *, overwrite: bool,
     Returns the output as a Path. Raises OutputError (exit 73).
     """
     out = Path(path)
-    out_res = out.resolve()
+    out_res = resolved_path(out)
     named = [*inputs, *([manifest] if manifest is not None else [])]
     for inp in named:
         inp_path = Path(inp)
-        inp_res = inp_path.resolve()
+        inp_res = resolved_path(inp_path)
         if out_res == inp_res or (out.exists() and inp_path.exists() and _same(out, inp_path)):
             raise OutputError(f"{out}: output path is also an input; choose another output "
                               "(an input is never overwritten, even with {opt:overwrite})")
@@ -365,6 +383,6 @@ def write_text_atomic(path: str | os.PathLike, text: str, *, overwrite: bool = F
 
 
 __all__ = [
-    "SHORT_BYTES", "temp_name", "clean_stale", "check_output",
+    "SHORT_BYTES", "temp_name", "clean_stale", "resolved_path", "check_output",
     "exchange_folders", "atomic_path", "write_text_atomic",
 ]

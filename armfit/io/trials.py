@@ -6,6 +6,9 @@ Raw trials are one file per trial (CSV, CSV.gz or Parquet) named
 :func:`open_trials` streams a whole batch with the cross-trial checks (duplicates,
 sampling rate). :func:`write_dataset` writes the canonical dataset: one Parquet file,
 one row group per trial, per-trial metadata as JSON in the file's key-value metadata.
+Every number (cells, name parts, manifest and metadata fields) is read by
+:mod:`armfit.io.numbers`. Only regular files are opened: a FIFO or a device is refused
+after a ``stat``, and a symbolic link found in a folder is not followed.
 
 Units: time s, force N, position m (``pos_<a>_mm`` columns are divided by 1000),
 sampling rate Hz. Rows in messages are 1-based data rows (the header is not counted).
@@ -14,6 +17,7 @@ sampling rate Hz. Rows in messages are 1-based data rows (the header is not coun
 from __future__ import annotations
 
 import csv
+import errno
 import functools
 import gzip
 import io
@@ -21,6 +25,7 @@ import json
 import math
 import os
 import re
+import stat
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -30,8 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from armfit.constants import AXES, FORCE_LIMIT_N, GRID_HZ
-from armfit.errors import BadInputError, NoInputError, UsageError, cell
-from armfit.io.atomic import atomic_path, check_output
+from armfit.errors import ArmfitError, BadInputError, NoInputError, UsageError, cell
+from armfit.io.atomic import atomic_path, check_output, resolved_path
+from armfit.io.numbers import parse_number, parse_numbers, parse_whole
 
 #: File extensions of raw trials, longest first (".csv.gz" before ".csv").
 TRIAL_EXTENSIONS: tuple[str, ...] = (".csv.gz", ".csv", ".parquet")
@@ -50,6 +56,10 @@ DATASET_FORMAT_VERSION = "1"
 JITTER_TOLERANCE = 0.01
 #: Two sampling rates are the same when they differ by at most this relative amount.
 RATE_TOLERANCE = 1e-4
+#: Lowest sampling rate (Hz) of a trial. A haptic device's servo loop runs at 0.5-10
+#: kHz and its logs at 100 Hz or more (the default grid reaches 30 Hz); a lower rate is
+#: a slip of units: time in ms makes a 1 kHz recording 1 Hz.
+MIN_SAMPLING_RATE_HZ = 100.0
 
 #: Parquet writer settings of the canonical dataset, measured with
 #: benchmarks/bench_ingest.py (81 trials x 100 s): none, lz4, snappy and zstd all ingest
@@ -60,7 +70,7 @@ _PARQUET_WRITE = dict(compression="lz4", use_dictionary=["trial"], write_statist
 
 _STEM = re.compile(r"sub-(?P<subject>[^_]*)_axis-(?P<axis>[^_]*)_grip-(?P<grip>[^_]*)"
                    r"(?:_run-(?P<run>[^_]*))?")
-_GRIP = re.compile(r"(\d+(?:\.\d+)?)N")
+_GRIP = re.compile(r"([0-9]+(?:\.[0-9]+)?)N")
 _LABEL = re.compile(r"[A-Za-z0-9]+")
 _NAME_HELP = "sub-<label>_axis-<x|y|z>_grip-<g>N[_run-<k>].<csv|csv.gz|parquet>"
 
@@ -180,7 +190,7 @@ def parse_name(path: str | os.PathLike) -> tuple[str, str, float, int | None] | 
 
     Returns None when the name does not have the ``sub-…_axis-…_grip-…`` structure or a
     trial extension. Raises BadInputError when it has the structure but a part is wrong
-    (e.g. an axis other than x/y/z).
+    (e.g. an axis other than x/y/z, a grip or run that is not plain ASCII digits).
     """
     name = Path(path).name
     ext = _trial_ext(name)
@@ -201,22 +211,35 @@ def parse_name(path: str | os.PathLike) -> tuple[str, str, float, int | None] | 
     if g is None:
         raise BadInputError(f"grip '{grip}' in the file name is not a number of newtons "
                             f"such as 2N or 1.5N; expected {_NAME_HELP}", file=file)
-    if run is not None and not run.isdigit():
-        raise BadInputError(f"run '{run}' in the file name is not a whole number; "
-                            f"expected {_NAME_HELP}", file=file)
-    return subject, axis, float(g.group(1)), (int(run) if run is not None else None)
+    try:
+        run_no = None if run is None else parse_whole(run)
+    except ValueError:
+        raise BadInputError(f"run '{run}' in the file name is not a whole number (digits "
+                            f"0-9); expected {_NAME_HELP}", file=file) from None
+    return subject, axis, parse_number(g.group(1)), run_no
 
 
-def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, int | None]]:
-    """Read a manifest CSV (``file,subject,axis,grip_N[,run]``; files relative to it).
+def _key(path: Path) -> Path:
+    """The file a path leads to (symbolic links resolved), or the absolute path itself
+    when it cannot be resolved (a symbolic-link loop)."""
+    return resolved_path(path)
 
-    Returns {resolved file path: (subject, axis, grip_N, run)}. Raises BadInputError
-    naming the manifest, column and row of a bad entry.
-    """
+
+@dataclass(frozen=True)
+class _ManifestRow:
+    row: int                      # 1-based data row
+    given: Path                   # the file as the manifest names it, relative to it
+    key: Path                     # the file it leads to (see _key)
+    ident: tuple[str, str, float, int | None]
+
+
+def _manifest_rows(path: str | os.PathLike) -> list[_ManifestRow]:
+    """The rows of a manifest CSV, checked (see :func:`read_manifest`)."""
     mpath = Path(path)
     file = str(path)
-    if not mpath.is_file():
+    if not mpath.exists():
         raise NoInputError(f"{file}: no such manifest file")
+    _check_regular(mpath, "a manifest is a regular file")
     try:
         text = mpath.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
@@ -228,7 +251,7 @@ def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, 
             raise BadInputError("missing required manifest column; expected columns "
                                 "file,subject,axis,grip_N[,run]", file=file, column=col)
     reader.fieldnames = header
-    entries: dict[Path, tuple[str, str, float, int | None]] = {}
+    out: list[_ManifestRow] = []
     rows: dict[Path, int] = {}
     for row_no, row in enumerate(reader, start=1):
         vals = {k: (v or "").strip() for k, v in row.items() if k is not None}
@@ -243,23 +266,92 @@ def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, 
             raise BadInputError(f"axis '{axis}' is not x, y or z", file=file,
                                 column="axis", row=row_no)
         try:
-            grip = float(vals["grip_N"])
+            grip = parse_number(vals["grip_N"])
             if not math.isfinite(grip) or grip < 0:
                 raise ValueError
         except ValueError:
             raise BadInputError(f"grip '{vals['grip_N']}' is not a non-negative number of "
                                 "newtons", file=file, column="grip_N", row=row_no) from None
         run_txt = vals.get("run", "")
-        if run_txt and not run_txt.isdigit():
-            raise BadInputError(f"run '{run_txt}' is not a whole number", file=file,
-                                column="run", row=row_no)
-        target = (mpath.parent / vals["file"]).resolve()
-        if target in entries:
+        try:
+            run = parse_whole(run_txt) if run_txt else None
+        except ValueError:
+            raise BadInputError(f"run '{run_txt}' is not a whole number (digits 0-9)",
+                                file=file, column="run", row=row_no) from None
+        given = mpath.parent / vals["file"]
+        target = _key(given)
+        if target in rows:
             raise BadInputError(f"file '{vals['file']}' is listed twice (also row "
                                 f"{rows[target]})", file=file, column="file", row=row_no)
-        entries[target] = (subject, axis, grip, int(run_txt) if run_txt else None)
+        out.append(_ManifestRow(row_no, given, target, (subject, axis, grip, run)))
         rows[target] = row_no
-    return entries
+    return out
+
+
+def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, int | None]]:
+    """Read a manifest CSV (``file,subject,axis,grip_N[,run]``; files relative to it).
+
+    Returns {resolved file path: (subject, axis, grip_N, run)}. Raises BadInputError
+    naming the manifest, column and row of a bad entry (a grip that is not a
+    non-negative number, a run that is not a whole number, by
+    :mod:`armfit.io.numbers`).
+    """
+    return {r.key: r.ident for r in _manifest_rows(path)}
+
+
+_KINDS = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
+          (stat.S_ISDIR, "a folder"))
+
+
+def _kind(mode: int) -> str | None:
+    """What a file that is not a regular file is (None for a regular file)."""
+    if stat.S_ISREG(mode):
+        return None
+    return next((k for test, k in _KINDS if test(mode)), "not a regular file")
+
+
+def _file_problem(path: Path, *, followed: bool) -> ArmfitError | None:
+    """Why ``path`` cannot be read as a trial file, or None: it is missing (NoInputError),
+    a symbolic link that is not ``followed`` (NoInputError: a file found in a folder, as
+    a symlinked folder), a dangling link or a loop of links (NoInputError), or not a
+    regular file (BadInputError: a FIFO, a device, a socket). Only ``stat`` calls: the
+    file is never opened (opening a FIFO blocks)."""
+    file = str(path)
+    try:
+        st = os.lstat(path)
+    except OSError as exc:
+        return NoInputError(f"{file}: {exc.strerror or 'cannot be read'}")
+    if stat.S_ISLNK(st.st_mode):
+        target = os.readlink(path)
+        if not followed:
+            return NoInputError(f"{file}: symlinked file (to {target}), not followed (its "
+                                "trial would be left out); give it as an input of its own")
+        try:
+            st = os.stat(path)
+        except OSError as exc:
+            what = ("a loop of symbolic links" if exc.errno == errno.ELOOP else
+                    f"a dangling symbolic link (to {target}: no such file)"
+                    if exc.errno == errno.ENOENT else f"a symbolic link to {target} "
+                    f"that cannot be followed ({exc.strerror})")
+            return NoInputError(f"{file}: {what}")
+    kind = _kind(st.st_mode)
+    if kind is not None:
+        return BadInputError(f"not a regular file but {kind}; it is not opened (a trial "
+                             "is a regular file)", file=file)
+    return None
+
+
+def _check_regular(path: Path, what: str = "a trial is a regular file") -> None:
+    """Refuse, before it is opened, a file that is not a regular file (a FIFO would block
+    the open, a device read without end). One that is missing is left to the open."""
+    try:
+        kind = _kind(os.stat(path).st_mode)
+    except OSError:
+        return
+    if kind is not None:
+        raise BadInputError(f"not a regular file but {kind}; it is not opened ({what})",
+                            file=str(path))
 
 
 def _walk(folder: Path, problems: list[tuple[str, str]]) -> Iterator[Path]:
@@ -285,83 +377,137 @@ def _walk(folder: Path, problems: list[tuple[str, str]]) -> Iterator[Path]:
             yield Path(root) / name
 
 
-def _discover(inputs: Sequence[str | os.PathLike], manifest: str | os.PathLike | None,
-              bad: list[Skipped] | None) -> tuple[list[TrialSource], list[Path]]:
-    """:func:`discover`; with ``bad`` a list, bad names are appended to it, not raised."""
-    entries = read_manifest(manifest) if manifest is not None else {}
-    sources: list[TrialSource] = []
-    ignored: list[Path] = []
-    seen: set[Path] = set()
+def _skip_or_raise(exc: ArmfitError, bad: list[Skipped] | None, file: str) -> None:
+    """Raise ``exc`` (about ``file``), or with ``bad`` a list (``skip_bad``) append it as
+    skipped."""
+    if bad is None:
+        raise exc
+    if isinstance(exc, BadInputError):
+        bad.append(Skipped(exc.file or file, exc.detail))
+        return
+    text = str(exc)
+    bad.append(Skipped(file, text[len(file):].lstrip(": ") if text.startswith(file)
+                       else text))
 
-    def fail(exc: BadInputError) -> None:
-        if bad is None:
-            raise exc
-        bad.append(Skipped(exc.file or "", exc.detail))
 
-    def add(path: Path, explicit: bool) -> None:
-        res = path.resolve()
-        if res in seen:
+class _Finder:
+    """The search of :func:`discover`: PATHs walked or taken as given, then the manifest
+    rows not met under them. With ``bad`` a list (``skip_bad``) problems are appended to
+    it, not raised."""
+
+    def __init__(self, manifest: str | os.PathLike | None, bad: list[Skipped] | None):
+        self.manifest = manifest
+        self.rows = _manifest_rows(manifest) if manifest is not None else []
+        self.entries = {r.key: r.ident for r in self.rows}
+        self.bad = bad
+        self.sources: list[TrialSource] = []
+        self.ignored: list[Path] = []
+        self.seen: set[Path] = set()
+        self.problems: list[tuple[str, str]] = []
+
+    def fail(self, exc: ArmfitError, path: Path) -> None:
+        _skip_or_raise(exc, self.bad, str(path))
+
+    def add(self, path: Path, explicit: bool) -> None:
+        """One file: named on the command line or by the manifest (``explicit``: links
+        are followed, a dataset is read), or found in a folder."""
+        res = _key(path)
+        if not explicit and res not in self.entries and path.is_symlink():
+            self.linked(path)
             return
-        seen.add(res)
-        if res in entries:
+        if res in self.seen:
+            return
+        self.seen.add(res)
+        listed = explicit or res in self.entries
+        problem = _file_problem(path, followed=True) if listed else None
+        if problem is not None:
+            self.fail(problem, path)
+        elif res in self.entries:       # named by the manifest: read wherever it is
             if _trial_ext(path.name) is None:
-                fail(BadInputError("unsupported file type; expected .csv, .csv.gz or "
-                                   ".parquet", file=str(path)))
-                return
-            sources.append(TrialSource(str(path), *entries[res]))
-            return
-        if explicit and is_dataset(path):
-            sources.extend(dataset_sources(path))
-            return
+                self.fail(BadInputError("unsupported file type; expected .csv, .csv.gz or "
+                                        ".parquet", file=str(path)), path)
+            else:
+                self.sources.append(TrialSource(str(path), *self.entries[res]))
+        elif explicit and is_dataset(path):
+            self.sources.extend(dataset_sources(path))
+        else:
+            self.named(path, explicit)
+
+    def named(self, path: Path, explicit: bool) -> None:
+        """A file whose identity is its name."""
         try:
             ident = parse_name(path)
         except BadInputError as exc:
-            fail(exc)
+            self.fail(exc, path)
             return
-        if ident is None:
-            if explicit:
-                extra = (", and it is not an armfit dataset"
-                         if _trial_ext(path.name) == ".parquet" else "")
-                fail(BadInputError(f"file name matches no pattern ({_NAME_HELP}) and has no "
-                                   f"{{opt:manifest}} entry{extra}", file=str(path)))
+        if ident is not None:
+            # a trial name found in a folder: a FIFO or a device is refused unopened
+            problem = None if explicit else _file_problem(path, followed=False)
+            if problem is not None:
+                self.fail(problem, path)
             else:
-                ignored.append(path)
-            return
-        sources.append(TrialSource(str(path), *ident))
-
-    def missing(row_no: int, target: Path, reason: str) -> None:
-        text = f"{manifest}: column 'file', row {row_no}: {target}: {reason}"
-        if bad is None:
-            raise NoInputError(text)
-        bad.append(Skipped(str(target), f"listed in {manifest} (row {row_no}) but {reason}"))
-
-    if not inputs and manifest is not None:
-        for row_no, target in enumerate(entries, start=1):
-            if not target.is_file():
-                missing(row_no, target, "no such file")
-                continue
-            add(target, explicit=True)
-        return sources, ignored
-    problems: list[tuple[str, str]] = []
-    for inp in inputs:
-        p = Path(inp)
-        if p.is_dir():
-            for f in _walk(p, problems):
-                add(f, explicit=False)
-        elif p.is_file():
-            add(p, explicit=True)
+                self.sources.append(TrialSource(str(path), *ident))
+        elif explicit:
+            extra = (", and it is not an armfit dataset"
+                     if _trial_ext(path.name) == ".parquet" else "")
+            self.fail(BadInputError(f"file name matches no pattern ({_NAME_HELP}) and has "
+                                    f"no {{opt:manifest}} entry{extra}", file=str(path)), path)
         else:
-            raise NoInputError(f"{p}: no such file or folder")
-    for where, reason in problems:
-        if bad is None:
-            raise NoInputError(f"{where}: {reason}; or pass {{opt:skip_bad}} to go on "
-                               "without it")
-        bad.append(Skipped(where, reason))
-    # a manifest row whose file is missing is an error, also when PATHs are given
-    for row_no, target in enumerate(entries, start=1):
-        if not target.is_file():
-            missing(row_no, target, "no such file")
-    return sources, ignored
+            self.ignored.append(path)
+
+    def linked(self, path: Path) -> None:
+        """A symbolic link found in a folder: not followed, as a symlinked folder; one
+        under a trial name is reported (its trial would be left out), others ignored."""
+        try:
+            trial = parse_name(path) is not None
+        except BadInputError:
+            trial = True
+        if not trial:
+            self.ignored.append(path)
+            return
+        problem = _file_problem(path, followed=False)
+        self.problems.append((str(path), str(problem)[len(str(path)):].lstrip(": ")))
+
+    def listed(self, row: _ManifestRow) -> None:
+        """A manifest row not met under the PATHs: its file is read all the same."""
+        if row.key in self.seen:
+            return
+        if not os.path.lexists(row.key):
+            text = f"{self.manifest}: column 'file', row {row.row}: {row.key}: no such file"
+            if self.bad is None:
+                raise NoInputError(text)
+            self.bad.append(Skipped(str(row.key), f"listed in {self.manifest} (row "
+                                    f"{row.row}) but no such file"))
+            self.seen.add(row.key)
+            return
+        self.add(row.key, explicit=True)
+
+    def run(self, inputs: Sequence[str | os.PathLike]) -> tuple[list[TrialSource],
+                                                                list[Path]]:
+        for inp in inputs:
+            p = Path(inp)
+            if p.is_dir():
+                for f in _walk(p, self.problems):
+                    self.add(f, explicit=False)
+            elif os.path.lexists(p):
+                self.add(p, explicit=True)
+            else:
+                raise NoInputError(f"{p}: no such file or folder")
+        for where, reason in self.problems:
+            if self.bad is None:
+                raise NoInputError(f"{where}: {reason}; or pass {{opt:skip_bad}} to go on "
+                                   "without it")
+            self.bad.append(Skipped(where, reason))
+        # every manifest row is a trial, one outside the PATHs too (after theirs, in order)
+        for row in self.rows:
+            self.listed(row)
+        return self.sources, self.ignored
+
+
+def _discover(inputs: Sequence[str | os.PathLike], manifest: str | os.PathLike | None,
+              bad: list[Skipped] | None) -> tuple[list[TrialSource], list[Path]]:
+    """:func:`discover`; with ``bad`` a list, bad names are appended to it, not raised."""
+    return _Finder(manifest, bad).run(inputs)
 
 
 def discover(inputs: Sequence[str | os.PathLike], *,
@@ -382,8 +528,13 @@ def discover(inputs: Sequence[str | os.PathLike], *,
 # Reading raw files
 # ---------------------------------------------------------------------------
 
+def _gzipped(path: Path) -> bool:
+    return path.name.lower().endswith(".gz")
+
+
 def _csv_header(path: Path) -> list[str]:
-    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    """The header row of a CSV (or CSV.gz) file, each name stripped of blanks."""
+    opener = gzip.open if _gzipped(path) else open
     with opener(path, "rt", encoding="utf-8-sig", newline="") as fh:
         line = fh.readline()
     if not line.strip():
@@ -394,7 +545,7 @@ def _csv_header(path: Path) -> list[str]:
 
 def _first_short_row(path: Path, width: int) -> int | None:
     """The 1-based data row of the first CSV line with a different field count."""
-    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    opener = gzip.open if _gzipped(path) else open
     try:
         with opener(path, "rt", encoding="utf-8-sig", newline="") as fh:
             for row_no, fields in enumerate(csv.reader(fh)):
@@ -405,77 +556,63 @@ def _first_short_row(path: Path, width: int) -> int | None:
     return None
 
 
-def _first_non_numeric(values: Sequence[object]) -> tuple[int, str] | None:
-    """(1-based row, text) of the first value that is neither blank nor a number."""
-    for i, v in enumerate(values):
-        if v is None:
-            continue
-        if isinstance(v, (int, float)):
-            continue
-        s = str(v).strip()
-        if not s:
-            continue
-        try:
-            float(s)
-        except ValueError:
-            return i + 1, s
-    return None
+def _read_csv(path: Path, names: list[str], header: list[str], text: bool):
+    """The columns ``names`` of a CSV file as a pyarrow table: float64 converted by Arrow
+    (which reads exactly the numbers of :mod:`armfit.io.numbers`), or with ``text`` as
+    strings. The header is replaced by ``header`` (its names stripped; the columns not
+    read get names of their own), so ``time_s, force_x_N`` finds ``force_x_N``."""
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+    wanted = set(names)
+    cols = [h if h in wanted else f"\0{i}" for i, h in enumerate(header)]
+    # only a blank cell (or NaN) is a missing value: 'n/a', 'NA' or 'null' are text, and
+    # refused as non-numeric rather than guessed
+    convert = pcsv.ConvertOptions(
+        include_columns=names, null_values=[""], strings_can_be_null=True,
+        column_types={n: pa.string() if text else pa.float64() for n in names})
+    # the compression is the extension's, in any case (.CSV.GZ too)
+    stream = pa.input_stream(str(path), compression="gzip" if _gzipped(path) else None)
+    with stream:
+        return pcsv.read_csv(stream, read_options=pcsv.ReadOptions(column_names=cols,
+                                                                  skip_rows=1),
+                             convert_options=convert)
 
 
 def _read_table(path: Path, names: list[str]) -> dict[str, np.ndarray]:
-    """Read the columns ``names`` of a raw trial file as float64 arrays."""
+    """Read the columns ``names`` (header names stripped of blanks) of a raw trial file
+    as float64 arrays; every text cell is read by :func:`armfit.io.numbers.parse_numbers`
+    (blank: NaN)."""
     import pyarrow as pa
 
     file = str(path)
+    _check_regular(path)
     if _trial_ext(path.name) == ".parquet":
         import pyarrow.parquet as pq
+        actual = {n.strip(): n for n in _parquet_names(path)}
         try:
-            table = pq.read_table(path, columns=names)
+            table = pq.read_table(path, columns=[actual[n] for n in names])
         except (pa.ArrowException, OSError) as exc:
             raise BadInputError(f"unreadable or truncated Parquet file: {_first_line(exc)}",
                                 file=file) from None
-        out = {}
-        for name in names:
-            col = table.column(name)
-            if pa.types.is_floating(col.type) or pa.types.is_integer(col.type):
-                out[name] = col.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
-                continue
-            values = col.to_pylist()
-            bad = _first_non_numeric(values) if pa.types.is_string(col.type) \
-                or pa.types.is_large_string(col.type) else (1, str(values[0]) if values else "")
-            if bad is None:  # numbers stored as text
-                out[name] = np.array([np.nan if v is None or not str(v).strip() else float(v)
-                                      for v in values], dtype=np.float64)
-                continue
-            raise BadInputError(f"non-numeric value {cell(bad[1])} (column type {col.type}); "
-                                "expected a number" + _MISSING_HINT.get(name, ""),
-                                file=file, column=name, row=bad[0])
-        return out
+        return {n: parse_numbers(table.column(actual[n]), file=file, column=n,
+                                 hint=_MISSING_HINT.get(n, "")) for n in names}
 
-    import pyarrow.csv as pcsv
-    # only a blank cell (or NaN) is a missing value: 'n/a', 'NA' or 'null' are text, and
-    # refused as non-numeric rather than guessed
-    convert = pcsv.ConvertOptions(include_columns=names,
-                                  column_types={n: pa.float64() for n in names},
-                                  null_values=[""])
+    header = _csv_header(path)
     try:
-        table = pcsv.read_csv(path, convert_options=convert)
+        table = _read_csv(path, names, header, text=False)
     except pa.ArrowInvalid as exc:
         msg = _first_line(exc)
-        m = re.search(r"CSV column #(\d+)", msg)
-        if m and "conversion error" in msg:
-            header = _csv_header(path)
-            col = header[int(m.group(1))]
-            raw = pcsv.read_csv(path, convert_options=pcsv.ConvertOptions(
-                include_columns=[col], column_types={col: pa.string()}))
-            bad = _first_non_numeric(raw.column(col).to_pylist())
-            row, text = bad if bad else (None, "?")
-            raise BadInputError(f"non-numeric value {cell(text)}; expected a number"
-                                + _MISSING_HINT.get(col, ""),
-                                file=file, column=col, row=row) from None
-        row = _first_short_row(path, len(_csv_header(path))) if "columns" in msg else None
-        raise BadInputError(f"unreadable or truncated CSV file: {msg}", file=file,
-                            row=row) from None
+        if "conversion error" not in msg:
+            row = _first_short_row(path, len(header)) if "columns" in msg else None
+            raise BadInputError(f"unreadable or truncated CSV file: {msg}", file=file,
+                                row=row) from None
+        try:   # the cell Arrow could not convert: found and named by the parser
+            table = _read_csv(path, names, header, text=True)
+        except (pa.ArrowException, OSError, EOFError) as exc2:
+            raise BadInputError(f"unreadable or truncated CSV file: {_first_line(exc2)}",
+                                file=file) from None
+        return {n: parse_numbers(table.column(n), file=file, column=n,
+                                 hint=_MISSING_HINT.get(n, "")) for n in names}
     except (pa.ArrowException, OSError, EOFError) as exc:
         raise BadInputError(f"unreadable or truncated file: {_first_line(exc)}",
                             file=file) from None
@@ -490,16 +627,22 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+def _parquet_names(path: Path) -> list[str]:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    try:
+        return list(pq.read_schema(path).names)
+    except (pa.ArrowException, OSError) as exc:
+        raise BadInputError(f"unreadable or truncated Parquet file: {_first_line(exc)}",
+                            file=str(path)) from None
+
+
 def _column_names(path: Path) -> list[str]:
+    """The column names of a raw trial file, stripped of blanks (as the CSV header)."""
     file = str(path)
+    _check_regular(path)
     if _trial_ext(path.name) == ".parquet":
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-        try:
-            return list(pq.read_schema(path).names)
-        except (pa.ArrowException, OSError) as exc:
-            raise BadInputError(f"unreadable or truncated Parquet file: {_first_line(exc)}",
-                                file=file) from None
+        return [n.strip() for n in _parquet_names(path)]
     try:
         return _csv_header(path)
     except (OSError, EOFError, UnicodeDecodeError, csv.Error) as exc:
@@ -563,8 +706,10 @@ def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
 
     Times must be finite, strictly increasing and uniform: every interval within
     JITTER_TOLERANCE (1 %) of the median interval. The rate is 1 / mean interval
-    ((t_last − t_first) / (n − 1)), rounded to whole Hz when within 0.01 %. Raises
-    BadInputError naming the 1-based row of the first offending sample.
+    ((t_last − t_first) / (n − 1)), rounded to whole Hz when within 0.01 %, and at
+    least :data:`MIN_SAMPLING_RATE_HZ` (a lower rate is a unit slip: times in ms give
+    1 Hz for a 1 kHz recording). Raises BadInputError naming the 1-based row of the first
+    offending sample.
     """
     t = np.asarray(time_s, dtype=np.float64)
     if t.size == 0:
@@ -589,7 +734,20 @@ def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
         raise BadInputError(f"non-uniform time: interval {dt[i]:.6g} s vs period "
                             f"{period:.6g} s (jitter over 1 % of the period; dropped or "
                             "repeated samples?)", file=file, column="time_s", row=i + 2)
-    return _nice_rate((t.size - 1) / (t[-1] - t[0]))
+    fs = _nice_rate((t.size - 1) / (t[-1] - t[0]))
+    if fs < MIN_SAMPLING_RATE_HZ:
+        unit = ("is time in ms? time_s must be in seconds"
+                if fs * 1000.0 >= MIN_SAMPLING_RATE_HZ else "time_s must be in seconds")
+        raise BadInputError(f"sampling rate {fs:g} Hz (a sample every {period:.6g} s) is "
+                            f"below {MIN_SAMPLING_RATE_HZ:g} Hz, implausible for a haptic "
+                            f"device: {unit}", file=file, column="time_s")
+    return fs
+
+
+def _provenance(path: Path) -> str:
+    """The file a trial was read from, as its metadata records it: the path as given,
+    or for a symbolic link the file it leads to."""
+    return os.path.realpath(path) if path.is_symlink() else str(path)
 
 
 def read_trial(source: TrialSource, *, f_min_hz: float = GRID_HZ[0],
@@ -597,13 +755,16 @@ def read_trial(source: TrialSource, *, f_min_hz: float = GRID_HZ[0],
                warn: Warn | None = None, grip: bool = True) -> Trial:
     """Read and validate one trial (a raw file, or one row group of a dataset).
 
-    Checks, in order: readable file; required columns (``time_s``, the stimulated axis's
+    Checks, in order: a regular file (a FIFO or a device is refused unopened); required
+    columns (names stripped of blanks) (``time_s``, the stimulated axis's
     force and position); numeric values; finite time, force and position; increasing,
     uniform time; duration ≥ 2 / ``f_min_hz`` (two periods of the lowest frequency);
-    non-constant force on the stimulated axis. |force| above ``force_limit_N`` (N) on any
-    axis is reported through ``warn`` (saturation), not raised. Positions in mm are
+    non-constant force on the stimulated axis. |force| at or above ``force_limit_N`` (N)
+    on any axis (:func:`saturated_samples`) is reported through ``warn`` (saturation),
+    not raised. Positions in mm are
     converted to m. ``grip`` False leaves the grip force unread (``Trial.grip`` None).
-    Raises BadInputError naming file, column and row.
+    The metadata's ``source`` is the file read (for a symbolic link, the file it leads
+    to). Raises BadInputError naming file, column and row.
     """
     if source.index is not None:
         trial = _read_dataset_trial(source, grip=grip)
@@ -629,7 +790,7 @@ def read_trial(source: TrialSource, *, f_min_hz: float = GRID_HZ[0],
         grip = check_grip(cols["grip_N"], file) if "grip_N" in pick else None
         fs = sampling_rate(t, file=file)
         meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
-                         fs, int(n), float(t[0]), file)
+                         fs, int(n), float(t[0]), _provenance(path))
         trial = Trial(meta, force, pos, None if grip is None else np.array(grip))
         del cols, t, grip
         _release_arrow_memory()
@@ -707,8 +868,8 @@ def _check_trial(trial: Trial, file: str, *, f_min_hz: float, force_limit_N: flo
     if f_min_hz > 0 and meta.duration_s < 2.0 / f_min_hz:
         raise BadInputError(f"too short: {meta.duration_s:.6g} s; reaching the lowest "
                             f"frequency {f_min_hz:g} Hz needs at least "
-                            f"{2.0 / f_min_hz:.6g} s (two periods); lower {{opt:f_min_hz}} or "
-                            "drop the trial", file=file)
+                            f"{2.0 / f_min_hz:.6g} s (two periods){{?; lower "
+                            "{opt:f_min_hz} or drop the trial}", file=file)
     f = trial.f
     col = f"force_{meta.axis}_N"
     if f.size and f.max() == f.min():
@@ -734,12 +895,36 @@ def _check_trial(trial: Trial, file: str, *, f_min_hz: float, force_limit_N: flo
                      "it or correct the manifest)")
     for j, a in enumerate(AXES):
         v = trial.force[:, j]
-        over = np.abs(v) > force_limit_N
+        over = saturated_samples(v, force_limit_N)
         if over.any():
             k = int(np.argmax(over))
-            warn(f"{file}, column 'force_{a}_N', row {k + 1}: |force| exceeds the device "
+            warn(f"{file}, column 'force_{a}_N', row {k + 1}: |force| reaches the device "
                  f"limit {force_limit_N:g} N in {int(over.sum())} sample(s) (peak "
                  f"{np.nanmax(np.abs(v)):.3g} N); saturation distorts the estimate")
+
+
+def saturated_samples(force, limit_N: float) -> np.ndarray:
+    """Which force samples are saturated: |F| ≥ ``limit_N`` (N).
+
+    The one saturation rule of every check (the warning of :func:`read_trial`, the
+    ``saturation`` flag of the spectra): a force clipped by the device sits exactly at
+    its limit, so a plateau at the limit is saturation.
+
+    Parameters
+    ----------
+    force : array_like
+        Force samples, N (NaN: not recorded, never saturated).
+    limit_N : float
+        The device's peak force, N.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, one per sample.
+    """
+    f = np.abs(np.asarray(force, dtype=np.float64))
+    with np.errstate(invalid="ignore"):
+        return f >= limit_N
 
 
 # ---------------------------------------------------------------------------
@@ -758,39 +943,122 @@ def is_dataset(path: str | os.PathLike) -> bool:
     if not p.is_file() or _trial_ext(p.name) != ".parquet":
         return False
     try:
-        return DATASET_TRIALS_KEY.encode() in (_dataset_kv(p) or {})
+        return DATASET_TRIALS_KEY.encode() in (_dataset_footer(p).metadata or {})
     except Exception:  # not Parquet, or unreadable: then it is not a dataset
         return False
 
 
-def _dataset_kv(path: Path) -> dict[bytes, bytes] | None:
+def _dataset_footer(path: Path):
     import pyarrow.parquet as pq
-    return pq.read_metadata(path).metadata
+    return pq.read_metadata(path)
+
+
+def _checked_record(index: int, rec: object, file: str) -> dict:
+    """One trial's metadata record, checked and typed (numbers by
+    :mod:`armfit.io.numbers`); BadInputError naming the file, the trial and the field."""
+    where = f"metadata '{DATASET_TRIALS_KEY}', trial {index}"
+
+    def bad(text: str) -> BadInputError:
+        return BadInputError(f"{where}: {text}; the dataset is damaged (write it again with "
+                             "armfit ingest)", file=file)
+
+    if not isinstance(rec, dict):
+        raise bad(f"the record is {type(rec).__name__}, not an object")
+    for key in ("trial", "subject", "axis", "grip_N", "fs", "n_samples", "t0_s", "source"):
+        if key not in rec:
+            raise bad(f"no '{key}'")
+
+    def number(key: str, ok: Callable[[float], bool], what: str) -> float:
+        try:
+            v = parse_number(rec[key])
+        except ValueError:
+            v = math.nan
+        if not ok(v):
+            raise bad(f"'{key}' is {cell(rec[key])}, not {what}")
+        return v
+
+    def whole(key: str, least: int) -> int:
+        try:
+            v = parse_whole(rec[key])
+        except ValueError:
+            v = -1
+        if v < least:
+            raise bad(f"'{key}' is {cell(rec[key])}, not a whole number >= {least}")
+        return v
+
+    out = dict(rec)
+    out["trial"] = whole("trial", 0)
+    if out["trial"] != index:
+        raise bad(f"'trial' is {out['trial']}; the records follow the row groups, so it "
+                  f"must be {index}")
+    if not (isinstance(rec["subject"], str) and _LABEL.fullmatch(rec["subject"])):
+        raise bad(f"subject {cell(rec['subject'])} is not an alphanumeric label")
+    if rec["axis"] not in AXES:
+        raise bad(f"axis {cell(rec['axis'])} is not x, y or z")
+    out["grip_N"] = number("grip_N", lambda v: math.isfinite(v) and v >= 0,
+                           "a non-negative number of newtons")
+    out["run"] = None if rec.get("run") is None else whole("run", 0)
+    out["fs"] = number("fs", lambda v: math.isfinite(v) and v >= MIN_SAMPLING_RATE_HZ,
+                       f"a sampling rate of at least {MIN_SAMPLING_RATE_HZ:g} Hz")
+    out["n_samples"] = whole("n_samples", 2)
+    out["t0_s"] = number("t0_s", math.isfinite, "a finite time in s")
+    if not isinstance(rec["source"], str):
+        raise bad(f"source {cell(rec['source'])} is not a file name")
+    cols = rec.get("columns", list(DATASET_COLUMNS))
+    if not (isinstance(cols, list) and all(c in DATASET_COLUMNS for c in cols)):
+        raise bad(f"columns {cell(cols)} are not among {', '.join(DATASET_COLUMNS)}")
+    out["columns"] = cols
+    return out
 
 
 def dataset_metadata(path: str | os.PathLike) -> list[dict]:
-    """The per-trial metadata records of a canonical dataset (one per row group)."""
+    """The per-trial metadata records of a canonical dataset (one per row group).
+
+    Each record is checked and its numbers typed (``trial``, ``run``, ``n_samples`` int;
+    ``grip_N``, ``fs``, ``t0_s`` float, read by :mod:`armfit.io.numbers`). Raises
+    BadInputError naming the file and what is wrong: not a dataset, an unsupported
+    format version, metadata that is not a JSON list, a record count other than the row
+    groups' (trials would be left out), a missing or bad field of a record.
+    """
     import pyarrow as pa
     p = Path(path)
+    file = str(p)
     try:
-        kv = _dataset_kv(p) or {}
+        footer = _dataset_footer(p)
     except (pa.ArrowException, OSError) as exc:
         raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
-                            file=str(p)) from None
+                            file=file) from None
+    kv = footer.metadata or {}
     if DATASET_TRIALS_KEY.encode() not in kv:
         raise BadInputError(f"not an armfit dataset (no '{DATASET_TRIALS_KEY}' metadata)",
-                            file=str(p))
-    version = kv.get(DATASET_FORMAT_KEY.encode(), b"").decode()
+                            file=file)
+    version = kv.get(DATASET_FORMAT_KEY.encode(), b"").decode("utf-8", "replace")
     if version != DATASET_FORMAT_VERSION:
         raise BadInputError(f"dataset format version '{version}' is not supported (expected "
-                            f"{DATASET_FORMAT_VERSION})", file=str(p))
-    return json.loads(kv[DATASET_TRIALS_KEY.encode()])
+                            f"{DATASET_FORMAT_VERSION})", file=file)
+    try:
+        records = json.loads(kv[DATASET_TRIALS_KEY.encode()])
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError, bad UTF-8
+        raise BadInputError(f"metadata '{DATASET_TRIALS_KEY}' is not valid JSON "
+                            f"({_first_line(exc)}); the dataset is damaged (write it again "
+                            "with armfit ingest)", file=file) from None
+    if not isinstance(records, list):
+        raise BadInputError(f"metadata '{DATASET_TRIALS_KEY}' is a JSON "
+                            f"{type(records).__name__}, not a list of trials; the dataset "
+                            "is damaged (write it again with armfit ingest)", file=file)
+    if len(records) != footer.num_row_groups:
+        raise BadInputError(f"metadata '{DATASET_TRIALS_KEY}' lists {len(records)} "
+                            f"trial(s) but the file holds {footer.num_row_groups} row "
+                            "group(s), one per trial; the dataset is damaged (write it "
+                            "again with armfit ingest)", file=file)
+    return [_checked_record(i, r, file) for i, r in enumerate(records)]
 
 
 def dataset_sources(path: str | os.PathLike) -> list[TrialSource]:
-    """One TrialSource per trial (row group) of a canonical dataset."""
-    return [TrialSource(str(path), r["subject"], r["axis"], float(r["grip_N"]), r["run"],
-                        index=int(r["trial"])) for r in dataset_metadata(path)]
+    """One TrialSource per trial (row group) of a canonical dataset (its metadata checked
+    by :func:`dataset_metadata`)."""
+    return [TrialSource(str(path), r["subject"], r["axis"], r["grip_N"], r["run"],
+                        index=r["trial"]) for r in dataset_metadata(path)]
 
 
 @functools.lru_cache(maxsize=4)
@@ -825,6 +1093,7 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
     except OSError as exc:
         raise BadInputError(f"unreadable dataset: {_first_line(exc)}", file=source.path) \
             from None
+    _check_regular(Path(source.path))
     pf, records = _open_dataset(str(source.path), (st.st_ino, st.st_size, st.st_mtime_ns))
     if not 0 <= idx < len(records):
         raise BadInputError(f"no trial {idx} (the dataset holds {len(records)})",
@@ -843,13 +1112,14 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
     pos = np.full((n, 3), np.nan)
     for j, c in enumerate(DATASET_COLUMNS[:6]):
         if c in names:
-            (force if j < 3 else pos)[:, j % 3] = table.column(c).to_numpy()
-    grip_N = table.column("grip_N").to_numpy().copy() if "grip_N" in names else None
+            (force if j < 3 else pos)[:, j % 3] = parse_numbers(
+                table.column(c), file=source.label, column=c)
+    grip_N = parse_numbers(table.column("grip_N"), file=source.label, column="grip_N"
+                           ).copy() if "grip_N" in names else None
     del table
     _release_arrow_memory()
     meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
-                     float(rec["fs"]), int(rec["n_samples"]), float(rec["t0_s"]),
-                     str(rec["source"]))
+                     rec["fs"], rec["n_samples"], rec["t0_s"], rec["source"])
     for j, a in enumerate(AXES):  # a dataset may have been written by other software
         for arr, name in ((force, f"force_{a}_N"), (pos, f"pos_{a}_m")):
             if not np.isnan(arr[:, j]).all():
@@ -927,7 +1197,8 @@ class TrialStream:
     ``skipped`` the trials left out (with ``skip_bad``), filled while iterating.
     Iterating checks that every trial has the reference sampling rate (the first good
     trial's, or with ``resample`` the most common one, to which the others are
-    resampled with scipy.signal.resample_poly).
+    resampled with scipy.signal.resample_poly), and that no two trials read have the
+    same identity (:meth:`admit`): a trial that could not be read is no duplicate.
     """
 
     sources: list[TrialSource]
@@ -938,9 +1209,23 @@ class TrialStream:
     f_min_hz: float = GRID_HZ[0]
     force_limit_N: float = FORCE_LIMIT_N
     warn: Warn | None = None
+    _read: dict[tuple, str] = field(default_factory=dict, init=False, repr=False)
 
     def __len__(self) -> int:
         return len(self.sources)
+
+    def admit(self, key: tuple[str, str, float, int | None], label: str) -> None:
+        """Count the trial ``key`` (subject, axis, grip_N, run), read from ``label``, as
+        read. Raises BadInputError naming both files if a trial of the same identity was
+        read before (duplicates are counted among the trials read, so a good copy is
+        kept when an earlier copy could not be read)."""
+        other = self._read.get(key)
+        if other is not None:
+            subject, axis, grip_N, run = key
+            raise BadInputError(f"duplicate trial (subject {subject}, axis {axis}, grip "
+                                f"{grip_N:g} N, run {'-' if run is None else run}): also "
+                                f"in {other}", file=label)
+        self._read[key] = label
 
     def __iter__(self) -> Iterator[Trial]:
         ref_fs: float | None = self._common_rate() if self.resample else None
@@ -956,11 +1241,13 @@ class TrialStream:
                     if not self.resample:
                         raise BadInputError(
                             f"sampling rate {fs:g} Hz differs from {ref_fs:g} Hz of "
-                            f"{ref_file}; pass {{opt:resample}} to resample to a common rate",
+                            f"{ref_file}{{?; pass {{opt:resample}} to resample to a common "
+                            "rate}",
                             file=src.label, column="time_s")
                     trial = resample_trial(trial, ref_fs)
                     if self.warn is not None:
                         self.warn(f"{src.label}: resampled from {fs:g} Hz to {ref_fs:g} Hz")
+                self.admit(src.key, src.label)
             except BadInputError as exc:
                 if not self.skip_bad:
                     raise
@@ -974,7 +1261,7 @@ class TrialStream:
         for src in self.sources:
             try:
                 if src.index is not None:
-                    rates[float(dataset_metadata(src.path)[src.index]["fs"])] += 1
+                    rates[dataset_metadata(src.path)[src.index]["fs"]] += 1
                 else:
                     t = _read_table(Path(src.path), ["time_s"])["time_s"]
                     rates[sampling_rate(t, file=src.path)] += 1
@@ -1013,28 +1300,19 @@ def open_trials(inputs: Sequence[str | os.PathLike], *,
                 warn: Warn | None = None) -> TrialStream:
     """Discover the trials in ``inputs`` and return a stream that reads them one by one.
 
-    Duplicate trials (same subject, axis, grip, run) are refused naming both files; with
-    ``skip_bad`` the later one, and files with bad names, go to ``skipped``. Raises
-    NoInputError when nothing is found.
+    Duplicate trials (same subject, axis, grip, run) are refused naming both files,
+    before any is read. With ``skip_bad``, files with bad names go to ``skipped``, and a
+    duplicate is one of a trial read before (:meth:`TrialStream.admit`): a good copy is
+    read when an earlier copy is bad, and a later copy of a good trial is skipped.
+    Raises NoInputError when nothing is found.
     """
     bad: list[Skipped] | None = [] if skip_bad else None
-    sources, ignored = _discover(inputs, manifest, bad)
+    kept, ignored = _discover(inputs, manifest, bad)
     skipped = list(bad or [])
-    first: dict[tuple, TrialSource] = {}
-    kept: list[TrialSource] = []
-    for src in sources:
-        other = first.get(src.key)
-        if other is None:
-            first[src.key] = src
-            kept.append(src)
-            continue
-        run = "-" if src.run is None else src.run
-        exc = BadInputError(f"duplicate trial (subject {src.subject}, axis {src.axis}, grip "
-                            f"{src.grip_N:g} N, run {run}): also in {other.label}",
-                            file=src.label)
-        if not skip_bad:
-            raise exc
-        skipped.append(Skipped(src.label, exc.detail))
+    if not skip_bad:
+        first = TrialStream([], [])
+        for src in kept:
+            first.admit(src.key, src.label)
     if not kept and not skipped:
         where = ", ".join(str(p) for p in inputs) or str(manifest)
         raise NoInputError(f"{where}: no trial files found (expected names like "
@@ -1103,7 +1381,8 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
 
 __all__ = [
     "TRIAL_EXTENSIONS", "DATASET_COLUMNS", "DATASET_FORMAT_KEY", "DATASET_TRIALS_KEY",
-    "DATASET_FORMAT_VERSION", "JITTER_TOLERANCE", "RATE_TOLERANCE", "Warn", "TrialMeta",
+    "DATASET_FORMAT_VERSION", "JITTER_TOLERANCE", "RATE_TOLERANCE",
+    "MIN_SAMPLING_RATE_HZ", "saturated_samples", "Warn", "TrialMeta",
     "Trial", "TrialSource", "Skipped", "parse_name", "read_manifest", "discover",
     "sampling_rate", "read_trial", "MAX_ABS_VALUE", "MAX_POSITION_M", "check_values",
     "check_grip", "GRIP_TOLERANCE_N", "GRIP_TOLERANCE_FRACTION", "is_dataset",

@@ -82,6 +82,7 @@ import numpy as np
 
 from armfit.constants import GRID_HZ
 from armfit.errors import EffectDefinitionError, NoInputError, UsageError
+from armfit.io.numbers import parse_number
 from armfit.models.arm import BASE_PARAMS, DEVICE_MASS_KG, STAGE_NAMES, Param
 
 TermFn = Callable[[np.ndarray, Mapping[str, float], float], np.ndarray]
@@ -888,9 +889,9 @@ def parse_effect_spec(spec: str) -> tuple[Effect, dict[str, float]]:
 
 def _number(spec: str, text: str) -> float:
     try:
-        return float(text)
-    except ValueError:
-        raise UsageError(f"{{opt:effects}} {spec!r}: {text!r} is not a number") from None
+        return parse_number(text)
+    except ValueError as exc:
+        raise UsageError(f"{{opt:effects}} {spec!r}: {exc}") from None
 
 
 #: What may name an effect wherever a model takes effects: an :class:`Effect`, its name
@@ -943,7 +944,7 @@ def resolve_effects(items: Iterable | None) -> tuple[tuple[Effect, ...], dict[st
                 if p.name not in values:
                     raise UsageError(f"{{opt:effects}} {effect.name}: give every parameter "
                                      f"to hold it ({', '.join(effect.param_names)})")
-                v = float(values[p.name])
+                v = _number(f"{effect.name}={values[p.name]}", values[p.name])
                 if not (p.lower <= v <= p.upper):
                     raise UsageError(f"{{opt:effects}} {effect.name}: {p.name}={v:g} outside "
                                      f"the physical range [{p.lower:g}, {p.upper:g}] {p.unit}")

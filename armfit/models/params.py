@@ -20,6 +20,7 @@ import pandas as pd
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
+from armfit.io.numbers import parse_columns, parse_numbers
 from armfit.io.schema import PARAMS_BASE, PARAMS_HELD, PARAMS_OPTIONAL, PARAMS_STATS
 from armfit.models.arm import BASE_PARAMS, ClosedLoopModel, Param
 from armfit.models.effects import get_effect
@@ -27,6 +28,9 @@ from armfit.models.effects import get_effect
 #: Names that stand for the paper's tables when no file of that name exists.
 PAPER_PARAMS: dict[str, str] = {"nominal": "nominal", "table2": "nominal",
                                 "grip": "grip", "table1": "grip"}
+
+#: Fit statistics that are numbers (text in them is read by armfit.io.numbers).
+_STAT_NUMBERS = ("rms_db", "rms_deg", "rms_norm", "band_lo_hz", "band_hi_hz", "n_points")
 
 _PAPER_RENAME = {"Ma_kg": "Ma", "k1_N_per_m": "k1", "k2_N_per_m": "k2",
                  "b1_Ns_per_m": "b1", "b2_Ns_per_m": "b2"}
@@ -94,11 +98,14 @@ def read_param_rows(path_or_name: str | os.PathLike) -> ParamRows:
     uses = row_param_names(df, p)       # each row's own model (one per axis, say)
     bounds = param_bounds(df, p)
     _check_columns(df, p, bounds)
+    df = parse_columns(df, ["grip_N", "run", *_STAT_NUMBERS,
+                            *(f"{n}{sfx}" for n in bounds for sfx in ("_lo", "_hi"))],
+                       file=str(p))
     df.insert(0, "row", np.arange(1, len(df) + 1))
     df["axis"] = _axes(df, p)
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"]) \
         if "converged" in df.columns else True
-    values = {c: pd.to_numeric(df[c], errors="coerce").to_numpy(float) for c in bounds}
+    values = {c: parse_numbers(df[c], errors="coerce") for c in bounds}
     used = {c: np.array([c in PARAMS_BASE or c in u for u in uses], bool) for c in bounds}
     empty = np.all([np.isnan(v) for v in values.values()], axis=0) \
         & ~df["converged"].to_numpy(bool)
@@ -106,7 +113,7 @@ def read_param_rows(path_or_name: str | os.PathLike) -> ParamRows:
     for col, q in bounds.items():
         _check_values(df, p, col, q, values[col], used[col], keep)
         df[col] = values[col]
-    mp = pd.to_numeric(df["mp_kg"], errors="coerce").to_numpy(float)
+    mp = parse_numbers(df["mp_kg"], errors="coerce")
     bad = np.flatnonzero(keep & ~(np.isfinite(mp) & (mp > 0)))
     if bad.size:
         raise BadInputError(f"device mass must be a positive number (kg), got "
