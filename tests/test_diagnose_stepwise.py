@@ -124,6 +124,10 @@ def test_non_white_input_diagnose_agrees_with_compare(tmp_path):
     ratio = d.error_steps[0] / row.overall.rms_norm
     assert 0.5 <= ratio <= 2.0, (d.error_steps[0], row.overall.rms_norm)
     assert not d.adequate
+    # max_steps=0 stops the search before its first step; the verdict says so in words
+    # that hold for `run` too (which has no --max-steps of its own)
+    assert d.verdict.endswith("the search stopped at its limit of 0 effect(s) "
+                              "(armfit diagnose --max-steps)"), d.verdict
 
 
 def test_practical_needs_a_run_above_noise_and_floor():

@@ -642,6 +642,13 @@ def test_nested_command_names_its_own_flag():
     (["simulate", "-o", "sim", "--effect", "delay=0_012"], "'0_012' is not a number"),
     (["fit-uncertainty", "none.parquet", "--nominal", "nominal", "-o", "w.csv", "--smooth",
       "1_0"], "--smooth '1_0'"),
+    # options typed by click: float("0_1") is 1.0 and int("²") fails only in int()
+    (["estimate", "raw", "-o", "s.parquet", "--fmin", "0_1"], "'0_1' is not a number"),
+    (["simulate", "-o", "sim", "--fs", "1_000"], "'1_000' is not a number"),
+    (["simulate", "-o", "sim", "--subjects", "٣"], "'٣' is not a whole number"),
+    (["plot", "stability", "n.csv", "-o", "p.png", "--delay-samples", "²"],
+     "'²' is not a whole number"),
+    (["stability", "n.csv", "--sample-time", "1_0e-3"], "'1_0e-3' is not a number"),
 ])
 def test_digit_separator_in_an_option_value(tmp_path, monkeypatch, args, message):
     # float() reads 0_09 as 0.09 and 0_1 as 1.0; a value of an option is read as a cell

@@ -12,6 +12,8 @@ from armfit.api import ModelFit
 from armfit.api import compare as api_compare
 from armfit.api import diagnose as api_diagnose
 from armfit.cli.options import (
+    Number,
+    Whole,
     band_option,
     effects_file_option,
     emit_json,
@@ -136,13 +138,13 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="Also write the JSON document to this file (atomically).")
 @jobs_option
-@click.option("--max-steps", type=click.IntRange(0, 10), default=MAX_STEPS, show_default=True,
+@click.option("--max-steps", type=Whole(0, 10), default=MAX_STEPS, show_default=True,
               help="At most this many effects added, one per step.")
-@click.option("--min-effect-db", type=click.FloatRange(0.0), default=MIN_EFFECT_DB,
+@click.option("--min-effect-db", type=Number(0.0), default=MIN_EFFECT_DB,
               show_default=True,
               help="Practical floor: an effect must change the response by more than this "
                    "(dB, and more than the noise) somewhere in the band, or ...")
-@click.option("--min-effect-deg", type=click.FloatRange(0.0), default=MIN_EFFECT_DEG,
+@click.option("--min-effect-deg", type=Number(0.0), default=MIN_EFFECT_DEG,
               show_default=True,
               help="... by more than this in phase (deg).")
 @click.option("--share", "share", multiple=True, metavar="NAME",

@@ -8,6 +8,8 @@ import click
 
 from armfit.api import estimate_config, estimate_study_result
 from armfit.cli.options import (
+    Number,
+    Whole,
     cluster_executor,
     emit_json,
     jobs_option,
@@ -60,17 +62,17 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
               show_default=True,
               help="Measured-dynamics estimator: Welch H1 (best on simulated truth) or the "
                    "paper's whole-record FFT ratio with 100 dB Chebyshev windows.")
-@click.option("--fmin", type=click.FloatRange(min=0, min_open=True), default=_DEFAULTS.fmin,
+@click.option("--fmin", type=Number(min=0, min_open=True), default=_DEFAULTS.fmin,
               show_default=True, metavar="HZ", help="Lowest grid frequency.")
-@click.option("--fmax", type=click.FloatRange(min=0, min_open=True), default=_DEFAULTS.fmax,
+@click.option("--fmax", type=Number(min=0, min_open=True), default=_DEFAULTS.fmax,
               show_default=True, metavar="HZ", help="Highest grid frequency (<= Nyquist).")
-@click.option("--per-decade", type=click.IntRange(1, 1000), default=_DEFAULTS.per_decade,
+@click.option("--per-decade", type=Whole(1, 1000), default=_DEFAULTS.per_decade,
               show_default=True,
               help="Grid points per decade (log-spaced, band-averaged).")
-@click.option("--nperseg", type=click.IntRange(8), default=None, metavar="SAMPLES",
+@click.option("--nperseg", type=Whole(8), default=None, metavar="SAMPLES",
               help="H1 segment length [default: power of 2 lasting >= 2/fmin, halved down "
                    "to 1/fmin while a trial holds fewer than 4 segments].")
-@click.option("--overlap", type=click.FloatRange(0, 1, max_open=True), default=_DEFAULTS.overlap,
+@click.option("--overlap", type=Number(0, 1, max_open=True), default=_DEFAULTS.overlap,
               show_default=True, help="H1 segment overlap (fraction).")
 @click.option("--window", type=click.Choice(WINDOWS), default=_DEFAULTS.window,
               show_default=True,
@@ -78,10 +80,10 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
 @click.option("--mp", "mp", callback=_parse_mp, metavar="AXIS=KG,...",
               help="Device mass per axis for the derived arm dynamics [default: the paper's "
                    "x=0.09,y=0.095,z=0.091].")
-@click.option("--coherence-min", type=click.FloatRange(0, 1), default=_DEFAULTS.coherence_min,
+@click.option("--coherence-min", type=Number(0, 1), default=_DEFAULTS.coherence_min,
               show_default=True,
               help="Grid points with lower coherence are flagged low_coherence.")
-@click.option("--force-limit", "force_limit", type=click.FloatRange(min=0, min_open=True),
+@click.option("--force-limit", "force_limit", type=Number(min=0, min_open=True),
               default=_DEFAULTS.force_limit_N, show_default=True, metavar="N",
               help="Device peak force; trials reaching it are flagged saturation.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,

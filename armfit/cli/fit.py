@@ -11,6 +11,7 @@ import click
 
 from armfit.api import fit_grip as api_fit_grip
 from armfit.api import fit_nominal as api_fit_nominal
+from armfit.cli.options import Whole
 from armfit.constants import PAPER_BANDS
 from armfit.fitting import COSTS
 from armfit.io.atomic import check_output
@@ -41,17 +42,17 @@ def _options(f):
         axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis "
                           "(LO:HI) [default: x=0.1:30,y=0.1:30,z=0.1:10, as the paper]; "
                           "axes not named keep the default."),
-        click.option("--bootstrap", type=click.IntRange(0, 100000), default=0,
+        click.option("--bootstrap", type=Whole(0, 100000), default=0,
                      show_default=True,
                      help="Resample subjects N times for percentile intervals "
                           "(0: intervals from the Jacobian)."),
-        click.option("--seed", type=int, default=0, show_default=True,
+        click.option("--seed", type=Whole(), default=0, show_default=True,
                      help="Seed of the bootstrap resampling (the fit itself uses none)."),
         fit_effect_option,
         effects_file_option,
         click.option("--method", default=None, metavar="NAME",
                      help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin)."),
-        click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",
+        click.option("--max-nfev", type=Whole(1, None), default=None, metavar="N",
                      help="Evaluation budget of each final local fit [default: 200 per "
                           "parameter]; a fit that runs out exits 3."),
         click.option("--latex", "latex", type=click.Path(dir_okay=False), default=None,

@@ -17,6 +17,7 @@ import click
 
 from armfit.api import ModelFit
 from armfit.api import fit_uncertainty as api_fit_uncertainty
+from armfit.cli.options import Whole
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
 from armfit.io.numbers import parse_number
@@ -77,7 +78,7 @@ def _pairs(reps) -> list[list[float]]:
               show_default=True,
               help="envelope: |Wu| >= W_max on and between grid points, as tight as "
                    "possible; paper: dB least squares against W_max (no guarantee).")
-@click.option("--order", type=click.IntRange(0, MAX_PAIRS), default=None, metavar="N",
+@click.option("--order", type=Whole(0, MAX_PAIRS), default=None, metavar="N",
               help=f"Zero pairs = pole pairs of Wu, 0..{MAX_PAIRS} [default: the smallest "
                    "order within 0.1 dB of the best].")
 @band_option("Band in Hz [default: 0.01:30 as the paper, limited to the spectra].")

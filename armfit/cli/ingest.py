@@ -7,6 +7,7 @@ import contextlib
 import click
 
 from armfit.cli.options import (
+    Number,
     emit_json,
     json_option,
     manifest_option,
@@ -29,10 +30,10 @@ from armfit.io.trials import TrialStream, ingest
 @click.option("--resample", is_flag=True,
               help="Resample trials whose sampling rate differs to the most common rate "
                    "(default: such a trial is an error).")
-@click.option("--f-min", "f_min", type=click.FloatRange(min=0, min_open=True), default=GRID_HZ[0],
+@click.option("--f-min", "f_min", type=Number(min=0, min_open=True), default=GRID_HZ[0],
               show_default=True, metavar="HZ",
               help="Lowest frequency to be estimated; a trial must last at least 2/HZ s.")
-@click.option("--force-limit", "force_limit", type=click.FloatRange(min=0, min_open=True),
+@click.option("--force-limit", "force_limit", type=Number(min=0, min_open=True),
               default=FORCE_LIMIT_N, show_default=True, metavar="N",
               help="Device peak force; forces reaching it are warned about (saturation).")
 @overwrite_option

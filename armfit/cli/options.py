@@ -12,11 +12,51 @@ import click
 
 from armfit.constants import AXES
 from armfit.errors import UsageError
-from armfit.io.numbers import parse_number
+from armfit.io.numbers import parse_number, parse_whole
 from armfit.io.schema import finite_or_none, json_default
 from armfit.models.effects import EFFECTS, load_effect_files
 
 _T = TypeVar("_T")
+
+def _strict(value, parse, param, ctx, fail):
+    """``value`` through armfit's one number parser when it is text (so an option
+    reads numbers exactly as the files do: no digit separators, no other scripts'
+    digits), else as given."""
+    if not isinstance(value, str):
+        return value
+    try:
+        return parse(value)
+    except ValueError as exc:
+        fail(str(exc), param, ctx)
+
+
+def _signed_whole(text: str) -> int:
+    body = text.strip()
+    sign = -1 if body[:1] == "-" else 1
+    return sign * parse_whole(body[1:] if body[:1] in "+-" else body)
+
+
+class Number(click.FloatRange):
+    """A float option (optionally bounded, as :class:`click.FloatRange`) whose text is
+    read by :func:`armfit.io.numbers.parse_number`."""
+
+    name = "float"
+
+    def convert(self, value, param, ctx):
+        return super().convert(_strict(value, parse_number, param, ctx, self.fail),
+                               param, ctx)
+
+
+class Whole(click.IntRange):
+    """An integer option (optionally bounded, as :class:`click.IntRange`) whose text is
+    ASCII digits with an optional sign (:func:`armfit.io.numbers.parse_whole`)."""
+
+    name = "integer"
+
+    def convert(self, value, param, ctx):
+        return super().convert(_strict(value, _signed_whole, param, ctx, self.fail),
+                               param, ctx)
+
 
 output_option = click.option(
     "-o", "--output", "output", required=True, type=click.Path(dir_okay=True),
@@ -41,7 +81,7 @@ manifest_option = click.option(
     "--manifest", type=click.Path(dir_okay=False), multiple=True, callback=_one_manifest,
     help="CSV with columns file,subject,axis,grip_N[,run]; paths relative to it. Once.")
 jobs_option = click.option(
-    "-j", "--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
+    "-j", "--jobs", type=Whole(1, 64), default=1, show_default=True,
     help="Worker processes.")
 scheduler_option = click.option(
     "--scheduler", default=None, metavar="ADDRESS",
@@ -253,6 +293,7 @@ def iterate(items: Iterable[_T], total: int, description: str) -> Iterator[_T]:
 
 
 __all__ = [
+    "Number", "Whole",
     "output_option", "overwrite_option", "json_option", "skip_bad_option",
     "manifest_option", "jobs_option", "scheduler_option", "cluster_executor",
     "effect_option", "outside_loop_option", "fit_effect_option", "effect_items",

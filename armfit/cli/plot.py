@@ -11,6 +11,7 @@ import numpy as np
 
 from armfit import figures
 from armfit.api import compare
+from armfit.cli.options import Number, Whole
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
 from armfit.errors import BadInputError, UsageError
@@ -156,7 +157,7 @@ def uncertainty_command(spectra, nominal_path, weights_path, axis, output, overw
               help="Fitted parameters; default: the paper's Table I.")
 @click.option("--axis", type=AXIS_CHOICE, default="x", show_default=True,
               help="Axis of the row to draw.")
-@click.option("--grip", type=float, default=1.0, show_default=True,
+@click.option("--grip", type=Number(), default=1.0, show_default=True,
               help="Grip force (N) of the row to draw, when the file has grip fits.")
 @output_option
 @overwrite_option
@@ -189,11 +190,11 @@ def literature_command(model_path, axis, grip, output, overwrite):
 @command.command("stability")
 @effects_file_option
 @click.argument("params", metavar="PARAMS")
-@click.option("--sample-time", "sample_time", type=float, default=1e-3, show_default=True,
+@click.option("--sample-time", "sample_time", type=Number(), default=1e-3, show_default=True,
               metavar="S", help="Servo period T in seconds of the top row.")
-@click.option("--damping", type=float, default=0.0, show_default=True, metavar="B",
+@click.option("--damping", type=Number(), default=0.0, show_default=True, metavar="B",
               help="Virtual damping B, N*s/m.")
-@click.option("--delay-samples", "delay", type=int, default=1, show_default=True,
+@click.option("--delay-samples", "delay", type=Whole(), default=1, show_default=True,
               metavar="D", help="Computation delay d of the top row, samples.")
 @output_option
 @overwrite_option

@@ -8,6 +8,8 @@ import click
 
 from armfit.api import simulate
 from armfit.cli.options import (
+    Number,
+    Whole,
     effect_files,
     effect_option,
     effects_file_option,
@@ -66,7 +68,7 @@ def build_config(*, subjects: int, axes: str, grips: str, duration: str, fs: flo
 @effects_file_option
 @click.option("-o", "--output", "output", required=True, type=click.Path(file_okay=False),
               help="Study folder to write (one file per trial; written atomically).")
-@click.option("--subjects", type=click.IntRange(1, 999), default=_DEFAULTS.subjects,
+@click.option("--subjects", type=Whole(1, 999), default=_DEFAULTS.subjects,
               show_default=True, help="Number of subjects.")
 @click.option("--axes", default="xyz", show_default=True,
               help="Stimulated axes, e.g. xyz or z.")
@@ -74,19 +76,19 @@ def build_config(*, subjects: int, axes: str, grips: str, duration: str, fs: flo
               help="Target grip forces in N (rows of the paper's Table I).")
 @click.option("--duration", default="50,100", show_default=True, metavar="MIN,MAX",
               help="Trial lengths in s, drawn uniformly between MIN and MAX per trial.")
-@click.option("--fs", type=click.FloatRange(min=0, min_open=True), default=_DEFAULTS.fs,
+@click.option("--fs", type=Number(min=0, min_open=True), default=_DEFAULTS.fs,
               show_default=True, metavar="HZ", help="Sampling rate.")
-@click.option("--seed", type=click.IntRange(min=0), default=_DEFAULTS.seed,
+@click.option("--seed", type=Whole(min=0), default=_DEFAULTS.seed,
               show_default=True, help="Random seed: the same seed gives identical files.")
-@click.option("--noise", type=click.FloatRange(min=0), default=_DEFAULTS.noise_m,
+@click.option("--noise", type=Number(min=0), default=_DEFAULTS.noise_m,
               show_default=True, metavar="M", help="Position sensor noise, m rms.")
-@click.option("--quantum", type=click.FloatRange(min=0), default=_DEFAULTS.quantum_m,
+@click.option("--quantum", type=Number(min=0), default=_DEFAULTS.quantum_m,
               show_default=True, metavar="M",
               help="Position encoder step, m (0: no quantisation).")
-@click.option("--drift", type=click.FloatRange(min=0), default=_DEFAULTS.drift_m,
+@click.option("--drift", type=Number(min=0), default=_DEFAULTS.drift_m,
               show_default=True, metavar="M",
               help="Slow postural drift (below ~0.1 Hz), m rms.")
-@click.option("--variability", type=click.FloatRange(0, 1), default=_DEFAULTS.variability,
+@click.option("--variability", type=Number(0, 1), default=_DEFAULTS.variability,
               show_default=True, metavar="S",
               help="Log-sd of each subject's factor on each arm parameter (0: Table I).")
 @click.option("--format", "fmt", type=click.Choice(list(RAW_FORMATS)), default="parquet",

@@ -15,6 +15,8 @@ import click
 
 from armfit.api import fit_trials as api_fit_trials
 from armfit.cli.options import (
+    Number,
+    Whole,
     axis_bands_option,
     bands_by_axis,
     clean,
@@ -134,11 +136,11 @@ def _limit_words(g) -> str:
 
 @click.command("stability")
 @click.argument("params", metavar="PARAMS")
-@click.option("--sample-time", "sample_time", type=float, default=DEFAULT_SAMPLE_TIME_S,
+@click.option("--sample-time", "sample_time", type=Number(), default=DEFAULT_SAMPLE_TIME_S,
               show_default=True, metavar="S", help="Servo period T in seconds (1e-3: 1 kHz).")
-@click.option("--damping", type=float, default=DEFAULT_DAMPING_NS_PER_M, show_default=True,
+@click.option("--damping", type=Number(), default=DEFAULT_DAMPING_NS_PER_M, show_default=True,
               metavar="B", help="Virtual damping B of the wall, N*s/m.")
-@click.option("--delay-samples", "delay", type=int, default=DEFAULT_DELAY_SAMPLES,
+@click.option("--delay-samples", "delay", type=Whole(), default=DEFAULT_DELAY_SAMPLES,
               show_default=True, metavar="D", help="Computation delay d, whole samples.")
 @click.option("--weights", "weights_path", default=None, metavar="WU.csv",
               help="Also the robust certificate against these uncertainty weights "
@@ -225,7 +227,7 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
 @effects_file_option
 @click.option("--method", default=None, metavar="NAME",
               help="Estimator to fit when SPECTRA holds several (e.g. h1, chebwin).")
-@click.option("--max-nfev", type=click.IntRange(1, None), default=None, metavar="N",
+@click.option("--max-nfev", type=Whole(1, None), default=None, metavar="N",
               help="Evaluation budget of each final local fit [default: 200 per parameter].")
 @jobs_option
 @scheduler_option

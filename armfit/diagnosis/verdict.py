@@ -50,5 +50,6 @@ def verdict_text(base: Adequacy, final: Adequacy, missing: Sequence[MissingEffec
         text += ("; the missing physics may lie outside the effect library (write it as "
                  "an effect file and rerun with --effects FILE)")
         if stop == "max-steps":
-            text += "; the search stopped at --max-steps"
+            text += (f"; the search stopped at its limit of {len(missing)} effect(s) "
+                     "(armfit diagnose --max-steps)")
     return text
