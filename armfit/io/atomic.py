@@ -44,14 +44,17 @@ every output is the new one or every output is as before.
 
 **A process killed outright** (SIGKILL, power loss) cannot be atomic across several
 renames. What it can leave: its temporaries (``.tmp``); with the folder fallback, the old
-folder set aside (``.old``) while the destination is missing; and, killed in the commit
-of several outputs, some outputs new and others old, with their set-aside copies and the
-journals. The next write into one of those folders repairs it (:func:`clean_stale`): a
-journal of a dead process (its pid, on this host) is read and the whole commit rolled
-back (each output whose content is the new one, recognised by its inode, gets its
-previous version back or is removed if it had none); the temporaries of dead processes
-are removed; a set-aside folder is put back if the destination is missing. Each action
-is reported, and a leftover that cannot be removed is reported as such.
+folder set aside (``.old``) while the destination is missing; killed in the commit of
+several outputs, some outputs new and others old, with the set-aside previous versions
+and the journals; killed after its commit, set-aside previous versions. Removing the
+first journal is the commit point: a journal whose first copy is gone belongs to a
+commit that was complete. The next write into one of those folders repairs it
+(:func:`clean_stale`): a journal of a dead process (its pid, on this host) whose commit
+was not complete is rolled back whole (each output whose content is the new one,
+recognised by its inode, gets its previous version back, or is removed if it had none);
+the temporaries and set-aside copies of dead processes are removed; a set-aside folder
+is put back if the destination is missing. Each action is reported, and a leftover that
+cannot be removed is reported as such, never as removed.
 
 Every OS refusal of a write (no space, read-only or unwritable folder, a parent that is a
 file, a name over the file system's limit ...) becomes an
@@ -154,7 +157,7 @@ def _remove(path: Path) -> str | None:
         def note(_fn, name, exc):
             exc = exc[1] if isinstance(exc, tuple) else exc
             if not isinstance(exc, FileNotFoundError):
-                errors.append(f"{getattr(exc, 'filename', None) or name}: {_text(exc)}")
+                errors.append(f"{name}: {_text(exc)}")
         shutil.rmtree(path, **{"onexc" if sys.version_info >= (3, 12) else "onerror": note})
     else:
         try:
@@ -349,9 +352,34 @@ def _limit(where: Path, name: str, default: int) -> int:
         return default
 
 
+def check_length(path: str | os.PathLike, *, folder: bool = False) -> Path:
+    """Refuse an output whose name is over the file system's limit (NAME_MAX, 255 bytes
+    on most), or whose path, with the temporary name it needs (and for a folder the
+    room for what it holds, :data:`FOLDER_ROOM_BYTES`), is over the system's limit
+    (PATH_MAX, 4096 bytes on Linux).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The output.
+    folder : bool
+        The output is a folder.
+
+    Returns
+    -------
+    pathlib.Path
+        The output.
+
+    Raises
+    ------
+    OutputError
+        Exit 73, naming the path, the length and the limit.
+    """
+    _check_lengths(Path(path), folder)
+    return Path(path)
+
+
 def _check_lengths(dest: Path, folder: bool) -> None:
-    """Refuse a name over the file system's NAME_MAX, or a path (with the temporary name
-    it needs, and for a folder the room for what it holds) over PATH_MAX."""
     where = _nearest(dest)
     name_max = _limit(where, "PC_NAME_MAX", 255)
     for part in dest.parts:
@@ -361,15 +389,20 @@ def _check_lengths(dest: Path, folder: bool) -> None:
                               f"the file system's limit of {name_max} bytes "
                               f"({os.strerror(errno.ENAMETOOLONG)})")
     path_max = _limit(where, "PC_PATH_MAX", 4096)
+    size = len(os.fsencode(str(dest)))
     longest = len(os.fsencode(str(dest.parent / ("x" * TEMP_NAME_BYTES)))) + max(
         0, len(os.fsencode(dest.name)) - TEMP_NAME_BYTES)
     longest += FOLDER_ROOM_BYTES + 1 if folder else 0
+    if size >= path_max:
+        raise OutputError(f"{dest}: cannot write: the path is {size} bytes, over the "
+                          f"system's limit of {path_max} bytes "
+                          f"({os.strerror(errno.ENAMETOOLONG)})")
     if longest >= path_max:
-        raise OutputError(f"{dest}: cannot write: the path is {len(os.fsencode(str(dest)))} "
-                          f"bytes, too long for the system's limit of {path_max} bytes "
-                          f"with the temporary names armfit needs"
-                          + (" inside it" if folder else "")
-                          + f" ({os.strerror(errno.ENAMETOOLONG)})")
+        raise OutputError(f"{dest}: cannot write: the path is {size} bytes; with the "
+                          "temporary names armfit writes "
+                          + ("inside it" if folder else "beside it")
+                          + f", it would be over the system's limit of {path_max} bytes "
+                          f"({os.strerror(errno.ENAMETOOLONG)}); give a shorter path")
 
 
 def _read_only(path: Path) -> bool:
@@ -896,6 +929,8 @@ class OutputSet:
         _check_dest(e.dest, e.overwrite, e.folder)
         if e.folder and e.existed:
             _check_replaceable(e.dest)
+        if e.existed:                  # the name its previous version is set aside under
+            e.backup = e.dest.with_name(temp_name(e.dest.name, "old"))
         e.ident = _ident(e.tmp)
 
 
@@ -949,7 +984,6 @@ def _commit_one(e: _Entry, *, several: bool) -> None:
     if not e.existed:
         _place_new(e.tmp, e.dest, e.folder)
         return
-    e.backup = e.dest.with_name(temp_name(e.dest.name, "old"))
     if e.folder:
         e.old = _swap_in(e.tmp, e.dest, e.backup)
         return
@@ -984,10 +1018,11 @@ def _roll_back(entries: list[_Entry], journals: list[Path]) -> None:
             failed = True
             _log.warning(f"{e.dest}: could not be restored after a failed commit: "
                          f"{_text(exc)}; the next write beside it repairs it")
-        _rmdirs(e.made)
     if not failed:
         for j in journals:
             _remove(j)
+    for e in reversed(entries):
+        _rmdirs(e.made)
 
 
 @contextlib.contextmanager
@@ -1103,6 +1138,6 @@ def write_text_atomic(path: str | os.PathLike, text: str, *, overwrite: bool = F
 
 __all__ = [
     "SHORT_BYTES", "TEMP_NAME_BYTES", "FOLDER_ROOM_BYTES", "temp_name", "clean_stale",
-    "check_output", "exchange_folders", "OutputSet", "atomic_outputs", "atomic_path",
-    "write_text_atomic",
+    "check_length", "check_output", "exchange_folders", "OutputSet", "atomic_outputs",
+    "atomic_path", "write_text_atomic",
 ]
