@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -31,7 +32,7 @@ from click.testing import CliRunner
 from armfit.cli.main import cli
 from armfit.errors import EXIT_CANTCREAT, OutputError
 from armfit.io import atomic
-from armfit.io.atomic import atomic_outputs, atomic_path, clean_stale, write_text_atomic
+from armfit.io.atomic import atomic_path, clean_stale, write_text_atomic
 
 ARMFIT = str(Path(sys.executable).with_name("armfit"))
 
@@ -264,9 +265,26 @@ def test_simulate_study_written_by_another_run_meanwhile(tmp_path, monkeypatch):
     assert leftovers(tmp_path) == []
 
 
+_SLOW_WRITER = textwrap.dedent("""
+    import sys, time
+    import pyarrow.parquet as pq
+    close = pq.ParquetWriter.close
+
+    def slow_close(self):  # the spectra file takes a while to write
+        close(self)
+        time.sleep(1.5)
+    pq.ParquetWriter.close = slow_close
+    from armfit.cli.entry import main
+    sys.argv = ["armfit", *sys.argv[1:]]
+    main()
+""")
+
+
 def test_two_concurrent_estimates_one_wins_whole(study, tmp_path):
-    # two real processes write the same output without --overwrite: one exits 0, the
-    # other 73, and the output is exactly the winner's (its bytes when run alone)
+    # `(armfit estimate A -o s.parquet) & (sleep 0.3; armfit estimate B -o s.parquet)`,
+    # two real processes, each writing its temporary for 1.5 s so that both are
+    # writing at once: one exits 0, the other 73 at its commit, and the output is
+    # exactly the winner's (its bytes when run alone)
     half = tmp_path / "half"
     half.mkdir()
     for p in sorted(study.iterdir())[:4]:
@@ -278,15 +296,16 @@ def test_two_concurrent_estimates_one_wins_whole(study, tmp_path):
     out = tmp_path / "s.parquet"
     procs = {}
     for name, src in (("all", study), ("half", half)):
-        procs[name] = subprocess.Popen([ARMFIT, "estimate", str(src), "-o", str(out)],
+        procs[name] = subprocess.Popen([sys.executable, "-c", _SLOW_WRITER, "estimate",
+                                        str(src), "-o", str(out)],
                                        stderr=subprocess.PIPE, text=True)
+        time.sleep(0.3)
     codes = {name: p.wait(120) for name, p in procs.items()}
     errs = {name: p.stderr.read() for name, p in procs.items()}
     assert sorted(codes.values()) == [0, EXIT_CANTCREAT], errs
     winner = next(n for n, c in codes.items() if c == 0)
     loser = next(n for n, c in codes.items() if c != 0)
-    line = one_line_error(errs[loser])
-    assert APPEARED in line or "exists; pass --overwrite" in line
+    assert one_line_error(errs[loser]) == f"armfit: error: {out}: {APPEARED}"
     assert digest(out) == digest(refs[winner])
     assert leftovers(tmp_path) == []
 
@@ -393,12 +412,30 @@ def test_interrupt_in_the_middle_of_the_commit_rolls_back(tmp_path, monkeypatch)
         real(e, several=several)
     monkeypatch.setattr(atomic, "_commit_one", commit_one)
     with pytest.raises(KeyboardInterrupt):
-        with atomic_outputs(overwrite=True):
+        with atomic.atomic_outputs(overwrite=True):
             write_text_atomic(tmp_path / "a.txt", "new a")
             write_text_atomic(tmp_path / "b.txt", "new b", overwrite=True)
     assert calls == ["a.txt", "b.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["b.txt"]
     assert (tmp_path / "b.txt").read_text() == "old b"
+
+
+@pytest.mark.parametrize("fallback", ["renameat2", "hard link"])
+def test_a_replaced_folder_is_put_back_when_a_later_output_fails(fallback, tmp_path,
+                                                                  monkeypatch):
+    folder, truth = tmp_path / "study", tmp_path / "truth.json"
+    folder.mkdir()
+    (folder / "old.txt").write_text("old trial")
+    truth.write_text("old truth")
+    before = tree(tmp_path)
+    FALLBACKS[fallback](monkeypatch)
+    fail_rename_of(monkeypatch, truth.name, errno.ENOSPC)
+    with pytest.raises(OutputError, match=f"{re.escape(str(truth))}: cannot write"):
+        with atomic.atomic_outputs(overwrite=True):
+            with atomic_path(folder, overwrite=True, folder=True) as tmp:
+                (tmp / "new.txt").write_text("new trial")
+            write_text_atomic(truth, "new truth", overwrite=True)
+    assert tree(tmp_path) == before and leftovers(tmp_path) == []
 
 
 # ---------------------------------------------------------------------------
@@ -468,6 +505,47 @@ def test_sigkill_in_the_commit_is_repaired_by_the_next_write(when, expected, tmp
     else:
         assert [p.read_text() for p in (a, b, c)] == ["new a.txt", "new b.txt", "new c.txt"]
     assert leftovers(one, two) == []
+
+
+_KILLED_FOLDER_WRITER = textwrap.dedent("""
+    import os, signal, sys
+    from pathlib import Path
+    from armfit.io import atomic
+    folder, truth = map(Path, sys.argv[1:])
+    real = atomic._commit_one
+
+    def commit_one(e, *, several):
+        if e.dest == truth:
+            os.kill(os.getpid(), signal.SIGKILL)
+        real(e, several=several)
+    atomic._commit_one = commit_one
+    with atomic.atomic_outputs(overwrite=True):
+        with atomic.atomic_path(folder, overwrite=True, folder=True) as tmp:
+            (tmp / "new.txt").write_text("new trial")
+        atomic.write_text_atomic(truth, "new truth", overwrite=True)
+""")
+
+
+@pytest.mark.parametrize("fallback", ["renameat2", "rename aside"])
+def test_sigkill_after_a_folder_was_replaced_is_rolled_back(fallback, tmp_path):
+    folder, truth = tmp_path / "study", tmp_path / "study.truth.json"
+    folder.mkdir()
+    (folder / "old.txt").write_text("old trial")
+    truth.write_text("old truth")
+    before = tree(tmp_path)
+    script = _KILLED_FOLDER_WRITER
+    if fallback == "rename aside":
+        script = script.replace("real = atomic._commit_one", "real = atomic._commit_one\n"
+                                "atomic._renameat2 = lambda a, b, f: False")
+    proc = subprocess.run([sys.executable, "-c", script, folder, truth],
+                          capture_output=True, text=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert sorted(p.name for p in folder.iterdir()) == ["new.txt"]    # half committed
+    done = clean_stale(tmp_path, "study.truth.json")
+    assert f"put the previous {folder} back: a run that stopped in the middle of its " \
+           "commit is rolled back" in done[0]
+    clean_stale(tmp_path, "study")
+    assert tree(tmp_path) == before and leftovers(tmp_path) == []
 
 
 def test_sigkill_mid_commit_is_rolled_back_by_the_next_command(nominal, spectra, tmp_path):
