@@ -955,28 +955,43 @@ def _commit_error(e: _Entry | None, exc: OSError) -> OutputError:
 
 def _write_journals(entries: list[_Entry]) -> list[Path]:
     """Write the journal of a commit of several outputs into every destination folder
-    (fsync'ed, with the folder), before the first rename."""
+    (fsync'ed, with the folder), before the first rename. The first is the commit
+    point: the commit is complete once it is removed."""
     folders = list(dict.fromkeys(e.dest.parent for e in entries))
-    paths = [f / temp_name(_JOURNAL, "txn") for f in folders]
-    text = json.dumps({"entries": [e.record() for e in entries],
-                       "journals": [str(p.absolute()) for p in paths]}, indent=1)
-    written = []
+    written: list[tuple[Path, int]] = []
     try:
-        for p in paths:
-            fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0),
-                         0o644)
-            written.append(p)
-            try:
-                os.write(fd, text.encode("utf-8"))
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+        for f in folders:
+            written.append(_new_journal(f))
+        paths = [p for p, _fd in written]
+        data = json.dumps({"entries": [e.record() for e in entries],
+                           "journals": [str(p.absolute()) for p in paths]},
+                          indent=1).encode("utf-8")
+        for p, fd in written:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
             _fsync_path(p.parent, directory=True)
     except BaseException:
-        for p in written:
+        for p, _fd in written:
             _remove(p)
         raise
+    finally:
+        for _p, fd in written:
+            os.close(fd)
     return paths
+
+
+def _new_journal(folder: Path) -> tuple[Path, int]:
+    """An empty journal file in ``folder``, created exclusively, and its descriptor."""
+    for _ in range(100):
+        path = folder / temp_name(_JOURNAL, "txn")
+        try:
+            return path, os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL
+                                 | getattr(os, "O_CLOEXEC", 0), 0o644)
+        except FileExistsError:
+            continue
+    raise OSError(errno.EEXIST, f"cannot create a journal name in {folder}")
 
 
 def _commit_one(e: _Entry, *, several: bool) -> None:
