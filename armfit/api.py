@@ -46,7 +46,7 @@ from armfit.diagnosis import (
 )
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import write_params, write_wu, write_wu_table, wu_frame
-from armfit.io.atomic import atomic_path, write_text_atomic
+from armfit.io.atomic import atomic_outputs, atomic_path, write_text_atomic
 from armfit.io.rawwrite import trial_filename, write_trial
 from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
 from armfit.io.trials import Skipped, Trial, Warn, open_trials, write_dataset
@@ -350,11 +350,13 @@ class ModelFit:
 
     def write(self, path: PathLike, *, overwrite: bool = False,
               latex: PathLike | None = None) -> Path:
-        """Write the params CSV (and with ``latex`` the LaTeX table), atomically: the files
-        of ``armfit fit-grip`` / ``fit-nominal``."""
-        write_params(self.table, path, overwrite=overwrite)
-        if latex is not None:
-            write_text_atomic(latex, self.latex(), overwrite=overwrite)
+        """Write the params CSV (and with ``latex`` the LaTeX table): the files of
+        ``armfit fit-grip`` / ``fit-nominal``, committed together (both or neither,
+        :func:`armfit.io.atomic.atomic_outputs`)."""
+        with atomic_outputs(overwrite=overwrite):
+            write_params(self.table, path, overwrite=overwrite)
+            if latex is not None:
+                write_text_atomic(latex, self.latex(), overwrite=overwrite)
         return Path(path)
 
     def plot(self, ax=None):
@@ -508,15 +510,17 @@ class Uncertainty:
               latex: PathLike | None = None) -> tuple[Path, ...]:
         """Write the files of ``armfit fit-uncertainty``: the Wu CSV, ``<stem>_summary.csv``
         and ``<stem>_wmax.csv`` beside it (and with ``latex`` a Table III-style table),
-        each atomically. Returns the paths written."""
+        committed together (all or none, :func:`armfit.io.atomic.atomic_outputs`).
+        Returns the paths written."""
         summary_path, points_path = wu_sidecar_paths(path)
-        write_wu(self.weights, path, overwrite=overwrite)
-        write_wu_table(self.summary(), summary_path, overwrite=overwrite)
-        write_wu_table(self.points(), points_path, overwrite=overwrite)
         out = (Path(path), summary_path, points_path)
-        if latex is not None:
-            write_text_atomic(latex, wu_latex(self.weights), overwrite=overwrite)
-            out += (Path(latex),)
+        with atomic_outputs(overwrite=overwrite):
+            write_wu(self.weights, path, overwrite=overwrite)
+            write_wu_table(self.summary(), summary_path, overwrite=overwrite)
+            write_wu_table(self.points(), points_path, overwrite=overwrite)
+            if latex is not None:
+                write_text_atomic(latex, wu_latex(self.weights), overwrite=overwrite)
+                out += (Path(latex),)
         return out
 
     def plot(self, ax=None):
@@ -1136,11 +1140,13 @@ class Simulation:
               options: Mapping[str, object] | None = None,
               advance: Callable[[], object] | None = None) -> list[str]:
         """Write one raw trial file per trial into ``folder`` and the truth JSON beside it
-        (default ``<folder>.truth.json``), each atomically. Returns the file names."""
+        (default ``<folder>.truth.json``), committed together (both or neither,
+        :func:`armfit.io.atomic.atomic_outputs`). Returns the file names."""
         out = Path(folder)
         truth_path = Path(truth) if truth else out.with_name(out.name + ".truth.json")
         files = []
-        with atomic_path(truth_path, overwrite=overwrite) as truth_tmp, \
+        with atomic_outputs(overwrite=overwrite), \
+                atomic_path(truth_path, overwrite=overwrite) as truth_tmp, \
                 atomic_path(out, overwrite=overwrite, folder=True) as tmp:
             for trial in self.trials():
                 name = trial_filename(trial.meta, fmt)

@@ -58,7 +58,8 @@ Every later stage reads the files the earlier ones wrote (as the subcommands do)
 ``armfit run`` gives the same numbers as the subcommands run one after the other with
 the same options. The whole folder is built in a temporary folder beside OUTDIR and
 renamed onto it at the end (:func:`armfit.io.atomic.atomic_path`): a failure leaves no
-OUTDIR, and an existing OUTDIR is replaced only with ``overwrite``.
+OUTDIR, and an existing OUTDIR (also one another run wrote meanwhile) is replaced only
+with ``overwrite``.
 """
 
 from __future__ import annotations
@@ -85,7 +86,13 @@ from armfit.diagnosis import diagnose_axes
 from armfit.errors import ArmfitError, OutputError
 from armfit.fitting import TrialFit, fit_trial_models, grip_fit_starts, trial_fits_table
 from armfit.io.artifacts import write_params
-from armfit.io.atomic import atomic_path, check_output, resolved_path, write_text_atomic
+from armfit.io.atomic import (
+    atomic_path,
+    check_length,
+    check_output,
+    resolved_path,
+    write_text_atomic,
+)
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import Warn, ingest
 from armfit.loop import WallSettings, axis_summary, stability_table
@@ -181,9 +188,12 @@ OnStage = Callable[[Stage], object]
 
 def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike], *,
                  manifest: str | os.PathLike | None = None, overwrite: bool = False) -> Path:
-    """Refuse an OUTDIR that exists without ``overwrite``, is a file, or is or holds an
-    input (replacing it would delete the input). Raises OutputError (exit 73)."""
-    out = Path(outdir)
+    """Refuse an OUTDIR whose name or path is over the system's limits, that exists
+    without ``overwrite``, is a file or a symbolic link, is or holds an input (replacing
+    it would delete the input), could not be removed whole to be replaced, or whose
+    folder cannot be written (:func:`armfit.io.atomic.check_output`). Raises OutputError
+    (exit 73)."""
+    out = check_length(outdir, folder=True)
     named = [*inputs, *([manifest] if manifest is not None else [])]
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder; give a folder for OUTDIR")

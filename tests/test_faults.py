@@ -188,8 +188,13 @@ def test_file_and_folder_fsynced_before_the_rename(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "fsync", lambda fd: (events.append("fsync"), real_fsync(fd))[1])
     monkeypatch.setattr(os, "replace", lambda a, b: (events.append("rename"),
                                                       real_replace(a, b))[1])
+    real_renameat2 = atomic._renameat2  # a new output is renamed in without replacing
+    monkeypatch.setattr(atomic, "_renameat2", lambda a, b, f: (events.append("rename"),
+                                                               real_renameat2(a, b, f))[1])
     write_text_atomic(tmp_path / "a.txt", "x")
     assert events == ["fsync", "rename", "fsync"]  # the file, the rename, its folder
+    write_text_atomic(tmp_path / "a.txt", "y", overwrite=True)
+    assert events[3:] == ["fsync", "rename", "fsync"]  # also when it replaces a file
 
 
 # ---------------------------------------------------------------------------

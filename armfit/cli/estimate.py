@@ -24,7 +24,7 @@ from armfit.cli.options import (
 )
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.errors import UsageError
-from armfit.io.atomic import check_output
+from armfit.io.atomic import atomic_outputs, check_output
 from armfit.io.numbers import parse_number
 from armfit.spectra import EstimateConfig
 
@@ -129,9 +129,10 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
                                        warn=lambda text: message(f"warning: {text}"),
                                        executor=executor)
     meta = result.meta
-    result.write(output, overwrite=overwrite)
-    if csv_path is not None:
-        result.spectra.write_csv(csv_path, overwrite=overwrite)
+    with atomic_outputs(overwrite=overwrite):  # the Parquet file and the CSV, or neither
+        result.write(output, overwrite=overwrite)
+        if csv_path is not None:
+            result.spectra.write_csv(csv_path, overwrite=overwrite)
     for f, r in result.skipped:
         message(f"skipped {f}: {r}")
     message(f"estimated {len(result.trials)} trial(s) into {output}"
