@@ -59,6 +59,7 @@ from armfit.constants import (
 )
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path
+from armfit.io.ranges import DEVICE_MASS_RANGE, FREQUENCY_RANGE, check_in_range
 from armfit.io.schema import (
     COUNTED_FLAGS,
     CSV_FLOAT_FORMAT,
@@ -1327,6 +1328,9 @@ class Spectra:
                 raise BadInputError("missing column; not a spectra table written by "
                                     "`armfit estimate`", file=source, column=c)
         df = _complete(df)
+        # a negative, zero or non-finite frequency is bad data, not a usage error later
+        check_in_range(pd.to_numeric(df["freq_hz"], errors="coerce"), FREQUENCY_RANGE,
+                       file=source, column="freq_hz", shown=list(df["freq_hz"]))
         n_rows = len(df)
         keys_df = df[list(SPECTRA_KEYS)]
         if n_rows:
@@ -1449,6 +1453,12 @@ class Spectra:
             meta = json.loads(kv[SPECTRA_META_KEY]) if SPECTRA_META_KEY in kv else {}
         except ValueError:
             meta = {}
+        masses = meta.get("mp_kg") if isinstance(meta, dict) else None
+        for axis, mp in masses.items() if isinstance(masses, dict) else ():
+            # the device mass the derived dynamics were estimated with (fit-uncertainty)
+            check_in_range([_number_or_nan(mp)], DEVICE_MASS_RANGE, file=str(p),
+                           column=None, name=f"the device mass of axis {axis} in the "
+                           "metadata (mp_kg)", shown=[mp])
         df = table.select(list(SPECTRA_COLUMNS)).to_pandas()
         for col in ("axis", "out_axis"):  # rows of another axis would be dropped silently
             bad = np.flatnonzero(~df[col].isin(list(AXES)).to_numpy())
@@ -1538,6 +1548,14 @@ class Spectra:
         ax.set_xlabel("Frequency (Hz)")
         ax.set_ylabel("Magnitude (dB re 1 m/N)" if db else "Phase (deg)")
         return ax
+
+
+def _number_or_nan(v) -> float:
+    """``v`` as a float; NaN when it is not a number."""
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
 
 
 def _complete(df):

@@ -765,7 +765,8 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
                     band: tuple[float, float] | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
                     given: Mapping[str, Mapping[str, WuWeight]] | None = None,
-                    jobs: int = 1, executor=None) -> list[AxisUncertainty]:
+                    jobs: int = 1, executor=None, source: str | None = None
+                    ) -> list[AxisUncertainty]:
     """W_max (eq. 6) and Wu (eq. 7) for each axis with derived trial spectra and a
     nominal row.
 
@@ -776,12 +777,14 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
     {label: {axis: WuWeight}} weights to evaluate on the same data; ``jobs`` > 1: the
     axes' Wu fits in that many worker processes, or on ``executor`` (a
     :class:`concurrent.futures.Executor`, used as is; see :mod:`armfit.workers`) when
-    given (the results depend on neither).
+    given (the results depend on neither); ``source``: the file ``params`` came from,
+    named in messages. An axis without both derived trials and a nominal row is left
+    out (:func:`weight_axis_notes` says which).
     Returns one :class:`AxisUncertainty` per axis, in x, y, z order.
     """
     if "grip_N" in params.columns:
         raise BadInputError("has a grip_N column (grip-dependent fits); give the "
-                            "parameters file of fit-nominal", column="grip_N")
+                            "parameters file of fit-nominal", file=source, column="grip_N")
     trial_rows = Spectra.of(spectra).select(level="trial", kind="derived")
     have_spec = trial_rows.values_of("axis")
     have_par = set(params["axis"].astype(str))
@@ -790,13 +793,16 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
         raise BadInputError(f"no axis has both derived trial spectra (axes: "
                             f"{', '.join(sorted(have_spec)) or 'none'}) and a nominal "
                             f"row (axes: {', '.join(sorted(have_par)) or 'none'})",
-                            column="axis")
+                            file=source, column="axis")
     prepared = []
     for axis in wanted:
         rows = params[params["axis"].astype(str) == axis]
         if len(rows) > 1:
-            raise BadInputError(f"axis {axis} has {len(rows)} nominal rows; expected one",
-                                column="axis", row=int(rows.index[1]) + 1)
+            first, second = (int(i) for i in np.flatnonzero(params["axis"].astype(str)
+                                                              == axis)[:2] + 1)
+            raise BadInputError(f"axis {axis} has a second row (rows {first} and {second}); "
+                                "a nominal params file has one row per axis",
+                                file=source, column="axis", row=second)
         f, H, _ = derived_trials(trial_rows, axis, method=method)
         H = arm_trials(rows.iloc[0], f, H, derived_mass_kg(spectra, axis))
         Hn = nominal_arm_response(rows.iloc[0], f)
@@ -826,6 +832,40 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
         checks = {(label, tname): check_envelope(f, tw, w, band=b)
                   for label, w in weights.items() for tname, tw in targets.items()}
         out.append(AxisUncertainty(axis, f, raw, target, b, n_trials, res, checks))
+    return out
+
+
+def weight_axis_notes(spectra, params, *, spectra_label: str | None = None,
+                      params_label: str | None = None) -> list[str]:
+    """What :func:`fit_weights` leaves out, in sentences: an axis with derived trial
+    spectra but no nominal row (it gets no weight), and a nominal row without derived
+    trials. A subset of the axes is a legitimate study; the notes say which.
+
+    Parameters
+    ----------
+    spectra : Spectra or pandas.DataFrame
+    params : pandas.DataFrame
+        The nominal rows (a params table).
+    spectra_label, params_label : str, optional
+        The files, named in the sentences.
+
+    Returns
+    -------
+    list of str
+        One sentence per axis left out, in x, y, z order (empty when none is).
+    """
+    sl = spectra_label or "the spectra"
+    pl = params_label or "the nominal parameters"
+    have_spec = Spectra.of(spectra).select(level="trial", kind="derived").values_of("axis")
+    have_par = set(params["axis"].astype(str))
+    out = []
+    for axis in AXES:
+        if axis in have_spec and axis not in have_par:
+            out.append(f"axis {axis}: {sl} holds derived trials but {pl} has no row for "
+                       f"it; no weight is fitted for axis {axis}")
+        elif axis in have_par and axis not in have_spec:
+            out.append(f"axis {axis}: {pl} has a row but {sl} holds no derived trials of "
+                       f"it; no weight is fitted for axis {axis}")
     return out
 
 
@@ -908,5 +948,6 @@ __all__ = [
     "wu_response", "smooth_fractional_octave", "relative_error", "w_max",
     "EnvelopeCheck", "check_envelope", "WuResult", "fit_wu", "nominal_arm_response",
     "arm_trials", "derived_trials", "AxisUncertainty", "fit_weights",
-    "derived_mass_kg", "summary_table", "points_table", "read_weights_and_bands",
+    "derived_mass_kg", "weight_axis_notes", "summary_table", "points_table",
+    "read_weights_and_bands",
 ]

@@ -90,6 +90,8 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
     result = api_compare(data, model, level=level, band=band,
                          effects=_effects(effect_names))
     level, rows = result.level, result.rows
+    for text in result.notes:
+        message(f"note: {text}")
     if not rows:
         raise UsageError(f"{spectra}: holds no {level}-level measured responses for the "
                          f"axes of {model_path}")
