@@ -337,7 +337,12 @@ class ModelFit:
 
     @classmethod
     def of(cls, model) -> ModelFit:
-        """``model`` itself, a params DataFrame, or a params file's path, as a ModelFit."""
+        """``model`` itself, a params DataFrame, or a params file's path, as a ModelFit.
+
+        A DataFrame gets the checks of a params file
+        (:func:`armfit.models.params.check_param_rows`): BadInputError (exit 65) naming
+        the column and row of a value outside its physical range or a second row of a
+        model."""
         if isinstance(model, cls):
             return model
         if isinstance(model, str | os.PathLike):
@@ -1068,7 +1073,8 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     model : ModelFit, TrialFits, AdoptedModel, DataFrame, path or str
         The arm models: fits, a params file, or a paper table by name ('nominal',
         'grip'). An AdoptedModel stands for its per-trial fits, or with ``weights`` for
-        its nominal, its trials the members.
+        its nominal, its trials the members. A DataFrame (and a ``members`` DataFrame)
+        gets the checks of a params file.
     weights : Uncertainty, dict or path, optional
         Uncertainty weights Wu for the robust certificate (a fit, {axis: WuWeight}, a Wu
         CSV or 'paper' for Table III).
@@ -1084,6 +1090,13 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     Returns
     -------
     Stability
+
+    Raises
+    ------
+    BadInputError
+        A params or weights file (or DataFrame) breaks its contract, naming the file,
+        column and row (:func:`armfit.models.params.read_param_rows`,
+        :func:`armfit.io.artifacts.read_wu_rows`).
     """
     kw = {k: v for k, v in (("sample_time_s", sample_time_s),
                             ("damping_Ns_per_m", damping_Ns_per_m),

@@ -52,7 +52,7 @@ import numpy as np
 import pandas as pd
 from scipy import linalg
 
-from armfit.errors import UsageError
+from armfit.errors import UsageError, cell
 from armfit.io.schema import is_missing
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import EFFECTS, Effect
@@ -102,17 +102,17 @@ class WallSettings:
     def __post_init__(self) -> None:
         T, B, d = self.sample_time_s, self.damping_Ns_per_m, self.delay_samples
         if not (isinstance(T, (int, float)) and math.isfinite(T) and T > 0):
-            raise UsageError(f"{{opt:sample_time_s}} must be a period > 0 s, got {T!r}")
+            raise UsageError(f"{{opt:sample_time_s}} must be a period > 0 s, got {cell(T)}")
         if not (isinstance(B, (int, float)) and math.isfinite(B) and B >= 0):
             raise UsageError(f"{{opt:damping_Ns_per_m}} must be >= 0 N*s/m (a virtual damper), "
-                             f"got {B!r}")
+                             f"got {cell(B)}")
         if isinstance(d, bool) or not isinstance(d, (int, np.integer)):
             if isinstance(d, float) and d.is_integer():
                 object.__setattr__(self, "delay_samples", int(d))
                 d = int(d)
             else:
                 raise UsageError(f"{{opt:delay_samples}} must be a whole number of samples, "
-                                 f"got {d!r}")
+                                 f"got {cell(d)}")
         if d < 0:
             raise UsageError(f"{{opt:delay_samples}} must be >= 0, got {d}")
         object.__setattr__(self, "sample_time_s", float(T))
@@ -681,15 +681,18 @@ def robust_certificate(model: ClosedLoopModel, theta: Mapping[str, float], weigh
     n = max(int(CERT_POINTS_PER_DECADE * np.log10(top / lo)) + 1, 2)
     f = np.geomspace(lo, top, n)
     z, a, c = environment_terms(f, model, theta, settings)
-    wr = np.abs(weight.response(f))
-    w2 = wr ** 2
-    ratio0 = wr * np.abs(a) / np.abs(z + a)
+    # a weight too large for floating point gives a |Wu T| that is not a finite
+    # number: handled below (it certifies nothing), not warned about
+    with np.errstate(over="ignore", invalid="ignore"):
+        wr = np.abs(weight.response(f))
+        w2 = wr ** 2
+        ratio0 = wr * np.abs(a) / np.abs(z + a)
+        alpha = (w2 - 1.0) * np.abs(c) ** 2
+        beta = 2.0 * np.real((w2 * np.conj(a) - np.conj(z + a)) * c)
+        gamma = w2 * np.abs(a) ** 2 - np.abs(z + a) ** 2
+        k_first = _first_violation(alpha, beta, gamma)
     i0 = int(np.argmax(ratio0))
     peak0 = float(ratio0[i0])
-    alpha = (w2 - 1.0) * np.abs(c) ** 2
-    beta = 2.0 * np.real((w2 * np.conj(a) - np.conj(z + a)) * c)
-    gamma = w2 * np.abs(a) ** 2 - np.abs(z + a) ** 2
-    k_first = _first_violation(alpha, beta, gamma)
     j = int(np.argmin(k_first))
     k_w, f_bind = float(k_first[j]), float(f[j])
     limited = "weight" if f_bind <= hi else "weight beyond band"

@@ -126,7 +126,8 @@ def _as_outputs(pos: np.ndarray) -> np.ndarray:
 def _window(window, nperseg: int) -> np.ndarray:
     if isinstance(window, np.ndarray):
         if window.shape != (nperseg,):
-            raise UsageError(f"window has {window.shape[0]} points, expected {nperseg=}")
+            raise UsageError(f"window has {window.shape[0]} points, expected "
+                             f"nperseg={cell(nperseg)}")
         return window.astype(float)
     return _cached_window(window, nperseg, True)  # periodic, as scipy.signal.welch
 
@@ -185,13 +186,14 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
     y = _as_outputs(pos)
     n = f.size
     if nperseg > n:
-        raise UsageError(f"{nperseg=} exceeds the record length {n}")
+        raise UsageError(f"nperseg={cell(nperseg)} exceeds the record length {n}")
     noverlap = nperseg // 2 if noverlap is None else int(noverlap)
     if not 0 <= noverlap < nperseg:
-        raise UsageError(f"{noverlap=} must be >= 0 and < {nperseg=}")
+        raise UsageError(f"noverlap={cell(noverlap)} must be >= 0 and < "
+                         f"nperseg={cell(nperseg)}")
     nfft = nperseg if nfft is None else int(nfft)
     if nfft < nperseg:
-        raise UsageError(f"{nfft=} must be >= {nperseg=}")
+        raise UsageError(f"nfft={cell(nfft)} must be >= nperseg={cell(nperseg)}")
     win = _window(window, nperseg)
     step = nperseg - noverlap
     n_seg = (n - noverlap) // step
@@ -315,7 +317,7 @@ def log_grid(fmin: float = GRID_HZ[0], fmax: float = GRID_HZ[1],
     if not 0 < fmin < fmax:
         raise UsageError(f"need 0 < fmin < fmax, got fmin={fmin} Hz, fmax={fmax} Hz")
     if per_decade < 1:
-        raise UsageError(f"{per_decade=} must be >= 1")
+        raise UsageError(f"per_decade={cell(per_decade)} must be >= 1")
     n = max(2, int(round(per_decade * math.log10(fmax / fmin))) + 1)
     return np.geomspace(fmin, fmax, n)
 
@@ -668,10 +670,11 @@ class EstimateConfig:
             raise UsageError(f"nperseg must be >= 8 samples, got {self.nperseg}")
         if self.derived_segments < 1:
             raise UsageError(f"derived segments must be >= 1, got {self.derived_segments}")
-        for ax, m in self.mp.items():
-            if ax not in AXES or not m > 0:
-                raise UsageError(f"device mass must be given as axis x|y|z > 0 kg, "
-                                 f"got {ax}={m}")
+        lo, hi = DEVICE_MASS_RANGE.lower, DEVICE_MASS_RANGE.upper
+        for ax, m in self.mp.items():   # the range every reader of the spectra applies
+            if ax not in AXES or not lo <= m <= hi:
+                raise UsageError(f"device mass must be given as axis x|y|z and a mass in "
+                                 f"{DEVICE_MASS_RANGE.words()}, got {ax}={cell(m)}")
 
     def grid(self) -> np.ndarray:
         """The common grid, Hz (:func:`log_grid`); one read-only array shared by every

@@ -43,6 +43,7 @@ from threadpoolctl import threadpool_limits
 from armfit.constants import AXES
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.artifacts import read_wu_rows
+from armfit.io.ranges import FREQUENCY_RANGE, check_in_range
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS, wu_sidecar_paths
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
@@ -920,7 +921,15 @@ def read_weights_and_bands(path_or_name: str | Path):
     """({axis: WuWeight}, {axis: (lo, hi) Hz}, label) of a Wu CSV (fit-uncertainty
     output, Table III layout) or the paper's Table III by name (``paper``/``table3``;
     a file of that name wins). The band is the one the weight was fitted over, from the
-    ``<stem>_summary.csv`` written beside it; without one, the paper's 0.01–30 Hz."""
+    ``<stem>_summary.csv`` written beside it; without one, the paper's 0.01–30 Hz.
+
+    Raises
+    ------
+    NoInputError, BadInputError
+        As :func:`read_wu`; and naming the summary file, column and row when it is not a
+        summary (a missing column), gives an axis two fitted bands, or a band that is
+        not lo < hi inside the physical range of a frequency.
+    """
     p = Path(path_or_name)
     if not p.exists() and str(path_or_name).lower() in PAPER_WEIGHTS:
         ref = resources.files("armfit.data").joinpath("table3_uncertainty_weights.csv")
@@ -931,16 +940,45 @@ def read_weights_and_bands(path_or_name: str | Path):
     bands = {a: PAPER_BAND_HZ for a in w}
     summary, _ = wu_sidecar_paths(p)
     if summary.is_file():
-        try:
-            s = pd.read_csv(summary)
-            s = s[(s["weight"] == "fitted") & (s["target"] == "wmax")]
-            for _, r in s.iterrows():
-                lo, hi = float(r["band_lo_hz"]), float(r["band_hi_hz"])
-                if r["axis"] in bands and 0 < lo < hi:
-                    bands[r["axis"]] = (lo, hi)
-        except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
-            pass
+        bands.update(_summary_bands(summary, set(w)))
     return w, bands, str(p)
+
+
+def _summary_bands(summary: Path, axes: set[str]) -> dict[str, tuple[float, float]]:
+    """{axis: (lo, hi)} of the fitted weights' rows (target ``wmax``) of a Wu summary."""
+    try:
+        s = pd.read_csv(summary, dtype={"axis": str, "weight": str, "target": str})
+    except (ValueError, UnicodeDecodeError, pd.errors.ParserError,
+            pd.errors.EmptyDataError) as exc:
+        raise BadInputError(f"not a Wu summary CSV ({str(exc).splitlines()[0]})",
+                            file=str(summary)) from None
+    for col in ("axis", "weight", "target", "band_lo_hz", "band_hi_hz"):
+        if col not in s.columns:
+            raise BadInputError("missing column; expected the summary fit-uncertainty "
+                                "writes beside its weights", file=str(summary), column=col)
+    rows = np.flatnonzero(((s["weight"] == "fitted") & (s["target"] == "wmax")).to_numpy())
+    out: dict[str, tuple[float, float]] = {}
+    first: dict[str, int] = {}
+    for i in rows:
+        axis = str(s["axis"].iloc[i]).strip().lower()
+        if axis not in axes:
+            continue
+        if axis in first:
+            raise BadInputError(f"axis {axis} has a second fitted band (rows {first[axis]} "
+                                f"and {i + 1})", file=str(summary), column="axis",
+                                row=int(i) + 1)
+        first[axis] = int(i) + 1
+        lo, hi = (pd.to_numeric(s[c].iloc[[i]], errors="coerce").to_numpy(float)
+                  for c in ("band_lo_hz", "band_hi_hz"))
+        for col, v in (("band_lo_hz", lo), ("band_hi_hz", hi)):
+            check_in_range(v, FREQUENCY_RANGE, file=str(summary), column=col,
+                           rows=[i + 1], shown=[s[col].iloc[i]])
+        if not lo[0] < hi[0]:
+            raise BadInputError(f"band {lo[0]:g}-{hi[0]:g} Hz of axis {axis} is empty; "
+                                "expected band_lo_hz < band_hi_hz", file=str(summary),
+                                column="band_hi_hz", row=int(i) + 1)
+        out[axis] = (float(lo[0]), float(hi[0]))
+    return out
 
 
 __all__ = [

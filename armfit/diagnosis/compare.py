@@ -185,7 +185,8 @@ def compare_models(spectra, params, *, level: str = "mean", band: tuple[float, f
 
 
 def comparison_notes(spectra, params, level: str, *, spectra_label: str | None = None,
-                     params_label: str | None = None) -> list[str]:
+                     params_label: str | None = None, action: str = "compared"
+                     ) -> list[str]:
     """What :func:`compare_models` leaves out or approximates, in sentences: an axis
     with measurements at ``level`` but no params row, a params row without such
     measurements, and (grip fits at level "mean") a grip mean compared with the row of
@@ -199,6 +200,8 @@ def comparison_notes(spectra, params, level: str, *, spectra_label: str | None =
     level : {'mean', 'median', 'trial'}
     spectra_label, params_label : str, optional
         The files, named in the sentences.
+    action : str
+        What is done with an axis ("compared", "diagnosed"), for the sentences.
 
     Returns
     -------
@@ -214,10 +217,10 @@ def comparison_notes(spectra, params, level: str, *, spectra_label: str | None =
         has_row = bool((params["axis"] == axis).any())
         if len(rows) and not has_row:
             out.append(f"axis {axis}: {sl} holds {level}-level measurements but {pl} has "
-                       f"no row for it; axis {axis} is not compared")
+                       f"no row for it; axis {axis} is not {action}")
         elif has_row and not len(rows):
             out.append(f"axis {axis}: {pl} has a row but {sl} holds no {level}-level "
-                       f"measured responses of it; axis {axis} is not compared")
+                       f"measured responses of it; axis {axis} is not {action}")
         if not (has_row and len(rows) and level == "mean" and "grip_N" in params.columns):
             continue
         own = params.loc[params["axis"] == axis, "grip_N"].to_numpy(float)

@@ -100,10 +100,23 @@ def check_in_range(values, rng: PhysicalRange, *, file: str | None, column: str 
     row = i + 1 if rows is None else int(np.asarray(rows)[i])
     if column is None and v.size == 1 and rows is None:
         row = None          # a single value that is no cell of a table
-    text = cell(v[i]) if shown is None else cell(shown[i])
+    text = _number_text(v[i] if shown is None else shown[i])
     unit = f" {rng.unit}" if rng.unit and np.isfinite(v[i]) else ""
     raise BadInputError(f"{name or rng.what} = {text}{unit} is outside its physical "
                         f"range {rng.words()}", file=file, column=column, row=row)
+
+
+def _number_text(value) -> str:
+    """A value as a message shows it: the text of a cell that holds a number as written,
+    any other value as :func:`armfit.errors.cell` shows it (a number plainly, with every
+    digit Python keeps, so that a value just outside a bound shows it; text quoted)."""
+    if isinstance(value, str):
+        try:
+            float(value)
+        except ValueError:
+            return cell(value)
+        return value.strip()
+    return cell(value)
 
 
 __all__ = [

@@ -132,7 +132,7 @@ def check_param_rows(table: pd.DataFrame, source: str | None = None) -> ParamRow
         if col not in df.columns:
             raise BadInputError("missing column; expected a file written by fit-grip, "
                                 "fit-nominal or fit-trials", file=p, column=col)
-    df["effects"] = df["effects"].fillna("").astype(str)
+    df["effects"] = df["effects"].astype(object).fillna("").astype(str)
     # a table read before keeps its file's row numbers; messages count the table's rows
     numbers = df.pop("row").to_numpy() if "row" in df.columns else np.arange(1, len(df) + 1)
     df = df.reset_index(drop=True)
