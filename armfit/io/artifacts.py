@@ -193,24 +193,15 @@ def read_wu_rows(path: str | os.PathLike, *, require_stable: bool = True
 
 def _check_pairs(p: Path, ax: str, rows: np.ndarray, kinds: np.ndarray,
                  nums: Mapping[str, np.ndarray], require_stable: bool) -> None:
-    """The zero and pole rows of one axis of a Wu file: one row per index, each root's
-    magnitude inside its physical range, in the open left half plane (when
-    ``require_stable``), and no more zero pairs than pole pairs (a proper weight)."""
-    for k in ("zero", "pole"):
-        r = rows[kinds[rows] == k]
-        seen: dict[float, int] = {}
-        for i in r:
-            j = nums["index"][i]
-            if j in seen:
-                raise BadInputError(f"axis {ax} has a second {k} of index {j:g} (rows "
-                                    f"{seen[j] + 1} and {i + 1}); each {k} pair is one row",
-                                    file=str(p), column="index", row=int(i) + 1)
-            seen[j] = int(i)
+    """The zero and pole rows of one axis of a Wu file: each root's magnitude inside its
+    physical range, in the open left half plane (when ``require_stable``), one row per
+    index, and no more zero pairs than pole pairs (a proper weight)."""
+    zeros, poles = rows[kinds[rows] == "zero"], rows[kinds[rows] == "pole"]
+    for k, r in (("zero", zeros), ("pole", poles)):
         check_in_range(np.hypot(nums["real"][r], nums["imag"][r]), WU_ROOT_RANGE,
                        file=str(p), column="real", rows=r + 1,
                        name=f"|{k}| of Wu of axis {ax}")
-    for k, what in (("pole", "unstable: a pole"), ("zero", "not minimum phase: a zero")):
-        r = rows[kinds[rows] == k]
+    for r, what in ((poles, "unstable: a pole"), (zeros, "not minimum phase: a zero")):
         bad = r[nums["real"][r] >= 0]
         if require_stable and bad.size:
             i = int(bad[0])
@@ -219,7 +210,15 @@ def _check_pairs(p: Path, ax: str, rows: np.ndarray, kinds: np.ndarray,
                 f"{cell(abs(nums['imag'][i]))}j rad/s is not in the open left half plane; "
                 "an uncertainty weight must be stable and minimum phase",
                 file=str(p), column="real", row=i + 1)
-    zeros, poles = rows[kinds[rows] == "zero"], rows[kinds[rows] == "pole"]
+    for k, r in (("zero", zeros), ("pole", poles)):
+        seen: dict[float, int] = {}
+        for i in r:
+            j = nums["index"][i]
+            if j in seen:
+                raise BadInputError(f"axis {ax} has a second {k} of index {j:g} (rows "
+                                    f"{seen[j] + 1} and {i + 1}); each {k} pair is one row",
+                                    file=str(p), column="index", row=int(i) + 1)
+            seen[j] = int(i)
     if zeros.size > poles.size:
         raise BadInputError(f"Wu of axis {ax} has {zeros.size} zero pairs and {poles.size} "
                             "pole pairs: improper (|Wu| grows without bound with frequency); "
