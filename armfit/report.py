@@ -588,6 +588,9 @@ def _certificate_lines(cert: pd.DataFrame) -> list[str]:
                      "certificate rests on does not hold (what the weight alone would "
                      f"certify: {r['k_weight_N_per_m'] / 1e3:.3g} kN/m).")
             continue
+        if status == "no weight":
+            L.append(f"- {r['axis'].upper()}: no weight for this axis; no certificate.")
+            continue
         if status == "unstable at K = 0":
             L.append(f"- {r['axis'].upper()}: holds for no K at all (the nominal loop is "
                      "unstable already at K = 0).")

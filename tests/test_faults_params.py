@@ -483,6 +483,31 @@ def test_certificate_sentence_counts_every_reason():
         "and the assumption the certificate rests on does not hold")
 
 
+def test_report_says_why_a_certificate_holds_for_no_k():
+    # one line per nominal model of certificate.csv, its reason from the same status
+    # (armfit.loop.certificate_status) as the stability command's text and JSON
+    from armfit.report import _certificate_lines
+    nan = math.nan
+    cert = pd.DataFrame([
+        {"axis": "x", "k_max_N_per_m": 900.0, "wu_t_peak_k0": 1.2, "f_peak_k0_hz": 8.0,
+         "k_robust_N_per_m": nan, "limited_by": "", "k_weight_N_per_m": nan,
+         "beyond_margin": 0.5},
+        {"axis": "y", "k_max_N_per_m": 900.0, "wu_t_peak_k0": 0.4, "f_peak_k0_hz": 8.0,
+         "k_robust_N_per_m": nan, "limited_by": WITHHELD, "k_weight_N_per_m": 91.6,
+         "beyond_margin": 1.0023},
+        {"axis": "z", "k_max_N_per_m": nan, "wu_t_peak_k0": nan, "f_peak_k0_hz": nan,
+         "k_robust_N_per_m": nan, "limited_by": "", "k_weight_N_per_m": nan,
+         "beyond_margin": nan}])
+    lines = _certificate_lines(cert)[2:]
+    assert lines == [
+        "- X: holds for no K at all (max |Wu T| is 1.20 > 1 already at K = 0, at 8 Hz).",
+        "- Y: withheld: above the weight's band the trials' models depart from the nominal "
+        "by up to 1.0023 × |Wu|, so the weight does not cover them there and the "
+        "assumption the certificate rests on does not hold (what the weight alone would "
+        "certify: 0.0916 kN/m).",
+        "- Z: no weight for this axis; no certificate."]
+
+
 @pytest.mark.slow
 def test_hidden_study_withholds_the_z_certificate(tmp_path):
     # sample_data/hidden: on Z the trials depart from the nominal above the weight's band
