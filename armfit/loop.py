@@ -711,7 +711,7 @@ def robust_certificate(model: ClosedLoopModel, theta: Mapping[str, float], weigh
     k_rob = k_w
     if np.isfinite(k_rob) and np.isfinite(m_k) and m_k < k_rob:
         k_rob, limited = m_k, "member"
-    if np.isfinite(k_rob) and not margin <= 1.0 and members and np.any(f > hi):
+    if not math.isnan(k_rob) and not margin <= 1.0 and members and np.any(f > hi):
         # above the band the members depart from the nominal by more than |Wu| (or by
         # an amount that is not a number): the weight continued there does not cover
         # them, the assumption the certificate rests on fails, and it is withheld
