@@ -41,6 +41,7 @@ from armfit.diagnosis import (
     MIN_EFFECT_DEG,
     band_to_dict,
     compare_models,
+    comparison_notes,
     diagnose_axes,
     diagnosis_to_dict,
 )
@@ -52,7 +53,12 @@ from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
 from armfit.io.trials import Skipped, Trial, Warn, open_trials, write_dataset
 from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.models.effects import Effect, get_effect
-from armfit.models.params import model_from_params, read_param_rows, read_params
+from armfit.models.params import (
+    check_param_rows,
+    model_from_params,
+    read_param_rows,
+    read_params,
+)
 from armfit.simulation import StudyConfig, plan_study, simulate_trial, truth_dict
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimate_study, estimate_trials
 from armfit.tables import caption_for, latex_table, wu_latex
@@ -331,12 +337,18 @@ class ModelFit:
 
     @classmethod
     def of(cls, model) -> ModelFit:
-        """``model`` itself, a params DataFrame, or a params file's path, as a ModelFit."""
+        """``model`` itself, a params DataFrame, or a params file's path, as a ModelFit.
+
+        A DataFrame gets the checks of a params file
+        (:func:`armfit.models.params.check_param_rows`): BadInputError (exit 65) naming
+        the column and row of a value outside its physical range or a second row of a
+        model."""
         if isinstance(model, cls):
             return model
         if isinstance(model, str | os.PathLike):
             return cls.read(model)
-        return cls(model, "grip" if "grip_N" in model.columns else "nominal")
+        table = _checked_rows(model)
+        return cls(table, "grip" if "grip_N" in table.columns else "nominal")
 
     def to_frame(self) -> pd.DataFrame:
         """The params table (a copy): the rows of the CSV ``write`` writes."""
@@ -375,6 +387,18 @@ class ModelFit:
                     label=f"{row['axis']}{grip}")
         ax.set_xscale("log")
         return ax
+
+
+def _checked_rows(table: pd.DataFrame, *, keep_row: bool = False) -> pd.DataFrame:
+    """A params table given as a DataFrame, with the checks of a params file
+    (:func:`armfit.models.params.check_param_rows`: BadInputError naming column and
+    row); every row must hold a fit. ``keep_row``: keep the ``row`` column."""
+    rows = check_param_rows(table)
+    if rows.skipped:
+        row, who, why = rows.skipped[0]
+        raise BadInputError(f"a row without parameters ({who}: {why})", column="Ma",
+                            row=row)
+    return rows.table if keep_row else rows.table.drop(columns="row")
 
 
 def _fit(which: str, spectra, *, cost: str, bands, effects, bootstrap: int, seed,
@@ -481,6 +505,9 @@ class Uncertainty:
         Smoothing of W_max, octaves.
     spectra, nominal : Spectra, ModelFit
         The inputs (for :meth:`plot`).
+    notes : tuple of str
+        The axes left out, in sentences (:func:`armfit.uncertainty.weight_axis_notes`):
+        derived trials without a nominal row, or a nominal row without derived trials.
     """
 
     axes: tuple[AxisUncertainty, ...]
@@ -488,6 +515,7 @@ class Uncertainty:
     smooth_oct: float | None = None
     spectra: Spectra | None = None
     nominal: ModelFit | None = None
+    notes: tuple[str, ...] = ()
 
     @property
     def weights(self) -> dict[str, WuWeight]:
@@ -586,13 +614,16 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
     nom = nominal.nominal if isinstance(nominal, AdoptedModel) else ModelFit.of(nominal)
     results = _uncertainty.fit_weights(sp, nom.table, cost=cost, n_pairs=order,
                                            band=band, smooth_oct=smooth_oct, method=method,
-                                           given=check, jobs=jobs, executor=executor)
+                                           given=check, jobs=jobs, executor=executor,
+                                           source=nom.source)
     bad = [r.axis for r in results if not r.result.converged]
     if bad and cost == "paper":
         raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "
                                f"{', '.join(bad)}; nothing written (try {{opt}})",
                                option="order=")
-    return Uncertainty(tuple(results), cost, smooth_oct, sp, nom)
+    notes = _uncertainty.weight_axis_notes(sp, nom.table, spectra_label=sp.source,
+                                           params_label=nom.source)
+    return Uncertainty(tuple(results), cost, smooth_oct, sp, nom, tuple(notes))
 
 
 def read_weights(path: PathLike) -> dict[str, WuWeight]:
@@ -613,10 +644,16 @@ class Comparisons:
     rows : tuple of armfit.diagnosis.Comparison
         One per axis (× grip) and model (the base, then with the effects asked for).
     level : {'mean', 'median', 'trial'}
+    notes : tuple of str
+        What was left out or approximated, in sentences
+        (:func:`armfit.diagnosis.comparison_notes`): an axis measured but without a
+        params row, a params row without measurements, a grip compared with the row of
+        the nearest grip.
     """
 
     rows: tuple
     level: str
+    notes: tuple[str, ...] = ()
 
     def to_frame(self) -> pd.DataFrame:
         """One row per comparison and band (columns of compare.csv: axis, grip, level,
@@ -629,7 +666,8 @@ class Comparisons:
             "axis": r.axis, "grip_N": r.grip_N, "model": r.model, "params": r.params,
             "n_trials": r.n_trials, "overall": band_to_dict(r.overall),
             "bands": [band_to_dict(b) for b in r.bands],
-            "failing": [asdict(fb) for fb in r.failing]} for r in self.rows]}
+            "failing": [asdict(fb) for fb in r.failing]} for r in self.rows]} \
+            | ({"notes": list(self.notes)} if self.notes else {})
 
     def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
         """Write :meth:`to_frame` as compare.csv (as ``armfit run`` does), atomically."""
@@ -686,7 +724,9 @@ def compare(spectra, model, *, level: str | None = None,
     if level is None:
         level = "mean" if m.which == "grip" else "median"
     rows = compare_models(sp, m.table, level=level, band=band, effects=_effects(effects))
-    return Comparisons(tuple(rows), level)
+    notes = comparison_notes(sp, m.table, level, spectra_label=sp.source,
+                             params_label=m.source)
+    return Comparisons(tuple(rows), level, tuple(notes))
 
 
 def _effect_name(m) -> str:
@@ -1041,7 +1081,8 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     model : ModelFit, TrialFits, AdoptedModel, DataFrame, path or str
         The arm models: fits, a params file, or a paper table by name ('nominal',
         'grip'). An AdoptedModel stands for its per-trial fits, or with ``weights`` for
-        its nominal, its trials the members.
+        its nominal, its trials the members. A DataFrame (and a ``members`` DataFrame)
+        gets the checks of a params file.
     weights : Uncertainty, dict or path, optional
         Uncertainty weights Wu for the robust certificate (a fit, {axis: WuWeight}, a Wu
         CSV or 'paper' for Table III).
@@ -1057,6 +1098,13 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     Returns
     -------
     Stability
+
+    Raises
+    ------
+    BadInputError
+        A params or weights file (or DataFrame) breaks its contract, naming the file,
+        column and row (:func:`armfit.models.params.read_param_rows`,
+        :func:`armfit.io.artifacts.read_wu_rows`).
     """
     kw = {k: v for k, v in (("sample_time_s", sample_time_s),
                             ("damping_Ns_per_m", damping_Ns_per_m),
@@ -1077,7 +1125,7 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
         rows, label = model.to_frame(), None
         rows = rows[rows["converged"].astype(bool)]
     elif isinstance(model, pd.DataFrame):
-        rows, label = model, None
+        rows, label = _checked_rows(model, keep_row=True), None
     else:
         pr = read_param_rows(str(model))
         rows, label = pr.table, pr.label
@@ -1094,7 +1142,7 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
         member_rows = members.to_frame()
         member_rows = member_rows[member_rows["converged"].astype(bool)]
     elif isinstance(members, pd.DataFrame):
-        member_rows = members
+        member_rows = check_param_rows(members).table
     elif members is not None:
         member_rows = read_param_rows(str(members)).table
     table = stability_table(rows, settings, weights=w, weights_band_hz=bands,

@@ -52,7 +52,7 @@ import numpy as np
 import pandas as pd
 from scipy import linalg
 
-from armfit.errors import UsageError
+from armfit.errors import UsageError, cell
 from armfit.io.schema import is_missing
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import EFFECTS, Effect
@@ -81,6 +81,10 @@ K_REL_TOL = 1.0e-3
 #: Points per decade of the frequency grid of the robust certificate.
 CERT_POINTS_PER_DECADE = 400
 
+#: ``limited_by`` of a certificate withheld because, above the weight's band, a member
+#: model departs from the nominal by more than |Wu| (``beyond_margin`` > 1).
+WITHHELD = "withheld: members beyond weight"
+
 
 @dataclass(frozen=True)
 class WallSettings:
@@ -98,17 +102,17 @@ class WallSettings:
     def __post_init__(self) -> None:
         T, B, d = self.sample_time_s, self.damping_Ns_per_m, self.delay_samples
         if not (isinstance(T, (int, float)) and math.isfinite(T) and T > 0):
-            raise UsageError(f"{{opt:sample_time_s}} must be a period > 0 s, got {T!r}")
+            raise UsageError(f"{{opt:sample_time_s}} must be a period > 0 s, got {cell(T)}")
         if not (isinstance(B, (int, float)) and math.isfinite(B) and B >= 0):
             raise UsageError(f"{{opt:damping_Ns_per_m}} must be >= 0 N*s/m (a virtual damper), "
-                             f"got {B!r}")
+                             f"got {cell(B)}")
         if isinstance(d, bool) or not isinstance(d, (int, np.integer)):
             if isinstance(d, float) and d.is_integer():
                 object.__setattr__(self, "delay_samples", int(d))
                 d = int(d)
             else:
                 raise UsageError(f"{{opt:delay_samples}} must be a whole number of samples, "
-                                 f"got {d!r}")
+                                 f"got {cell(d)}")
         if d < 0:
             raise UsageError(f"{{opt:delay_samples}} must be >= 0, got {d}")
         object.__setattr__(self, "sample_time_s", float(T))
@@ -572,11 +576,13 @@ class Certificate:
     k_robust_N_per_m : float
         The certified K: ``k_weight_N_per_m`` capped at ``member_k_max_N_per_m`` (a
         certificate never admits a K at which a member of the set it covers is
-        unstable); NaN when it holds for no K.
+        unstable); NaN when it holds for no K, and NaN when ``beyond_margin`` > 1 (the
+        members contradict the assumption the certificate rests on: it is withheld).
     limited_by : str
         What sets ``k_robust_N_per_m``: "weight" (|Wu T| reaches 1 inside the band),
-        "weight beyond band" (above it, on the assumption), "nominal K_max", "member"
-        or "" when it holds for no K.
+        "weight beyond band" (above it, on the assumption), "nominal K_max", "member",
+        :data:`WITHHELD` (the members go beyond the weight above the band) or "" when
+        it holds for no K.
     band_hz, f_max_hz
         The weight's band and the top of the evaluated range (Hz).
     """
@@ -675,19 +681,23 @@ def robust_certificate(model: ClosedLoopModel, theta: Mapping[str, float], weigh
     n = max(int(CERT_POINTS_PER_DECADE * np.log10(top / lo)) + 1, 2)
     f = np.geomspace(lo, top, n)
     z, a, c = environment_terms(f, model, theta, settings)
-    wr = np.abs(weight.response(f))
-    w2 = wr ** 2
-    ratio0 = wr * np.abs(a) / np.abs(z + a)
+    # a weight too large for floating point gives a |Wu T| that is not a finite
+    # number: handled below (it certifies nothing), not warned about
+    with np.errstate(over="ignore", invalid="ignore"):
+        wr = np.abs(weight.response(f))
+        w2 = wr ** 2
+        ratio0 = wr * np.abs(a) / np.abs(z + a)
+        alpha = (w2 - 1.0) * np.abs(c) ** 2
+        beta = 2.0 * np.real((w2 * np.conj(a) - np.conj(z + a)) * c)
+        gamma = w2 * np.abs(a) ** 2 - np.abs(z + a) ** 2
+        k_first = _first_violation(alpha, beta, gamma)
     i0 = int(np.argmax(ratio0))
     peak0 = float(ratio0[i0])
-    alpha = (w2 - 1.0) * np.abs(c) ** 2
-    beta = 2.0 * np.real((w2 * np.conj(a) - np.conj(z + a)) * c)
-    gamma = w2 * np.abs(a) ** 2 - np.abs(z + a) ** 2
-    k_first = _first_violation(alpha, beta, gamma)
     j = int(np.argmin(k_first))
     k_w, f_bind = float(k_first[j]), float(f[j])
     limited = "weight" if f_bind <= hi else "weight beyond band"
-    if not (k_max_N_per_m > 0) or peak0 >= 1.0:
+    # a |Wu T| that is not a finite number proves nothing: no K is certified
+    if not (k_max_N_per_m > 0) or not (np.isfinite(ratio0).all() and peak0 < 1.0):
         k_w, f_bind, limited = math.nan, math.nan, ""
     elif k_w >= k_max_N_per_m:
         k_w, f_bind, limited = float(k_max_N_per_m), math.nan, "nominal K_max"
@@ -697,20 +707,33 @@ def robust_certificate(model: ClosedLoopModel, theta: Mapping[str, float], weigh
         ks = np.array([float(m[3]) for m in members])
         i = int(np.argmin(ks))
         m_k, m_who = float(ks[i]), str(labels[i])
-        above = f[f > hi]
-        if above.size:
-            h_nom = model.arm_response(above, theta)
-            dev = np.max([np.abs(mm.arm_response(above, th) / h_nom - 1.0)
-                          for _, mm, th, _ in members], axis=0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                margin = float(np.nanmax(dev / wr[f > hi]))
+        margin = _beyond_margin(model, theta, members, f[f > hi], wr[f > hi])
     k_rob = k_w
     if np.isfinite(k_rob) and np.isfinite(m_k) and m_k < k_rob:
         k_rob, limited = m_k, "member"
+    if not math.isnan(k_rob) and not margin <= 1.0 and members and np.any(f > hi):
+        # above the band the members depart from the nominal by more than |Wu| (or by
+        # an amount that is not a number): the weight continued there does not cover
+        # them, the assumption the certificate rests on fails, and it is withheld
+        k_rob, limited = math.nan, WITHHELD
     return Certificate(peak0, float(f[i0]), k_rob, (lo, hi), f_max_hz=top, k_weight_N_per_m=k_w,
                        f_binding_hz=f_bind, binding_in_band=bool(f_bind <= hi),
                        member_k_max_N_per_m=m_k, limiting_member=m_who, beyond_margin=margin,
                        limited_by=limited)
+
+
+def _beyond_margin(model: ClosedLoopModel, theta: Mapping[str, float], members, above,
+                   w_above) -> float:
+    """max over ``members`` and the frequencies ``above`` the band of
+    |H_member/H̄ − 1| / |Wu| (NaN when there is no frequency above the band)."""
+    if not above.size:
+        return math.nan
+    h_nom = model.arm_response(above, theta)
+    with np.errstate(all="ignore"):
+        dev = np.max([np.abs(mm.arm_response(above, th) / h_nom - 1.0)
+                      for _, mm, th, _ in members], axis=0)
+        ratio = dev / w_above
+    return float(np.nanmax(ratio)) if np.isfinite(ratio).any() else math.nan
 
 
 def _first_violation(alpha, beta, gamma) -> np.ndarray:
@@ -890,7 +913,11 @@ def axis_summary(table) -> dict[str, dict]:
     """Per axis (x, y, z order): minimum, median and 5th percentile (linear
     interpolation) of K_max over the rows, their number, and the row that limits it
     (the minimum; first in file order on ties). With certificate columns also the
-    smallest K_robust (NaN when it holds for no row) and the largest peak at K = 0."""
+    smallest K_robust (NaN when it holds for no row), the largest peak at K = 0, and
+    the certificate in words: ``certificate`` (:func:`certificate_status` of the axis:
+    "holds" when it holds on every row, else the first of the rows' other statuses)
+    and ``certificate_text`` (:func:`certificate_sentence`), the one source of what the
+    command line prints and its JSON holds."""
     out = {}
     for axis in ("x", "y", "z"):
         g = table[table["axis"] == axis]
@@ -906,13 +933,125 @@ def axis_summary(table) -> dict[str, dict]:
                  "limiting_row": int(lim["row"]),
                  "limiting": describe(lim)}
         if "k_robust_N_per_m" in g.columns:
+            recs = g.to_dict("records")
+            states = [certificate_status(r) for r in recs]
             kr = g["k_robust_N_per_m"].to_numpy(float)
-            entry["k_robust_min_N_per_m"] = float(np.min(kr)) if np.all(np.isfinite(kr)) \
-                else math.nan
+            entry["k_robust_min_N_per_m"] = float(np.min(kr)) \
+                if all(st == "holds" for st in states) else math.nan
             entry["wu_t_peak_k0_max"] = float(np.nanmax(g["wu_t_peak_k0"].to_numpy(float))) \
                 if np.isfinite(g["wu_t_peak_k0"].to_numpy(float)).any() else math.nan
+            entry["certificate"] = next((st for st in CERTIFICATE_STATUSES[1:]
+                                         if st in states), "holds")
+            entry["certificate_text"] = certificate_sentence(axis, recs)
         out[axis] = entry
     return out
+
+
+#: What a row's robust certificate says (:func:`certificate_status`), best first.
+CERTIFICATE_STATUSES: tuple[str, ...] = (
+    "holds", "withheld", "fails at K = 0", "unstable at K = 0", "no weight")
+
+
+def certificate_status(rec: Mapping) -> str:
+    """What the robust certificate of one row of a stability table says.
+
+    Parameters
+    ----------
+    rec : Mapping
+        A row with :data:`CERTIFICATE_COLUMNS` and ``k_max_N_per_m``.
+
+    Returns
+    -------
+    str
+        One of :data:`CERTIFICATE_STATUSES`: "holds" (for K up to
+        ``k_robust_N_per_m``), "withheld" (the members go beyond the weight above its
+        band, ``limited_by`` :data:`WITHHELD`), "fails at K = 0" (max |Wu T| ≥ 1, or not
+        a number, already at K = 0), "unstable at K = 0" (the nominal loop itself) or
+        "no weight" (no weight for the row's axis).
+    """
+    if not math.isfinite(_num(rec.get("f_peak_k0_hz"))):
+        return "no weight"
+    if math.isfinite(_num(rec.get("k_robust_N_per_m"))) or \
+            _num(rec.get("k_robust_N_per_m")) == math.inf:
+        return "holds"
+    if rec.get("limited_by") == WITHHELD:
+        return "withheld"
+    if not _num(rec.get("k_max_N_per_m")) > 0:
+        return "unstable at K = 0"
+    return "fails at K = 0"
+
+
+def certificate_sentence(axis: str, rows: Sequence[Mapping]) -> str:
+    """The robust certificate of one axis's rows in one sentence (the text ``armfit
+    stability --weights`` prints and its JSON's ``certificate_text``).
+
+    Parameters
+    ----------
+    axis : str
+    rows : sequence of Mapping
+        The axis's rows of a stability table with certificate columns.
+
+    Returns
+    -------
+    str
+        "axis x: …": the smallest certified K (kN/m) and what bounds it when the
+        certificate holds on every row; else on how many rows it fails, and why.
+    """
+    states = [certificate_status(r) for r in rows]
+    n = len(rows)
+    if all(st == "no weight" for st in states):
+        return f"axis {axis}: no uncertainty weight for this axis; no certificate"
+    if all(st == "holds" for st in states):
+        i = int(np.argmin([_num(r["k_robust_N_per_m"]) for r in rows]))
+        return (f"axis {axis}: the robust certificate max |Wu T| < 1 holds for K up to "
+                f"{_kn(rows[i]['k_robust_N_per_m'])} kN/m on every model"
+                + _limit_words(rows[i]))
+    clauses = []
+    peak = [r for r, st in zip(rows, states, strict=True) if st == "fails at K = 0"]
+    if peak:
+        top = np.array([_num(r["wu_t_peak_k0"]) for r in peak])
+        worst = f"{np.nanmax(top):.3f} > 1" if np.isfinite(top).any() else "not a number"
+        clauses.append(f"holds for no K at all on {len(peak)} of {n} model(s): max |Wu T| "
+                       f"is already {worst} at K = 0 (the weight allows more than 100 % "
+                       "relative uncertainty where the device's own impedance dominates)")
+    unstable = states.count("unstable at K = 0")
+    if unstable:
+        clauses.append(f"holds for no K on {unstable} of {n} model(s): the nominal loop is "
+                       "unstable already at K = 0")
+    held = [r for r, st in zip(rows, states, strict=True) if st == "withheld"]
+    if held:
+        margin = max(_num(r["beyond_margin"]) for r in held)
+        clauses.append(f"is withheld on {len(held)} of {n} model(s): above the weight's "
+                       f"band the member models depart from the nominal by up to "
+                       f"{margin:.4f} × |Wu| (beyond_margin > 1), so the weight does not "
+                       "cover them there and the assumption the certificate rests on "
+                       "does not hold")
+    missing = states.count("no weight")
+    if missing:
+        clauses.append(f"has no weight for {missing} of {n} model(s)")
+    return f"axis {axis}: the robust certificate " + "; it ".join(clauses)
+
+
+def _kn(v) -> str:
+    """N/m as kN/m with 3 significant digits ('inf', or '-' when not a number)."""
+    v = _num(v)
+    if not math.isfinite(v):
+        return "inf" if v > 0 else "-"
+    return f"{v / 1000:.3g}"
+
+
+def _limit_words(rec: Mapping) -> str:
+    """What bounds one row's certified K, in words (empty when the weight does)."""
+    why = str(rec.get("limited_by") or "")
+    if why == "member":
+        return (f" (capped at member {rec['limiting_member']}, whose K_max is "
+                f"{_kn(rec['member_k_max_N_per_m'])} kN/m)")
+    if why == "weight beyond band":
+        return (f" (bound at {_num(rec['f_binding_hz']):.3g} Hz, above the weight's band: "
+                "there Wu is its fitted form continued)")
+    if why == "nominal K_max":
+        return " (the nominal model's own K_max)"
+    return ""
 
 
 def k_max_sweep(plants: Sequence[RationalPlant], rates_hz: Sequence[float],
@@ -935,7 +1074,8 @@ def k_max_sweep(plants: Sequence[RationalPlant], rates_hz: Sequence[float],
 
 
 __all__ = [
-    "CERTIFICATE_COLUMNS", "CERT_POINTS_PER_DECADE", "Certificate", "DEFAULT_DAMPING_NS_PER_M",
+    "CERTIFICATE_COLUMNS", "CERTIFICATE_STATUSES", "CERT_POINTS_PER_DECADE", "Certificate",
+    "WITHHELD", "certificate_sentence", "certificate_status", "DEFAULT_DAMPING_NS_PER_M",
     "DEFAULT_DELAY_SAMPLES", "DEFAULT_SAMPLE_TIME_S", "INTERNAL_DELAY_PADE_ORDER",
     "K_REL_TOL", "MAX_LOOP_DELAY_SAMPLES",
     "RationalPlant", "STABILITY_COLUMNS", "WallSettings", "WallStability", "axis_summary",

@@ -24,7 +24,7 @@ from armfit.adopt import Adoption
 from armfit.constants import AXES, PAPER_BANDS
 from armfit.diagnosis import BANDS, AxisDiagnosis, Candidate, Step
 from armfit.io.schema import finite_or_none
-from armfit.loop import WallSettings
+from armfit.loop import WallSettings, certificate_status
 from armfit.spectra import EstimateConfig
 from armfit.tables import param_names, sig4, unit_of
 
@@ -583,6 +583,21 @@ def _certificate_lines(cert: pd.DataFrame) -> list[str]:
          "low edge up to the Nyquist frequency, Wu continued beyond its band, and "
          "capped at the smallest K_max of the trials it covers:", ""]
     for _, r in cert.iterrows():
+        status = certificate_status(r)
+        if status == "withheld":
+            L.append(f"- {r['axis'].upper()}: withheld: above the weight's band the trials' "
+                     f"models depart from the nominal by up to {r['beyond_margin']:.4f} × "
+                     "|Wu|, so the weight does not cover them there and the assumption the "
+                     "certificate rests on does not hold (what the weight alone would "
+                     f"certify: {r['k_weight_N_per_m'] / 1e3:.3g} kN/m).")
+            continue
+        if status == "no weight":
+            L.append(f"- {r['axis'].upper()}: no weight for this axis; no certificate.")
+            continue
+        if status == "unstable at K = 0":
+            L.append(f"- {r['axis'].upper()}: holds for no K at all (the nominal loop is "
+                     "unstable already at K = 0).")
+            continue
         if not math.isfinite(r["k_robust_N_per_m"]):
             L.append(f"- {r['axis'].upper()}: holds for no K at all (max |Wu T| is "
                      f"{r['wu_t_peak_k0']:.2f} > 1 already at K = 0, at "
@@ -595,10 +610,8 @@ def _certificate_lines(cert: pd.DataFrame) -> list[str]:
                "nominal K_max": "the nominal's own K_max"}.get(r["limited_by"], "")
         margin = r.get("beyond_margin", math.nan)
         check = ""
-        if isinstance(margin, float) and math.isfinite(margin):
-            check = (f"; above the band the trials stay within {margin:.4f} × |Wu|"
-                     + ("" if margin <= 1 else " — beyond the weight: the assumption "
-                                               "does not hold"))
+        if isinstance(margin, float) and math.isfinite(margin):   # <= 1: else withheld
+            check = f"; above the band the trials stay within {margin:.4f} × |Wu|"
         L.append(f"- {r['axis'].upper()}: holds for K up to "
                  f"{r['k_robust_N_per_m'] / 1e3:.3g} kN/m ({why}; peak at K = 0: "
                  f"{r['wu_t_peak_k0']:.2f}{check}).")

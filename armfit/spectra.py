@@ -59,7 +59,8 @@ from armfit.constants import (
 )
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path
-from armfit.io.numbers import parse_numbers
+from armfit.io.numbers import parse_number, parse_numbers
+from armfit.io.ranges import DEVICE_MASS_RANGE, FREQUENCY_RANGE, check_in_range
 from armfit.io.schema import (
     COUNTED_FLAGS,
     CSV_FLOAT_FORMAT,
@@ -126,7 +127,8 @@ def _as_outputs(pos: np.ndarray) -> np.ndarray:
 def _window(window, nperseg: int) -> np.ndarray:
     if isinstance(window, np.ndarray):
         if window.shape != (nperseg,):
-            raise UsageError(f"window has {window.shape[0]} points, expected {nperseg=}")
+            raise UsageError(f"window has {window.shape[0]} points, expected "
+                             f"nperseg={cell(nperseg)}")
         return window.astype(float)
     return _cached_window(window, nperseg, True)  # periodic, as scipy.signal.welch
 
@@ -185,13 +187,14 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
     y = _as_outputs(pos)
     n = f.size
     if nperseg > n:
-        raise UsageError(f"{nperseg=} exceeds the record length {n}")
+        raise UsageError(f"nperseg={cell(nperseg)} exceeds the record length {n}")
     noverlap = nperseg // 2 if noverlap is None else int(noverlap)
     if not 0 <= noverlap < nperseg:
-        raise UsageError(f"{noverlap=} must be >= 0 and < {nperseg=}")
+        raise UsageError(f"noverlap={cell(noverlap)} must be >= 0 and < "
+                         f"nperseg={cell(nperseg)}")
     nfft = nperseg if nfft is None else int(nfft)
     if nfft < nperseg:
-        raise UsageError(f"{nfft=} must be >= {nperseg=}")
+        raise UsageError(f"nfft={cell(nfft)} must be >= nperseg={cell(nperseg)}")
     win = _window(window, nperseg)
     step = nperseg - noverlap
     n_seg = (n - noverlap) // step
@@ -315,7 +318,7 @@ def log_grid(fmin: float = GRID_HZ[0], fmax: float = GRID_HZ[1],
     if not 0 < fmin < fmax:
         raise UsageError(f"need 0 < fmin < fmax, got fmin={fmin} Hz, fmax={fmax} Hz")
     if per_decade < 1:
-        raise UsageError(f"{per_decade=} must be >= 1")
+        raise UsageError(f"per_decade={cell(per_decade)} must be >= 1")
     n = max(2, int(round(per_decade * math.log10(fmax / fmin))) + 1)
     return np.geomspace(fmin, fmax, n)
 
@@ -669,10 +672,11 @@ class EstimateConfig:
             raise UsageError(f"nperseg must be >= 8 samples, got {self.nperseg}")
         if self.derived_segments < 1:
             raise UsageError(f"derived segments must be >= 1, got {self.derived_segments}")
-        for ax, m in self.mp.items():
-            if ax not in AXES or not m > 0:
-                raise UsageError(f"device mass must be given as axis x|y|z > 0 kg, "
-                                 f"got {ax}={m}")
+        lo, hi = DEVICE_MASS_RANGE.lower, DEVICE_MASS_RANGE.upper
+        for ax, m in self.mp.items():   # the range every reader of the spectra applies
+            if ax not in AXES or not lo <= m <= hi:
+                raise UsageError(f"device mass must be given as axis x|y|z and a mass in "
+                                 f"{DEVICE_MASS_RANGE.words()}, got {ax}={cell(m)}")
 
     def grid(self) -> np.ndarray:
         """The common grid, Hz (:func:`log_grid`); one read-only array shared by every
@@ -1328,6 +1332,9 @@ class Spectra:
                 raise BadInputError("missing column; not a spectra table written by "
                                     "`armfit estimate`", file=source, column=c)
         df = _complete(_numbers(df, source))
+        # a negative, zero or non-finite frequency is bad data, not a usage error later
+        check_in_range(df["freq_hz"].to_numpy(float), FREQUENCY_RANGE,
+                       file=source, column="freq_hz", shown=list(df["freq_hz"]))
         n_rows = len(df)
         keys_df = df[list(SPECTRA_KEYS)]
         if n_rows:
@@ -1450,6 +1457,13 @@ class Spectra:
             meta = json.loads(kv[SPECTRA_META_KEY]) if SPECTRA_META_KEY in kv else {}
         except ValueError:
             meta = {}
+        masses = meta.get("mp_kg") if isinstance(meta, dict) else None
+        for axis, mp in masses.items() if isinstance(masses, dict) else ():
+            # the device mass the derived dynamics were estimated with (fit-uncertainty)
+            check_in_range([parse_number(mp) if _is_number(mp) else math.nan],
+                           DEVICE_MASS_RANGE, file=str(p),
+                           column=None, name=f"the device mass of axis {axis} in the "
+                           "metadata (mp_kg)", shown=[mp])
         df = table.select(list(SPECTRA_COLUMNS)).to_pandas()
         for col in ("axis", "out_axis"):  # rows of another axis would be dropped silently
             bad = np.flatnonzero(~df[col].isin(list(AXES)).to_numpy())
@@ -1541,6 +1555,15 @@ class Spectra:
         return ax
 
 
+def _is_number(v) -> bool:
+    """``v`` reads as a number by :func:`armfit.io.numbers.parse_number`."""
+    try:
+        parse_number(v)
+    except ValueError:
+        return False
+    return True
+
+
 #: Numeric columns of the spectra table; ``run`` and ``n`` hold whole numbers.
 _NUMERIC: tuple[str, ...] = ("grip_N", "run", "freq_hz", "re", "im", *SPECTRA_VALUES, "n")
 
@@ -1569,7 +1592,6 @@ def _numbers(df, source: str | None):
             v = pd.arrays.IntegerArray(np.nan_to_num(v).astype(np.int64), np.isnan(v))
         out[c] = v
     return df.assign(**out) if out else df
-
 
 def _complete(df):
     """``df`` with every spectra column, the optional ones filled (see

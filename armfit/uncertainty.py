@@ -43,7 +43,8 @@ from threadpoolctl import threadpool_limits
 from armfit.constants import AXES
 from armfit.errors import BadInputError, ConvergenceError, UsageError, cell
 from armfit.io.artifacts import read_wu_rows
-from armfit.io.numbers import parse_columns, parse_number
+from armfit.io.numbers import parse_number, parse_numbers
+from armfit.io.ranges import FREQUENCY_RANGE, check_in_range
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS, wu_sidecar_paths
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
@@ -766,7 +767,8 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
                     band: tuple[float, float] | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
                     given: Mapping[str, Mapping[str, WuWeight]] | None = None,
-                    jobs: int = 1, executor=None) -> list[AxisUncertainty]:
+                    jobs: int = 1, executor=None, source: str | None = None
+                    ) -> list[AxisUncertainty]:
     """W_max (eq. 6) and Wu (eq. 7) for each axis with derived trial spectra and a
     nominal row.
 
@@ -777,12 +779,14 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
     {label: {axis: WuWeight}} weights to evaluate on the same data; ``jobs`` > 1: the
     axes' Wu fits in that many worker processes, or on ``executor`` (a
     :class:`concurrent.futures.Executor`, used as is; see :mod:`armfit.workers`) when
-    given (the results depend on neither).
+    given (the results depend on neither); ``source``: the file ``params`` came from,
+    named in messages. An axis without both derived trials and a nominal row is left
+    out (:func:`weight_axis_notes` says which).
     Returns one :class:`AxisUncertainty` per axis, in x, y, z order.
     """
     if "grip_N" in params.columns:
         raise BadInputError("has a grip_N column (grip-dependent fits); give the "
-                            "parameters file of fit-nominal", column="grip_N")
+                            "parameters file of fit-nominal", file=source, column="grip_N")
     trial_rows = Spectra.of(spectra).select(level="trial", kind="derived")
     have_spec = trial_rows.values_of("axis")
     have_par = set(params["axis"].astype(str))
@@ -791,13 +795,16 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
         raise BadInputError(f"no axis has both derived trial spectra (axes: "
                             f"{', '.join(sorted(have_spec)) or 'none'}) and a nominal "
                             f"row (axes: {', '.join(sorted(have_par)) or 'none'})",
-                            column="axis")
+                            file=source, column="axis")
     prepared = []
     for axis in wanted:
         rows = params[params["axis"].astype(str) == axis]
         if len(rows) > 1:
-            raise BadInputError(f"axis {axis} has {len(rows)} nominal rows; expected one",
-                                column="axis", row=int(rows.index[1]) + 1)
+            first, second = (int(i) for i in np.flatnonzero(params["axis"].astype(str)
+                                                              == axis)[:2] + 1)
+            raise BadInputError(f"axis {axis} has a second row (rows {first} and {second}); "
+                                "a nominal params file has one row per axis",
+                                file=source, column="axis", row=second)
         f, H, _ = derived_trials(trial_rows, axis, method=method)
         H = arm_trials(rows.iloc[0], f, H, derived_mass_kg(spectra, axis))
         Hn = nominal_arm_response(rows.iloc[0], f)
@@ -827,6 +834,40 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
         checks = {(label, tname): check_envelope(f, tw, w, band=b)
                   for label, w in weights.items() for tname, tw in targets.items()}
         out.append(AxisUncertainty(axis, f, raw, target, b, n_trials, res, checks))
+    return out
+
+
+def weight_axis_notes(spectra, params, *, spectra_label: str | None = None,
+                      params_label: str | None = None) -> list[str]:
+    """What :func:`fit_weights` leaves out, in sentences: an axis with derived trial
+    spectra but no nominal row (it gets no weight), and a nominal row without derived
+    trials. A subset of the axes is a legitimate study; the notes say which.
+
+    Parameters
+    ----------
+    spectra : Spectra or pandas.DataFrame
+    params : pandas.DataFrame
+        The nominal rows (a params table).
+    spectra_label, params_label : str, optional
+        The files, named in the sentences.
+
+    Returns
+    -------
+    list of str
+        One sentence per axis left out, in x, y, z order (empty when none is).
+    """
+    sl = spectra_label or "the spectra"
+    pl = params_label or "the nominal parameters"
+    have_spec = Spectra.of(spectra).select(level="trial", kind="derived").values_of("axis")
+    have_par = set(params["axis"].astype(str))
+    out = []
+    for axis in AXES:
+        if axis in have_spec and axis not in have_par:
+            out.append(f"axis {axis}: {sl} holds derived trials but {pl} has no row for "
+                       f"it; no weight is fitted for axis {axis}")
+        elif axis in have_par and axis not in have_spec:
+            out.append(f"axis {axis}: {pl} has a row but {sl} holds no derived trials of "
+                       f"it; no weight is fitted for axis {axis}")
     return out
 
 
@@ -885,7 +926,15 @@ def read_weights_and_bands(path_or_name: str | Path):
     """({axis: WuWeight}, {axis: (lo, hi) Hz}, label) of a Wu CSV (fit-uncertainty
     output, Table III layout) or the paper's Table III by name (``paper``/``table3``;
     a file of that name wins). The band is the one the weight was fitted over, from the
-    ``<stem>_summary.csv`` written beside it; without one, the paper's 0.01–30 Hz."""
+    ``<stem>_summary.csv`` written beside it; without one, the paper's 0.01–30 Hz.
+
+    Raises
+    ------
+    NoInputError, BadInputError
+        As :func:`read_wu`; and naming the summary file, column and row when it is not a
+        summary (a missing column), gives an axis two fitted bands, or a band that is
+        not lo < hi inside the physical range of a frequency.
+    """
     p = Path(path_or_name)
     if not p.exists() and str(path_or_name).lower() in PAPER_WEIGHTS:
         ref = resources.files("armfit.data").joinpath("table3_uncertainty_weights.csv")
@@ -896,19 +945,46 @@ def read_weights_and_bands(path_or_name: str | Path):
     bands = {a: PAPER_BAND_HZ for a in w}
     summary, _ = wu_sidecar_paths(p)
     if summary.is_file():
-        try:
-            s = parse_columns(pd.read_csv(summary), ("band_lo_hz", "band_hi_hz"),
-                              file=str(summary))
-            s = s[(s["weight"] == "fitted") & (s["target"] == "wmax")]
-            for _, r in s.iterrows():
-                lo, hi = float(r["band_lo_hz"]), float(r["band_hi_hz"])
-                if r["axis"] in bands and 0 < lo < hi:
-                    bands[r["axis"]] = (lo, hi)
-        except BadInputError:
-            raise
-        except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
-            pass
+        bands.update(_summary_bands(summary, set(w)))
     return w, bands, str(p)
+
+
+def _summary_bands(summary: Path, axes: set[str]) -> dict[str, tuple[float, float]]:
+    """{axis: (lo, hi)} of the fitted weights' rows (target ``wmax``) of a Wu summary."""
+    try:
+        s = pd.read_csv(summary, dtype={"axis": str, "weight": str, "target": str})
+    except (ValueError, UnicodeDecodeError, pd.errors.ParserError,
+            pd.errors.EmptyDataError) as exc:
+        raise BadInputError(f"not a Wu summary CSV ({str(exc).splitlines()[0]})",
+                            file=str(summary)) from None
+    for col in ("axis", "weight", "target", "band_lo_hz", "band_hi_hz"):
+        if col not in s.columns:
+            raise BadInputError("missing column; expected the summary fit-uncertainty "
+                                "writes beside its weights", file=str(summary), column=col)
+    rows = np.flatnonzero(((s["weight"] == "fitted") & (s["target"] == "wmax")).to_numpy())
+    out: dict[str, tuple[float, float]] = {}
+    first: dict[str, int] = {}
+    for i in rows:
+        axis = str(s["axis"].iloc[i]).strip().lower()
+        if axis not in axes:
+            continue
+        if axis in first:
+            raise BadInputError(f"axis {axis} has a second fitted band (rows {first[axis]} "
+                                f"and {i + 1})", file=str(summary), column="axis",
+                                row=int(i) + 1)
+        first[axis] = int(i) + 1
+        lo, hi = (parse_numbers(s[c].iloc[[i]], file=str(summary), column=c,
+                                first_row=int(i) + 1)
+                  for c in ("band_lo_hz", "band_hi_hz"))
+        for col, v in (("band_lo_hz", lo), ("band_hi_hz", hi)):
+            check_in_range(v, FREQUENCY_RANGE, file=str(summary), column=col,
+                           rows=[i + 1], shown=[s[col].iloc[i]])
+        if not lo[0] < hi[0]:
+            raise BadInputError(f"band {lo[0]:g}-{hi[0]:g} Hz of axis {axis} is empty; "
+                                "expected band_lo_hz < band_hi_hz", file=str(summary),
+                                column="band_hi_hz", row=int(i) + 1)
+        out[axis] = (float(lo[0]), float(hi[0]))
+    return out
 
 
 __all__ = [
@@ -916,5 +992,6 @@ __all__ = [
     "wu_response", "smooth_fractional_octave", "relative_error", "w_max",
     "EnvelopeCheck", "check_envelope", "WuResult", "fit_wu", "nominal_arm_response",
     "arm_trials", "derived_trials", "AxisUncertainty", "fit_weights",
-    "derived_mass_kg", "summary_table", "points_table", "read_weights_and_bands",
+    "derived_mass_kg", "weight_axis_notes", "summary_table", "points_table",
+    "read_weights_and_bands",
 ]

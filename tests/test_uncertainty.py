@@ -338,7 +338,8 @@ def test_wu_latex_lists_pairs():
     ("axis,kind,index,real,imag\nx,gain,0,1,0\nx,zero,1,abc,1\n",
      "column 'real', row 2: expected a finite number, got 'abc'"),
     ("axis,kind,index,real,imag\nx,zero,1,-1,1\n", "column 'kind', row 1: axis x has 0 gain"),
-    ("axis,kind,index,real,imag\nx,gain,0,-2,0\n", "column 'real', row 1: gain K must be > 0"),
+    ("axis,kind,index,real,imag\nx,gain,0,-2,0\n",
+     r"column 'real', row 1: Wu gain K = -2.0 is outside its physical range \[1e-06, 1e\+06\]"),
 ])
 def test_read_wu_errors_name_file_column_row(tmp_path, text, match):
     p = tmp_path / "bad.csv"

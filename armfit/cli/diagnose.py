@@ -23,6 +23,7 @@ from armfit.cli.options import (
     overwrite_option,
     verbosity,
 )
+from armfit.diagnosis import comparison_notes
 from armfit.diagnosis.tuning import MAX_STEPS, MIN_EFFECT_DB, MIN_EFFECT_DEG, SHARED_EFFECTS
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import check_output
@@ -92,6 +93,8 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
     result = api_compare(data, model, level=level, band=band,
                          effects=_effects(effect_names))
     level, rows = result.level, result.rows
+    for text in result.notes:
+        message(f"note: {text}")
     if not rows:
         raise UsageError(f"{spectra}: holds no {level}-level measured responses for the "
                          f"axes of {model_path}")
@@ -170,6 +173,10 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_
         raise UsageError("give --share or --no-share, not both")
     model = ModelFit.read(model_path)
     data = Spectra.read(spectra)
+    notes = comparison_notes(data, model.table, "trial", spectra_label=spectra,
+                             params_label=model_path, action="diagnosed")
+    for text in notes:
+        message(f"note: {text}")
     try:
         result = api_diagnose(data, model, band=band, jobs=jobs,
                               effects=_effects(effect_names) if effect_names else None,
@@ -187,7 +194,7 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_
         result.write(output, overwrite=overwrite)
     doc = result.to_dict()
     if as_json:
-        emit_json(doc)
+        emit_json(doc | ({"notes": notes} if notes else {}))
         # the steps still reach the user, on stderr (stdout holds the JSON)
         if verbosity() >= 0:
             _print_steps(results, doc, _console(stderr=True))

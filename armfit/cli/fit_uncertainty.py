@@ -134,6 +134,8 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
                                   smooth_oct=smooth_oct, method=method, check=given,
                                   jobs=jobs, executor=executor)
     results = unc.axes
+    for text in unc.notes:
+        message(f"note: {text}")
     for r in results:
         res = r.result
         fitted = r.checks[("fitted", "wmax")]
@@ -172,7 +174,7 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
             } for r in results],
             "summary_rows": [{k: clean(v) for k, v in row.items()}
                              for row in summary.to_dict("records")],
-        })
+        } | ({"notes": list(unc.notes)} if unc.notes else {}))
 
 
 __all__ = [

@@ -56,8 +56,9 @@ def _kn(v: float) -> str:
 
 
 def stability_document(table, summary, settings, *, params_label: str,
-                       weights_label: str | None, skipped) -> dict:
-    """The ``--json`` document: settings, models (in PARAMS row order), axes, skipped."""
+                       weights_label: str | None, skipped, notes=()) -> dict:
+    """The ``--json`` document: settings, models (in PARAMS row order), axes, skipped,
+    and ``notes`` (what the command said on stderr about the inputs) when there are any."""
     models = []
     for rec in table.to_dict("records"):
         models.append({k: clean(v) for k, v in rec.items()})
@@ -67,7 +68,7 @@ def stability_document(table, summary, settings, *, params_label: str,
         "models": models,
         "axes": axes,
         "skipped": [{"row": r, "trial": who, "reason": why} for r, who, why in skipped],
-    }
+    } | ({"notes": list(notes)} if notes else {})
 
 
 def human_table(table, summary, settings) -> str:
@@ -96,42 +97,9 @@ def human_table(table, summary, settings) -> str:
 
 
 def certificate_sentences(table, summary) -> list[str]:
-    """Plain sentences on the robust certificate per axis."""
-    out = []
-    for axis, s in summary.items():
-        if "k_robust_min_N_per_m" not in s:
-            continue
-        g = table[table["axis"] == axis]
-        if not g["wu_t_peak_k0"].notna().any():
-            out.append(f"axis {axis}: no uncertainty weight for this axis; no certificate")
-            continue
-        if math.isfinite(s["k_robust_min_N_per_m"]):
-            out.append(f"axis {axis}: the robust certificate max |Wu T| < 1 holds for K up "
-                       f"to {_kn(s['k_robust_min_N_per_m'])} kN/m on every model"
-                       + _limit_words(g))
-        else:
-            fails = g[~g["k_robust_N_per_m"].notna()]
-            out.append(f"axis {axis}: the robust certificate holds for no K at all on "
-                       f"{len(fails)} of {len(g)} model(s): max |Wu T| is already "
-                       f"{s['wu_t_peak_k0_max']:.3f} > 1 at K = 0 (the weight allows "
-                       "more than 100 % relative uncertainty where the device's own "
-                       "impedance dominates)")
-    return out
-
-
-def _limit_words(g) -> str:
-    """What bounds the smallest certified K of one axis, in words."""
-    i = g["k_robust_N_per_m"].idxmin()
-    why = str(g.loc[i, "limited_by"] or "")
-    if why == "member":
-        return (f" (capped at member {g.loc[i, 'limiting_member']}, whose K_max is "
-                f"{_kn(g.loc[i, 'member_k_max_N_per_m'])} kN/m)")
-    if why == "weight beyond band":
-        return (f" (bound at {g.loc[i, 'f_binding_hz']:.3g} Hz, above the weight's band: "
-                "there Wu is its fitted form continued)")
-    if why == "nominal K_max":
-        return " (the nominal model's own K_max)"
-    return ""
+    """Plain sentences on the robust certificate per axis: each axis's
+    ``certificate_text`` of :func:`armfit.loop.axis_summary`, which the JSON holds too."""
+    return [s["certificate_text"] for s in summary.values() if "certificate_text" in s]
 
 
 @click.command("stability")
@@ -191,6 +159,14 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
         message(f"warning: {rows.label}: row {r} ({who}) has no fit and is left out: {why}")
     if len(rows.table) == 0:
         raise BadInputError("no row with fitted parameters", file=rows.label)
+    notes = []
+    if members is not None:     # an axis without members: no cap, no check beyond the band
+        have = set(members["axis"])
+        for axis in sorted(set(rows.table["axis"]) & set(weights or {}) - have):
+            notes.append(f"{m_rows.label} has no model of axis {axis}: its certificate is "
+                         "neither capped at a member's K_max nor checked above the band")
+    for text in notes:
+        message(f"note: {text}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         table = stability_table(rows.table, settings, weights=weights,
@@ -209,7 +185,8 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
         message(f"wrote {output} ({len(table)} models)")
     if as_json:
         emit_json(stability_document(table, summary, settings, params_label=rows.label,
-                                     weights_label=weights_label, skipped=rows.skipped))
+                                     weights_label=weights_label, skipped=rows.skipped,
+                                     notes=notes))
     elif output is None:
         click.echo(human_table(table, summary, settings))
 

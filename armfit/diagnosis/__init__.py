@@ -76,6 +76,7 @@ from armfit.diagnosis.compare import (
     Comparison,
     band_to_dict,
     compare_models,
+    comparison_notes,
     diagnosis_to_dict,
     model_label,
 )
@@ -139,7 +140,8 @@ __all__ = [
     "MIN_EFFECT_DEG", "MIN_REDUCTION", "MIN_RUN", "MissingEffect", "NOISE_TOL",
     "SHARED_EFFECTS", "SIGNIFICANT_BIC", "Step",
     "T_FAIL", "adequacy", "axis_data", "band_error", "band_to_dict", "best_rows",
-    "compare_models", "cross_axis_agreement", "cross_coupling", "describe_residual",
+    "compare_models", "comparison_notes", "cross_axis_agreement", "cross_coupling",
+    "describe_residual",
     "diagnose_axes", "diagnosis_to_dict", "effect_size", "failing_bands", "fit_base",
     "fit_borrowed", "fit_extend", "joint_fit", "levy_starts", "model_label", "practical",
     "residuals", "screen_candidate", "trial_statistics", "verdict_text",

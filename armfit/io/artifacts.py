@@ -20,6 +20,7 @@ from armfit.constants import AXES
 from armfit.errors import BadInputError, NoInputError, cell
 from armfit.io.atomic import atomic_path
 from armfit.io.numbers import parse_numbers
+from armfit.io.ranges import WU_GAIN_RANGE, WU_ROOT_RANGE, check_in_range
 from armfit.io.schema import (
     CSV_FLOAT_FORMAT,
     PARAMS_HELD,
@@ -128,8 +129,10 @@ def read_wu_rows(path: str | os.PathLike, *, require_stable: bool = True
     BadInputError
         Naming the file, column and row (1-based data row) of anything that breaks the
         layout: a missing column, an axis other than x/y/z, a kind other than
-        gain/zero/pole, a non-numeric or non-finite value, or an axis without exactly
-        one positive gain.
+        gain/zero/pole, a non-numeric or non-finite value, an axis without exactly one
+        gain, two zero (or pole) rows of one index, a gain or a root magnitude outside
+        its physical range (:mod:`armfit.io.ranges`), or more zero pairs than pole
+        pairs (an improper weight).
     """
     p = Path(path)
     if not p.is_file():
@@ -166,35 +169,62 @@ def read_wu_rows(path: str | os.PathLike, *, require_stable: bool = True
                                 file=str(p), column=col, row=int(bad[0]) + 1)
         nums[col] = v
     out = {}
+    kinds = kind.to_numpy()
     for ax in AXES:
         rows = np.flatnonzero(axis.to_numpy() == ax)
         if rows.size == 0:
             continue
-        gains = rows[kind.to_numpy()[rows] == "gain"]
+        gains = rows[kinds[rows] == "gain"]
         if gains.size != 1:
-            raise BadInputError(f"axis {ax} has {gains.size} gain rows; expected one",
+            where = "" if gains.size < 2 else f" (rows {gains[0] + 1} and {gains[1] + 1})"
+            raise BadInputError(f"axis {ax} has {gains.size} gain rows{where}; expected one",
                                 file=str(p), column="kind",
-                                row=int((gains if gains.size else rows)[0]) + 1)
-        if not nums["real"][gains[0]] > 0:
-            raise BadInputError(f"gain K must be > 0, got {nums['real'][gains[0]]:g}",
-                                file=str(p), column="real", row=int(gains[0]) + 1)
+                                row=int(gains[1] if gains.size > 1 else rows[0]) + 1)
+        check_in_range(nums["real"][gains], WU_GAIN_RANGE, file=str(p), column="real",
+                       rows=gains + 1)
+        _check_pairs(p, ax, rows, kinds, nums, require_stable)
         reps = {}
         for k in ("zero", "pole"):
-            r = rows[kind.to_numpy()[rows] == k]
+            r = rows[kinds[rows] == k]
             r = r[np.argsort(nums["index"][r], kind="stable")]
             reps[k] = nums["real"][r] + 1j * np.abs(nums["imag"][r])
-        for k, what in (("pole", "unstable: a pole"), ("zero", "not minimum phase: a zero")):
-            r = rows[kind.to_numpy()[rows] == k]
-            bad = r[nums["real"][r] >= 0]
-            if require_stable and bad.size:
-                i = int(bad[0])
-                raise BadInputError(
-                    f"Wu of axis {ax} is {what} at {cell(nums['real'][i])} ± "
-                    f"{cell(abs(nums['imag'][i]))}j rad/s is not in the open left half plane; "
-                    "an uncertainty weight must be stable and minimum phase",
-                    file=str(p), column="real", row=i + 1)
         out[ax] = (float(nums["real"][gains[0]]), reps["zero"], reps["pole"])
     return out
+
+
+def _check_pairs(p: Path, ax: str, rows: np.ndarray, kinds: np.ndarray,
+                 nums: Mapping[str, np.ndarray], require_stable: bool) -> None:
+    """The zero and pole rows of one axis of a Wu file: each root's magnitude inside its
+    physical range, in the open left half plane (when ``require_stable``), one row per
+    index, and no more zero pairs than pole pairs (a proper weight)."""
+    zeros, poles = rows[kinds[rows] == "zero"], rows[kinds[rows] == "pole"]
+    for k, r in (("zero", zeros), ("pole", poles)):
+        check_in_range(np.hypot(nums["real"][r], nums["imag"][r]), WU_ROOT_RANGE,
+                       file=str(p), column="real", rows=r + 1,
+                       name=f"|{k}| of Wu of axis {ax}")
+    for r, what in ((poles, "unstable: a pole"), (zeros, "not minimum phase: a zero")):
+        bad = r[nums["real"][r] >= 0]
+        if require_stable and bad.size:
+            i = int(bad[0])
+            raise BadInputError(
+                f"Wu of axis {ax} is {what} at {cell(nums['real'][i])} ± "
+                f"{cell(abs(nums['imag'][i]))}j rad/s is not in the open left half plane; "
+                "an uncertainty weight must be stable and minimum phase",
+                file=str(p), column="real", row=i + 1)
+    for k, r in (("zero", zeros), ("pole", poles)):
+        seen: dict[float, int] = {}
+        for i in r:
+            j = nums["index"][i]
+            if j in seen:
+                raise BadInputError(f"axis {ax} has a second {k} of index {j:g} (rows "
+                                    f"{seen[j] + 1} and {i + 1}); each {k} pair is one row",
+                                    file=str(p), column="index", row=int(i) + 1)
+            seen[j] = int(i)
+    if zeros.size > poles.size:
+        raise BadInputError(f"Wu of axis {ax} has {zeros.size} zero pairs and {poles.size} "
+                            "pole pairs: improper (|Wu| grows without bound with frequency); "
+                            "an uncertainty weight has at most as many zeros as poles",
+                            file=str(p), column="kind", row=int(zeros[poles.size]) + 1)
 
 
 __all__ = [

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from armfit.constants import DEVICE_MASS_KG, PARAM_NAMES
-from armfit.errors import EffectDefinitionError, UsageError
+from armfit.errors import EffectDefinitionError, UsageError, cell
 
 if TYPE_CHECKING:  # pragma: no cover
     from armfit.models.effects import Effect
@@ -64,7 +64,7 @@ class Param:
             if isinstance(v, bool) or not isinstance(v, (int, float, np.floating,
                                                          np.integer)) or not np.isfinite(v):
                 raise EffectDefinitionError(f"parameter {self.name!r}: {what} must be a "
-                                            f"finite number, got {v!r}")
+                                            f"finite number, got {cell(v)}")
         if not (self.lower < self.typical < self.upper):
             raise EffectDefinitionError(
                 f"parameter {self.name!r}: bounds must hold lower < typical < upper, got "

@@ -81,7 +81,7 @@ from pathlib import Path
 import numpy as np
 
 from armfit.constants import GRID_HZ
-from armfit.errors import EffectDefinitionError, NoInputError, UsageError
+from armfit.errors import EffectDefinitionError, NoInputError, UsageError, cell
 from armfit.io.numbers import parse_number
 from armfit.models.arm import BASE_PARAMS, DEVICE_MASS_KG, STAGE_NAMES, Param
 
@@ -432,7 +432,7 @@ def _check_structure(e: Effect) -> None:
             continue
         if not _is_number(v):
             fail(f"null value of {p.name} must be a number (or None for the device mass), "
-                 f"got {v!r}")
+                 f"got {cell(v)}")
         if not (p.lower <= v <= p.upper):
             fail(f"null value {v:g} of {p.name} lies outside its bounds "
                  f"[{p.lower:g}, {p.upper:g}] {p.unit}")
@@ -443,7 +443,7 @@ def _check_structure(e: Effect) -> None:
             fail(f"starts[{j}] must give one value per parameter ({len(e.params)})")
         for p, v in zip(e.params, st, strict=True):
             if not _is_number(v) or not (p.lower <= v <= p.upper):
-                fail(f"starts[{j}]: {p.name}={v!r} is not a number inside its bounds "
+                fail(f"starts[{j}]: {p.name}={cell(v)} is not a number inside its bounds "
                      f"[{p.lower:g}, {p.upper:g}] {p.unit}")
     for attr in ("summary", "suspect_when"):
         if not isinstance(getattr(e, attr), str):
@@ -516,7 +516,7 @@ def _rational_parts(e: Effect, values: Mapping[str, float], mp: float, where: st
     if (d is None or d.ndim != 0 or d.dtype.kind not in "iuf" or not np.isfinite(d)
             or d < 0):
         raise EffectDefinitionError(f"effect {e.name!r}: rational returned delay_s "
-                                    f"{delay!r}{at}; it must be a finite number >= 0 (s)")
+                                    f"{cell(delay)}{at}; it must be a finite number >= 0 (s)")
     return num, den, float(d)
 
 
@@ -934,7 +934,7 @@ def resolve_effects(items: Iterable | None) -> tuple[tuple[Effect, ...], dict[st
         elif isinstance(item, Effect):
             effect = item
         else:
-            raise UsageError(f"{item!r} does not name an effect (give an Effect, its name, "
+            raise UsageError(f"{cell(item)} does not name an effect (give an Effect, its name, "
                              "or NAME=VALUES)")
         if any(e.name == effect.name for e in effects):
             raise UsageError(f"effect given twice: {effect.name}")

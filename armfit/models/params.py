@@ -2,8 +2,10 @@
 models, and the paper's Tables I and II as params rows.
 
 One reader, :func:`read_param_rows`, checks a params file against the models it
-describes: the columns of the effects each row names, and parameters that are numbers
-inside their physical ranges. :func:`read_params` is that reader for a file of fits.
+describes: the columns of the effects each row names, one row per model, and parameters,
+device masses and grip forces that are numbers inside their physical ranges;
+:func:`check_param_rows` applies the same checks to a table given to the Python API.
+:func:`read_params` is that reader for a file of fits.
 :func:`model_from_params` turns one row into the closed-loop model of eq. 4 and its
 values.
 """
@@ -21,6 +23,12 @@ from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.numbers import parse_columns, parse_numbers
+from armfit.io.ranges import (
+    DEVICE_MASS_RANGE,
+    GRIP_FORCE_RANGE,
+    PhysicalRange,
+    check_in_range,
+)
 from armfit.io.schema import PARAMS_BASE, PARAMS_HELD, PARAMS_OPTIONAL, PARAMS_STATS
 from armfit.models.arm import BASE_PARAMS, ClosedLoopModel, Param
 from armfit.models.effects import get_effect
@@ -85,7 +93,10 @@ def read_param_rows(path_or_name: str | os.PathLike) -> ParamRows:
         Naming the file, column and row: not a CSV, a missing column, an axis other than
         x, y or z, an unknown effect or an effect column no row lists, a value for an
         effect the row's model does not have, a parameter of a row's model that is not a
-        number inside its physical range, or a device mass that is not positive.
+        number inside its physical range, a device mass or grip force outside its
+        physical range (:mod:`armfit.io.ranges`), or a second row of one model (a
+        nominal file has one row per axis, a grip file one per axis and grip, a
+        per-trial file one per trial).
     """
     p = Path(path_or_name)
     if not p.exists() and str(path_or_name).lower() in PAPER_PARAMS:
@@ -94,7 +105,41 @@ def read_param_rows(path_or_name: str | os.PathLike) -> ParamRows:
         table.insert(0, "row", np.arange(1, len(table) + 1))
         label = "Table I of the paper" if which == "grip" else "Table II of the paper"
         return ParamRows(table, (), label)
-    df = _read_csv(p)
+    return check_param_rows(_read_csv(p), str(p))
+
+
+def check_param_rows(table: pd.DataFrame, source: str | None = None) -> ParamRows:
+    """The checks of :func:`read_param_rows` on a params table already in memory (e.g.
+    a DataFrame given to the Python API instead of a file).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        Rows in the columns of a params file (:func:`armfit.io.schema.params_columns`);
+        at least ``axis``, ``effects``, the parameters of the rows' models and ``mp_kg``.
+    source : str, optional
+        The file the table came from, named in messages.
+
+    Returns
+    -------
+    ParamRows
+        As :func:`read_param_rows` (``label``: ``source``, or "the params table").
+
+    Raises
+    ------
+    BadInputError
+        As :func:`read_param_rows`, naming ``source`` (when given), column and row.
+    """
+    p = source
+    df = table.copy()
+    for col in ("axis", "effects"):
+        if col not in df.columns:
+            raise BadInputError("missing column; expected a file written by fit-grip, "
+                                "fit-nominal or fit-trials", file=p, column=col)
+    df["effects"] = df["effects"].astype(object).fillna("").astype(str)
+    # a table read before keeps its file's row numbers; messages count the table's rows
+    numbers = df.pop("row").to_numpy() if "row" in df.columns else np.arange(1, len(df) + 1)
+    df = df.reset_index(drop=True)
     uses = row_param_names(df, p)       # each row's own model (one per axis, say)
     bounds = param_bounds(df, p)
     _check_columns(df, p, bounds)
@@ -103,6 +148,7 @@ def read_param_rows(path_or_name: str | os.PathLike) -> ParamRows:
                        file=str(p))
     df.insert(0, "row", np.arange(1, len(df) + 1))
     df["axis"] = _axes(df, p)
+    _check_one_row_per_model(df, p)
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"]) \
         if "converged" in df.columns else True
     values = {c: parse_numbers(df[c], errors="coerce") for c in bounds}
@@ -114,15 +160,14 @@ def read_param_rows(path_or_name: str | os.PathLike) -> ParamRows:
         _check_values(df, p, col, q, values[col], used[col], keep)
         df[col] = values[col]
     mp = parse_numbers(df["mp_kg"], errors="coerce")
-    bad = np.flatnonzero(keep & ~(np.isfinite(mp) & (mp > 0)))
-    if bad.size:
-        raise BadInputError(f"device mass must be a positive number (kg), got "
-                            f"{cell(df['mp_kg'].iloc[bad[0]])}", file=str(p),
-                            column="mp_kg", row=int(bad[0]) + 1)
+    check_in_range(mp, DEVICE_MASS_RANGE, file=p, column="mp_kg", where=keep,
+                   shown=list(df["mp_kg"]))
     df["mp_kg"] = mp
-    skipped = tuple((int(i) + 1, _identity(df.iloc[i]), _reason(df, i))
+    df["row"] = numbers
+    skipped = tuple((int(numbers[i]), _identity(df.iloc[i]), _reason(df, i))
                     for i in np.flatnonzero(empty))
-    return ParamRows(df[keep].reset_index(drop=True), skipped, str(p))
+    return ParamRows(df[keep].reset_index(drop=True), skipped,
+                     "the params table" if p is None else p)
 
 
 def read_params(path: str | os.PathLike) -> pd.DataFrame:
@@ -180,11 +225,6 @@ def _read_csv(p: Path) -> pd.DataFrame:
             ValueError) as exc:
         raise BadInputError(f"not a params CSV ({str(exc).splitlines()[0]})",
                             file=str(p)) from None
-    for col in ("axis", "effects"):
-        if col not in df.columns:
-            raise BadInputError("missing column; expected a file written by fit-grip, "
-                                "fit-nominal or fit-trials", file=str(p), column=col)
-    df["effects"] = df["effects"].fillna("").astype(str)
     for col, default in PARAMS_OPTIONAL.items():
         if col in df.columns:
             df[col] = df[col].fillna(default).astype(str)
@@ -193,31 +233,31 @@ def _read_csv(p: Path) -> pd.DataFrame:
     return df
 
 
-def _check_columns(df: pd.DataFrame, p: Path, bounds: dict[str, Param]) -> None:
+def _check_columns(df: pd.DataFrame, p: str | None, bounds: dict[str, Param]) -> None:
     """Every parameter column of the rows' models and ``mp_kg`` present; no column of an
     effect that no row lists."""
     for col in (*bounds, "mp_kg"):
         if col not in df.columns:
             raise BadInputError("missing column; expected a file written by fit-grip, "
-                                "fit-nominal or fit-trials", file=str(p), column=col)
+                                "fit-nominal or fit-trials", file=p, column=col)
     known = {f"{n}{sfx}" for n in bounds for sfx in ("", "_lo", "_hi")}
     for col in df.columns:  # an effect parameter the models would silently ignore
         if "." in str(col) and str(col) not in known:
             raise BadInputError(_unknown_effect_column(str(col), df),
-                                file=str(p), column=str(col))
+                                file=p, column=str(col))
 
 
-def _axes(df: pd.DataFrame, p: Path) -> pd.Series:
+def _axes(df: pd.DataFrame, p: str | None) -> pd.Series:
     """The ``axis`` column, lower-case; BadInputError at the first that is not x, y, z."""
     axes = df["axis"].fillna("").astype(str).str.strip().str.lower()
     bad = np.flatnonzero(~axes.isin(list(AXES)).to_numpy())
     if bad.size:
         raise BadInputError(f"axis {cell(df['axis'].iloc[bad[0]])} is not x, y or z",
-                            file=str(p), column="axis", row=int(bad[0]) + 1)
+                            file=p, column="axis", row=int(bad[0]) + 1)
     return axes
 
 
-def _check_values(df: pd.DataFrame, p: Path, col: str, q: Param, v: np.ndarray,
+def _check_values(df: pd.DataFrame, p: str | None, col: str, q: Param, v: np.ndarray,
                   used: np.ndarray, keep: np.ndarray) -> None:
     """The parameter ``col`` is a number inside its physical range in every kept row
     whose model has it, and empty in the rows whose model does not."""
@@ -226,18 +266,58 @@ def _check_values(df: pd.DataFrame, p: Path, col: str, q: Param, v: np.ndarray,
         raise BadInputError(f"value {cell(df[col].iloc[bad[0]])} for an effect this "
                             f"row's model does not have (its effects: "
                             f"{df['effects'].iloc[bad[0]] or 'none'}); the model would "
-                            "ignore it", file=str(p), column=col, row=int(bad[0]) + 1)
+                            "ignore it", file=p, column=col, row=int(bad[0]) + 1)
     bad = np.flatnonzero(used & keep & ~np.isfinite(v))
     if bad.size:
         kind = "a positive number" if q.log else "a number"
         raise BadInputError(f"parameter must be {kind}, got {cell(df[col].iloc[bad[0]])}",
-                            file=str(p), column=col, row=int(bad[0]) + 1)
-    tol = 1e-9 * max(abs(q.lower), abs(q.upper))  # 10-digit rounding of a bound
-    bad = np.flatnonzero(used & keep & ((v < q.lower - tol) | (v > q.upper + tol)))
-    if bad.size:
-        raise BadInputError(f"{col} = {cell(v[bad[0]])} {q.unit} is outside its physical "
-                            f"range [{q.lower:g}, {q.upper:g}] {q.unit}", file=str(p),
-                            column=col, row=int(bad[0]) + 1)
+                            file=p, column=col, row=int(bad[0]) + 1)
+    # a bound written with 10 significant digits stays inside
+    check_in_range(v, PhysicalRange(col, q.unit, q.lower, q.upper), file=p, column=col,
+                   where=used & keep, tolerance=1e-9)
+
+
+def _check_one_row_per_model(df: pd.DataFrame, p: str | None) -> None:
+    """One row per model: per axis in a nominal file, per axis and grip in a grip file,
+    per trial (axis, subject, grip, run) in a per-trial file; the grip forces inside
+    their physical range. BadInputError at the second row of a model, naming both."""
+    if "grip_N" in df.columns:
+        grips = pd.to_numeric(df["grip_N"], errors="coerce").to_numpy(float)
+        check_in_range(grips, GRIP_FORCE_RANGE, file=p, column="grip_N",
+                       shown=list(df["grip_N"]))
+    if "subject" in df.columns:
+        keys, column, what = ("axis", "subject", "grip_N", "run"), "subject", \
+            "a per-trial params file has one row per trial (axis, subject, grip, run)"
+    elif "grip_N" in df.columns:
+        keys, column, what = ("axis", "grip_N"), "grip_N", \
+            "a grip params file has one row per axis and grip"
+    else:
+        keys, column, what = ("axis",), "axis", "a nominal params file has one row per axis"
+    first: dict[tuple, int] = {}
+    for i, rec in enumerate(df[[k for k in keys if k in df.columns]].to_dict("records")):
+        key = tuple(_key_value(rec.get(k), k != "subject") for k in keys)
+        if key in first:
+            raise BadInputError(f"{_identity(df.iloc[i])} has a second row (rows "
+                                f"{first[key]} and {i + 1}); {what}", file=p,
+                                column=column, row=i + 1)
+        first[key] = i + 1
+
+
+def _key_value(v, number: bool):
+    """A cell of a model's identity, comparable across rows (a grip or run as float, a
+    subject as text, a missing value as None)."""
+    if v is None or str(v).strip() in ("", "nan", "<NA>", "None"):
+        return None
+    if number:
+        try:
+            return float(v)
+        except (TypeError, ValueError):
+            pass
+    return str(v).strip()
+
+
+def _file(path) -> str | None:
+    return None if path is None else str(path)
 
 
 def _reason(df: pd.DataFrame, i: int) -> str:
@@ -294,7 +374,7 @@ def row_effects(df: pd.DataFrame, path) -> list[list]:
             try:
                 cache[spec] = [get_effect(n) for n in spec.split(";") if n]
             except UsageError as exc:
-                raise BadInputError(exc.template, file=str(path), column="effects",
+                raise BadInputError(exc.template, file=_file(path), column="effects",
                                     row=i + 1) from None
         out.append(cache[spec])
     return out
@@ -369,6 +449,7 @@ def fit_band(row, f_hz=None) -> tuple[float, float] | None:
 
 
 __all__ = [
-    "PAPER_PARAMS", "ParamRows", "paper_params", "read_param_rows", "read_params",
+    "PAPER_PARAMS", "ParamRows", "paper_params", "read_param_rows", "check_param_rows",
+    "read_params",
     "param_bounds", "row_effects", "row_param_names", "model_from_params", "fit_band",
 ]
