@@ -133,3 +133,58 @@ def serial_spectra(small_study):
     executor tests."""
     import armfit
     return armfit.estimate(small_study)
+
+
+#: The small study the fault tests work on (tests/test_faults*.py): 2 subjects, x and z,
+#: grips 1 and 2 N, 26 s trials.
+FAULT_SIM = ["--subjects", "2", "--axes", "xz", "--grips", "1,2", "--duration", "26,26",
+             "--seed", "11"]
+
+
+@pytest.fixture(scope="session")
+def _fault_files(tmp_path_factory) -> Path:
+    """The fault study, its spectra and nominal and grip fits, made once per session by
+    the command line."""
+    from armfit.cli.main import cli
+    root = tmp_path_factory.mktemp("fault_files")
+    steps = [["simulate", "-o", root / "study", *FAULT_SIM],
+             ["estimate", root / "study", "-o", root / "spectra.parquet"],
+             ["fit-nominal", root / "spectra.parquet", "-o", root / "nominal.csv"],
+             ["fit-grip", root / "spectra.parquet", "-o", root / "grip.csv"]]
+    for args in steps:
+        res = CliRunner().invoke(cli, [str(a) for a in args])
+        assert res.exit_code == 0, res.output
+    return root
+
+
+@pytest.fixture(scope="module")
+def fault_root(_fault_files, tmp_path_factory) -> Path:
+    """A fresh copy of the fault files for one test module (which may change them)."""
+    import shutil
+    root = tmp_path_factory.mktemp("faults") / "files"
+    shutil.copytree(_fault_files, root, symlinks=True)
+    return root
+
+
+@pytest.fixture(scope="module")
+def study(fault_root) -> Path:
+    """The fault study's raw trial folder (a module's own copy)."""
+    return fault_root / "study"
+
+
+@pytest.fixture(scope="module")
+def spectra(fault_root) -> Path:
+    """The fault study's spectra file (``armfit estimate``)."""
+    return fault_root / "spectra.parquet"
+
+
+@pytest.fixture(scope="module")
+def nominal(fault_root) -> Path:
+    """The fault study's nominal fit (``armfit fit-nominal``)."""
+    return fault_root / "nominal.csv"
+
+
+@pytest.fixture(scope="module")
+def grip(fault_root) -> Path:
+    """The fault study's grip fits (``armfit fit-grip``)."""
+    return fault_root / "grip.csv"

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from click.testing import CliRunner
+from conftest import FAULT_SIM as SIM
 
 from armfit.cli.main import cli
 from armfit.errors import (
@@ -47,8 +48,6 @@ ARMFIT = str(Path(sys.executable).with_name("armfit"))
 TEMP = re.compile(r"^\..*\.\d+\.[0-9a-f]{8}\.(tmp|old)$")
 
 # the small simulated study every test shares: 2 subjects x axes x, z x grips 1, 2 N
-SIM = ["--subjects", "2", "--axes", "xz", "--grips", "1,2", "--duration", "26,26",
-       "--seed", "11"]
 
 
 def invoke(*args) -> object:
@@ -76,30 +75,6 @@ def dead_pid() -> int:
     p = subprocess.Popen([sys.executable, "-c", "pass"])
     p.wait()
     return p.pid
-
-
-@pytest.fixture(scope="module")
-def study(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("faults")
-    res = invoke("simulate", "-o", root / "study", *SIM)
-    assert res.exit_code == 0, res.output
-    return root / "study"
-
-
-@pytest.fixture(scope="module")
-def spectra(study) -> Path:
-    out = study.parent / "spectra.parquet"
-    res = invoke("estimate", study, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
-
-
-@pytest.fixture(scope="module")
-def nominal(spectra) -> Path:
-    out = spectra.parent / "nominal.csv"
-    res = invoke("fit-nominal", spectra, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
 
 
 def copy_study(study: Path, dest: Path) -> Path:

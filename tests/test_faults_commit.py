@@ -28,6 +28,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from conftest import FAULT_SIM as SIM
 
 from armfit.cli.main import cli
 from armfit.errors import EXIT_CANTCREAT, OutputError
@@ -40,8 +41,6 @@ ARMFIT = str(Path(sys.executable).with_name("armfit"))
 LEFTOVER = re.compile(r"^\..*\.\d+\.[0-9a-f]{8}\.(tmp|old|txn)$")
 
 # a small simulated study: 2 subjects x axes x, z x grips 1, 2 N
-SIM = ["--subjects", "2", "--axes", "xz", "--grips", "1,2", "--duration", "26,26",
-       "--seed", "11"]
 
 APPEARED = "appeared while it was being written (another run?); nothing replaced"
 
@@ -74,30 +73,6 @@ def one_line_error(text: str) -> str:
 
 def not_called(*args, **kwargs):
     raise AssertionError("the work started although an output could not be written")
-
-
-@pytest.fixture(scope="module")
-def study(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("commit")
-    res = invoke("simulate", "-o", root / "study", *SIM)
-    assert res.exit_code == 0, res.output
-    return root / "study"
-
-
-@pytest.fixture(scope="module")
-def spectra(study) -> Path:
-    out = study.parent / "spectra.parquet"
-    res = invoke("estimate", study, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
-
-
-@pytest.fixture(scope="module")
-def nominal(spectra) -> Path:
-    out = spectra.parent / "nominal.csv"
-    res = invoke("fit-nominal", spectra, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
 
 
 @pytest.fixture

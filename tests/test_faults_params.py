@@ -44,8 +44,6 @@ REPO = Path(__file__).resolve().parents[1]
 TABLE3 = REPO / "armfit" / "data" / "table3_uncertainty_weights.csv"
 
 # a small simulated study: 2 subjects x axes x, z x grips 1, 2 N
-SIM = ["--subjects", "2", "--axes", "xz", "--grips", "1,2", "--duration", "26,26",
-       "--seed", "11"]
 
 
 def invoke(*args):
@@ -58,38 +56,6 @@ def error_line(res) -> str:
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert lines and lines[-1].startswith("armfit:"), res.stderr
     return lines[-1]
-
-
-@pytest.fixture(scope="module")
-def study(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("params_faults")
-    res = invoke("simulate", "-o", root / "study", *SIM)
-    assert res.exit_code == 0, res.output
-    return root / "study"
-
-
-@pytest.fixture(scope="module")
-def spectra(study) -> Path:
-    out = study.parent / "spectra.parquet"
-    res = invoke("estimate", study, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
-
-
-@pytest.fixture(scope="module")
-def nominal(spectra) -> Path:
-    out = spectra.parent / "nominal.csv"
-    res = invoke("fit-nominal", spectra, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
-
-
-@pytest.fixture(scope="module")
-def grip(spectra) -> Path:
-    out = spectra.parent / "grip.csv"
-    res = invoke("fit-grip", spectra, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
 
 
 def edited(src: Path, dest: Path, edit) -> Path:
@@ -186,7 +152,7 @@ def test_fit_uncertainty_says_which_axes_get_no_weight(spectra, nominal, tmp_pat
     out = tmp_path / "wu.csv"
     res = invoke("fit-uncertainty", spectra, "--nominal", only_x, "-o", out, "--json")
     assert res.exit_code == 0, res.stderr
-    # the spectra hold derived trials of x and z (SIM); the file has no z row
+    # the spectra hold derived trials of x and z (FAULT_SIM); the file has no z row
     note = (f"axis z: {spectra} holds derived trials but {only_x} has no row for it; no "
             "weight is fitted for axis z")
     assert f"note: {note}" in res.stderr
