@@ -199,8 +199,8 @@ SHADOW_COMMANDS = {
 def test_no_module_of_the_working_folder_is_imported(name, shadow, study, spectra, grip,
                                                      nominal, tmp_path):
     """Every command (with -j 2 where it has it: the fork server, the resource tracker
-    and the workers start with `python -c`, whose module path began with the working
-    folder) run from a folder of modules named like the standard library's and the
+    and the workers start with `python -c`, whose module path would begin with the
+    working folder) run from a folder of modules named like the standard library's and the
     dependencies': none is imported (the only user code armfit runs is an --effects
     file named explicitly, or an installed entry point)."""
     cwd, markers = shadow
@@ -328,9 +328,9 @@ def test_stopping_a_parallel_estimate(moment, sig, big_study, tmp_path):
 @pytest.mark.slow
 def test_stopping_a_parallel_estimate_20_times_in_a_row(big_study, tmp_path):
     """20 stops in a row at varied moments, SIGINT and SIGTERM in turn: each ends with
-    its line and code, no output, no temporary, no child process (a worker killed while
-    it sent a result used to leave the pool's thread, and the command, waiting forever
-    in about one stop out of twenty)."""
+    its line and code, no output, no temporary, no child process (about one stop in
+    twenty kills a worker while it sends a result, which leaves the pool's thread
+    waiting for the rest of it)."""
     rng = random.Random(13)
     moments = ["start", "pool", "mid", "mid", "end"]
     for i in range(20):
@@ -630,7 +630,7 @@ def test_ascii_streams_degrade_the_characters(argv, spectra, grip, tmp_path):
         assert b"\\xc7avu\\u015fo\\u011flu" in res.stdout
 
 
-def test_the_stream_threads_of_a_progress_bar_see_the_same_streams():
+def test_click_rich_and_logging_write_through_the_installed_streams():
     """The streams armfit.cli.streams installs are what click, rich and logging write
     to: sys.stdout / sys.stderr at the time they write."""
     code = textwrap.dedent("""

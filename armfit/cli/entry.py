@@ -62,7 +62,7 @@ def _on_signal(signum, frame) -> None:
         _end_at_once()      # a second signal, or one while exiting: end now
     _stopping = True
     _stop_code = code
-    # the pools' helper threads fail when their workers are killed: the user asked for
+    # the pools' own threads fail when their workers are killed: the user asked for
     # the stop, so their errors are not printed (the one line below is)
     if sys.modules.get("threading") is not None:
         sys.modules["threading"].excepthook = lambda args: None
