@@ -14,7 +14,8 @@ Exit codes (documented in docs/cli.md, "Conventions"):
 66   input not found, or nothing to read
 73   output cannot be written: it exists without --overwrite, it is (or would be
      picked up as) an input, or the system refused the write (the message gives
-     the path and the OS reason: no space, permission, not a folder, ...)
+     the path and the OS reason: no space, permission, not a folder, ...); also
+     standard output closed, full or a broken pipe ("standard output: ...")
 130  interrupted (SIGINT, Ctrl-C): workers stopped, partial outputs removed
 143  terminated (SIGTERM): workers stopped, partial outputs removed
 ==== =========================================================

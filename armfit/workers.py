@@ -33,14 +33,28 @@ child; Python 3.12 warns about it, and 3.14 made the fork server the default on 
 macOS keeps its own default, ``spawn`` (system libraries there are not safe to fork).
 
 A pool starts all its workers at its first task, in one go (the caller waits until each
-has run :func:`ignore_sigint`), so that a pool is never half started when it is stopped.
+has run :func:`worker_start`), so that a pool is never half started when it is stopped.
+
+Module path. The processes multiprocessing starts with ``python -c`` (the fork server,
+the resource tracker, ``spawn`` workers) would put the working folder first on their
+module path, so a ``signal.py`` or ``pickle.py`` lying there would run in them. armfit
+starts them with ``PYTHONSAFEPATH=1`` in their environment (:func:`child_environment`;
+Python 3.11 and later honour it), so they import only what the calling process could:
+the only user code a worker runs is an ``--effects`` file named explicitly or an
+installed entry point.
 
 Stopping. Workers ignore SIGINT (:func:`ignore_sigint`): Ctrl-C at a terminal reaches
 the whole process group, and only the main process decides what happens — it kills the
 workers (:func:`stop_workers`, which first lets a pool being started finish starting)
-and removes its partial outputs, so no worker prints a traceback of its own. The fork
-server and the resource tracker are started with SIGINT blocked (the fork server ignores
-it only once its imports are done), and end by themselves when the main process exits.
+and removes its partial outputs, so no worker prints a traceback of its own. The tasks
+the killed workers held fail at once (``BrokenProcessPool``), so nothing waits for them,
+and a pool is not waited for when it is shut down afterwards. The fork server and the
+resource tracker are started with SIGINT blocked (the fork server ignores it only once
+its imports are done), and end by themselves once the main process and the workers
+have ended. A main process killed outright (SIGKILL, a crash) cannot stop its workers:
+each worker watches a pipe that only the main process holds open (its lifeline,
+:func:`worker_start`) and ends as soon as the pipe closes; the fork server and the
+resource tracker then follow.
 
 A script that uses ``jobs`` > 1 needs the ``if __name__ == "__main__":`` guard, as with
 any pool whose workers do not fork the script's process.
@@ -50,16 +64,19 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
+import os
 import signal
 import sys
 import threading
 import weakref
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import wait as _wait_futures
 from concurrent.futures.process import BrokenProcessPool
 
-__all__ = ["PRELOAD", "cancel_pools", "executor_for", "ignore_sigint", "iter_tasks",
-           "map_tasks", "process_pool", "start_method", "stop_workers"]
+__all__ = ["CHILD_ENVIRONMENT", "PRELOAD", "cancel_pools", "child_environment",
+           "executor_for", "ignore_sigint", "iter_tasks", "map_tasks", "process_pool",
+           "start_method", "stop_workers", "worker_start"]
 
 #: Modules the fork server imports once for every worker it starts (the modules whose
 #: functions armfit's tasks run): workers start with them loaded.
@@ -70,19 +87,119 @@ PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fittin
 #: the thread that made it (see :func:`cancel_pools`). A record only: no pool is handed
 #: out from here.
 _OPEN: weakref.WeakKeyDictionary[ProcessPoolExecutor, int] = weakref.WeakKeyDictionary()
-_OPEN_LOCK = threading.Lock()
+#: Reentrant: :func:`stop_workers` runs in a signal handler of a thread that may hold it.
+_OPEN_LOCK = threading.RLock()
 #: Held while a pool starts its workers; :func:`stop_workers` waits for it.
 _STARTING = threading.Lock()
 #: Set by ``stop_workers(final=True)``: no pool starts any more in this process.
 _FINAL = False
 
 
+#: The environment of every process armfit's pools start with ``python -c`` (fork
+#: server, resource tracker, ``spawn`` workers): the working folder is not put on their
+#: module path (PYTHONSAFEPATH, Python >= 3.11), and the resource tracker does not warn
+#: about the queues' semaphores it removes after the workers were killed (removing them
+#: is its purpose; the notice would be a second line after the one line of a stopped
+#: command).
+CHILD_ENVIRONMENT: dict[str, str] = {
+    "PYTHONSAFEPATH": "1",
+    "PYTHONWARNINGS": "ignore::UserWarning:multiprocessing.resource_tracker",
+}
+
+_ENV_LOCK = threading.Lock()
+_ENV_USERS = 0
+_ENV_SAVED: dict[str, str | None] = {}
+
+
+@contextlib.contextmanager
+def child_environment() -> Iterator[None]:
+    """:data:`CHILD_ENVIRONMENT` in ``os.environ`` for the ``with`` block (the processes
+    started in it inherit it), then the environment as it was.
+
+    Nested and concurrent blocks (several threads starting pools) share one change. A
+    variable already set keeps its value (PYTHONWARNINGS gets the filter appended).
+
+    Yields
+    ------
+    None
+    """
+    global _ENV_USERS
+    with _ENV_LOCK:
+        if _ENV_USERS == 0:
+            _ENV_SAVED.clear()
+            for name, value in CHILD_ENVIRONMENT.items():
+                old = os.environ.get(name)
+                if old and name == "PYTHONWARNINGS":
+                    if value in old.split(","):
+                        continue
+                    value = f"{old},{value}"
+                elif old:
+                    continue
+                _ENV_SAVED[name] = old
+                os.environ[name] = value
+        _ENV_USERS += 1
+    try:
+        yield
+    finally:
+        with _ENV_LOCK:
+            _ENV_USERS -= 1
+            if _ENV_USERS == 0:
+                for name, old in _ENV_SAVED.items():
+                    if old is None:
+                        os.environ.pop(name, None)
+                    else:
+                        os.environ[name] = old
+                _ENV_SAVED.clear()
+
+
 def ignore_sigint() -> None:
-    """Pool initializer: a worker leaves SIGINT to the main process (it ignores it, and
-    unblocks it, as the thread that started the fork server had it blocked)."""
+    """A worker leaves SIGINT to the main process (it ignores it, and unblocks it, as
+    the thread that started the fork server had it blocked)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+#: The lifeline of this process's workers: (read end, write end, pid) of a pipe. Only
+#: this process holds the write end (a pipe's descriptors are not inherited by the
+#: processes it starts); every worker gets the read end, which reaches end-of-file when
+#: this process has ended, however it ended.
+_LIFELINE: tuple | None = None
+_LIFELINE_LOCK = threading.Lock()
+
+
+def _lifeline():
+    """The read end of this process's lifeline (made on first use)."""
+    global _LIFELINE
+    with _LIFELINE_LOCK:
+        if _LIFELINE is None or _LIFELINE[2] != os.getpid():
+            reader, writer = multiprocessing.Pipe(duplex=False)
+            _LIFELINE = (reader, writer, os.getpid())
+        return _LIFELINE[0]
+
+
+def _watch(lifeline) -> None:
+    """A worker's watch of its lifeline: end the worker when the main process has ended
+    (nothing is ever written to the pipe: it becomes readable at end-of-file only)."""
+    with contextlib.suppress(OSError, EOFError):
+        lifeline.poll(None)
+    os._exit(1)
+
+
+def worker_start(lifeline) -> None:
+    """Pool initializer: :func:`ignore_sigint`, and a thread that ends the worker at
+    once when the main process has ended (also when it was killed outright and could
+    not stop its workers).
+
+    Parameters
+    ----------
+    lifeline : multiprocessing.connection.Connection
+        The read end of a pipe whose write end only the main process holds: it reaches
+        end-of-file when the main process has ended.
+    """
+    ignore_sigint()
+    threading.Thread(target=_watch, args=(lifeline,), name="armfit-lifeline",
+                     daemon=True).start()
 
 
 def start_method() -> str:
@@ -111,18 +228,50 @@ class _Pool(ProcessPoolExecutor):
     and :func:`stop_workers` in its handler waits until every worker is started, so it
     kills them all (a worker that is being started when the main process ends would
     fail, and print the failure, for want of its queues).
+
+    The pool keeps its tasks' futures: when :func:`stop_workers` has killed its workers,
+    those not done fail at once (:meth:`_armfit_stopped`), whatever the pool's own thread
+    makes of the killed workers (a worker killed while it sent a result leaves that
+    thread waiting for the rest of it), and :meth:`shutdown` no longer waits.
     """
 
     def __init__(self, jobs: int, mp_context) -> None:
-        super().__init__(max_workers=jobs, mp_context=mp_context, initializer=ignore_sigint)
+        super().__init__(max_workers=jobs, mp_context=mp_context, initializer=worker_start,
+                         initargs=(_lifeline(),))
         self._armfit_jobs = jobs
         self._armfit_lock = threading.Lock()
         self._armfit_started = False
+        self._armfit_killed = False
+        self._armfit_futures: weakref.WeakSet = weakref.WeakSet()
 
     def submit(self, fn, /, *args, **kwargs):
         if not self._armfit_started:
             self._armfit_start()
-        return super().submit(fn, *args, **kwargs)
+        if self._armfit_killed:
+            raise BrokenProcessPool("the worker processes were stopped")
+        fut = super().submit(fn, *args, **kwargs)
+        self._armfit_futures.add(fut)
+        return fut
+
+    def _armfit_stopped(self, grace: float = 1.0) -> None:
+        """Its workers were killed: every task not done fails (BrokenProcessPool). The
+        pool's own thread fails them as soon as it sees the workers gone; those it has
+        not failed within ``grace`` seconds (it waits for the rest of a result) fail
+        here."""
+        self._armfit_killed = True
+        for _ in range(3):  # another thread may add a task meanwhile
+            try:
+                futures = list(self._armfit_futures)
+                break
+            except RuntimeError:
+                continue
+        else:  # pragma: no cover
+            futures = []
+        _wait_futures(futures, timeout=grace)
+        for fut in futures:
+            if not fut.done():
+                with contextlib.suppress(Exception):  # done meanwhile
+                    fut.set_exception(BrokenProcessPool("the worker processes were stopped"))
 
     def _armfit_start(self) -> None:
         with self._armfit_lock:
@@ -144,7 +293,7 @@ class _Pool(ProcessPoolExecutor):
         if hasattr(signal, "pthread_sigmask"):
             signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
-            with _STARTING:
+            with _STARTING, child_environment():
                 if _FINAL:
                     raise BrokenProcessPool("the worker processes were stopped")
                 # one task per worker: each submit starts a worker while none is idle
@@ -155,9 +304,11 @@ class _Pool(ProcessPoolExecutor):
             failed.append(exc)
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        """As :meth:`ProcessPoolExecutor.shutdown`; once :func:`stop_workers` has killed
+        the workers, without waiting (what remained of the pool may never end)."""
         with _OPEN_LOCK:
             _OPEN.pop(self, None)
-        super().shutdown(wait=wait, cancel_futures=cancel_futures)
+        super().shutdown(wait=wait and not self._armfit_killed, cancel_futures=cancel_futures)
 
 
 def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
@@ -179,7 +330,8 @@ def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
     ctx = multiprocessing.get_context(start_method())
     if ctx.get_start_method() == "forkserver":
         ctx.set_forkserver_preload(list(dict.fromkeys((*PRELOAD, *preload))))
-    pool = _Pool(max(1, int(jobs)), ctx)
+    with child_environment():   # its queues start the resource tracker
+        pool = _Pool(max(1, int(jobs)), ctx)
     with _OPEN_LOCK:
         _OPEN[pool] = threading.get_ident()
     return pool
@@ -298,8 +450,9 @@ def stop_workers(final: bool = False) -> None:
     workers is missed. Uses only the public :class:`multiprocessing.Process` objects of
     :func:`multiprocessing.active_children`; safe in a signal handler of the main thread
     (pools start their workers from threads of their own), and does nothing when no
-    worker was ever started. The pools themselves then fail their pending tasks (their
-    owners shut them down on the way out).
+    worker was ever started. Every open pool of :func:`process_pool` then fails the tasks
+    it has not finished, at once, and is not waited for when shut down (its owner shuts
+    it down on the way out).
 
     Parameters
     ----------
@@ -325,6 +478,11 @@ def stop_workers(final: bool = False) -> None:
         for p in children:
             with contextlib.suppress(Exception):
                 p.join(timeout=2.0)
+        with _OPEN_LOCK:
+            pools = list(_OPEN)
+        for pool in pools:
+            if isinstance(pool, _Pool):
+                pool._armfit_stopped()
     finally:
         if got:
             _STARTING.release()

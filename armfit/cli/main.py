@@ -15,8 +15,9 @@ import traceback
 import click
 
 from armfit._version import __version__
+from armfit.cli.entry import stop_line
 from armfit.cli.messages import cli_message
-from armfit.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, ArmfitError, Terminated
+from armfit.errors import EXIT_INTERNAL, ArmfitError
 from armfit.workers import stop_workers
 
 log = logging.getLogger("armfit")
@@ -43,6 +44,15 @@ class ArmfitGroup(click.Group):
             self.add_command(cmd, cmd_name)
         return cmd
 
+    def make_context(self, info_name, args, parent=None, **extra) -> click.Context:
+        # a signal while the group's options are parsed: the same line and code as in a
+        # subcommand (click would print "Aborted!" and exit 1)
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except KeyboardInterrupt as exc:
+            stop_workers()
+            sys.exit(stop_line(exc))
+
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
@@ -51,11 +61,7 @@ class ArmfitGroup(click.Group):
             ctx.exit(exc.exit_code)
         except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (Terminated)
             stop_workers()
-            if isinstance(exc, Terminated):
-                click.echo("armfit: terminated (SIGTERM)", err=True)
-                ctx.exit(Terminated.exit_code)
-            click.echo("armfit: interrupted", err=True)
-            ctx.exit(EXIT_INTERRUPTED)
+            ctx.exit(stop_line(exc))
         except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
             raise
         except Exception as exc:  # a bug: say so in one line, traceback with -v

@@ -725,9 +725,36 @@ def _make_parent(dest: Path) -> list[Path]:
     return missing
 
 
+#: Every temporary this process created, recorded before it exists (it may have been
+#: renamed into place or removed since): see :func:`remove_temporaries`.
+_MADE: list[Path] = []
+
+
+def remove_temporaries() -> list[str]:
+    """Remove every temporary file or folder this process created that is still there
+    (neither renamed into place nor removed yet).
+
+    The last act of a command stopped by a signal: whatever it was doing, also between
+    creating a temporary and entering the block that removes it on the way out. A
+    temporary's name holds this process's id, so no other process's file is touched.
+
+    Returns
+    -------
+    list of str
+        The temporaries removed.
+    """
+    removed = []
+    for tmp in list(_MADE):
+        if os.path.lexists(tmp):
+            _remove(tmp)
+            removed.append(str(tmp))
+    return removed
+
+
 def _create(parent: Path, dest: Path, folder: bool) -> Path:
     for _ in range(100):
         tmp = parent / temp_name(dest.name)
+        _MADE.append(tmp)
         try:
             if folder:
                 os.mkdir(tmp)
@@ -1173,5 +1200,5 @@ __all__ = [
     "SHORT_BYTES", "TEMP_NAME_BYTES", "FOLDER_ROOM_BYTES", "temp_name", "clean_stale",
     "check_length", "resolved_path", "check_output", "exchange_folders", "OutputSet",
     "atomic_outputs",
-    "atomic_path", "write_text_atomic",
+    "atomic_path", "write_text_atomic", "remove_temporaries",
 ]
