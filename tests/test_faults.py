@@ -30,6 +30,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 from conftest import FAULT_SIM as SIM
+from processes import descendants, needs_proc, running, wait_for
 
 from armfit.cli.main import cli
 from armfit.errors import (
@@ -238,40 +239,6 @@ def test_folder_output_replaced_whole_and_no_old_copy_left(tmp_path):
 # 4. Signals: SIGKILL, SIGTERM, SIGINT on the installed command
 # ---------------------------------------------------------------------------
 
-def _descendants(pid: int) -> set[int]:
-    out, todo = set(), [pid]
-    while todo:
-        p = todo.pop()
-        try:
-            kids = Path(f"/proc/{p}/task/{p}/children").read_text().split()
-        except OSError:
-            kids = []
-        out |= {int(k) for k in kids}
-        todo += [int(k) for k in kids]
-    return out
-
-
-def _running(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
-def _wait_for(pred, timeout: float = 60.0, step: float = 0.002) -> bool:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if pred():
-            return True
-        time.sleep(step)
-    return False
-
-
-needs_proc = pytest.mark.skipif(not Path("/proc/self/task").exists(),
-                                reason="needs /proc to follow child processes")
-
-
 @needs_proc
 def test_sigkill_mid_write_keeps_the_previous_output_and_next_run_cleans(study, tmp_path):
     out = tmp_path / "trials.parquet"
@@ -280,7 +247,7 @@ def test_sigkill_mid_write_keeps_the_previous_output_and_next_run_cleans(study, 
     proc = subprocess.Popen([ARMFIT, "ingest", str(study), "-o", str(out), "--overwrite"],
                             stderr=subprocess.DEVNULL)
     pattern = re.compile(rf"^\.trials\.parquet\.{proc.pid}\.[0-9a-f]{{8}}\.tmp$")
-    seen = _wait_for(lambda: any(pattern.match(n) for n in os.listdir(tmp_path)))
+    seen = wait_for(lambda: any(pattern.match(n) for n in os.listdir(tmp_path)))
     proc.kill()
     proc.wait()
     assert seen, "the temporary never appeared"
@@ -299,12 +266,12 @@ def _start_estimate(study: Path, out: Path):
     kids: set[int] = set()
 
     def workers_up() -> bool:
-        kids.update(_descendants(proc.pid))
+        kids.update(descendants(proc.pid))
         return len(kids) >= 2  # the fork server and the resource tracker, then 2 workers
-    assert _wait_for(workers_up, step=0.02), "no worker processes appeared"
+    assert wait_for(workers_up, step=0.02), "no worker processes appeared"
     # the workers start at once: signal while they work
     time.sleep(0.05)
-    kids.update(_descendants(proc.pid))
+    kids.update(descendants(proc.pid))
     return proc, kids
 
 
@@ -325,8 +292,8 @@ def test_signal_during_parallel_estimate(sig, code, group, study, tmp_path):
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert err.startswith("armfit: terminated" if sig == signal.SIGTERM
                           else "armfit: interrupted")
-    assert _wait_for(lambda: not any(_running(k) for k in kids), timeout=10, step=0.05), \
-        f"worker processes survive: {[k for k in kids if _running(k)]}"
+    assert wait_for(lambda: not any(running(k) for k in kids), timeout=10, step=0.05), \
+        f"worker processes survive: {[k for k in kids if running(k)]}"
     assert not out.exists() and temps(tmp_path) == []
 
 
@@ -340,7 +307,7 @@ def test_sigint_at_start_up_is_one_line(study, tmp_path):
             return "numpy" in Path(f"/proc/{proc.pid}/maps").read_text()
         except OSError:
             return False
-    assert _wait_for(importing_numpy, timeout=30, step=0.001)
+    assert wait_for(importing_numpy, timeout=30, step=0.001)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == EXIT_INTERRUPTED, err

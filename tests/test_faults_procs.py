@@ -28,6 +28,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from processes import descendants, needs_proc, running, wait_for
 
 from armfit.cli.entry import STOP_GRACE_S
 from armfit.cli.main import cli
@@ -42,10 +43,6 @@ from armfit.errors import (
 ARMFIT = str(Path(sys.executable).with_name("armfit"))
 TEMP = re.compile(r"^\..*\.\d+\.[0-9a-f]{8}\.(tmp|old)$")
 
-# the small simulated study of tests/test_faults.py: 2 subjects x axes x, z x grips 1, 2 N
-SIM = ["--subjects", "2", "--axes", "xz", "--grips", "1,2", "--duration", "26,26",
-       "--seed", "11"]
-
 #: The stop lines of armfit.cli.entry, by signal, with the exit code of armfit.errors.
 STOPS = {signal.SIGINT: ("armfit: interrupted\n", EXIT_INTERRUPTED),
          signal.SIGTERM: ("armfit: terminated (SIGTERM)\n", EXIT_TERMINATED)}
@@ -54,10 +51,6 @@ STOPS = {signal.SIGINT: ("armfit: interrupted\n", EXIT_INTERRUPTED),
 #: loaded machine.
 STOP_LIMIT_S = STOP_GRACE_S + 5.0
 
-needs_proc = pytest.mark.skipif(not Path("/proc/self/task").exists(),
-                                reason="needs /proc to follow child processes")
-
-
 def invoke(*args) -> object:
     return CliRunner().invoke(cli, [str(a) for a in args], prog_name="armfit")
 
@@ -65,19 +58,6 @@ def invoke(*args) -> object:
 def temps(folder: Path) -> list[str]:
     """armfit temporaries (and set-aside folders) in ``folder``."""
     return sorted(p.name for p in Path(folder).iterdir() if TEMP.match(p.name))
-
-
-def descendants(pid: int) -> set[int]:
-    out, todo = set(), [pid]
-    while todo:
-        p = todo.pop()
-        try:
-            kids = Path(f"/proc/{p}/task/{p}/children").read_text().split()
-        except OSError:
-            kids = []
-        out |= {int(k) for k in kids}
-        todo += [int(k) for k in kids]
-    return out
 
 
 def grandchildren(pid: int) -> set[int]:
@@ -89,23 +69,6 @@ def grandchildren(pid: int) -> set[int]:
     return descendants(pid) - {int(k) for k in kids}
 
 
-def running(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
-def wait_for(pred, timeout: float = 60.0, step: float = 0.002) -> bool:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if pred():
-            return True
-        time.sleep(step)
-    return False
-
-
 def kill_all(pids) -> None:
     """Clean up after a failed test: kill what is left of the processes it started."""
     for p in pids:
@@ -113,38 +76,6 @@ def kill_all(pids) -> None:
             os.kill(p, signal.SIGKILL)
         except OSError:
             pass
-
-
-@pytest.fixture(scope="module")
-def study(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("procs")
-    res = invoke("simulate", "-o", root / "study", *SIM)
-    assert res.exit_code == 0, res.output
-    return root / "study"
-
-
-@pytest.fixture(scope="module")
-def spectra(study) -> Path:
-    out = study.parent / "spectra.parquet"
-    res = invoke("estimate", study, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
-
-
-@pytest.fixture(scope="module")
-def grip(spectra) -> Path:
-    out = spectra.parent / "grip.csv"
-    res = invoke("fit-grip", spectra, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
-
-
-@pytest.fixture(scope="module")
-def nominal(spectra) -> Path:
-    out = spectra.parent / "nominal.csv"
-    res = invoke("fit-nominal", spectra, "-o", out)
-    assert res.exit_code == 0, res.output
-    return out
 
 
 # ---------------------------------------------------------------------------
@@ -265,11 +196,11 @@ def stop_estimate(study: Path, folder: Path, moment: str, sig: int,
     the end: the stop line and code within STOP_LIMIT_S, no output, no temporary, no
     child process left.
 
-    Moments: "start" (importing, listing and reading the folder: 0.05-0.6 s after the
-    start), "pool" (the fork server has just appeared), "mid" (both workers run: after
-    0-3 s more), "end" (the output's temporary appeared: it is being written). SIGINT
-    goes to the process group (Ctrl-C at a terminal), SIGTERM to the process (a job
-    scheduler)."""
+    Moments: "start" (importing, listing and reading the folder: 0-0.5 s after armfit's
+    signal handlers are in place), "pool" (the fork server has just appeared), "mid"
+    (both workers run: after 0-3 s more), "end" (the output's temporary appeared: it is
+    being written). SIGINT goes to the process group (Ctrl-C at a terminal), SIGTERM to
+    the process (a job scheduler)."""
     folder.mkdir(parents=True, exist_ok=True)
     out = folder / "s.parquet"
     proc = subprocess.Popen([ARMFIT, "estimate", str(study), "-o", str(out), *BIG_ARGS],
@@ -283,7 +214,10 @@ def stop_estimate(study: Path, folder: Path, moment: str, sig: int,
 
     try:
         if moment == "start":
-            time.sleep(rng.uniform(0.05, 0.6))
+            # a signal before the interpreter has run armfit's first line ends it as
+            # Python does; from the handlers on, the stop is armfit's
+            assert wait_for(lambda: proc.poll() is not None or handlers_installed(proc.pid))
+            time.sleep(rng.uniform(0.0, 0.5))
         elif moment == "pool":
             assert wait_for(lambda: seen(lambda p: len(descendants(p))), step=0.001)
         elif moment == "mid":
