@@ -32,6 +32,8 @@ class ArmfitGroup(click.Group):
 
     #: Subcommands imported on first use: name -> "module:attribute".
     lazy: dict[str, str] = {}
+    #: One-line summaries of the subcommands, listed by ``--help`` without importing them.
+    summaries: dict[str, str] = {}
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted({*super().list_commands(ctx), *self.lazy})
@@ -41,8 +43,20 @@ class ArmfitGroup(click.Group):
         if cmd is None and cmd_name in self.lazy:
             module, attr = self.lazy[cmd_name].split(":")
             cmd = getattr(importlib.import_module(module), attr)
+            if cmd_name in self.summaries:
+                cmd.short_help = self.summaries[cmd_name]
             self.add_command(cmd, cmd_name)
         return cmd
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The command list of ``--help``, from :attr:`summaries`: no command module is
+        imported to list the commands."""
+        rows = [(name, self.summaries.get(name) or
+                 self.get_command(ctx, name).get_short_help_str(formatter.width))
+                for name in self.list_commands(ctx)]
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
 
     def make_context(self, info_name, args, parent=None, **extra) -> click.Context:
         # a signal while the group's options are parsed: the same line and code as in a
@@ -124,29 +138,47 @@ def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
     log.setLevel(level)
 
 
+#: The subcommands: name -> ("module:attribute", one-line summary). The summary is what
+#: ``armfit --help`` lists (without importing any command module) and the command's own
+#: ``short_help`` once it is loaded.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "ingest": ("armfit.cli.ingest:command",
+               "Read raw trial files into one canonical dataset."),
+    "estimate": ("armfit.cli.estimate:command",
+                 "Frequency responses of every trial, their mean and median."),
+    "fit-grip": ("armfit.cli.fit:fit_grip_command",
+                 "Fit the arm model to each axis x grip mean (Table I)."),
+    "fit-nominal": ("armfit.cli.fit:fit_nominal_command",
+                    "Fit the arm model to each axis median (Table II)."),
+    "fit-trials": ("armfit.cli.stability:fit_trials_command",
+                   "Fit the arm model to every trial."),
+    "fit-uncertainty": ("armfit.cli.fit_uncertainty:command",
+                        "Fit the uncertainty weight Wu per axis (Table III)."),
+    "effects": ("armfit.cli.diagnose:effects_command",
+                "List the physical effects the 5-parameter model lacks."),
+    "compare": ("armfit.cli.diagnose:compare_command",
+                "Compare a fitted model with the measurements."),
+    "diagnose": ("armfit.cli.diagnose:diagnose_command",
+                 "Find the physical effects the model is missing, per axis."),
+    "stability": ("armfit.cli.stability:stability_command",
+                  "K_max: the stiffest virtual wall rendered stably."),
+    "plot": ("armfit.cli.plot:command",
+             "Draw a figure of the paper or of a diagnosis."),
+    "simulate": ("armfit.cli.simulate:command",
+                 "Simulate a study of the paper's protocol with known truth."),
+    "run": ("armfit.cli.run:command",
+            "Every stage on raw trials: tables, figures, report."),
+}
+
+
 def _register() -> None:
-    # Each subcommand module defines its click command(s); name them here (imported when
-    # the command is used).
-    ArmfitGroup.lazy.update({
-        "ingest": "armfit.cli.ingest:command",
-        "plot": "armfit.cli.plot:command",
-        "fit-grip": "armfit.cli.fit:fit_grip_command",
-        "fit-nominal": "armfit.cli.fit:fit_nominal_command",
-        "simulate": "armfit.cli.simulate:command",
-        "estimate": "armfit.cli.estimate:command",
-        "effects": "armfit.cli.diagnose:effects_command",
-        "compare": "armfit.cli.diagnose:compare_command",
-        "diagnose": "armfit.cli.diagnose:diagnose_command",
-        "fit-uncertainty": "armfit.cli.fit_uncertainty:command",
-        "run": "armfit.cli.run:command",
-        "stability": "armfit.cli.stability:stability_command",
-        "fit-trials": "armfit.cli.stability:fit_trials_command",
-    })
+    ArmfitGroup.lazy.update({name: target for name, (target, _) in COMMANDS.items()})
+    ArmfitGroup.summaries.update({name: text for name, (_, text) in COMMANDS.items()})
 
 
 _register()
 
 
 __all__ = [
-    "log", "ArmfitGroup", "cli",
+    "log", "ArmfitGroup", "COMMANDS", "cli",
 ]
