@@ -59,7 +59,7 @@ from armfit.constants import (
 )
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path
-from armfit.io.numbers import parse_number, parse_numbers
+from armfit.io.numbers import parse_numbers
 from armfit.io.ranges import DEVICE_MASS_RANGE, FREQUENCY_RANGE, check_in_range
 from armfit.io.schema import (
     COUNTED_FLAGS,
@@ -1460,7 +1460,7 @@ class Spectra:
         masses = meta.get("mp_kg") if isinstance(meta, dict) else None
         for axis, mp in masses.items() if isinstance(masses, dict) else ():
             # the device mass the derived dynamics were estimated with (fit-uncertainty)
-            check_in_range([parse_number(mp) if _is_number(mp) else math.nan],
+            check_in_range(parse_numbers([mp], errors="coerce"),
                            DEVICE_MASS_RANGE, file=str(p),
                            column=None, name=f"the device mass of axis {axis} in the "
                            "metadata (mp_kg)", shown=[mp])
@@ -1553,15 +1553,6 @@ class Spectra:
         ax.set_xlabel("Frequency (Hz)")
         ax.set_ylabel("Magnitude (dB re 1 m/N)" if db else "Phase (deg)")
         return ax
-
-
-def _is_number(v) -> bool:
-    """``v`` reads as a number by :func:`armfit.io.numbers.parse_number`."""
-    try:
-        parse_number(v)
-    except ValueError:
-        return False
-    return True
 
 
 #: Numeric columns of the spectra table; ``run`` and ``n`` hold whole numbers.

@@ -30,7 +30,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 from conftest import FAULT_SIM as SIM
-from processes import descendants, needs_proc, running, wait_for
+from faulttools import ARMFIT, descendants, needs_proc, running, temps, wait_for
 
 from armfit.cli.main import cli
 from armfit.errors import (
@@ -45,19 +45,12 @@ from armfit.errors import (
 from armfit.io import atomic
 from armfit.io.atomic import atomic_path, clean_stale, write_text_atomic
 
-ARMFIT = str(Path(sys.executable).with_name("armfit"))
-TEMP = re.compile(r"^\..*\.\d+\.[0-9a-f]{8}\.(tmp|old)$")
-
 # the small simulated study every test shares: 2 subjects x axes x, z x grips 1, 2 N
 
 
 def invoke(*args) -> object:
     return CliRunner().invoke(cli, [str(a) for a in args])
 
-
-def temps(folder: Path) -> list[str]:
-    """armfit temporaries (and set-aside folders) in ``folder``."""
-    return sorted(p.name for p in Path(folder).iterdir() if TEMP.match(p.name))
 
 
 def digest(path: Path) -> str:

@@ -29,13 +29,12 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 from conftest import FAULT_SIM as SIM
+from faulttools import ARMFIT
 
 from armfit.cli.main import cli
 from armfit.errors import EXIT_CANTCREAT, OutputError
 from armfit.io import atomic
 from armfit.io.atomic import atomic_path, clean_stale, write_text_atomic
-
-ARMFIT = str(Path(sys.executable).with_name("armfit"))
 
 #: armfit's temporaries, set-aside copies and journals (docs/cli-conventions.md)
 LEFTOVER = re.compile(r"^\..*\.\d+\.[0-9a-f]{8}\.(tmp|old|txn)$")

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-from processes import descendants, needs_proc, running, wait_for
+from faulttools import ARMFIT, descendants, needs_proc, running, temps, wait_for
 
 from armfit.cli.entry import STOP_GRACE_S
 from armfit.cli.main import cli
@@ -39,9 +39,6 @@ from armfit.errors import (
     EXIT_OK,
     EXIT_TERMINATED,
 )
-
-ARMFIT = str(Path(sys.executable).with_name("armfit"))
-TEMP = re.compile(r"^\..*\.\d+\.[0-9a-f]{8}\.(tmp|old)$")
 
 #: The stop lines of armfit.cli.entry, by signal, with the exit code of armfit.errors.
 STOPS = {signal.SIGINT: ("armfit: interrupted\n", EXIT_INTERRUPTED),
@@ -54,10 +51,6 @@ STOP_LIMIT_S = STOP_GRACE_S + 5.0
 def invoke(*args) -> object:
     return CliRunner().invoke(cli, [str(a) for a in args], prog_name="armfit")
 
-
-def temps(folder: Path) -> list[str]:
-    """armfit temporaries (and set-aside folders) in ``folder``."""
-    return sorted(p.name for p in Path(folder).iterdir() if TEMP.match(p.name))
 
 
 def grandchildren(pid: int) -> set[int]:

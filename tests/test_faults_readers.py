@@ -20,7 +20,6 @@ import os
 import re
 import resource
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
+from faulttools import ARMFIT
 
 import armfit
 from armfit.cli.main import cli
@@ -37,7 +37,6 @@ from armfit.errors import EXIT_DATAERR, EXIT_NOINPUT, BadInputError
 from armfit.io.trials import DATASET_TRIALS_KEY, dataset_metadata, read_manifest
 from armfit.spectra import saturated
 
-ARMFIT = str(Path(sys.executable).with_name("armfit"))
 NAME = "sub-01_axis-y_grip-2N"
 
 

@@ -730,6 +730,14 @@ def _make_parent(dest: Path) -> list[Path]:
 _MADE: list[Path] = []
 
 
+def _forget(entries) -> None:
+    """Drop from :data:`_MADE` the temporaries of ``entries`` that are gone (renamed
+    into place or removed), so that a long-lived process does not keep every name."""
+    gone = {e.tmp for e in entries if not os.path.lexists(e.tmp)}
+    if gone:
+        _MADE[:] = [t for t in _MADE if t not in gone]
+
+
 def remove_temporaries() -> list[str]:
     """Remove every temporary file or folder this process created that is still there
     (neither renamed into place nor removed yet).
@@ -897,6 +905,7 @@ class OutputSet:
         for e in reversed(self.entries):
             _remove(e.tmp)
             _rmdirs(e.made)
+        _forget(self.entries)
         self.entries = []
 
     def _entry(self, tmp: Path) -> _Entry:
@@ -942,6 +951,7 @@ class OutputSet:
                     _log.warning(f"{e.dest} written, but its previous version, set aside "
                                  f"as {e.old}, could not be removed: {why}; remove it "
                                  "by hand")
+        _forget(entries)
         return [e.dest for e in entries]
 
     def _commit_locked(self, entries: list[_Entry]) -> list[Path]:

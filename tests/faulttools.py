@@ -1,12 +1,19 @@
-"""Following the processes a command starts, through /proc (Linux): shared by the fault
-tests of signals and workers."""
+"""Helpers of the fault tests: the installed command, the temporaries it leaves, and the
+processes it starts (followed through /proc, Linux)."""
 
 from __future__ import annotations
 
+import re
+import sys
 import time
 from pathlib import Path
 
 import pytest
+
+#: The installed command line, beside the interpreter that runs the tests.
+ARMFIT = str(Path(sys.executable).with_name("armfit"))
+#: An armfit temporary or set-aside name (:func:`armfit.io.atomic.temp_name`).
+TEMP = re.compile(r"^\..*\.\d+\.[0-9a-f]{8}\.(tmp|old)$")
 
 #: Tests that follow child processes through /proc.
 needs_proc = pytest.mark.skipif(not Path("/proc/self/task").exists(),
@@ -44,3 +51,8 @@ def wait_for(pred, timeout: float = 60.0, step: float = 0.002) -> bool:
             return True
         time.sleep(step)
     return False
+
+
+def temps(folder: Path) -> list[str]:
+    """armfit temporaries (and set-aside folders) in ``folder``."""
+    return sorted(p.name for p in Path(folder).iterdir() if TEMP.match(p.name))
