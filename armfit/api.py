@@ -29,40 +29,47 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
-from armfit import fitting as _fitting
-from armfit import uncertainty as _uncertainty
-from armfit.adopt import Adoption, adopt
 from armfit.constants import AXES, GRID_HZ
-from armfit.diagnosis import (
-    MAX_STEPS,
-    MIN_EFFECT_DB,
-    MIN_EFFECT_DEG,
-    band_to_dict,
-    compare_models,
-    comparison_notes,
-    diagnose_axes,
-    diagnosis_to_dict,
-)
+from armfit.diagnosis.tuning import MAX_STEPS, MIN_EFFECT_DB, MIN_EFFECT_DEG
 from armfit.errors import BadInputError, ConvergenceError, UsageError
-from armfit.io.artifacts import write_params, write_wu, write_wu_table, wu_frame
 from armfit.io.atomic import atomic_outputs, atomic_path, write_text_atomic
 from armfit.io.rawwrite import trial_filename, write_trial
 from armfit.io.schema import COMPARE_COLUMNS, json_default, wu_sidecar_paths
 from armfit.io.trials import Skipped, Trial, Warn, open_trials, write_dataset
-from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.models.effects import Effect, get_effect
-from armfit.models.params import (
-    check_param_rows,
-    model_from_params,
-    read_param_rows,
-    read_params,
-)
-from armfit.simulation import StudyConfig, plan_study, simulate_trial, truth_dict
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimate_study, estimate_trials
-from armfit.tables import caption_for, latex_table, wu_latex
-from armfit.uncertainty import AxisUncertainty, WuWeight, read_weights_and_bands, read_wu
+
+
+class _OnFirstUse:
+    """A module imported when one of its attributes is first asked for.
+
+    The stages below need pandas, scipy.optimize, the fitting and diagnosis stacks, the
+    loop and the simulator, but each command needs only some of them: ``armfit estimate``
+    of one trial should not pay for loading the fitting stack (a shell script calls it
+    once per file). Importing is thread-safe (the import system's locks).
+    """
+
+    def __init__(self, name: str) -> None:
+        self._name = name
+
+    def __getattr__(self, attr: str):
+        return getattr(importlib.import_module(self._name), attr)
+
+    def __repr__(self) -> str:
+        return f"<module {self._name!r}, imported on first use>"
+
+
+pd = _OnFirstUse("pandas")
+_adopt = _OnFirstUse("armfit.adopt")
+_artifacts = _OnFirstUse("armfit.io.artifacts")
+_diagnosis = _OnFirstUse("armfit.diagnosis")
+_fitting = _OnFirstUse("armfit.fitting")
+_loop = _OnFirstUse("armfit.loop")
+_params = _OnFirstUse("armfit.models.params")
+_simulation = _OnFirstUse("armfit.simulation")
+_tables = _OnFirstUse("armfit.tables")
+_uncertainty = _OnFirstUse("armfit.uncertainty")
 
 PathLike = str | os.PathLike
 
@@ -85,7 +92,7 @@ def _fit_effects(effects):
     (:func:`armfit.models.effects.resolve_effects`)."""
     if isinstance(effects, AdoptedModel):
         return effects.adoption.effects
-    if isinstance(effects, Adoption):
+    if isinstance(effects, _adopt.Adoption):
         return effects.effects
     if isinstance(effects, Mapping):
         return {a: list(v) for a, v in effects.items()}
@@ -331,7 +338,7 @@ class ModelFit:
     @classmethod
     def read(cls, path: PathLike) -> ModelFit:
         """A params CSV written by fit-grip or fit-nominal."""
-        table = read_params(path)
+        table = _params.read_params(path)
         return cls(table, "grip" if "grip_N" in table.columns else "nominal",
                    source=str(path))
 
@@ -356,9 +363,9 @@ class ModelFit:
 
     def latex(self) -> str:
         """A booktabs LaTeX table laid out like the paper's Table I or II, with intervals."""
-        return latex_table(self.table, ci=True,
-                           caption=caption_for(self.which, [f.ci_method for f in self.fits]),
-                           label=f"tab:{self.which}")
+        caption = _tables.caption_for(self.which, [f.ci_method for f in self.fits])
+        return _tables.latex_table(self.table, ci=True, caption=caption,
+                                   label=f"tab:{self.which}")
 
     def write(self, path: PathLike, *, overwrite: bool = False,
               latex: PathLike | None = None) -> Path:
@@ -366,7 +373,7 @@ class ModelFit:
         ``armfit fit-grip`` / ``fit-nominal``, committed together (both or neither,
         :func:`armfit.io.atomic.atomic_outputs`)."""
         with atomic_outputs(overwrite=overwrite):
-            write_params(self.table, path, overwrite=overwrite)
+            _artifacts.write_params(self.table, path, overwrite=overwrite)
             if latex is not None:
                 write_text_atomic(latex, self.latex(), overwrite=overwrite)
         return Path(path)
@@ -381,7 +388,7 @@ class ModelFit:
             return _figures().bode_figure(self.spectra, self.table)
         f = np.geomspace(*GRID_HZ, 400)
         for _, row in self.table.iterrows():
-            model, theta = model_from_params(row)
+            model, theta = _params.model_from_params(row)
             grip = f" {float(row['grip_N']):g} N" if "grip_N" in row else ""
             ax.plot(f, 20 * np.log10(np.abs(model.response(f, theta))), ls="--",
                     label=f"{row['axis']}{grip}")
@@ -393,7 +400,7 @@ def _checked_rows(table: pd.DataFrame, *, keep_row: bool = False) -> pd.DataFram
     """A params table given as a DataFrame, with the checks of a params file
     (:func:`armfit.models.params.check_param_rows`: BadInputError naming column and
     row); every row must hold a fit. ``keep_row``: keep the ``row`` column."""
-    rows = check_param_rows(table)
+    rows = _params.check_param_rows(table)
     if rows.skipped:
         row, who, why = rows.skipped[0]
         raise BadInputError(f"a row without parameters ({who}: {why})", column="Ma",
@@ -510,7 +517,7 @@ class Uncertainty:
         derived trials without a nominal row, or a nominal row without derived trials.
     """
 
-    axes: tuple[AxisUncertainty, ...]
+    axes: tuple[_uncertainty.AxisUncertainty, ...]
     cost: str
     smooth_oct: float | None = None
     spectra: Spectra | None = None
@@ -518,13 +525,13 @@ class Uncertainty:
     notes: tuple[str, ...] = ()
 
     @property
-    def weights(self) -> dict[str, WuWeight]:
+    def weights(self) -> dict[str, _uncertainty.WuWeight]:
         """{axis: WuWeight}, the fitted weights."""
         return {r.axis: r.result.weight for r in self.axes}
 
     def to_frame(self) -> pd.DataFrame:
         """The Wu table (axis, kind, index, real, imag; the layout of Table III)."""
-        return wu_frame(self.weights)
+        return _artifacts.wu_frame(self.weights)
 
     def summary(self) -> pd.DataFrame:
         """Coverage (%) and tightness (dB) per axis × weight × target."""
@@ -543,11 +550,11 @@ class Uncertainty:
         summary_path, points_path = wu_sidecar_paths(path)
         out = (Path(path), summary_path, points_path)
         with atomic_outputs(overwrite=overwrite):
-            write_wu(self.weights, path, overwrite=overwrite)
-            write_wu_table(self.summary(), summary_path, overwrite=overwrite)
-            write_wu_table(self.points(), points_path, overwrite=overwrite)
+            _artifacts.write_wu(self.weights, path, overwrite=overwrite)
+            _artifacts.write_wu_table(self.summary(), summary_path, overwrite=overwrite)
+            _artifacts.write_wu_table(self.points(), points_path, overwrite=overwrite)
             if latex is not None:
-                write_text_atomic(latex, wu_latex(self.weights), overwrite=overwrite)
+                write_text_atomic(latex, _tables.wu_latex(self.weights), overwrite=overwrite)
                 out += (Path(latex),)
         return out
 
@@ -566,7 +573,7 @@ class Uncertainty:
 def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | None = None,
                     band: tuple[float, float] | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
-                    check: Mapping[str, Mapping[str, WuWeight]] | None = None,
+                    check: Mapping[str, Mapping[str, _uncertainty.WuWeight]] | None = None,
                     jobs: int = 1, executor: Executor | None = None) -> Uncertainty:
     """W_max (eq. 6) of every trial's derived arm dynamics against the nominal H_ARM and
     the weight Wu(s) = K Π(s − z)/Π(s − p) (eq. 7, s in rad/s) per axis (Table III,
@@ -626,9 +633,9 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
     return Uncertainty(tuple(results), cost, smooth_oct, sp, nom, tuple(notes))
 
 
-def read_weights(path: PathLike) -> dict[str, WuWeight]:
+def read_weights(path: PathLike) -> dict[str, _uncertainty.WuWeight]:
     """Read a Wu CSV (fit-uncertainty output or Table III layout) as {axis: WuWeight}."""
-    return read_wu(path)
+    return _uncertainty.read_wu(path)
 
 
 # ---------------------------------------------------------------------------
@@ -664,8 +671,8 @@ class Comparisons:
         """The JSON document of ``armfit compare --json``."""
         return {"level": self.level, "rows": [{
             "axis": r.axis, "grip_N": r.grip_N, "model": r.model, "params": r.params,
-            "n_trials": r.n_trials, "overall": band_to_dict(r.overall),
-            "bands": [band_to_dict(b) for b in r.bands],
+            "n_trials": r.n_trials, "overall": _diagnosis.band_to_dict(r.overall),
+            "bands": [_diagnosis.band_to_dict(b) for b in r.bands],
             "failing": [asdict(fb) for fb in r.failing]} for r in self.rows]} \
             | ({"notes": list(self.notes)} if self.notes else {})
 
@@ -723,8 +730,8 @@ def compare(spectra, model, *, level: str | None = None,
     m = ModelFit.of(model)
     if level is None:
         level = "mean" if m.which == "grip" else "median"
-    rows = compare_models(sp, m.table, level=level, band=band, effects=_effects(effects))
-    notes = comparison_notes(sp, m.table, level, spectra_label=sp.source,
+    rows = _diagnosis.compare_models(sp, m.table, level=level, band=band, effects=_effects(effects))
+    notes = _diagnosis.comparison_notes(sp, m.table, level, spectra_label=sp.source,
                              params_label=m.source)
     return Comparisons(tuple(rows), level, tuple(notes))
 
@@ -765,7 +772,7 @@ class Diagnosis:
 
     def to_dict(self) -> dict:
         """The JSON document of ``armfit diagnose --json`` (and of diagnosis.json)."""
-        return diagnosis_to_dict(list(self.axes))
+        return _diagnosis.diagnosis_to_dict(list(self.axes))
 
     def to_frame(self) -> pd.DataFrame:
         """One row per axis: axis, n_trials, band_lo_hz, band_hi_hz, missing_effects (the
@@ -852,7 +859,7 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
     """
     sp = _spectra(spectra)
     m = ModelFit.of(model)
-    results = diagnose_axes(sp, m.table, band=band,
+    results = _diagnosis.diagnose_axes(sp, m.table, band=band,
                             effects=None if effects is None else _effects(effects),
                             jobs=jobs, max_steps=max_steps, min_effect_db=min_effect_db,
                             min_effect_deg=min_effect_deg, share=share,
@@ -899,7 +906,7 @@ class TrialFits:
 
     def write(self, path: PathLike, *, overwrite: bool = False) -> Path:
         """Write :meth:`to_frame` as CSV (the file of ``armfit fit-trials``), atomically."""
-        write_params(self.to_frame(), path, overwrite=overwrite)
+        _artifacts.write_params(self.to_frame(), path, overwrite=overwrite)
         return Path(path)
 
 
@@ -960,7 +967,7 @@ class AdoptedModel:
     the certificate of its nominal capped by its trials), and the fitters' ``effects``.
     """
 
-    adoption: Adoption
+    adoption: _adopt.Adoption
     grip: ModelFit
     nominal: ModelFit
     trials: TrialFits | None = None
@@ -1005,7 +1012,7 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
         diagnosis = diagnose(sp, base, jobs=jobs)
     elif diagnosis.model is not None and diagnosis.model.which == "grip":
         base = diagnosis.model
-    ad = adopt(diagnosis, policy)
+    ad = _adopt.adopt(diagnosis, policy)
     bands = ad.bands
     grip = fit_grip(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs,
                     executor=executor)
@@ -1045,7 +1052,7 @@ class Stability:
 
     def summary(self) -> dict[str, dict]:
         """Per axis: minimum, median and 5th percentile of K_max (N/m), and what limits it."""
-        return axis_summary(self.table)
+        return _loop.axis_summary(self.table)
 
     def to_frame(self) -> pd.DataFrame:
         """The table (a copy): the rows of the CSV ``write`` writes."""
@@ -1109,7 +1116,7 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     kw = {k: v for k, v in (("sample_time_s", sample_time_s),
                             ("damping_Ns_per_m", damping_Ns_per_m),
                             ("delay_samples", delay_samples)) if v is not None}
-    settings = WallSettings(**kw)
+    settings = _loop.WallSettings(**kw)
     if isinstance(model, AdoptedModel):
         if weights is not None:
             members = model.trials if members is None else members
@@ -1127,7 +1134,7 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     elif isinstance(model, pd.DataFrame):
         rows, label = _checked_rows(model, keep_row=True), None
     else:
-        pr = read_param_rows(str(model))
+        pr = _params.read_param_rows(str(model))
         rows, label = pr.table, pr.label
     w = bands = None
     if isinstance(weights, Uncertainty):
@@ -1136,16 +1143,16 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     elif isinstance(weights, Mapping):
         w = dict(weights)
     elif weights is not None:
-        w, bands, _ = read_weights_and_bands(str(weights))
+        w, bands, _ = _uncertainty.read_weights_and_bands(str(weights))
     member_rows = None
     if isinstance(members, TrialFits):
         member_rows = members.to_frame()
         member_rows = member_rows[member_rows["converged"].astype(bool)]
     elif isinstance(members, pd.DataFrame):
-        member_rows = check_param_rows(members).table
+        member_rows = _params.check_param_rows(members).table
     elif members is not None:
-        member_rows = read_param_rows(str(members)).table
-    table = stability_table(rows, settings, weights=w, weights_band_hz=bands,
+        member_rows = _params.read_param_rows(str(members)).table
+    table = _loop.stability_table(rows, settings, weights=w, weights_band_hz=bands,
                             source=label, members=member_rows,
                             outside_loop=tuple(outside_loop))
     return Stability(table, settings, rows)
@@ -1167,13 +1174,13 @@ class Simulation:
         The truth of each trial (identity, length, parameters, effects).
     """
 
-    config: StudyConfig
+    config: _simulation.StudyConfig
     plans: tuple = field(default=())
 
     def trials(self):
         """Yield the trials (armfit.io.trials.Trial), simulated one at a time."""
         for plan in self.plans:
-            yield simulate_trial(plan, self.config)
+            yield _simulation.simulate_trial(plan, self.config)
 
     def to_frame(self) -> pd.DataFrame:
         """One row per trial's truth (subject, axis, grip, duration, parameters …)."""
@@ -1181,7 +1188,7 @@ class Simulation:
 
     def truth(self, options: Mapping[str, object] | None = None) -> dict:
         """The truth document (the JSON ``armfit simulate`` writes beside the study)."""
-        return truth_dict(self.config, self.plans, options)
+        return _simulation.truth_dict(self.config, self.plans, options)
 
     def write(self, folder: PathLike, *, fmt: str = "parquet", units: str = "m",
               overwrite: bool = False, truth: PathLike | None = None,
@@ -1207,7 +1214,7 @@ class Simulation:
         return files
 
 
-def simulate(config: StudyConfig | None = None, **settings) -> Simulation:
+def simulate(config: _simulation.StudyConfig | None = None, **settings) -> Simulation:
     """Plan a simulated study with known truth (``armfit simulate``).
 
     Parameters
@@ -1223,10 +1230,10 @@ def simulate(config: StudyConfig | None = None, **settings) -> Simulation:
         :func:`estimate`); ``.write(folder)`` writes the study as ``armfit simulate``.
     """
     if config is None:
-        config = StudyConfig(**settings)
+        config = _simulation.StudyConfig(**settings)
     elif settings:
         raise UsageError("give either a StudyConfig or settings, not both")
-    return Simulation(config, plan_study(config))
+    return Simulation(config, _simulation.plan_study(config))
 
 
 __all__ = [

@@ -77,6 +77,7 @@ from scipy import optimize, special
 
 from armfit import noise
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
+from armfit.data import sobol_points
 from armfit.errors import BadInputError, ConvergenceError, EffectDefinitionError, UsageError
 from armfit.io.artifacts import params_frame
 from armfit.io.schema import params_columns
@@ -338,9 +339,11 @@ def _candidates(prob: _Problem, x0: Mapping[str, float] | None, n_sobol: int) ->
             theta[sp.names.index(n)] = v
         starts.insert(0, sp.to_z(theta))
     if n_sobol:
-        m = int(np.ceil(np.log2(n_sobol)))
-        from scipy.stats import qmc  # only the global search needs it (slow to import)
-        u = qmc.Sobol(d=len(sp.names), scramble=False).random_base2(m)[:n_sobol]
+        u = sobol_points(n_sobol, len(sp.names))
+        if u is None:      # more dimensions than armfit's table: scipy's (slow to import)
+            from scipy.stats import qmc
+            m = int(np.ceil(np.log2(n_sobol)))
+            u = qmc.Sobol(d=len(sp.names), scramble=False).random_base2(m)[:n_sobol]
         starts.extend(sp.zlo + u * (sp.zhi - sp.zlo))
     return sp.clip_z(np.array(starts))
 

@@ -42,11 +42,9 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
-import scipy.fft
-from scipy.ndimage import uniform_filter1d
 
 from armfit._version import __version__
 from armfit.constants import (
@@ -58,6 +56,7 @@ from armfit.constants import (
     POINTS_PER_DECADE,
 )
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
+from armfit.io.arrow import arrow_array
 from armfit.io.atomic import atomic_path
 from armfit.io.numbers import parse_numbers
 from armfit.io.ranges import DEVICE_MASS_RANGE, FREQUENCY_RANGE, check_in_range
@@ -73,6 +72,9 @@ from armfit.io.schema import (
 )
 from armfit.io.trials import Trial, open_trials, read_trial, saturated_samples
 from armfit.workers import iter_tasks
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 METHODS = ("h1", "chebwin")
 
@@ -133,12 +135,34 @@ def _window(window, nperseg: int) -> np.ndarray:
     return _cached_window(window, nperseg, True)  # periodic, as scipy.signal.welch
 
 
+#: Windows computed here, as coefficients of cosines (scipy.signal.windows.general_cosine
+#: with the coefficients scipy uses): the estimator's defaults need no scipy.signal.
+_COSINE_WINDOWS = {"hann": (0.5, 1.0 - 0.5), "hamming": (0.54, 1.0 - 0.54)}
+
+
+def _cosine_window(coefficients: Sequence[float], n: int, periodic: bool) -> np.ndarray:
+    """Σ_k a_k cos(k·φ), φ from −π to π over n points (n + 1 if ``periodic``, the last
+    dropped): the same operations, in the same order, as ``scipy.signal.get_window``."""
+    if n <= 1:
+        return np.ones(n)
+    m = n + 1 if periodic else n
+    phi = np.linspace(-np.pi, np.pi, m)
+    w = np.zeros(m)
+    for k, a in enumerate(coefficients):
+        w += a * np.cos(k * phi)
+    return w[:n] if periodic else w
+
+
 @functools.lru_cache(maxsize=16)
 def _cached_window(name: str, n: int, periodic: bool) -> np.ndarray:
-    """scipy.signal.get_window, cached (trials of a study share segment lengths).
-    scipy.signal is imported here: it loads scipy.stats, which only estimation needs."""
-    from scipy.signal import get_window
-    w = get_window(name, n, fftbins=periodic)
+    """The window ``name`` of n points (periodic or symmetric), cached (trials of a
+    study share segment lengths). Hann and Hamming are computed here; any other name is
+    ``scipy.signal.get_window``'s, imported only then (scipy.signal loads scipy.stats)."""
+    if name in _COSINE_WINDOWS:
+        w = _cosine_window(_COSINE_WINDOWS[name], n, periodic)
+    else:
+        from scipy.signal import get_window
+        w = get_window(name, n, fftbins=periodic)
     w.setflags(write=False)
     return w
 
@@ -172,7 +196,8 @@ def enbw_bins(win: np.ndarray, nfft: int | None = None) -> float:
 
 def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None = None,
                   window="hann", nfft: int | None = None, detrend: bool = True,
-                  method: str = "h1", first_bin: int | None = None) -> BinSpectra:
+                  method: str = "h1", first_bin: int | None = None,
+                  fmax_hz: float | None = None) -> BinSpectra:
     """Welch auto- and cross-spectra of force (n,) and positions (n,) or (n, k).
 
     Same definitions as :func:`scipy.signal.csd` / :func:`scipy.signal.welch` with
@@ -181,7 +206,9 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
     ``detrend``, windowed, zero-padded to ``nfft``; P_xy = 2·mean(conj(X)·Y)/(fs Σw²)
     (DC and Nyquist not doubled). Each signal is transformed once (faster than calling
     scipy three times). Units: N²/Hz, N·m/Hz, m²/Hz. ``first_bin`` defaults to 2·nfft/
-    nperseg (the main-lobe half-width of Hann and Hamming windows).
+    nperseg (the main-lobe half-width of Hann and Hamming windows). ``fmax_hz`` (Hz):
+    keep only the bins up to the first one above it (the common grid uses no higher bin;
+    the kept bins' values are the same as without it).
     """
     f = np.asarray(force, dtype=float)
     y = _as_outputs(pos)
@@ -198,11 +225,23 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
     win = _window(window, nperseg)
     step = nperseg - noverlap
     n_seg = (n - noverlap) // step
-    sig = np.vstack([f[None, :], y])  # (1 + k, n)
-    segs = np.lib.stride_tricks.sliding_window_view(sig, nperseg, axis=-1)[:, ::step][:, :n_seg]
-    if detrend:
-        segs = segs - segs.mean(axis=-1, keepdims=True)
-    spec = scipy.fft.rfft(segs * win, n=nfft, axis=-1)  # (1 + k, n_seg, nb)
+    freq = np.fft.rfftfreq(nfft, 1.0 / fs)
+    # bins above fmax_hz are not needed: the first one above it is the last one kept
+    nb = freq.size if fmax_hz is None else min(freq.size, int(np.searchsorted(
+        freq, fmax_hz * (1.0 + 1e-9), side="right")) + 1)
+    # the signals' segments, mean removed and windowed, zero-padded to nfft, in one buffer
+    buf = np.zeros((1 + y.shape[0], n_seg, nfft))
+    seg = buf[..., :nperseg]
+    for s, x in enumerate((f, *y)):
+        x = np.ascontiguousarray(x)
+        view = np.lib.stride_tricks.sliding_window_view(x, nperseg)[::step][:n_seg]
+        if detrend:
+            np.subtract(view, view.mean(axis=-1, keepdims=True), out=seg[s])
+        else:
+            seg[s] = view
+    seg *= win
+    spec = np.fft.rfft(buf, axis=-1)[..., :nb]  # (1 + k, n_seg, nb)
+    del buf, seg
     scale = 1.0 / (fs * float(np.sum(win * win)))
     fspec = spec[0]
     p_ff = np.mean(fspec.real ** 2 + fspec.imag ** 2, axis=0) * scale
@@ -210,9 +249,9 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
     p_xx = np.mean(spec[1:].real ** 2 + spec[1:].imag ** 2, axis=1) * scale
     onesided = np.full(p_ff.shape, 2.0)
     onesided[0] = 1.0
-    if nfft % 2 == 0:
+    if nfft % 2 == 0 and nb == nfft // 2 + 1:
         onesided[-1] = 1.0
-    return BinSpectra(freq_hz=np.fft.rfftfreq(nfft, 1.0 / fs), p_ff=p_ff * onesided,
+    return BinSpectra(freq_hz=freq[:nb], p_ff=p_ff * onesided,
                    p_fx=p_fx * onesided, p_xx=p_xx * onesided,
                    n_avg=welch_overlap_factor(win, step, n_seg),
                    enbw_bins=enbw_bins(win, nfft), method=method,
@@ -264,8 +303,8 @@ def frf_chebwin(force, pos, fs: float, *, attenuation_db: float = 100.0
     from scipy.signal.windows import chebwin  # see _cached_window
     win = chebwin(f.size, attenuation_db, sym=True)
     y = _as_outputs(pos)
-    fx = scipy.fft.rfft(win * f)
-    h = scipy.fft.rfft(win * y, axis=-1) / fx
+    fx = np.fft.rfft(win * f)
+    h = np.fft.rfft(win * y, axis=-1) / fx
     return np.fft.rfftfreq(f.size, 1.0 / fs), (h[0] if np.ndim(pos) == 1 else h)
 
 
@@ -616,6 +655,30 @@ def saturated(force, limit_N: float) -> bool:
     return bool(saturated_samples(force, limit_N).any())
 
 
+def moving_mean(x: np.ndarray, width: int) -> np.ndarray:
+    """Mean of ``width`` samples centred on each sample (the window of sample i is
+    i − width//2 … i − width//2 + width − 1), the record's end values repeated beyond its
+    ends: ``scipy.ndimage.uniform_filter1d(x, width, mode="nearest")``, by cumulative
+    sums (equal to it within rounding).
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+        The signal.
+    width : int
+        Samples averaged, 1 … n.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    x = np.asarray(x, dtype=float)
+    left = width // 2
+    padded = np.concatenate([np.full(left, x[0]), x, np.full(width - 1 - left, x[-1])])
+    c = np.concatenate([[0.0], np.cumsum(padded)])
+    return (c[width:] - c[:-width]) / width
+
+
 def drifting(pos, fs: float, fmin: float, factor: float = 3.0) -> bool:
     """True when slow postural drift dominates the position record.
 
@@ -625,7 +688,7 @@ def drifting(pos, fs: float, fmin: float, factor: float = 3.0) -> bool:
     """
     x = np.asarray(pos, dtype=float)
     width = max(1, min(x.size, int(round(fs / fmin))))
-    slow = uniform_filter1d(x, width, mode="nearest")
+    slow = moving_mean(x, width)
     fast = np.std(x - slow)
     return bool(np.ptp(slow[width // 2: x.size - width // 2 or None]) > factor * fast)
 
@@ -1272,6 +1335,7 @@ class Spectra:
     def sorted(self, by: Sequence[str] = ("subject", "grip_N", "run")) -> Spectra:
         """The rows ordered by the identity columns ``by`` (missing values last), as
         pandas' ``groupby(by, sort=True, dropna=False)`` orders its groups."""
+        import pandas as pd
         if len(self) == 0:
             return self
         frame = pd.DataFrame({k: pd.array(list(self.keys[k]), dtype=_KEY_DTYPES.get(k))
@@ -1327,6 +1391,7 @@ class Spectra:
         BadInputError
             A required column is missing, or a response holds a frequency twice.
         """
+        import pandas as pd
         for c in ("level", "axis", "kind", "freq_hz", "re", "im"):
             if c not in df.columns:
                 raise BadInputError("missing column; not a spectra table written by "
@@ -1384,6 +1449,7 @@ class Spectra:
         """The long table of the spectra file: one row per response and frequency, columns
         :data:`armfit.io.schema.SPECTRA_COLUMNS` (text columns as pandas "string",
         ``run`` nullable Int64)."""
+        import pandas as pd
         if len(self) == 0:
             return pd.DataFrame({c: [] for c in SPECTRA_COLUMNS})
         sizes = self.present.sum(axis=1)
@@ -1564,6 +1630,7 @@ def _numbers(df, source: str | None):
     from CSV, a Parquet string column) is read by :func:`armfit.io.numbers.parse_numbers`,
     so ``1_5`` is refused, not read as 15. Raises BadInputError naming the column and
     row of a cell that is not a number (or, in ``run`` and ``n``, not a whole number)."""
+    import pandas as pd
     out = {}
     for c in _NUMERIC:
         if c not in df.columns:
@@ -1640,25 +1707,16 @@ def write_parts(parts: Iterable[Spectra], meta: Mapping, path, *,
     OutputError
         ``path`` exists and not ``overwrite``.
     """
-    import json
-
     import pyarrow as pa
     import pyarrow.parquet as pq
     with atomic_path(path, overwrite=overwrite) as tmp:
         writer = None
         try:
             for part in parts:
-                frame = part.to_frame()
-                frame.attrs = {}  # the metadata goes under its own key, below
                 if writer is None:
-                    schema = pa.Schema.from_pandas(frame, preserve_index=False)
-                    kv = dict(schema.metadata or {})
-                    kv[SPECTRA_META_KEY] = json.dumps(dict(meta), default=json_default).encode()
-                    schema = schema.with_metadata(kv)
+                    schema = _file_schema(part, meta)
                     writer = pq.ParquetWriter(tmp, schema, compression="zstd")
-                writer.write_table(pa.Table.from_pandas(frame, schema=schema,
-                                                        preserve_index=False))
-                del frame
+                writer.write_table(_arrow_table(part, schema))
                 # Arrow's allocator (mimalloc) would keep each group's buffers: give
                 # them back, so a file of many groups needs no more memory than one
                 pa.default_memory_pool().release_unused()
@@ -1666,6 +1724,79 @@ def write_parts(parts: Iterable[Spectra], meta: Mapping, path, *,
             if writer is not None:
                 writer.close()
     return path
+
+
+#: Arrow types of the spectra file's columns that are not float64.
+_ARROW_TYPES = {**dict.fromkeys(SPECTRA_TEXT, "large_string"), "run": "int64", "n": "int64"}
+
+
+def _pandas_metadata() -> bytes:
+    """The ``pandas`` key of the spectra file's schema metadata, as
+    ``pyarrow.Schema.from_pandas`` writes it for :meth:`Spectra.to_frame` (so that pandas
+    reads the text columns back as strings and ``run`` as nullable Int64), made without
+    importing pandas."""
+    import json
+    from importlib.metadata import version
+
+    import pyarrow as pa
+
+    def column(c: str) -> dict[str, object]:
+        kind = _ARROW_TYPES.get(c, "float64")
+        pandas_type, numpy_type = {"large_string": ("object", "string"),
+                                   "int64": ("int64", "Int64" if c == "run" else "int64")
+                                   }.get(kind, (kind, kind))
+        return {"name": c, "field_name": c, "pandas_type": pandas_type,
+                "numpy_type": numpy_type, "metadata": None}
+
+    return json.dumps({"index_columns": [], "column_indexes": [],
+                       "columns": [column(c) for c in SPECTRA_COLUMNS], "attributes": {},
+                       "creator": {"library": "pyarrow", "version": pa.__version__},
+                       "pandas_version": version("pandas")}).encode()
+
+
+def _file_schema(part: Spectra, meta: Mapping):
+    """The Arrow schema of the spectra file, with ``meta`` as JSON under its key."""
+    import json
+
+    import pyarrow as pa
+    if len(part) == 0:     # no response: the schema pandas gives an empty table
+        schema = pa.Schema.from_pandas(part.to_frame(), preserve_index=False)
+        kv = dict(schema.metadata or {})
+    else:
+        schema = pa.schema([(c, getattr(pa, _ARROW_TYPES.get(c, "float64"))())
+                            for c in SPECTRA_COLUMNS])
+        kv = {b"pandas": _pandas_metadata()}
+    kv[SPECTRA_META_KEY] = json.dumps(dict(meta), default=json_default).encode()
+    return schema.with_metadata(kv)
+
+
+def _arrow_table(part: Spectra, schema):
+    """The rows of ``part`` as the Arrow table of the file's long table
+    (:meth:`Spectra.to_frame`; NaN numbers are nulls, as ``Table.from_pandas`` makes
+    them), made without pandas."""
+    import pyarrow as pa
+    if len(part) == 0:
+        return pa.Table.from_pandas(part.to_frame(), schema=schema, preserve_index=False)
+    present = part.present
+    sizes = present.sum(axis=1)
+    arrays = []
+    for c in SPECTRA_COLUMNS:
+        if c in part.keys:
+            col = np.repeat(np.array(list(part.keys[c]), dtype=object), sizes)
+            if c == "grip_N":
+                col = col.astype(float)
+            elif c == "run":
+                col = [None if v is None or v != v else int(v) for v in col]
+        elif c == "freq_hz":
+            col = np.broadcast_to(part.freq_hz, present.shape)[present]
+        elif c in ("re", "im"):
+            col = getattr(part.h, "real" if c == "re" else "imag")[present]
+        elif c == "flags":
+            col = part.flags[present]
+        else:
+            col = part.values[c][present]
+        arrays.append(arrow_array(col, _ARROW_TYPES.get(c, "float64")))
+    return pa.Table.from_arrays(arrays, schema=schema)
 
 
 def row_counts(parts: Iterable[Spectra]) -> dict[str, object]:
@@ -1975,7 +2106,8 @@ __all__ = [
     "welch_spectra", "frf_h1", "chebwin_spectra", "frf_chebwin", "tfestimate_segment",
     "derived_arm_signals", "derived_spectra", "log_grid", "GridResponse", "band_bins",
     "bendat_piersol_se", "debiased_coherence", "NEGLIGIBLE_FORCE_POWER", "usable_bins",
-    "to_grid", "saturated", "drifting", "EstimateConfig", "Response", "TrialResponses",
+    "to_grid", "saturated", "moving_mean", "drifting", "EstimateConfig", "Response",
+    "TrialResponses",
     "check_band", "estimate_trial", "NO_SIGNAL", "no_signal_messages", "aggregate",
     "aggregate_spread", "spectra_table", "WRITE_ROWS", "Spectra", "write_parts",
     "row_counts", "StudySpectra", "estimate_study", "estimate_trials", "study_metadata",

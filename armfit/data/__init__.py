@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import functools
 from importlib import resources
+from typing import TYPE_CHECKING
 
-import pandas as pd
+import numpy as np
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 TABLES = {
     "grip": "table1_grip_dependent.csv",
@@ -17,10 +22,52 @@ TABLES = {
 def paper_table(name: str) -> pd.DataFrame:
     """Return one of the paper's tables: 'grip' (I), 'nominal' (II), 'uncertainty' (III),
     'literature' (IV), as printed (SI units)."""
+    import pandas as pd
     with resources.files(__name__).joinpath(TABLES[name]).open() as fh:
         return pd.read_csv(fh)
 
 
+#: Sobol direction numbers (Joe & Kuo 2008) of the first dimensions and bits: see the file.
+SOBOL_DIRECTIONS = "sobol_directions.csv"
+
+
+@functools.lru_cache(maxsize=1)
+def _sobol_directions() -> np.ndarray:
+    with resources.files(__name__).joinpath(SOBOL_DIRECTIONS).open() as fh:
+        m = np.loadtxt(fh, delimiter=",", comments="#", dtype=np.int64, ndmin=2)
+    m.setflags(write=False)
+    return m
+
+
+def sobol_points(n: int, d: int) -> np.ndarray | None:
+    """The first ``n`` points of the unscrambled d-dimensional Sobol sequence in [0, 1),
+    in the order ``scipy.stats.qmc.Sobol(d, scramble=False).random(n)`` gives them (Gray
+    code order, 30-bit points), from the direction numbers of :data:`SOBOL_DIRECTIONS`.
+
+    Parameters
+    ----------
+    n : int
+        Points, at most 2^(bits in the file).
+    d : int
+        Dimensions, at most the file's rows.
+
+    Returns
+    -------
+    ndarray, shape (n, d), or None
+        None when the file holds too few dimensions or bits (use scipy then).
+    """
+    m = _sobol_directions()
+    bits = max(1, int(n - 1).bit_length())
+    if d > m.shape[0] or bits > m.shape[1]:
+        return None
+    v = m[:d, :bits] << (29 - np.arange(bits))                 # direction integers
+    k = np.arange(n)
+    gray = k ^ (k >> 1)
+    on = ((gray[:, None] >> np.arange(bits)) & 1).astype(bool)  # (n, bits)
+    x = np.bitwise_xor.reduce(np.where(on[:, None, :], v[None], 0), axis=2)
+    return x / float(1 << 30)
+
+
 __all__ = [
-    "TABLES", "paper_table",
+    "TABLES", "paper_table", "SOBOL_DIRECTIONS", "sobol_points",
 ]

@@ -63,76 +63,59 @@ functions of the public API are :func:`armfit.diagnose` and :func:`armfit.compar
 
 from __future__ import annotations
 
-from armfit.diagnosis.bands import (
-    BandError,
-    FailingBand,
-    band_error,
-    describe_residual,
-    failing_bands,
-    residuals,
-    trial_statistics,
-)
-from armfit.diagnosis.compare import (
-    Comparison,
-    band_to_dict,
-    compare_models,
-    comparison_notes,
-    diagnosis_to_dict,
-    model_label,
-)
-from armfit.diagnosis.evidence import (
-    Adequacy,
-    adequacy,
-    effect_size,
-    practical,
-)
-from armfit.diagnosis.fit import (
-    fit_base,
-    fit_borrowed,
-    fit_extend,
-)
-from armfit.diagnosis.joint import (
-    JointFit,
-    joint_fit,
-)
-from armfit.diagnosis.responses import (
-    AxisData,
-    axis_data,
-    cross_coupling,
-)
-from armfit.diagnosis.results import (
-    AxisDiagnosis,
-    Candidate,
-    FailedCandidate,
-    MissingEffect,
-    Step,
-)
-from armfit.diagnosis.screen import (
-    screen_candidate,
-)
-from armfit.diagnosis.search import (
-    cross_axis_agreement,
-    diagnose_axes,
-)
-from armfit.diagnosis.starts import (
-    best_rows,
-    levy_starts,
-)
-from armfit.diagnosis.tuning import (
-    BANDS,
-    MAX_STEPS,
-    MIN_EFFECT_DB,
-    MIN_EFFECT_DEG,
-    MIN_REDUCTION,
-    MIN_RUN,
-    NOISE_TOL,
-    SHARED_EFFECTS,
-    SIGNIFICANT_BIC,
-    T_FAIL,
-)
-from armfit.diagnosis.verdict import (
-    verdict_text,
-)
+from importlib import import_module
+
+#: The package's names and the module each comes from, imported on first use (so
+#: that importing one light module of the package does not load the others).
+_EXPORTS: dict[str, str] = {
+    "BandError": "armfit.diagnosis.bands",
+    "FailingBand": "armfit.diagnosis.bands",
+    "band_error": "armfit.diagnosis.bands",
+    "describe_residual": "armfit.diagnosis.bands",
+    "failing_bands": "armfit.diagnosis.bands",
+    "residuals": "armfit.diagnosis.bands",
+    "trial_statistics": "armfit.diagnosis.bands",
+    "Comparison": "armfit.diagnosis.compare",
+    "band_to_dict": "armfit.diagnosis.compare",
+    "compare_models": "armfit.diagnosis.compare",
+    "comparison_notes": "armfit.diagnosis.compare",
+    "diagnosis_to_dict": "armfit.diagnosis.compare",
+    "model_label": "armfit.diagnosis.compare",
+    "Adequacy": "armfit.diagnosis.evidence",
+    "adequacy": "armfit.diagnosis.evidence",
+    "effect_size": "armfit.diagnosis.evidence",
+    "practical": "armfit.diagnosis.evidence",
+    "fit_base": "armfit.diagnosis.fit",
+    "fit_borrowed": "armfit.diagnosis.fit",
+    "fit_extend": "armfit.diagnosis.fit",
+    "JointFit": "armfit.diagnosis.joint",
+    "joint_fit": "armfit.diagnosis.joint",
+    "AxisData": "armfit.diagnosis.responses",
+    "axis_data": "armfit.diagnosis.responses",
+    "cross_coupling": "armfit.diagnosis.responses",
+    "AxisDiagnosis": "armfit.diagnosis.results",
+    "Candidate": "armfit.diagnosis.results",
+    "FailedCandidate": "armfit.diagnosis.results",
+    "MissingEffect": "armfit.diagnosis.results",
+    "Step": "armfit.diagnosis.results",
+    "screen_candidate": "armfit.diagnosis.screen",
+    "cross_axis_agreement": "armfit.diagnosis.search",
+    "diagnose_axes": "armfit.diagnosis.search",
+    "best_rows": "armfit.diagnosis.starts",
+    "levy_starts": "armfit.diagnosis.starts",
+    "BANDS": "armfit.diagnosis.tuning",
+    "MAX_STEPS": "armfit.diagnosis.tuning",
+    "MIN_EFFECT_DB": "armfit.diagnosis.tuning",
+    "MIN_EFFECT_DEG": "armfit.diagnosis.tuning",
+    "MIN_REDUCTION": "armfit.diagnosis.tuning",
+    "MIN_RUN": "armfit.diagnosis.tuning",
+    "NOISE_TOL": "armfit.diagnosis.tuning",
+    "SHARED_EFFECTS": "armfit.diagnosis.tuning",
+    "SIGNIFICANT_BIC": "armfit.diagnosis.tuning",
+    "T_FAIL": "armfit.diagnosis.tuning",
+    "verdict_text": "armfit.diagnosis.verdict",
+}
+
 
 __all__ = [
     "Adequacy", "AxisData", "AxisDiagnosis", "BANDS", "BandError", "Candidate", "Comparison",
@@ -146,3 +129,15 @@ __all__ = [
     "fit_borrowed", "fit_extend", "joint_fit", "levy_starts", "model_label", "practical",
     "residuals", "screen_candidate", "trial_statistics", "verdict_text",
 ]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

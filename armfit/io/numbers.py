@@ -134,6 +134,29 @@ def _arrow(values):
     return pa.array(cells, type=pa.large_string())
 
 
+def _numeric_numpy(arr) -> np.ndarray:
+    """A pyarrow Array of a float or integer type as float64 (nulls NaN), read from its
+    buffers: ``Array.to_numpy`` would import pandas (a third of a second), which a
+    command that reads trials and writes spectra does not otherwise need."""
+    import pyarrow as pa
+    width = {8: "1", 16: "2", 32: "4", 64: "8"}.get(arr.type.bit_width)
+    kind = "f" if pa.types.is_floating(arr.type) else \
+        "i" if pa.types.is_signed_integer(arr.type) else "u"
+    if width is None or (kind == "f" and width == "1"):
+        return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64)
+    n, offset = len(arr), arr.offset
+    validity, data = arr.buffers()[:2]
+    if data is None:
+        return np.full(n, np.nan)
+    values = np.frombuffer(data, dtype=np.dtype(f"<{kind}{width}"),
+                           count=offset + n)[offset:].astype(np.float64, copy=False)
+    if arr.null_count and validity is not None:
+        valid = np.unpackbits(np.frombuffer(validity, dtype=np.uint8), bitorder="little",
+                              count=offset + n)[offset:].astype(bool)
+        values = np.where(valid, values, np.nan)
+    return values
+
+
 def _missing(v) -> bool:
     if v is None:
         return True
@@ -234,7 +257,7 @@ def parse_numbers(values, *, file: str | None = None, column: str | None = None,
                             row=first_row + i)
 
     if pa.types.is_floating(t) or pa.types.is_integer(t):
-        return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64)
+        return _numeric_numpy(arr)
     if pa.types.is_decimal(t):   # through its text: the nearest float64, as written
         return np.asarray(arr.cast(pa.string()).cast(pa.float64())
                           .to_numpy(zero_copy_only=False), dtype=np.float64)

@@ -587,10 +587,9 @@ def _read_table(path: Path, names: list[str]) -> dict[str, np.ndarray]:
     file = str(path)
     _check_regular(path)
     if _trial_ext(path.name) == ".parquet":
-        import pyarrow.parquet as pq
         actual = {n.strip(): n for n in _parquet_names(path)}
         try:
-            table = pq.read_table(path, columns=[actual[n] for n in names])
+            table = _parquet_file(path).read(columns=[actual[n] for n in names])
         except (pa.ArrowException, OSError) as exc:
             raise BadInputError(f"unreadable or truncated Parquet file: {_first_line(exc)}",
                                 file=file) from None
@@ -629,12 +628,25 @@ def _first_line(exc: BaseException) -> str:
 
 def _parquet_names(path: Path) -> list[str]:
     import pyarrow as pa
-    import pyarrow.parquet as pq
     try:
-        return list(pq.read_schema(path).names)
+        return list(_parquet_file(path).schema_arrow.names)
     except (pa.ArrowException, OSError) as exc:
         raise BadInputError(f"unreadable or truncated Parquet file: {_first_line(exc)}",
                             file=str(path)) from None
+
+
+def _parquet_file(path: Path):
+    """``pyarrow.parquet.ParquetFile`` of ``path``, opened once for the schema, the
+    footer and the columns of a trial read one after the other (kept while the file is
+    unchanged: same inode, size and modification time)."""
+    st = os.stat(path)
+    return _open_parquet(str(path), (st.st_ino, st.st_size, st.st_mtime_ns))
+
+
+@functools.lru_cache(maxsize=2)
+def _open_parquet(path: str, stamp: tuple[int, int, int]):
+    import pyarrow.parquet as pq
+    return pq.ParquetFile(path)
 
 
 def _column_names(path: Path) -> list[str]:
@@ -949,8 +961,7 @@ def is_dataset(path: str | os.PathLike) -> bool:
 
 
 def _dataset_footer(path: Path):
-    import pyarrow.parquet as pq
-    return pq.read_metadata(path)
+    return _parquet_file(path).metadata
 
 
 def _checked_record(index: int, rec: object, file: str) -> dict:
@@ -1067,10 +1078,9 @@ def _open_dataset(path: str, stamp: tuple[int, int, int]):
     (``stamp``: inode, size, mtime), so that reading trial after trial parses the footer
     and the trials' metadata once, not once per trial."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
     records = dataset_metadata(path)
     try:
-        pf = pq.ParquetFile(path)
+        pf = _open_parquet(path, stamp)
     except (pa.ArrowException, OSError) as exc:
         raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
                             file=path) from None

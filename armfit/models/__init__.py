@@ -1,21 +1,41 @@
 """Arm, device and closed-loop models, the effect library, and the literature models."""
 
-from armfit.models.arm import (
-    BASE_PARAMS,
-    DEVICE_MASS_KG,
-    PARAM_NAMES,
-    ClosedLoopModel,
-    Param,
-    h_arm,
-    h_cl,
-    h_device,
-    z_arm,
-)
-from armfit.models.effects import EFFECTS, Effect, get_effect
-from armfit.models.params import model_from_params, read_params
+from importlib import import_module
+
+#: The package's names and the module each comes from, imported on first use (so
+#: that importing one light module of the package does not load the others).
+_EXPORTS: dict[str, str] = {
+    "BASE_PARAMS": "armfit.models.arm",
+    "DEVICE_MASS_KG": "armfit.models.arm",
+    "PARAM_NAMES": "armfit.models.arm",
+    "ClosedLoopModel": "armfit.models.arm",
+    "Param": "armfit.models.arm",
+    "h_arm": "armfit.models.arm",
+    "h_cl": "armfit.models.arm",
+    "h_device": "armfit.models.arm",
+    "z_arm": "armfit.models.arm",
+    "EFFECTS": "armfit.models.effects",
+    "Effect": "armfit.models.effects",
+    "get_effect": "armfit.models.effects",
+    "model_from_params": "armfit.models.params",
+    "read_params": "armfit.models.params",
+}
+
 
 __all__ = [
     "BASE_PARAMS", "DEVICE_MASS_KG", "PARAM_NAMES", "ClosedLoopModel", "Param", "h_arm",
     "h_cl", "h_device", "z_arm", "EFFECTS", "Effect", "get_effect", "model_from_params",
     "read_params",
 ]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -1,0 +1,126 @@
+"""`armfit estimate` and `armfit run` against the floor: what reading the study and one
+FFT per signal cost, whole processes, ratios measured in one session.
+
+The floor is a fresh Python process that reads every trial with pyarrow (all columns)
+and takes one real FFT of each force and position column, zero-padded to a fast length
+(scipy.fft.next_fast_len): the least any estimator of these spectra must do. It is
+run alternately with
+
+- `armfit estimate DATA -o OUT --jobs 1` on a canonical dataset (the paper-size study of
+  benchmarks/bench_estimate.py: 81 trials, 75-100 s at 1 kHz; `--scale` adds the
+  810-trial dataset of its --scale mode). Target: estimate / floor <= 1.3.
+- `armfit run STUDY -o OUT --jobs 2 --no-figures` (and, with `--figures`, with the
+  figures) on the same study written as raw Parquet trial files by `armfit simulate`,
+  against the floor on those files. Target: run / floor <= 3.
+- `--jobs 2` against `--jobs 1` for both commands (target: never slower, <= 1.0).
+
+Best of --repeat rounds each; the load average is printed at the start and the end (a
+shared machine inflates and scatters the times: compare the ratios).
+
+    .venv/bin/python benchmarks/bench_floor.py [--repeat 3] [--scale] [--figures]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_estimate  # noqa: E402  (the datasets, made once and cached)
+
+ARMFIT = str(Path(sys.executable).with_name("armfit"))
+
+FLOOR = r"""
+import sys
+from pathlib import Path
+import numpy as np
+import pyarrow.parquet as pq
+from scipy.fft import next_fast_len, rfft
+target = Path(sys.argv[1])
+files = sorted(target.glob("*.parquet")) if target.is_dir() else [target]
+for path in files:
+    pf = pq.ParquetFile(path)
+    for g in range(pf.num_row_groups):
+        table = pf.read_row_group(g)
+        for name in table.column_names:
+            if name.startswith(("force_", "pos_")):
+                x = table.column(name).to_numpy()
+                if np.isfinite(x).all():
+                    rfft(x, n=next_fast_len(x.size, real=True))
+"""
+
+
+def wall(cmd: list[str]) -> float:
+    """Seconds from the start of ``cmd`` (a fresh process) to its exit."""
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - t0
+
+
+def best_of(commands: dict[str, list[str]], repeat: int) -> dict[str, float]:
+    """Best wall time of each command, the commands alternated ``repeat`` times."""
+    best = dict.fromkeys(commands, float("inf"))
+    for _ in range(repeat):
+        for name, cmd in commands.items():
+            best[name] = min(best[name], wall(cmd))
+    return best
+
+
+def floor_cmd(target: Path) -> list[str]:
+    return [sys.executable, "-c", FLOOR, str(target)]
+
+
+def estimate_rows(data: Path, tmp: Path, repeat: int, label: str) -> None:
+    out = tmp / "spectra.parquet"
+    est = [ARMFIT, "-q", "estimate", str(data), "-o", str(out), "--overwrite"]
+    t = best_of({"floor": floor_cmd(data), "j1": [*est, "--jobs", "1"],
+                 "j2": [*est, "--jobs", "2"]}, repeat)
+    print(f"{label}: floor {t['floor']:6.2f} s | estimate -j1 {t['j1']:6.2f} s "
+          f"({t['j1'] / t['floor']:.2f} x floor; target <= 1.3) | -j2 {t['j2']:6.2f} s "
+          f"({t['j2'] / t['j1']:.2f} x -j1; target <= 1.0)")
+
+
+def run_rows(tmp: Path, repeat: int, figures: bool) -> None:
+    study = tmp / "study"
+    subprocess.run([ARMFIT, "-q", "simulate", "-o", str(study), "--seed", "1",
+                    "--format", "parquet"], check=True)
+    n = len(list(study.glob("*.parquet")))
+    cmds = {"floor": floor_cmd(study)}
+    for jobs in (1, 2):
+        cmds[f"j{jobs}"] = [ARMFIT, "-q", "run", str(study), "-o", str(tmp / f"out{jobs}"),
+                            "--jobs", str(jobs), "--overwrite",
+                            *([] if figures else ["--no-figures"])]
+    t = best_of(cmds, repeat)
+    what = "run" + ("" if figures else " --no-figures")
+    print(f"{what} ({n} raw trials): floor {t['floor']:6.2f} s | -j2 {t['j2']:6.2f} s "
+          f"({t['j2'] / t['floor']:.2f} x floor; target <= 3) | -j1 {t['j1']:6.2f} s "
+          f"(-j2 / -j1 {t['j2'] / t['j1']:.2f}; target <= 1.0)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--scale", action="store_true", help="also the 810-trial dataset")
+    ap.add_argument("--figures", action="store_true", help="time run with its figures")
+    ap.add_argument("--data", type=Path, default=Path(tempfile.gettempdir())
+                    / "armfit_bench_81x75-100s.parquet")
+    args = ap.parse_args()
+    print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
+    bench_estimate.ensure(args.data)
+    with tempfile.TemporaryDirectory(prefix="armfit-bench-floor-") as tmp:
+        estimate_rows(args.data, Path(tmp), args.repeat, "81 trials")
+        if args.scale:
+            large = Path(tempfile.gettempdir()) / "armfit_bench_810x75s.parquet"
+            bench_estimate.ensure(large, subjects=90, duration_s=(75.0, 75.0))
+            estimate_rows(large, Path(tmp), max(1, args.repeat - 1), "810 trials")
+        run_rows(Path(tmp), args.repeat, args.figures)
+    print(f"load average {os.getloadavg()[0]:.2f} (1 min)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,172 @@
+"""The estimator's fast paths give the numbers of the library calls they replace, and the
+commands import only what they use.
+
+Each replacement is checked against the computation it stands for: scipy's windows,
+``scipy.ndimage.uniform_filter1d``, ``scipy.stats.qmc.Sobol``, ``pyarrow.array`` and
+``Array.to_numpy``, the pandas writer of the spectra file. The import checks run a fresh
+interpreter and read its ``sys.modules`` after the command.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from scipy import ndimage, signal
+from scipy.stats import qmc
+
+from armfit.data import sobol_points
+from armfit.io.arrow import arrow_array
+from armfit.io.numbers import parse_numbers
+from armfit.spectra import (
+    Spectra,
+    _cached_window,
+    _pandas_metadata,
+    moving_mean,
+    welch_spectra,
+    write_parts,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+TRIAL = REPO / "sample_data/study/sub-01_axis-x_grip-1N.parquet"
+
+
+@pytest.mark.parametrize("name", ["hann", "hamming"])
+@pytest.mark.parametrize("n", [1, 2, 3, 255, 256, 32768, 36001])
+@pytest.mark.parametrize("periodic", [True, False])
+def test_windows_are_scipys_to_the_bit(name, n, periodic):
+    # the reference: scipy.signal.get_window, which these windows replace
+    assert np.array_equal(_cached_window(name, n, periodic),
+                          signal.get_window(name, n, fftbins=periodic))
+
+
+def test_other_windows_come_from_scipy():
+    assert np.array_equal(_cached_window("blackman", 64, True),
+                          signal.get_window("blackman", 64, fftbins=True))
+
+
+@pytest.mark.parametrize("width", [1, 2, 7, 10, 1000, 4999, 5000])
+def test_moving_mean_is_uniform_filter1d(width):
+    # the reference: scipy.ndimage.uniform_filter1d(mode="nearest"), the filter replaced;
+    # a record with a posture offset and drift, as the drift check sees it
+    rng = np.random.default_rng(3)
+    x = 0.1 + np.cumsum(rng.normal(0, 1e-4, 5000)) + rng.normal(0, 1e-3, 5000)
+    ref = ndimage.uniform_filter1d(x, width, mode="nearest")
+    np.testing.assert_allclose(moving_mean(x, width), ref, rtol=1e-12, atol=1e-15)
+
+
+def test_welch_up_to_fmax_keeps_the_full_spectra_bins():
+    # bins above fmax are dropped, the kept ones unchanged to the bit; the full spectra
+    # are themselves scipy.signal.csd/welch (tests/test_spectra.py)
+    rng = np.random.default_rng(0)
+    f = rng.normal(size=20000)
+    x = np.stack([np.convolve(f, [0.5, 0.3, 0.2])[:20000] + 0.1 * rng.normal(size=20000),
+                  rng.normal(size=20000)], axis=1)
+    full = welch_spectra(f, x, 1000.0, nperseg=4096)
+    cut = welch_spectra(f, x, 1000.0, nperseg=4096, fmax_hz=30.0)
+    nb = cut.freq_hz.size
+    assert cut.freq_hz[-2] <= 30.0 < cut.freq_hz[-1]           # one bin above fmax kept
+    assert np.array_equal(cut.freq_hz, full.freq_hz[:nb])
+    for a in ("p_ff", "p_fx", "p_xx"):
+        assert np.array_equal(getattr(cut, a), getattr(full, a)[..., :nb]), a
+    _, p_ref = signal.welch(f, 1000.0, nperseg=4096)
+    np.testing.assert_allclose(cut.p_ff, p_ref[:nb], rtol=1e-12)
+
+
+@pytest.mark.parametrize("kind, values", [
+    ("float64", [1.5, np.nan, -0.0, 1e300, np.nan]),
+    ("float64", []),
+    ("int64", [3, None, 0, -7]),
+    ("int64", [1, 2]),
+    ("large_string", ["x", None, "", "µ,ß", "trial"]),
+    ("large_string", ["a", "b"]),
+])
+def test_arrow_arrays_equal_pyarrows(kind, values):
+    # the reference: pyarrow.array(..., from_pandas=True), which they replace
+    ref = pa.array(np.array(values, dtype=float) if kind == "float64" else values,
+                   type=getattr(pa, kind)(), from_pandas=True)
+    got = arrow_array(np.array(values, dtype=float) if kind == "float64" else values, kind)
+    assert got.type == ref.type and got.null_count == ref.null_count
+    assert got.equals(ref)
+
+
+@pytest.mark.parametrize("typ", [pa.float64(), pa.float32(), pa.int8(), pa.int32(),
+                                 pa.int64(), pa.uint16(), pa.uint64()])
+def test_numeric_columns_read_as_to_numpy_reads_them(typ):
+    # the reference: Array.to_numpy, with nulls as NaN; slices have an offset
+    cells = [None if i % 4 == 0 else i for i in range(40)]
+    arr = pa.array(cells, type=typ)
+    for a in (arr, arr.slice(5, 17), pa.chunked_array([arr.slice(0, 9), arr.slice(9)])):
+        flat = a.combine_chunks() if isinstance(a, pa.ChunkedArray) else a
+        ref = np.asarray(flat.to_numpy(zero_copy_only=False), dtype=np.float64)
+        assert np.array_equal(parse_numbers(a), ref, equal_nan=True)
+
+
+@pytest.mark.parametrize("n, d", [(512, 5), (512, 13), (1, 3), (100, 32), (4096, 2)])
+def test_sobol_points_are_scipys(n, d):
+    # the reference: scipy.stats.qmc.Sobol, unscrambled (the fits' global-search starts)
+    with pytest.warns(UserWarning) if n & (n - 1) else _nothing():
+        ref = qmc.Sobol(d=d, scramble=False).random(n)
+    assert np.array_equal(sobol_points(n, d), ref)
+
+
+def test_sobol_points_beyond_the_table_are_left_to_scipy():
+    assert sobol_points(8, 33) is None and sobol_points(4097, 2) is None
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_spectra_file_is_what_the_pandas_writer_made(spectra, tmp_path):
+    # the reference: pyarrow's Table.from_pandas of Spectra.to_frame(), as the file was
+    # written before; same table, same schema metadata (pandas reads it back as before)
+    s = Spectra.read(spectra)
+    part = s.take(np.arange(min(len(s), 40)))
+    out = write_parts([part], s.meta, tmp_path / "s.parquet")
+    frame = part.to_frame()
+    frame.attrs = {}
+    ref = pa.Table.from_pandas(frame, preserve_index=False)
+    got = pq.read_table(out)
+    assert got.schema.metadata[b"pandas"] == ref.schema.metadata[b"pandas"]
+    assert got.select(ref.column_names).cast(ref.schema).equals(ref.replace_schema_metadata())
+    assert _pandas_metadata() == ref.schema.metadata[b"pandas"]
+    back = pq.read_table(out).to_pandas()
+    assert str(back["level"].dtype) == str(frame["level"].dtype)
+    assert str(back["run"].dtype) == "Int64"
+
+
+def _modules_after(args: list[str]) -> set[str]:
+    """The modules a fresh interpreter holds after running ``armfit ARGS``."""
+    code = ("import sys, json\nfrom armfit.cli.main import cli\n"
+            f"try:\n    cli({args!r}, prog_name='armfit')\nexcept SystemExit as e:\n"
+            "    assert not e.code, e.code\n"
+            "print(json.dumps(sorted(sys.modules)), file=sys.stderr)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    return set(json.loads(res.stderr.strip().splitlines()[-1]))
+
+
+def test_estimate_loads_neither_pandas_nor_scipy(tmp_path):
+    # estimating and writing spectra needs numpy and pyarrow only (start-up of a
+    # command a shell script runs once per trial file)
+    loaded = _modules_after(["-q", "estimate", str(TRIAL), "-o", str(tmp_path / "s.parquet")])
+    assert "armfit.spectra" in loaded
+    assert not loaded & {"pandas", "scipy", "matplotlib", "rich", "armfit.fitting"}
+
+
+def test_fit_nominal_loads_no_figures_and_no_scipy_stats(spectra, tmp_path):
+    loaded = _modules_after(["-q", "fit-nominal", str(spectra), "-o", str(tmp_path / "n.csv")])
+    assert "armfit.fitting" in loaded
+    assert not loaded & {"matplotlib", "scipy.stats", "scipy.signal", "armfit.figures",
+                         "armfit.diagnosis.search", "armfit.loop"}
