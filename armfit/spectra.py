@@ -230,7 +230,8 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
     nb = freq.size if fmax_hz is None else min(freq.size, int(np.searchsorted(
         freq, fmax_hz * (1.0 + 1e-9), side="right")) + 1)
     # the signals' segments, mean removed and windowed, zero-padded to nfft, in one buffer
-    buf = np.zeros((1 + y.shape[0], n_seg, nfft))
+    buf = np.empty((1 + y.shape[0], n_seg, nfft))
+    buf[..., nperseg:] = 0.0
     seg = buf[..., :nperseg]
     for s, x in enumerate((f, *y)):
         x = np.ascontiguousarray(x)
@@ -673,10 +674,17 @@ def moving_mean(x: np.ndarray, width: int) -> np.ndarray:
     ndarray, shape (n,)
     """
     x = np.asarray(x, dtype=float)
-    left = width // 2
-    padded = np.concatenate([np.full(left, x[0]), x, np.full(width - 1 - left, x[-1])])
-    c = np.concatenate([[0.0], np.cumsum(padded)])
-    return (c[width:] - c[:-width]) / width
+    n, left = x.size, width // 2
+    # the cumulative sum of [0, x[0] × left, x, x[-1] × (width − 1 − left)], in place
+    c = np.empty(n + width)
+    c[0] = 0.0
+    c[1:left + 1] = x[0]
+    c[left + 1:left + 1 + n] = x
+    c[left + 1 + n:] = x[-1]
+    np.cumsum(c, out=c)
+    out = c[width:] - c[:-width]
+    out /= width
+    return out
 
 
 def drifting(pos, fs: float, fmin: float, factor: float = 3.0) -> bool:
