@@ -39,14 +39,15 @@ Before timing, the Octave program's H1 and coherence of trial 0 are checked agai
 armfit's native-bin ``welch_spectra`` of the same trial (relative difference < 1e-6 at
 the bins armfit uses, first_bin and above, where the coherence is > 0.5), so that both
 sides compute the same thing; the largest difference is printed. (The derived responses
-are not compared here: MATLAB's and so this tfestimate keep each segment's mean, armfit
-removes it; tests/test_bench_octave.py compares them with Octave's per-segment mean
-removal, pwelch 'short'.) The commands then run
-alternately, --repeat rounds; the script prints each round, the best of each and the
-ratio armfit / Octave of the best times (target: <= 1.0, armfit at least on par), with
-the Octave version and the load average at start and end. Without ``octave-cli`` (or
-``octave``) on PATH, or without Octave's signal package, it says so and exits 0: Octave
-is optional (Debian: ``apt-get install octave octave-signal``).
+are not compared here: MATLAB's tfestimate, and so this one, keeps each segment's mean,
+armfit removes it; tests/test_bench_octave.py compares them with Octave's per-segment
+mean removal, pwelch 'short'.) The commands then run alternately, --repeat rounds; the
+script prints each round, the best of each and the ratio armfit / Octave of the best
+wall times (target: <= 1.0, armfit at least on par; also of the best CPU times, steadier
+on a loaded machine), with the Octave version and the load average at start and end.
+Without ``octave-cli`` (or ``octave``) on PATH, or without Octave's signal package, it
+says so and exits 0: Octave is optional (Debian: ``apt-get install octave
+octave-signal``).
 
     .venv/bin/python benchmarks/bench_octave.py [--repeat 3] [--calls both|tfestimate|pwelch]
         [--octave-threads 1]
@@ -66,7 +67,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_estimate  # noqa: E402  (the study and the timing of both benchmarks)
+import bench_estimate  # noqa: E402  (the study both benchmarks time, the armfit command)
 
 #: Relative difference allowed between Octave's and armfit's H1 and coherence.
 TOLERANCE = 1e-6
@@ -164,8 +165,8 @@ def octave_version(octave: str) -> str:
     """'GNU Octave X, signal Y'; raises CalledProcessError without the signal package."""
     code = ("pkg load signal; s = pkg('list', 'signal'); "
             "printf('GNU Octave %s, signal package %s\\n', version, s{1}.version)")
-    out = subprocess.run([octave, "--norc", "--quiet", "--no-history", "--eval", code], check=True,
-                         capture_output=True, text=True).stdout
+    out = subprocess.run([octave, "--norc", "--quiet", "--no-history", "--eval", code],
+                         check=True, capture_output=True, text=True).stdout
     return out.strip().splitlines()[-1]
 
 
@@ -226,8 +227,9 @@ def check_same_h1(data: Path, folder: Path, octave: str, script: Path, out: Path
     freq, h = oct_[0], oct_[1:1 + k] + 1j * oct_[1 + k:1 + 2 * k]
     coh = oct_[1 + 2 * k:]
     assert freq.shape == sp.freq_hz.shape and np.allclose(freq, sp.freq_hz, rtol=1e-12)
-    # Octave removes the record's mean, armfit each segment's: with a periodic Hann window
-    # and nfft = nperseg they differ only below first_bin, which armfit never uses
+    # Octave keeps each segment's mean (MATLAB's convention), armfit removes it: with a
+    # periodic Hann window and nfft = nperseg that changes only bins below first_bin,
+    # which armfit never uses
     use = (sp.coherence > 0.5) & (np.arange(freq.size) >= sp.first_bin)
     rel_h = np.max(np.abs(h - sp.h)[use] / np.abs(sp.h)[use])
     rel_c = np.max(np.abs(coh - sp.coherence)[use] / sp.coherence[use])
@@ -254,17 +256,20 @@ def measured(cmd: list[str]) -> tuple[float, float, float]:
     return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0  # kB on Linux
 
 
-def timed_rounds(commands: dict[str, list[str]], repeat: int) -> dict[str, float]:
-    """Run the commands alternately, ``repeat`` rounds; print each round; best times."""
-    best = dict.fromkeys(commands, float("inf"))
+def timed_rounds(commands: dict[str, list[str]], repeat: int
+                 ) -> tuple[dict[str, float], dict[str, float]]:
+    """Run the commands alternately, ``repeat`` rounds; print each round. Returns the best
+    wall and the best CPU time of each command."""
+    wall = dict.fromkeys(commands, float("inf"))
+    cpu = dict(wall)
     for r in range(repeat):
         parts = []
         for name, cmd in commands.items():
-            t, cpu, rss = measured(cmd)
-            best[name] = min(best[name], t)
-            parts.append(f"{name} {t:5.2f} s (CPU {cpu:5.2f} s, {rss:.0f} MB)")
+            t, c, rss = measured(cmd)
+            wall[name], cpu[name] = min(wall[name], t), min(cpu[name], c)
+            parts.append(f"{name} {t:5.2f} s (CPU {c:5.2f} s, {rss:.0f} MB)")
         print(f"round {r + 1}: " + " | ".join(parts))
-    return best
+    return wall, cpu
 
 
 def main() -> None:
@@ -308,11 +313,13 @@ def main() -> None:
             commands[f"Octave {c}"] = octave_cmd(octave, script, folder)
         arm = "armfit estimate --jobs 1"
         commands[arm] = bench_estimate.armfit_cmd(args.data, tmp / "spectra.parquet")
-        best = timed_rounds(commands, args.repeat)
-    print("best: " + ", ".join(f"{name} {t:.2f} s" for name, t in best.items()))
+        wall, cpu = timed_rounds(commands, args.repeat)
+    print("best: " + ", ".join(f"{name} {wall[name]:.2f} s (CPU {cpu[name]:.2f} s)"
+                               for name in commands))
     for name in commands:
         if name != arm:
-            print(f"armfit / {name}: {best[arm] / best[name]:.2f} (target <= 1.0)")
+            print(f"armfit / {name}: {wall[arm] / wall[name]:.2f} (target <= 1.0); "
+                  f"CPU time {cpu[arm] / cpu[name]:.2f}")
     print(f"load average at end {load()}")
 
 
