@@ -161,7 +161,9 @@ def main() -> None:
     install_signal_handlers()
     try:
         from armfit.cli import streams
+        from armfit.workers import tune_allocator
         streams.install()
+        tune_allocator()
         from armfit.cli.main import cli  # numpy, pandas, pyarrow, click, ...
     except KeyboardInterrupt as exc:  # signal while importing: one line, no traceback
         _exit_now(SystemExit(stop_line(exc)))
