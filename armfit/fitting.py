@@ -339,10 +339,70 @@ def _candidates(prob: _Problem, x0: Mapping[str, float] | None, n_sobol: int) ->
         starts.insert(0, sp.to_z(theta))
     if n_sobol:
         m = int(np.ceil(np.log2(n_sobol)))
-        from scipy.stats import qmc  # only the global search needs it (slow to import)
-        u = qmc.Sobol(d=len(sp.names), scramble=False).random_base2(m)[:n_sobol]
+        u = sobol_points(len(sp.names), m)[:n_sobol]
         starts.extend(sp.zlo + u * (sp.zhi - sp.zlo))
     return sp.clip_z(np.array(starts))
+
+
+#: Primitive polynomials (with their leading and constant terms, as bits) and initial
+#: direction numbers of the first dimensions of the Sobol' sequence: Joe & Kuo's
+#: new-joe-kuo-6.21201 set, the one scipy.stats.qmc.Sobol uses (dimension 0 is the van
+#: der Corput sequence).
+_SOBOL_POLY = (1, 3, 7, 11, 13, 19, 25, 37, 41, 47, 55, 59, 61, 67, 91, 97, 103, 109, 115,
+               131, 137, 143, 145, 157, 167, 171, 185, 191, 193, 203, 211, 213, 229, 239,
+               241, 247, 253, 285, 299, 301)
+_SOBOL_VINIT = (
+    (1,), (1,), (1, 3), (1, 3, 1), (1, 1, 1), (1, 1, 3, 3), (1, 3, 5, 13), (1, 1, 5, 5, 17),
+    (1, 1, 5, 5, 5), (1, 1, 7, 11, 19), (1, 1, 5, 1, 1), (1, 1, 1, 3, 11), (1, 3, 5, 5, 31),
+    (1, 3, 3, 9, 7, 49), (1, 1, 1, 15, 21, 21), (1, 3, 1, 13, 27, 49), (1, 1, 1, 15, 7, 5),
+    (1, 3, 1, 15, 13, 25), (1, 1, 5, 5, 19, 61), (1, 3, 7, 11, 23, 15, 103),
+    (1, 3, 7, 13, 13, 15, 69), (1, 1, 3, 13, 7, 35, 63), (1, 3, 5, 9, 1, 25, 53),
+    (1, 3, 1, 13, 9, 35, 107), (1, 3, 1, 5, 27, 61, 31), (1, 1, 5, 11, 19, 41, 61),
+    (1, 3, 5, 3, 3, 13, 69), (1, 1, 7, 13, 1, 19, 1), (1, 3, 7, 5, 13, 19, 59),
+    (1, 1, 3, 9, 25, 29, 41), (1, 3, 5, 13, 23, 1, 55), (1, 3, 7, 3, 13, 59, 17),
+    (1, 3, 1, 3, 5, 53, 69), (1, 1, 5, 5, 23, 33, 13), (1, 1, 7, 7, 1, 61, 123),
+    (1, 1, 7, 9, 13, 61, 49), (1, 3, 3, 5, 3, 55, 33), (1, 3, 1, 15, 31, 13, 49, 245),
+    (1, 3, 5, 15, 31, 59, 63, 97), (1, 3, 1, 11, 11, 11, 77, 249))
+_SOBOL_BITS = 30
+
+
+@lru_cache(maxsize=8)
+def sobol_points(d: int, m: int) -> np.ndarray:
+    """The first 2**m points (2**m, d) of the unscrambled Sobol' sequence in [0, 1)^d,
+    the point 0 first: the values of ``scipy.stats.qmc.Sobol(d, scramble=False)
+    .random_base2(m)``, bit for bit (each is a whole number over 2**30). Made here, by
+    Bratley & Fox's Gray-code recursion, for the first 40 dimensions: importing
+    scipy.stats takes about half a second of every worker process that runs a global
+    search. More dimensions are scipy's. The result is read-only (it is cached)."""
+    if d > len(_SOBOL_POLY) or m > _SOBOL_BITS:
+        from scipy.stats import qmc  # slow to import; the table above covers armfit's models
+        out = qmc.Sobol(d=d, scramble=False).random_base2(m)
+        out.flags.writeable = False
+        return out
+    bits = _SOBOL_BITS
+    v = np.zeros((d, bits), np.int64)
+    v[0] = 1
+    for j in range(1, d):
+        poly, init = _SOBOL_POLY[j], _SOBOL_VINIT[j]
+        deg = poly.bit_length() - 1
+        v[j, :deg] = init
+        for i in range(deg, bits):
+            new = v[j, i - deg]
+            for k in range(deg):
+                if (poly >> (deg - 1 - k)) & 1:
+                    new ^= v[j, i - k - 1] << (k + 1)
+            v[j, i] = new
+    v <<= np.arange(bits - 1, -1, -1)        # column i scaled by 2**(bits - 1 - i)
+    n = 2 ** m
+    # the i-th point (i >= 1) is the previous one XOR the direction of the lowest zero
+    # bit of i - 1
+    i = np.arange(n - 1)
+    low_zero = np.log2(~i & (i + 1)).astype(int)
+    quasi = np.vstack([np.zeros((1, d), np.int64),
+                       np.bitwise_xor.accumulate(v[:, low_zero].T, axis=0)])
+    out = quasi * (1.0 / 2 ** bits)
+    out.flags.writeable = False
+    return out
 
 
 @lru_cache(maxsize=1)
@@ -1259,5 +1319,6 @@ def trial_fits_table(fits: Sequence[TrialFit], effects=()):
 
 __all__ = ["COSTS", "PAPER_BANDS", "STUDY_FITS", "FitResult", "StudyFit", "analytic_guess",
            "bootstrap_fit", "exact_response", "fit_response", "fit_study", "log_errors",
+           "sobol_points",
            "TRIAL_KEYS", "TrialFit", "fit_trial", "fit_trial_models",
            "trial_fits_table", "trial_groups"]

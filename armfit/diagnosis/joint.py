@@ -157,7 +157,11 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
     else:
         x0s = [prob.pack(*combos[0])]
     res = None
+    seen = set()
     for x0 in x0s:
+        if x0.tobytes() in seen:   # the same start ends where it ended before: no better
+            continue
+        seen.add(x0.tobytes())
         r = rescue_trials(prob, model, data, sel, refine(prob, x0, max_nfev), max_nfev)
         if res is None or r.cost < res.cost:
             res = r
@@ -206,8 +210,10 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
         zb[i] = prob.space.clip_z(prob.space.to_z(np.concatenate([row, shared])))[: prob.nb]
 
     for i in bad:
+        # only the parameters are used: no intervals, no second opinion on convergence
+        # (it would only change the fit's message and converged flag)
         kw = dict(se_db=data.se_db[i], se_deg=data.se_deg[i], band=band, strict=False,
-                  intervals=False)
+                  intervals=False, second_opinion=False)
         if typical is not None:
             start = dict(zip(names, np.concatenate([typical, shared]), strict=True))
             place(i, fit_response(model, data.f_hz, data.h[i], x0=start,
@@ -230,8 +236,14 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
                    tuple(data.starts[i] for i in idx))
     sprob = JointProblem(model, sub, sel)
     scored = []
+    tried: dict[bytes, blocklsq.BlockResult] = {}
     for b, st in combos:
-        r = sprob.solve(sprob.pack(b[idx], st), nfev)
+        # combinations that pack to the same start (e.g. a Levy row that is the given
+        # row on every trial) have the same short fit: made once
+        x = sprob.pack(b[idx], st)
+        r = tried.get(x.tobytes())
+        if r is None:
+            r = tried[x.tobytes()] = sprob.solve(x, nfev)
         scored.append((r.cost, b, st, r.x))
     scored.sort(key=lambda t: t[0])
     out = []
