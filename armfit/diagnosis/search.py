@@ -3,7 +3,8 @@ the noise, and the axes' shared effects compared."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+import itertools
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
@@ -361,8 +362,9 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
         return []
     share = SHARED_EFFECTS if share is None else tuple(share)
     with task_queue(jobs, executor) as tasks:
+        steps = itertools.count()
         for s in searches:
-            _AxisSteps(s, tasks).begin()
+            _AxisSteps(s, tasks, steps).begin()
         tasks.run()
         _borrow_step(searches, tasks.map, share)
     out = []
@@ -376,8 +378,9 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
 
 
 #: Priorities of the search's tasks (lower first): a candidate's joint fit on all trials
-#: (its axis's next step waits for it), then base fits, then the screening fits, those of
-#: effects with more parameters (the longer fits) first.
+#: (its axis's next step waits for it), then base fits, then the screening fits, step by
+#: step in the order the steps began (an axis's step ends when its last fit does), within
+#: a step those of effects with more parameters (the longer fits) first.
 _EXTEND, _BASE, _SCREEN = 0, 1, 2
 
 
@@ -404,8 +407,8 @@ class _AxisSteps:
     task each), each step as soon as the axis's previous one has ended: the axes do not
     wait for each other."""
 
-    def __init__(self, search: _Search, tasks: TaskQueue):
-        self.s, self.tasks = search, tasks
+    def __init__(self, search: _Search, tasks: TaskQueue, steps: Iterator[int]):
+        self.s, self.tasks, self.steps = search, tasks, steps
 
     def begin(self) -> None:
         self.tasks.add((_BASE,), _base_task, (self.s.data, self.s.band), self._based)
@@ -419,9 +422,10 @@ class _AxisSteps:
         if s.done:
             return
         effects = s.remaining()
+        step = next(self.steps)
         parts = _gather(len(effects), lambda sfits: self._screened(effects, sfits))
         for e, then in zip(effects, parts, strict=True):
-            self.tasks.add((_SCREEN, -len(e.params)), _screen_task,
+            self.tasks.add((_SCREEN, step, -len(e.params)), _screen_task,
                            (s.data, s.band, s.fits[-1], e), then)
 
     def _screened(self, effects: Sequence[Effect], sfits: Sequence) -> None:
