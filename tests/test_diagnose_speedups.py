@@ -153,6 +153,27 @@ def test_task_queue_on_a_pool_returns_every_result_and_raises_the_first_error():
     assert not tasks._ready and not tasks._running
 
 
+def test_task_queue_runs_tasks_here_while_the_pool_starts():
+    # while the thread starting the pool runs, ready tasks run in this thread; once it
+    # has ended, on the pool
+    go = threading.Event()
+    starting = threading.Thread(target=go.wait)
+    starting.start()
+    where = []
+
+    def started(_):
+        go.set()
+        starting.join()
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        tasks = TaskQueue(pool, capacity=1, starting=starting)
+        tasks.add(0, lambda _: where.append(threading.current_thread()), None, started)
+        tasks.add(1, lambda _: where.append(threading.current_thread()), None, lambda r: None)
+        tasks.run()
+    assert where[0] is threading.current_thread()
+    assert where[1] is not threading.current_thread()
+
+
 def test_task_queue_context_uses_a_given_executor_as_is():
     with ThreadPoolExecutor(max_workers=1) as given:
         with schedule.task_queue(jobs=4, executor=given) as tasks:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import heapq
 import itertools
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
 
@@ -30,13 +31,17 @@ class TaskQueue:
     no task is left, continuations adding tasks as they go. At most ``capacity`` tasks
     are handed to the pool at once (the rest wait here, so that a task added later with
     a higher priority goes first; None: every task as soon as it is ready, for an
-    executor that queues tasks itself). The first error of a task (or continuation) is
-    raised after the tasks not yet started are cancelled.
+    executor that queues tasks itself). While the thread ``starting`` runs (it starts
+    the pool's workers), the ready tasks run here instead, one at a time, so that this
+    process works while the workers start. The first error of a task (or continuation)
+    is raised after the tasks not yet started are cancelled.
     """
 
-    def __init__(self, pool: Executor | None = None, capacity: int | None = None):
+    def __init__(self, pool: Executor | None = None, capacity: int | None = None,
+                 starting: threading.Thread | None = None):
         self.pool = pool
         self.capacity = capacity
+        self.starting = starting
         self._ready: list = []
         self._running: dict[Future, tuple[int, Callable]] = {}
         self._order = itertools.count()
@@ -49,7 +54,8 @@ class TaskQueue:
         """Run every queued task and those their continuations add."""
         try:
             while self._ready or self._running:
-                if self.pool is None:
+                if self.pool is None or (self._ready and self.starting is not None
+                                         and self.starting.is_alive()):
                     _, _, fn, args, then = heapq.heappop(self._ready)
                     then(fn(args))
                     continue
@@ -79,13 +85,30 @@ class TaskQueue:
         return out
 
 
+def _start(pool: Executor) -> None:
+    """Start the workers of a pool of :func:`armfit.workers.process_pool` (they start at
+    its first task); a failure shows again at the pool's next task."""
+    with contextlib.suppress(BaseException):
+        pool.submit(int)
+
+
 @contextlib.contextmanager
 def task_queue(jobs: int, executor: Executor | None = None,
                preload: tuple[str, ...] = ("armfit.diagnosis",)) -> Iterator[TaskQueue]:
     """A :class:`TaskQueue` for the ``with`` block: on ``executor`` when one is given
     (used as is, not shut down; every ready task handed to it at once), else on ``jobs``
     worker processes when ``jobs`` > 1 (one pool for the block, ``jobs`` tasks at a
-    time, shut down on leaving), else here (:func:`armfit.workers.executor_for`)."""
+    time, shut down on leaving), else here (:func:`armfit.workers.executor_for`). A pool
+    of its own starts its workers in a thread at once (a new fork server imports
+    armfit's modules first: about half a second) while the first tasks run here."""
     with executor_for(executor, jobs, preload=preload) as pool:
-        capacity = None if pool is None or pool is executor else int(jobs)
-        yield TaskQueue(pool, capacity)
+        if pool is None or pool is executor:
+            yield TaskQueue(pool)
+            return
+        starting = threading.Thread(target=_start, args=(pool,), daemon=True,
+                                    name="armfit-diagnosis-start")
+        starting.start()
+        try:
+            yield TaskQueue(pool, int(jobs), starting)
+        finally:
+            starting.join()
