@@ -1014,10 +1014,7 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
         base = diagnosis.model
     ad = _adopt.adopt(diagnosis, policy)
     bands = ad.bands
-    grip = fit_grip(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs,
-                    executor=executor)
-    nominal = fit_nominal(sp, cost=cost, bands=bands, effects=ad.effects, jobs=jobs,
-                          executor=executor)
+    grip, nominal = _adopted_tables(sp, ad, cost, jobs, executor)
     per_trial = None
     if trials:
         keys = zip(grip.table["axis"], grip.table["grip_N"], strict=True)
@@ -1027,6 +1024,24 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
                                    jobs=jobs, starts=starts, executor=executor)
         per_trial = TrialFits(tuple(fits), effects, sp)
     return AdoptedModel(ad, grip, nominal, per_trial, base, diagnosis)
+
+
+def _adopted_tables(sp: Spectra, ad: _adopt.Adoption, cost: str, jobs: int,
+                    executor: Executor | None) -> tuple[ModelFit, ModelFit]:
+    """Tables I and II of the adopted model (:func:`adopt_model`), on one set of workers:
+    Table II's fits run alongside Table I's, so that neither table's tasks wait for the
+    other's last one (the same fits, in any order: the same results)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from armfit.workers import executor_for
+
+    kw = dict(cost=cost, bands=ad.bands, effects=ad.effects)
+    with executor_for(executor, jobs) as pool:
+        if pool is None:
+            return fit_grip(sp, **kw), fit_nominal(sp, **kw)
+        with ThreadPoolExecutor(max_workers=1) as side:
+            nominal = side.submit(fit_nominal, sp, executor=pool, **kw)
+            return fit_grip(sp, executor=pool, **kw), nominal.result()
 
 
 @dataclass(frozen=True, eq=False)

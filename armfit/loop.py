@@ -392,7 +392,8 @@ def _crossing_gains_batch(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *,
     R, N, _ = M0.shape
     A, E = _pencils(M0, b, c)
     ggev, = linalg.get_lapack_funcs(("ggev",), (A[0],))
-    rows, thetas = [], []
+    rows, thetas, unique, inverse = [], [], [], []
+    offset = 0
     for r in range(R):
         with np.errstate(all="ignore"):
             ar, ai, beta, _, _, _, info = ggev(A[r], E[r], compute_vl=0, compute_vr=0)
@@ -402,9 +403,16 @@ def _crossing_gains_batch(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *,
         th = np.concatenate([np.abs(np.angle(on)), [0.0, np.pi]])
         rows.append(np.full(th.size, r))
         thetas.append(th)
+        # a complex pair of eigenvalues gives the same θ twice: g is solved once for it
+        u, inv = np.unique(th, return_inverse=True)
+        inverse.append(inv + offset)
+        unique.append(u)
+        offset += u.size
     idx = np.concatenate(rows)
     theta = np.concatenate(thetas)
-    g = _g_of(M0[idx], b[idx], c[idx], np.exp(1j * theta))
+    u_idx = np.concatenate([np.full(u.size, r) for r, u in enumerate(unique)])
+    g = _g_of(M0[u_idx], b[u_idx], c[u_idx], np.exp(1j * np.concatenate(unique)))
+    g = g[np.concatenate(inverse)]
     with np.errstate(all="ignore"):
         K = 1.0 / g.real
     ok = np.isfinite(K) & (K > 0) & (np.abs(g.imag) <= 1e-6 * np.abs(g) + 1e-300)
@@ -461,35 +469,24 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
             keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
             cands.append(K[keep])
             thetas.append(th[keep])
-        # test one gain inside each interval between crossings (and beyond the last)
-        idx, Ks, pos = [], [], []
-        for r in range(R):
-            K = cands[r]
-            edges = np.concatenate([[0.0], K])
-            mids = np.concatenate([0.5 * (edges[:-1] + edges[1:]), [2.0 * K[-1]]]) \
-                if K.size else np.array([1.0])
-            idx += [r] * mids.size
-            Ks += list(mids)
-            pos += list(range(mids.size))
-        idx_a = np.array(idx)
-        rho, top = _spectral_radius(g, idx_a, np.array(Ks))
+        # test one gain inside each interval between crossings (and beyond the last), in
+        # order of K, up to the first unstable one
+        mids = [_interval_gains(K) for K in cands]
+        first, top_first = _first_unstable(g, mids)
         pending = []
         for r in range(R):
-            sel = np.flatnonzero(idx_a == r)
-            unstable = rho[sel] >= 1.0
-            K = cands[r]
-            if not unstable.any():
+            K, j, Ks = cands[r], int(first[r]), mids[r]
+            if j < 0:
                 out[g.rows[r]] = WallStability(math.inf, math.nan, False)
                 continue
-            j = int(np.argmax(unstable))
             if j == 0:
                 rho0, top0 = _spectral_radius(g, np.array([r]), np.array([0.0]))
-                z0 = top0[0] if rho0[0] >= 1.0 else top[sel[0]]
+                z0 = top0[0] if rho0[0] >= 1.0 else top_first[r]
                 out[g.rows[r]] = WallStability(0.0, abs(float(np.angle(z0))) / (2 * np.pi * T),
                                                True)
                 continue
             pending.append((r, float(K[j - 1]), float(thetas[r][j - 1]),
-                            float(Ks[sel[j - 1]]), float(Ks[sel[j]])))
+                            float(Ks[j - 1]), float(Ks[j])))
         # check stability just below and loss just above each K* (± K_REL_TOL/2), all
         # loops at once; where the check fails, bisect between the stable and the
         # unstable test gains
@@ -504,6 +501,40 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
                 else:
                     out[g.rows[r]] = _bisect(g, r, k_lo, k_hi, T)
     return out  # type: ignore[return-value]
+
+
+def _interval_gains(K: np.ndarray) -> np.ndarray:
+    """One test gain inside each interval between the sorted crossing gains ``K`` (the
+    midpoints, from 0), and beyond the last (twice it); [1] without crossings."""
+    if not K.size:
+        return np.array([1.0])
+    edges = np.concatenate([[0.0], K])
+    return np.concatenate([0.5 * (edges[:-1] + edges[1:]), [2.0 * K[-1]]])
+
+
+def _first_unstable(g: _Group, mids: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """For each loop r of ``g``: the index of the first gain of ``mids[r]`` (in order) at
+    which the loop is unstable (−1 if at none), and the outermost eigenvalue at its first
+    gain. The gains are tested in rounds, the i-th gain of every loop still stable
+    through its first i in one batch, so that a loop stops at its first unstable gain:
+    with a long delay a loop crosses the unit circle at dozens of gains, of which the
+    answer needs the first two or three. Each matrix's eigenvalues are those a test of
+    every gain at once would give."""
+    R = len(mids)
+    first = np.full(R, -1)
+    top_first = np.zeros(R, complex)
+    live = np.arange(R)
+    i = 0
+    while live.size:
+        rho, top = _spectral_radius(g, live, np.array([mids[r][i] for r in live]))
+        if i == 0:
+            top_first[live] = top
+        unstable = rho >= 1.0
+        first[live[unstable]] = i
+        i += 1
+        live = np.array([r for r, u in zip(live, unstable, strict=True)
+                         if not u and i < mids[r].size], int)
+    return first, top_first
 
 
 def loop_delay_samples(plant: RationalPlant, settings: WallSettings) -> int:

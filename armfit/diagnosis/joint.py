@@ -23,7 +23,8 @@ from armfit.diagnosis.tuning import (
 from armfit.fitting import ParamSpace, fit_response
 from armfit.models.arm import ClosedLoopModel
 
-__all__ = ["JointFit", "JointProblem", "joint_fit", "refine", "rescue_trials", "screen_starts"]
+__all__ = ["JointFit", "JointProblem", "joint_fit", "refine", "rescue_trials", "screen_starts",
+           "trial_fit"]
 
 
 @dataclass(frozen=True)
@@ -157,7 +158,11 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
     else:
         x0s = [prob.pack(*combos[0])]
     res = None
+    seen = set()
     for x0 in x0s:
+        if x0.tobytes() in seen:   # the same start ends where it ended before: no better
+            continue
+        seen.add(x0.tobytes())
         r = rescue_trials(prob, model, data, sel, refine(prob, x0, max_nfev), max_nfev)
         if res is None or r.cost < res.cost:
             res = r
@@ -206,18 +211,46 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
         zb[i] = prob.space.clip_z(prob.space.to_z(np.concatenate([row, shared])))[: prob.nb]
 
     for i in bad:
-        kw = dict(se_db=data.se_db[i], se_deg=data.se_deg[i], band=band, strict=False,
-                  intervals=False)
         if typical is not None:
             start = dict(zip(names, np.concatenate([typical, shared]), strict=True))
-            place(i, fit_response(model, data.f_hz, data.h[i], x0=start,
-                                  global_search=False, **kw))
+            place(i, trial_fit(model, data, i, band, start))
             r = prob.fun(x0).reshape(prob.T, -1)[i]
             if float(r @ r) <= limit:
                 continue
-        place(i, fit_response(model, data.f_hz, data.h[i], **kw))
+        place(i, trial_fit(model, data, i, band))
     res2 = refine(prob, x0, max_nfev)
     return res2 if res2.cost < res.cost else res
+
+
+#: The single-trial fits of :func:`rescue_trials` made in this process, by their inputs
+#: (the last :data:`_TRIAL_FITS_KEPT`): the same trial is often rescued with the same
+#: model again, by another start of the same joint fit, or by the fit on all trials after
+#: the screening's on a subset.
+_TRIAL_FITS: dict[tuple, object] = {}
+_TRIAL_FITS_KEPT = 64
+
+
+def trial_fit(model: ClosedLoopModel, data: AxisData, i: int, band: tuple[float, float],
+              start: Mapping[str, float] | None = None):
+    """The single-trial fit of :func:`rescue_trials`: ``model`` fitted to trial ``i`` of
+    ``data`` over ``band`` (:func:`armfit.fitting.fit_response`, weighted by the trial's
+    standard errors), locally from ``start``, or by the global search without one. Only
+    its parameters are used: no intervals, no second opinion on its convergence (which
+    would change its message and flag only). A fit with the same inputs made before in
+    this process is returned again (the fit is deterministic: the same result)."""
+    key = (model, band, None if start is None else tuple(start.items()),
+           data.f_hz.tobytes(), data.h[i].tobytes(), data.se_db[i].tobytes(),
+           data.se_deg[i].tobytes())
+    fit = _TRIAL_FITS.get(key)
+    if fit is None:
+        fit = fit_response(model, data.f_hz, data.h[i], se_db=data.se_db[i],
+                           se_deg=data.se_deg[i], band=band, x0=start,
+                           global_search=start is None, strict=False, intervals=False,
+                           second_opinion=False)
+        if len(_TRIAL_FITS) >= _TRIAL_FITS_KEPT:
+            del _TRIAL_FITS[next(iter(_TRIAL_FITS))]
+        _TRIAL_FITS[key] = fit
+    return fit
 
 
 def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: int = REFINE_BEST,
@@ -230,8 +263,14 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
                    tuple(data.starts[i] for i in idx))
     sprob = JointProblem(model, sub, sel)
     scored = []
+    tried: dict[bytes, blocklsq.BlockResult] = {}
     for b, st in combos:
-        r = sprob.solve(sprob.pack(b[idx], st), nfev)
+        # combinations that pack to the same start (e.g. a Levy row that is the given
+        # row on every trial) have the same short fit: made once
+        x = sprob.pack(b[idx], st)
+        r = tried.get(x.tobytes())
+        if r is None:
+            r = tried[x.tobytes()] = sprob.solve(x, nfev)
         scored.append((r.cost, b, st, r.x))
     scored.sort(key=lambda t: t[0])
     out = []

@@ -3,7 +3,7 @@ the noise, and the axes' shared effects compared."""
 
 from __future__ import annotations
 
-import contextlib
+import itertools
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
@@ -33,6 +33,7 @@ from armfit.diagnosis.results import (
     Step,
     short_params,
 )
+from armfit.diagnosis.schedule import TaskQueue, task_queue
 from armfit.diagnosis.screen import keep_screened, rank_screened, screen_candidate
 from armfit.diagnosis.tuning import (
     MAX_STEPS,
@@ -49,9 +50,8 @@ from armfit.errors import EffectDefinitionError
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
 from armfit.spectra import Spectra
-from armfit.workers import executor_for
 
-__all__ = ["CandidateFit", "cross_axis_agreement", "diagnose_axes", "task_map"]
+__all__ = ["CandidateFit", "cross_axis_agreement", "diagnose_axes"]
 
 
 @dataclass(frozen=True)
@@ -343,10 +343,11 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     step with the message as reason (:attr:`AxisDiagnosis.failed_candidates`); the
     search goes on with the other candidates.
 
-    ``band`` defaults to the whole grid of the spectra; ``jobs`` > 1 runs the fits of a
-    step (one per axis and candidate) in parallel processes, or ``executor`` (any
+    ``band`` defaults to the whole grid of the spectra; ``jobs`` > 1 runs the fits (one
+    task per axis and candidate) in parallel processes, or ``executor`` (any
     :class:`concurrent.futures.Executor`, e.g. a dask client's) runs them — the results
-    do not depend on ``jobs`` or the executor.
+    do not depend on ``jobs`` or the executor. Each axis goes on to its next step as soon
+    as its own fits are done (:mod:`armfit.diagnosis.schedule`).
     """
     effects = list(EFFECTS.values()) if effects is None else list(effects)
     spectra = Spectra.of(spectra)
@@ -360,13 +361,12 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     if not searches:
         return []
     share = SHARED_EFFECTS if share is None else tuple(share)
-    with task_map(jobs, executor) as run:
-        bases = list(run(_base_task, [(s.data, s.band) for s in searches]))
-        for s, base in zip(searches, bases, strict=True):
-            s.start(base)
-        while any(not s.done for s in searches):
-            _search_step([s for s in searches if not s.done], run)
-        _borrow_step(searches, run, share)
+    with task_queue(jobs, executor) as tasks:
+        steps = itertools.count()
+        for s in searches:
+            _AxisSteps(s, tasks, steps).begin()
+        tasks.run()
+        _borrow_step(searches, tasks.map, share)
     out = []
     for s in searches:
         d = s.result()
@@ -377,40 +377,81 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     return out
 
 
-@contextlib.contextmanager
-def task_map(jobs: int, executor: Executor | None = None) -> Iterator[Callable]:
-    """A ``map`` for the diagnosis's tasks: ``executor.map`` when an executor is given
-    (used as is, not shut down), else over ``jobs`` worker processes when ``jobs`` > 1
-    (one pool for the whole diagnosis, shut down on leaving), else the builtin ``map``
-    here (:func:`armfit.workers.executor_for`). The diagnosis's only use of workers."""
-    with executor_for(executor, jobs, preload=("armfit.diagnosis",)) as pool:
-        yield map if pool is None else pool.map
+#: Priorities of the search's tasks (lower first): a candidate's joint fit on all trials
+#: (its axis's next step waits for it), then base fits, then the screening fits, step by
+#: step in the order the steps began (an axis's step ends when its last fit does), within
+#: a step those of effects with more parameters (the longer fits) first.
+_EXTEND, _BASE, _SCREEN = 0, 1, 2
 
 
-def _search_step(live: Sequence[_Search], run: Callable) -> None:
-    """One step of every live search: cheap screening of every remaining effect (one
-    task per axis and effect), then joint fits of the best (one task each)."""
-    stasks = [(s, e) for s in live for e in s.remaining()]
-    sfits = list(run(_screen_task, [(s.data, s.band, s.fits[-1], e) for s, e in stasks]))
-    for (s, _), sc in zip(stasks, sfits, strict=True):
-        if isinstance(sc, FailedCandidate):
-            s.fail(sc)
-    screened = {id(s): rank_screened([(e, sc) for (t, e), sc
-                                      in zip(stasks, sfits, strict=True)
-                                      if t is s and not isinstance(sc, FailedCandidate)])
-                for s in live}
-    tasks = [(s, e, sc) for s in live for e, sc in keep_screened(screened[id(s)])]
-    fits = list(run(_extend_task, [(s.data, s.band, s.fits[-1], e, sc)
-                                   for s, e, sc in tasks]))
-    for (s, _, _), fit in zip(tasks, fits, strict=True):
-        if isinstance(fit, FailedCandidate):
-            s.fail(fit)
-    for s in live:
-        full = {e.name: fit for (t, e, _), fit in zip(tasks, fits, strict=True)
-                if t is s and not isinstance(fit, FailedCandidate)}
-        s.take([(e, full[e.name]) for e, _ in screened[id(s)] if e.name in full],
-               screened=[(e, sc) for e, sc in screened[id(s)]
+def _gather(n: int, then: Callable[[list], None]) -> list[Callable]:
+    """``n`` continuations, the i-th storing result i; once all have been called,
+    ``then(results)`` (at once when ``n`` is 0)."""
+    out: list = [None] * n
+    left = [n]
+
+    def part(i: int, result) -> None:
+        out[i] = result
+        left[0] -= 1
+        if not left[0]:
+            then(out)
+
+    if not n:
+        then(out)
+    return [lambda r, i=i: part(i, r) for i in range(n)]
+
+
+class _AxisSteps:
+    """One axis's search on the task queue: its base fit, then step after step cheap
+    screening of every remaining effect (one task each) and joint fits of the best (one
+    task each), each step as soon as the axis's previous one has ended: the axes do not
+    wait for each other."""
+
+    def __init__(self, search: _Search, tasks: TaskQueue, steps: Iterator[int]):
+        self.s, self.tasks, self.steps = search, tasks, steps
+
+    def begin(self) -> None:
+        self.tasks.add((_BASE,), _base_task, (self.s.data, self.s.band), self._based)
+
+    def _based(self, base: JointFit) -> None:
+        self.s.start(base)
+        self._step()
+
+    def _step(self) -> None:
+        s = self.s
+        if s.done:
+            return
+        effects = s.remaining()
+        step = next(self.steps)
+        parts = _gather(len(effects), lambda sfits: self._screened(effects, sfits))
+        for e, then in zip(effects, parts, strict=True):
+            self.tasks.add((_SCREEN, step, -len(e.params)), _screen_task,
+                           (s.data, s.band, s.fits[-1], e), then)
+
+    def _screened(self, effects: Sequence[Effect], sfits: Sequence) -> None:
+        s = self.s
+        for sc in sfits:
+            if isinstance(sc, FailedCandidate):
+                s.fail(sc)
+        screened = rank_screened([(e, sc) for e, sc in zip(effects, sfits, strict=True)
+                                  if not isinstance(sc, FailedCandidate)])
+        kept = keep_screened(screened)
+        parts = _gather(len(kept), lambda fits: self._take(screened, kept, fits))
+        for (e, sc), then in zip(kept, parts, strict=True):
+            self.tasks.add((_EXTEND,), _extend_task, (s.data, s.band, s.fits[-1], e, sc),
+                           then)
+
+    def _take(self, screened, kept, fits) -> None:
+        s = self.s
+        for fit in fits:
+            if isinstance(fit, FailedCandidate):
+                s.fail(fit)
+        full = {e.name: fit for (e, _), fit in zip(kept, fits, strict=True)
+                if not isinstance(fit, FailedCandidate)}
+        s.take([(e, full[e.name]) for e, _ in screened if e.name in full],
+               screened=[(e, sc) for e, sc in screened
                          if e.name not in full and e.name not in s.failed])
+        self._step()
 
 
 def _borrow_step(searches: Sequence[_Search], run: Callable, share: Sequence[str]) -> None:

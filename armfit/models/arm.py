@@ -15,6 +15,7 @@ With C1 = k1 + b1 s and C2 = k2 + b2 s::
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -148,7 +149,11 @@ def z_arm(f_hz, Ma, k1, k2, b1, b2) -> np.ndarray:
 
     Z_ARM = C1 (Ma s² + C2) / (Ma s² + C1 + C2), C1 = k1 + b1 s, C2 = k2 + b2 s.
     """
-    s = laplace(f_hz)
+    return _z_arm_at(laplace(f_hz), Ma, k1, k2, b1, b2)
+
+
+def _z_arm_at(s, Ma, k1, k2, b1, b2) -> np.ndarray:
+    """:func:`z_arm` at s = j·2π·f (rad/s), for a caller that has s already."""
     c1 = k1 + b1 * s
     c2 = k2 + b2 * s
     ms2 = Ma * s * s
@@ -269,7 +274,10 @@ class ClosedLoopModel:
         """{``effect.param``: value} of the held parameters."""
         return dict(self.held)
 
-    @property
+    # The parameter lists below are made once per model (every evaluation of the
+    # response asks for them) and kept on the instance: a model is immutable.
+
+    @functools.cached_property
     def all_params(self) -> tuple[Param, ...]:
         """Every parameter, held ones included: base first, effect parameters qualified as
         ``effect.param``."""
@@ -280,18 +288,18 @@ class ClosedLoopModel:
                                  p.description, p.log))
         return tuple(out)
 
-    @property
+    @functools.cached_property
     def params(self) -> tuple[Param, ...]:
         """The parameters a fit searches: :attr:`all_params` without the held ones."""
         held = self.held_values
         return tuple(p for p in self.all_params if p.name not in held)
 
-    @property
+    @functools.cached_property
     def param_names(self) -> tuple[str, ...]:
         """Names of :attr:`params` (the free parameters)."""
         return tuple(p.name for p in self.params)
 
-    @property
+    @functools.cached_property
     def all_param_names(self) -> tuple[str, ...]:
         """Names of :attr:`all_params` (free and held), the columns of a params table."""
         return tuple(p.name for p in self.all_params)
@@ -347,7 +355,7 @@ class ClosedLoopModel:
         """Measured dynamics X/F (m/N): eq. 4 with every effect applied."""
         base, eff = self._split(theta)
         s = laplace(f_hz)
-        z = z_arm(f_hz, **base) + h_device(f_hz, self.mp)
+        z = _z_arm_at(s, **base) + self.mp * s * s        # Z_ARM + H_dev (eq. 2)
         factor = np.ones_like(s)
         for e, v in zip(self.effects, eff, strict=True):
             if e.stage in ("arm", "device"):

@@ -1,0 +1,350 @@
+"""The shortcuts of the diagnosis, the adopted model and the stability test give the same
+results as the full computations they stand for.
+
+Each test computes the same thing twice, once the short way armfit now takes and once
+the long way (written out here as armfit did it before: every step of the search over all
+axes at once, every start refined, every crossing solved), and asserts equality, bit for
+bit where armfit promises the same bytes.
+
+The study: armfit's own simulator, 2 subjects on X and Z, grips 1 and 2 N, 26 s trials,
+with a 12 ms delay and a 20 Hz lag (the search takes two or three steps per axis, Z ends
+at its step limit and tries the axes' common values).
+"""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import linalg
+
+from armfit import api
+from armfit.adopt import adopt
+from armfit.diagnosis import joint, schedule, search
+from armfit.diagnosis.fit import start_array
+from armfit.diagnosis.responses import axis_data
+from armfit.diagnosis.schedule import TaskQueue
+from armfit.diagnosis.screen import keep_screened, rank_screened
+from armfit.diagnosis.tuning import SHARED_EFFECTS
+from armfit.fitting import fit_response
+from armfit.loop import (
+    WallSettings,
+    _crossing_gains_batch,
+    _first_unstable,
+    _g_of,
+    _interval_gains,
+    _loops,
+    _pencils,
+    _spectral_radius,
+    plant_from_model,
+)
+from armfit.models.arm import ClosedLoopModel
+from armfit.models.effects import EFFECTS
+from armfit.simulation import EffectSetting
+
+
+@pytest.fixture(scope="module")
+def study():
+    effects = (EffectSetting.from_parsed("delay", {"delay_s": 0.012}),
+               EffectSetting.from_parsed("lowpass", {"cutoff_hz": 20.0}))
+    sim = api.simulate(subjects=2, axes=("x", "z"), grips_N=(1.0, 2.0),
+                       duration_s=(26.0, 26.0), seed=7, effects=effects)
+    spectra = api.estimate(list(sim.trials()))
+    return spectra, api.fit_grip(spectra).table
+
+
+# ---------------------------------------------------------------------------
+# The search: each axis's next step as soon as its own fits are done
+# ---------------------------------------------------------------------------
+
+def _step_by_step(spectra, params) -> list:
+    """The stepwise search as it ran before the task queue: every step of every axis at
+    once, each waiting for the slowest axis (the reference of the pipelined search)."""
+    effects = list(EFFECTS.values())
+    searches = []
+    for axis in ("x", "y", "z"):
+        data = axis_data(spectra, params, axis)
+        if data is not None:
+            band = (float(data.f_hz[0]), float(data.f_hz[-1]))
+            searches.append(search._Search(data, band, effects, 3, 0.5, 3.0))
+    for s in searches:
+        s.start(search._base_task((s.data, s.band)))
+    while any(not s.done for s in searches):
+        live = [s for s in searches if not s.done]
+        stasks = [(s, e) for s in live for e in s.remaining()]
+        sfits = [search._screen_task((s.data, s.band, s.fits[-1], e)) for s, e in stasks]
+        for (s, _), sc in zip(stasks, sfits, strict=True):
+            if isinstance(sc, search.FailedCandidate):
+                s.fail(sc)
+        screened = {id(s): rank_screened([(e, sc) for (t, e), sc in zip(stasks, sfits,
+                                                                         strict=True)
+                                          if t is s
+                                          and not isinstance(sc, search.FailedCandidate)])
+                    for s in live}
+        tasks = [(s, e, sc) for s in live for e, sc in keep_screened(screened[id(s)])]
+        fits = [search._extend_task((s.data, s.band, s.fits[-1], e, sc))
+                for s, e, sc in tasks]
+        for (s, _, _), fit in zip(tasks, fits, strict=True):
+            if isinstance(fit, search.FailedCandidate):
+                s.fail(fit)
+        for s in live:
+            full = {e.name: fit for (t, e, _), fit in zip(tasks, fits, strict=True)
+                    if t is s and not isinstance(fit, search.FailedCandidate)}
+            s.take([(e, full[e.name]) for e, _ in screened[id(s)] if e.name in full],
+                   screened=[(e, sc) for e, sc in screened[id(s)]
+                             if e.name not in full and e.name not in s.failed])
+    search._borrow_step(searches, lambda fn, items: [fn(a) for a in items], SHARED_EFFECTS)
+    out = [replace(s.result(), coupling=search.cross_coupling(spectra, s.data, s.band))
+           for s in searches]
+    agreement = search.cross_axis_agreement(out, SHARED_EFFECTS)
+    return [replace(d, shared=agreement) for d in out] if agreement else out
+
+
+def test_pipelined_search_is_the_step_by_step_search(study):
+    spectra, params = study
+    here = search.diagnose_axes(spectra, params)
+    assert repr(here) == repr(_step_by_step(spectra, params))
+    # the study exercises several steps, the step limit and the axes' common values
+    assert [len(d.steps) for d in here] == [3, 4]
+    assert [d.stop for d in here] == ["adequate", "max-steps"]
+
+
+def test_pipelined_search_in_worker_processes_is_the_same(study):
+    spectra, params = study
+    assert repr(search.diagnose_axes(spectra, params, jobs=2)) == \
+        repr(search.diagnose_axes(spectra, params))
+
+
+def test_task_queue_runs_by_priority_and_continuations_add_tasks():
+    # here (no pool) the ready task of lowest priority runs first, ties in the order
+    # added; a continuation's new tasks join the queue
+    ran = []
+    tasks = TaskQueue()
+
+    def then(result):
+        ran.append(result)
+        if result == "b":
+            tasks.add(0, str.upper, "d", ran.append)
+
+    for pri, name in [(2, "a"), (1, "b"), (2, "c")]:
+        tasks.add(pri, str, name, then)
+    tasks.run()
+    assert ran == ["b", "D", "a", "c"]
+
+
+def test_task_queue_on_a_pool_returns_every_result_and_raises_the_first_error():
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        tasks = TaskQueue(pool, capacity=2)
+        assert tasks.map(lambda x: x * x, range(7)) == [0, 1, 4, 9, 16, 25, 36]
+        started = threading.Event()
+
+        def fail(_):
+            started.set()
+            raise ValueError("broken")
+
+        tasks.add(0, fail, None, lambda r: None)
+        for i in range(5):
+            tasks.add(1, lambda x: started.wait() and x, i, lambda r: None)
+        with pytest.raises(ValueError, match="broken"):
+            tasks.run()
+    assert not tasks._ready and not tasks._running
+
+
+def test_task_queue_runs_tasks_here_while_the_pool_starts():
+    # while the thread starting the pool runs, ready tasks run in this thread; once it
+    # has ended, on the pool
+    go = threading.Event()
+    starting = threading.Thread(target=go.wait)
+    starting.start()
+    where = []
+
+    def started(_):
+        go.set()
+        starting.join()
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        tasks = TaskQueue(pool, capacity=1, starting=starting)
+        tasks.add(0, lambda _: where.append(threading.current_thread()), None, started)
+        tasks.add(1, lambda _: where.append(threading.current_thread()), None, lambda r: None)
+        tasks.run()
+    assert where[0] is threading.current_thread()
+    assert where[1] is not threading.current_thread()
+
+
+def test_task_queue_context_uses_a_given_executor_as_is():
+    with ThreadPoolExecutor(max_workers=1) as given:
+        with schedule.task_queue(jobs=4, executor=given) as tasks:
+            assert tasks.pool is given and tasks.capacity is None
+        assert given.submit(int, "3").result() == 3    # not shut down
+    with schedule.task_queue(jobs=1) as tasks:
+        assert tasks.pool is None
+
+
+# ---------------------------------------------------------------------------
+# Joint fits: repeated starts, single-trial fits
+# ---------------------------------------------------------------------------
+
+def _z_data(study):
+    spectra, params = study
+    data = axis_data(spectra, params, "z")
+    return data, (float(data.f_hz[0]), float(data.f_hz[-1]))
+
+
+def test_screen_starts_with_repeated_combinations_is_each_tried(study):
+    data, band = _z_data(study)
+    model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    prob = joint.JointProblem(model, data, sel)
+    start = start_array(data)
+    combos = [(start, {"delay.delay_s": 0.0}), (start.copy(), {"delay.delay_s": 0.0}),
+              (start, {"delay.delay_s": 0.015}), (start * 1.5, {"delay.delay_s": 0.0})]
+    got = joint.screen_starts(model, data, sel, combos, prob, keep=3, nfev=12)
+    # the long way: every combination's short fit made on its own
+    T = data.h.shape[0]
+    idx = np.unique(np.linspace(0, T - 1, min(T, 9)).round().astype(int))
+    sub = joint.AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx],
+                         data.se_deg[idx], tuple(data.starts[i] for i in idx))
+    sprob = joint.JointProblem(model, sub, sel)
+    scored = sorted([(sprob.solve(sprob.pack(b[idx], st), 12), b, st) for b, st in combos],
+                    key=lambda t: t[0].cost)
+    want = []
+    for r, b, st in scored[:3]:
+        x0 = prob.pack(b, st)
+        x0[-1:] = r.x[-1:]
+        want.append(x0)
+    assert len(got) == 3
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
+def test_joint_fit_refines_a_repeated_start_once_with_the_same_result(study, monkeypatch):
+    data, band = _z_data(study)
+    model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
+    start = start_array(data)
+    # two identical combinations: both are among the best two, the same start twice
+    starts = [{"delay.delay_s": 0.012}, {"delay.delay_s": 0.012}]
+    rescued = []
+    real = joint.rescue_trials
+    monkeypatch.setattr(joint, "rescue_trials",
+                        lambda *a: rescued.append(a[4]) or real(*a))
+    got = joint.joint_fit(model, data, band, start, starts, max_nfev=60)
+    assert len(rescued) == 1
+    # the long way: every start of the screening refined and rescued, the first of the
+    # lowest cost kept
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    prob = joint.JointProblem(model, data, sel)
+    x0s = joint.screen_starts(model, data, sel, [(start, st) for st in starts], prob)
+    assert len(x0s) == 2 and np.array_equal(x0s[0], x0s[1])
+    results = [real(prob, model, data, sel, joint.refine(prob, x0, 60), 60) for x0 in x0s]
+    best = min(results, key=lambda r: r.cost)
+    theta = prob.space.to_theta(prob.unpack(best.x))
+    np.testing.assert_array_equal(got.base, theta[:, :5])
+    assert got.shared == {"delay.delay_s": float(theta[0, 5])}
+
+
+def test_trial_fit_is_the_single_trial_fit_and_made_once(study):
+    data, band = _z_data(study)
+    model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
+    joint._TRIAL_FITS.clear()
+    start = {"Ma": 1.0, "k1": 2000.0, "k2": 300.0, "b1": 30.0, "b2": 20.0,
+             "delay.delay_s": 0.01}
+    for x0 in (start, None):
+        first = joint.trial_fit(model, data, 1, band, x0)
+        assert joint.trial_fit(model, data, 1, band, x0) is first       # made once
+        direct = fit_response(model, data.f_hz, data.h[1], se_db=data.se_db[1],
+                              se_deg=data.se_deg[1], band=band, x0=x0,
+                              global_search=x0 is None, strict=False, intervals=False)
+        assert first.params == direct.params
+    # another trial, another start or another model is another fit
+    assert joint.trial_fit(model, data, 2, band) is not joint.trial_fit(model, data, 1, band)
+    base = ClosedLoopModel.for_axis("z")
+    assert joint.trial_fit(base, data, 1, band).params.keys() != first.params.keys()
+
+
+# ---------------------------------------------------------------------------
+# K_max: the first unstable gain, each crossing angle once
+# ---------------------------------------------------------------------------
+
+def _plants():
+    """Arms of X and Z with delays of 0 to 14 ms and a lag: loops of a few to 40
+    states at the settings below, with many crossings."""
+    out = []
+    arms = {"x": (0.5, 120.0, 400.0, 8.0, 6.0), "z": (2.0, 2500.0, 150.0, 40.0, 30.0)}
+    for axis, arm in arms.items():
+        base = dict(zip(("Ma", "k1", "k2", "b1", "b2"), arm, strict=True))
+        out.append(plant_from_model(ClosedLoopModel.for_axis(axis), base))
+        for tau in (0.002, 0.009, 0.014):
+            model = ClosedLoopModel.for_axis(axis, [EFFECTS["delay"], EFFECTS["lowpass"]])
+            out.append(plant_from_model(model, {**base, "delay.delay_s": tau,
+                                                "lowpass.cutoff_hz": 40.0}))
+    return out
+
+
+SETTINGS = [WallSettings(), WallSettings(1 / 2828.4, 0.0, 2), WallSettings(5e-4, 2.0, 0)]
+
+
+@pytest.mark.parametrize("settings", SETTINGS)
+def test_crossing_gains_solve_each_angle_once_with_the_same_gains(settings):
+    repeated = 0
+    for g in _loops(_plants(), settings):
+        got = _crossing_gains_batch(g.M0, g.b, g.c)
+        # the long way: g(e^jθ) solved for every candidate angle, repeated ones too
+        A, E = _pencils(g.M0, g.b, g.c)
+        ggev, = linalg.get_lapack_funcs(("ggev",), (A[0],))
+        for r in range(g.M0.shape[0]):
+            with np.errstate(all="ignore"):
+                ar, ai, beta, *_ = ggev(A[r], E[r], compute_vl=0, compute_vr=0)
+                ev = (ar + 1j * ai) / beta
+            ev = ev[np.isfinite(ev)]
+            on = ev[np.abs(np.abs(ev) - 1.0) < 1e-6]
+            th = np.concatenate([np.abs(np.angle(on)), [0.0, np.pi]])
+            gz = _g_of(np.repeat(g.M0[r:r + 1], th.size, 0),
+                       np.repeat(g.b[r:r + 1], th.size, 0),
+                       np.repeat(g.c[r:r + 1], th.size, 0), np.exp(1j * th))
+            with np.errstate(all="ignore"):
+                K = 1.0 / gz.real
+            ok = np.isfinite(K) & (K > 0) & (np.abs(gz.imag) <= 1e-6 * np.abs(gz) + 1e-300)
+            repeated += th.size - np.unique(th).size
+            np.testing.assert_array_equal(got[r][0], K[ok])
+            np.testing.assert_array_equal(got[r][1], th[ok])
+    assert repeated > 0       # complex pairs of eigenvalues: angles solved once, not twice
+
+
+@pytest.mark.parametrize("settings", SETTINGS)
+def test_first_unstable_gain_is_that_of_testing_every_gain(settings):
+    tested = 0
+    for g in _loops(_plants(), settings):
+        mids = []
+        for K, _ in _crossing_gains_batch(g.M0, g.b, g.c):
+            K = np.sort(K)
+            mids.append(_interval_gains(K[np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]])]
+                                        if K.size else K))
+        first, top = _first_unstable(g, mids)
+        # the long way: every gain of every loop tested in one batch
+        idx = np.concatenate([np.full(m.size, r) for r, m in enumerate(mids)])
+        rho, tops = _spectral_radius(g, idx, np.concatenate(mids))
+        for r in range(len(mids)):
+            sel = np.flatnonzero(idx == r)
+            unstable = rho[sel] >= 1.0
+            assert first[r] == (int(np.argmax(unstable)) if unstable.any() else -1)
+            assert top[r] == tops[sel[0]]
+            tested += mids[r].size
+    assert tested > 3 * len(_plants())      # loops with many crossings among them
+
+
+# ---------------------------------------------------------------------------
+# The adopted model's tables side by side
+# ---------------------------------------------------------------------------
+
+def test_adopted_tables_side_by_side_are_those_fitted_in_turn(study):
+    spectra, params = study
+    diagnosis = api.diagnose(spectra, api.fit_grip(spectra))
+    ad = adopt(diagnosis)
+    assert ad.anything
+    grip, nominal = api._adopted_tables(spectra, ad, "complex", 2, None)
+    kw = dict(cost="complex", bands=ad.bands, effects=ad.effects)
+    assert grip.table.equals(api.fit_grip(spectra, **kw).table)
+    assert nominal.table.equals(api.fit_nominal(spectra, **kw).table)
