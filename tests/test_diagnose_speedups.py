@@ -183,6 +183,26 @@ def test_task_queue_context_uses_a_given_executor_as_is():
         assert tasks.pool is None
 
 
+def test_task_queue_starts_its_pool_early_in_the_main_thread_only():
+    # in the main thread its own pool starts in a thread while tasks run here; in
+    # another thread (armfit run's diagnosis, which cancel_pools may stop) it starts at
+    # its first task, in the pool
+    with schedule.task_queue(jobs=2) as tasks:
+        assert tasks.starting is not None
+        assert tasks.map(abs, [-1, -2, -3]) == [1, 2, 3]
+    seen = []
+
+    def elsewhere():
+        with schedule.task_queue(jobs=2) as tasks:
+            seen.append(tasks.starting)
+            seen.append(tasks.map(abs, [-4]))
+
+    t = threading.Thread(target=elsewhere)
+    t.start()
+    t.join()
+    assert seen == [None, [4]]
+
+
 # ---------------------------------------------------------------------------
 # Joint fits: repeated starts, single-trial fits
 # ---------------------------------------------------------------------------

@@ -98,12 +98,20 @@ def task_queue(jobs: int, executor: Executor | None = None,
     """A :class:`TaskQueue` for the ``with`` block: on ``executor`` when one is given
     (used as is, not shut down; every ready task handed to it at once), else on ``jobs``
     worker processes when ``jobs`` > 1 (one pool for the block, ``jobs`` tasks at a
-    time, shut down on leaving), else here (:func:`armfit.workers.executor_for`). A pool
-    of its own starts its workers in a thread at once (a new fork server imports
-    armfit's modules first: about half a second) while the first tasks run here."""
+    time, shut down on leaving), else here (:func:`armfit.workers.executor_for`).
+
+    Called in the main thread (the command line's ``diagnose``), a pool of its own starts
+    its workers in a thread at once (a new fork server imports armfit's modules first:
+    about half a second) while the first tasks run here. Not in another thread: there
+    the diagnosis may be stopped by shutting its pool down
+    (:func:`armfit.workers.cancel_pools`, as ``armfit run`` does after a failure), which
+    it notices at its next task in the pool, not while it runs one here."""
     with executor_for(executor, jobs, preload=preload) as pool:
         if pool is None or pool is executor:
             yield TaskQueue(pool)
+            return
+        if threading.current_thread() is not threading.main_thread():
+            yield TaskQueue(pool, int(jobs))
             return
         starting = threading.Thread(target=_start, args=(pool,), daemon=True,
                                     name="armfit-diagnosis-start")
