@@ -329,6 +329,7 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
             delta = new_delta
         if actual > 0:
             x, r, cost = x_new, r_new, cost_new
+            sub = jb = js = None   # the old Jacobian goes before the new one is made
             jb, js = jac(x)
             normal = _normal(jb, js, r.reshape(T, -1))
     return BlockResult(x, cost, r, jb, js, status, nfev)

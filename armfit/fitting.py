@@ -68,6 +68,7 @@ never narrower than these.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -1063,10 +1064,11 @@ class TrialFit:
 def trial_groups(spectra, *, method: str | None = None, source: str | None = None
                  ) -> list[tuple[tuple[str, str, float, int | None], tuple]]:
     """The measured trial responses of a study, one per (axis, subject, grip_N, run),
-    sorted in that order: [(key, (f_hz, H, se_db, se_deg))]. Raises BadInputError if
-    there are none, UsageError if several estimators are present and ``method`` is not
-    given."""
-    sp = Spectra.of(spectra)
+    sorted in that order: [(key, (f_hz, H, se_db, se_deg))]. ``spectra``: a Spectra, a
+    long table, or the path of a spectra file (only its measured trial rows are read, and
+    let go once their arrays are taken). Raises BadInputError if there are none,
+    UsageError if several estimators are present and ``method`` is not given."""
+    sp = _read_or_of(spectra, level="trial", kind="measured")
     source = source if source is not None else sp.source
     tr = sp.select(kind="measured", level="trial")
     tr = tr.take(tr.key("out_axis") == tr.key("axis"))
@@ -1159,6 +1161,9 @@ def fit_trial_models(spectra, *, cost: str = "complex",
     than :data:`LOCAL_OUTLIER` times its axis's median RMS normalised error (and more
     than :data:`LOCAL_NOISE_TOL`) gets the global search of :func:`fit_response` too, and
     keeps the better fit; so does a trial without a start.
+
+    ``spectra`` may be the path of a spectra file: its measured trial rows are read (and
+    the grip means, without ``starts``), and only each trial's arrays are kept.
     """
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
     specs = effects_by_axis(effects)
@@ -1210,13 +1215,22 @@ def _grip_starts(spectra, cost, bands, effects, method, source
     """{(axis, grip_N): parameters} of the grip fits of ``spectra`` (none where they
     cannot be made: every trial then gets the global search)."""
     try:
-        study = fit_study(spectra, which="grip", cost=cost, bands=bands, effects=effects,
-                          method=method, source=source)
+        study = fit_study(_read_or_of(spectra, level="mean", kind="measured"), which="grip",
+                          cost=cost, bands=bands, effects=effects, method=method,
+                          source=source)
     except EffectDefinitionError:   # the model itself is broken, not the grip fits' data
         raise
     except (ConvergenceError, UsageError, BadInputError):
         return {}
     return grip_fit_starts(study.keys, study.fits)
+
+
+def _read_or_of(spectra, *, level: str, kind: str) -> Spectra:
+    """The responses of level ``level`` and kind ``kind`` of the spectra file ``spectra``
+    (a path), or ``spectra`` itself (a Spectra or a long table) as a Spectra."""
+    if isinstance(spectra, str | os.PathLike):
+        return Spectra.read(spectra, level=level, kind=kind)
+    return Spectra.of(spectra)
 
 
 def grip_fit_starts(keys, fits: Sequence[FitResult]) -> dict[tuple[str, float], dict[str, float]]:

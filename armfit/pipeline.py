@@ -8,7 +8,7 @@ one straight function, and times each one (files written into OUTDIR in brackets
 
 - ingest: :func:`armfit.io.trials.ingest` (trials.parquet) → :class:`Ingested`;
 - estimate: :func:`armfit.api.estimate_study_result` (spectra.parquet) →
-  :class:`Estimated`;
+  :class:`Estimated`, with the aggregates read back (levels mean and median);
 - fit-grip, fit-nominal: :func:`armfit.fit_grip`, :func:`armfit.fit_nominal` of the
   paper's 5-parameter model (grip_params.csv/.tex, nominal_params.csv/.tex) →
   :class:`GripFits` (with the diagnosis it starts), :class:`NominalFits`;
@@ -56,10 +56,14 @@ propagates.
 
 Every later stage reads the files the earlier ones wrote (as the subcommands do), so
 ``armfit run`` gives the same numbers as the subcommands run one after the other with
-the same options. The whole folder is built in a temporary folder beside OUTDIR and
-renamed onto it at the end (:func:`armfit.io.atomic.atomic_path`): a failure leaves no
-OUTDIR, and an existing OUTDIR (also one another run wrote meanwhile) is replaced only
-with ``overwrite``.
+the same options. Of spectra.parquet the run keeps only the aggregates; a stage that
+needs trial rows reads those of the kind it uses from the file
+(:meth:`armfit.spectra.Spectra.read`, a row group at a time) and lets them go when it
+ends, and a figure drawn in a worker process reads its rows there, so the memory of a
+run hardly grows with the number of trials. The whole folder is built in a temporary
+folder beside OUTDIR and renamed onto it at the end (:func:`armfit.io.atomic.atomic_path`):
+a failure leaves no OUTDIR, and an existing OUTDIR (also one another run wrote
+meanwhile) is replaced only with ``overwrite``.
 """
 
 from __future__ import annotations
@@ -96,10 +100,15 @@ from armfit.io.atomic import (
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import Warn, ingest
 from armfit.loop import WallSettings, axis_summary, stability_table
+from armfit.memory import release_memory
 from armfit.models.params import read_param_rows
 from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra
 from armfit.workers import cancel_pools, executor_for
+
+#: The levels of spectra.parquet a run keeps (its trial rows are read where they are
+#: used).
+AGGREGATES: tuple[str, ...] = ("mean", "median")
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
@@ -111,7 +120,7 @@ STAGES: tuple[str, ...] = ("ingest", "estimate", "fit-grip", "fit-nominal", "dia
                            "adopt", "fit-uncertainty", "fit-trials", "stability",
                            "figures", "compare", "residuals", "report")
 
-__all__ = ["COMPARE_COLUMNS", "FIGURES", "STABILITY_FIGURE", "STAGES", "Background",
+__all__ = ["AGGREGATES", "COMPARE_COLUMNS", "FIGURES", "STABILITY_FIGURE", "STAGES", "Background",
            "Compared", "Diagnosed", "Drawn", "Estimated", "GripFits", "Ingested", "Models",
            "NominalFits", "Reported", "RunConfig", "RunOptions", "RunResult", "StabilityChecked",
            "Stage", "StageResult", "TrialsFitted", "UncertaintyFit", "check_outdir",
@@ -286,15 +295,19 @@ class Background(Generic[_T]):
         return fn(*args, **kwargs)
 
     def result(self) -> _T:
-        """The result, once the call has ended (its error if it failed)."""
+        """The result, once the call has ended (its error if it failed). It is collected
+        once: the future keeps no reference to it, nor to the call, once returned."""
         if self.thread is None:
             self.started = time.perf_counter()
             fn, args, kwargs = self.call
+            self.call = None
             return fn(*args, **kwargs)
         try:
-            return self.task.result()
+            value = self.task.result()
         finally:
             self.close()
+        self.task = self.call = None
+        return value
 
     def close(self) -> None:
         """Wait for the thread (after a failure elsewhere, its pending work in the run's
@@ -317,11 +330,27 @@ class Background(Generic[_T]):
         self.close()
 
 
+@dataclass(frozen=True)
+class _Rows:
+    """Responses of a spectra file to read where they are used (:meth:`Spectra.read` of
+    ``path`` with ``level`` and ``kind``): a figure's trial rows are read by the worker
+    that draws it, never held or sent by the run's own process."""
+
+    path: Path
+    level: tuple[str, ...]
+    kind: str
+
+    def read(self) -> Spectra:
+        return Spectra.read(self.path, level=self.level, kind=self.kind)
+
+
 def _draw_task(args) -> None:
-    """Worker: draw the figure ``figures.<fn>(*args, **kwargs)`` and write it to ``path``.
-    :mod:`armfit.figures` (and matplotlib) is imported here, on first use: with worker
-    processes only they load it, off the run's critical path."""
+    """Worker: draw the figure ``figures.<fn>(*args, **kwargs)`` and write it to ``path``
+    (an argument that is a :class:`_Rows` is read first). :mod:`armfit.figures` (and
+    matplotlib) is imported here, on first use: with worker processes only they load it,
+    off the run's critical path."""
     fn, fargs, kwargs, path = args
+    fargs = tuple(a.read() if isinstance(a, _Rows) else a for a in fargs)
     figures = importlib.import_module("armfit.figures")
     figures.save_figure(getattr(figures, fn)(*fargs, **kwargs), path)
 
@@ -395,10 +424,11 @@ class Ingested(StageResult):
 
 @dataclass(frozen=True)
 class Estimated(StageResult):
-    """estimate: the study's spectra (``study``, every trial kept), the spectra as read
-    back from spectra.parquet, and every trial left out (ingest's, then the estimate's)."""
+    """estimate: the trials estimated, the aggregates of spectra.parquet as read back
+    (levels mean and median: the trial rows stay in the file, read by the stages that
+    use them), and every trial left out (ingest's, then the estimate's)."""
 
-    study: StudySpectra
+    n_trials: int
     spectra: Spectra
     skipped: tuple[tuple[str, str], ...]
 
@@ -513,14 +543,18 @@ def _estimate(config: RunConfig, ingested: Ingested) -> Estimated:
     names the user's files) and write spectra.parquet; later stages read that file back,
     as the subcommands do."""
     est = ingested.estimating.result()
+    started = ingested.estimating.started
     seen = {f for f, _ in ingested.skipped}
     skipped = ingested.skipped + tuple((f, r) for f, r in est.skipped if f not in seen)
     est.write(config.path("spectra.parquet"))
-    spectra = Spectra.read(config.path("spectra.parquet"))
+    n_trials = len(est.trials)
+    del est   # the trials' responses are in the file now
+    release_memory()
+    spectra = Spectra.read(config.path("spectra.parquet"), level=AGGREGATES)
     c = config.estimate
-    return Estimated(est, spectra, skipped, files=("spectra.parquet",),
-                     started=ingested.estimating.started,
-                     summary=f"{len(est.trials)} trial(s), method {c.method}, "
+    return Estimated(n_trials, spectra, skipped, files=("spectra.parquet",),
+                     started=started,
+                     summary=f"{n_trials} trial(s), method {c.method}, "
                              f"{len(c.grid())} frequencies {c.fmin:g}-{c.fmax:g} Hz")
 
 
@@ -542,11 +576,14 @@ def _fit_summary(model: api.ModelFit, cost: str) -> str:
             f"{_median(model.table['rms_db']):.2f} dB")
 
 
-def _diagnosis(spectra: Spectra, grip: api.ModelFit, axes: Sequence[str],
+def _diagnosis(path: Path, spectra: Spectra, grip: api.ModelFit, axes: Sequence[str],
                jobs: int) -> api.Diagnosis:
-    """The diagnosis of ``axes`` started from the grip fits."""
-    return api.Diagnosis(tuple(diagnose_axes(spectra, grip.table, axes=axes, jobs=jobs)),
-                         spectra, grip)
+    """The diagnosis of ``axes`` started from the grip fits: the trial rows of the
+    spectra file ``path``, read an axis and a kind at a time; the aggregates ``spectra``
+    are kept with it (all its plot needs)."""
+    axes_done = tuple(diagnose_axes(path, grip.table, axes=axes, jobs=jobs))
+    release_memory()
+    return api.Diagnosis(axes_done, spectra, grip)
 
 
 def _fit_grip(config: RunConfig, workers: _Workers, spectra: Spectra) -> GripFits:
@@ -555,7 +592,8 @@ def _fit_grip(config: RunConfig, workers: _Workers, spectra: Spectra) -> GripFit
     tasks should not queue behind them."""
     grip = _fit_table("grip", config, workers, spectra)
     axes = [a for a in AXES if (grip.table["axis"] == a).any()]
-    diagnosing = workers.start(_diagnosis, spectra, grip, axes, config.options.jobs)
+    diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), spectra, grip,
+                               axes, config.options.jobs)
     return GripFits(grip, diagnosing, files=("grip_params.csv", "grip_params.tex"),
                     summary=_fit_summary(grip, config.options.cost))
 
@@ -632,22 +670,28 @@ def _effects_of(adoption: Adoption):
     return adoption.effects if adoption.anything else ()
 
 
-def _fit_uncertainty(config: RunConfig, workers: _Workers, spectra: Spectra,
-                     models: Models, adoption: Adoption) -> UncertaintyFit:
+def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
+                     adoption: Adoption) -> UncertaintyFit:
     """W_max and Wu (Table III) of the adopted nominal, apparatus effects removed: wu.csv,
-    wu_summary.csv, wu_wmax.csv, wu.tex. The per-trial fits start first and run meanwhile
-    in the worker processes."""
+    wu_summary.csv, wu_wmax.csv, wu.tex, from the derived trial rows of spectra.parquet
+    (read here, let go after). The per-trial fits start first and run meanwhile in the
+    worker processes."""
     o = config.options
     # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
     grip = models.grip
     starts = grip_fit_starts(zip(grip.table["axis"], grip.table["grip_N"], strict=True),
                              grip.fits)
-    trial_fits = workers.start(fit_trial_models, spectra, cost=o.cost, jobs=o.jobs,
-                               source="spectra.parquet", starts=starts, bands=models.bands,
-                               effects=_effects_of(adoption), executor=workers.executor)
+    trial_fits = workers.start(fit_trial_models, config.path("spectra.parquet"), cost=o.cost,
+                               jobs=o.jobs, source="spectra.parquet", starts=starts,
+                               bands=models.bands, effects=_effects_of(adoption),
+                               executor=workers.executor)
     wu_path = config.path("wu.csv")
-    unc = api.fit_uncertainty(spectra, models.nominal, cost=o.wu_cost, jobs=o.jobs,
+    derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived")
+    unc = api.fit_uncertainty(derived, models.nominal, cost=o.wu_cost, jobs=o.jobs,
                               executor=workers.executor)
+    unc = replace(unc, spectra=None)   # the derived trial rows are let go
+    del derived
+    release_memory()
     unc.write(wu_path, latex=config.path("wu.tex"))
     return UncertaintyFit(unc, trial_fits,
                           files=("wu.csv", *(p.name for p in wu_sidecar_paths(wu_path)),
@@ -660,6 +704,7 @@ def _fit_trials(config: RunConfig, uncertainty: UncertaintyFit) -> TrialsFitted:
     """Wait for the per-trial fits fit-uncertainty started (trial_params.csv): the
     population the stability stage uses."""
     fits = uncertainty.trial_fits.result()
+    release_memory()
     write_params(trial_fits_table(fits), config.path("trial_params.csv"))
     failed = tuple((f"{t.axis} {t.subject} {t.grip_N:g} N", t.reason) for t in fits
                    if t.fit is None)
@@ -729,8 +774,10 @@ def _figures(config: RunConfig, workers: _Workers, spectra: Spectra, models: Mod
     config.path("figures").mkdir(exist_ok=True)  # the stability figure may be there
     grip, draw, folder = models.grip.table, workers.drawings.draw, config.folder
     rows = grip[(grip["axis"] == "x") & np.isclose(grip["grip_N"].to_numpy(float), 1.0)]
-    paper = (draw(folder, FIGURES[0], "bode_figure", spectra, grip),
-             draw(folder, FIGURES[1], "uncertainty_figure", spectra,
+    path = config.path("spectra.parquet")
+    paper = (draw(folder, FIGURES[0], "bode_figure",
+                  _Rows(path, ("trial", "mean"), "measured"), grip),
+             draw(folder, FIGURES[1], "uncertainty_figure", _Rows(path, ("trial",), "derived"),
                   models.nominal.table, uncertainty.weights),
              draw(folder, FIGURES[2], "literature_figure",
                   (rows if len(rows) else grip).iloc[0]))
@@ -781,7 +828,7 @@ def _report(config: RunConfig, workers: _Workers, written: Sequence[str],
     figures = (*drawn, *((wall.figure,) if wall.figure else ()))
     record = RunRecord(
         inputs=tuple(str(p) for p in config.inputs), options=config.options,
-        config=config.estimate, n_trials=len(estimated.study.trials),
+        config=config.estimate, n_trials=estimated.n_trials,
         skipped=estimated.skipped, grip=models.grip, nominal=models.nominal,
         base_grip=models.base_grip, base_nominal=models.base_nominal, bands=models.bands,
         uncertainty=uncertainty, diagnosis=diagnosed.diagnosis,
@@ -855,7 +902,7 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
     models = (clock.done("adopt", _adopt(config, workers, spectra, grip, nominal, diagnosed))
               if adoption.anything else _base_models(config, grip, nominal))
     unc = clock.done("fit-uncertainty",
-                     _fit_uncertainty(config, workers, spectra, models, adoption))
+                     _fit_uncertainty(config, workers, models, adoption))
     trials = clock.done("fit-trials", _fit_trials(config, unc))
     stability = clock.done("stability", _stability(config, workers, models, adoption,
                                                    unc.uncertainty, trials))
@@ -868,7 +915,7 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
                                  models, unc.uncertainty, stability, compared,
                                  (*paper.figures, *residuals.figures)))
     return RunResult(outdir=str(config.folder), files=tuple(sorted(clock.files)),
-                     trials=len(estimated.study.trials), skipped=estimated.skipped,
+                     trials=estimated.n_trials, skipped=estimated.skipped,
                      verdicts={d.axis: d.verdict for d in diagnosed.diagnosis.axes},
                      missing=diagnosed.missing, refitted=diagnosed.refitted,
                      adoption=adoption, stages=tuple(clock.stages), wall_s=clock.wall())

@@ -1323,12 +1323,16 @@ class Spectra:
 
     def take(self, rows) -> Spectra:
         """The rows ``rows`` (indices or a boolean mask), in that order, on the frequencies
-        any of them has."""
+        any of them has (``self`` when that is every row, in order, on every frequency:
+        a Spectra is not changed in place)."""
         rows = np.asarray(rows)
         if rows.dtype == bool:
             rows = np.flatnonzero(rows)
         present = self.present[rows]
         cols = present.any(axis=0) if rows.size else np.zeros(self.freq_hz.size, bool)
+        if (rows.size == len(self) and cols.all()
+                and np.array_equal(rows, np.arange(len(self)))):
+            return self
         if cols.all():
             def pick(a):
                 return a[rows]
@@ -1433,8 +1437,9 @@ class Spectra:
             a[codes, fcode] = df[c].to_numpy(float)
             values[c] = a
         flags = np.full((nr, nf), "", dtype=object)
-        flags[codes, fcode] = df["flags"].astype(object).where(df["flags"].notna(), ""
-                                                                ).to_numpy(object)
+        # one object per distinct flag text (a study has few), shared by its cells
+        flag_codes, flag_texts = pd.factorize(df["flags"], use_na_sentinel=True)
+        flags[codes, fcode] = np.array([*flag_texts, ""], dtype=object)[flag_codes]
         first = np.unique(codes, return_index=True)[1]
         keys = {}
         for c in SPECTRA_KEYS:
@@ -1488,13 +1493,18 @@ class Spectra:
         return df
 
     @classmethod
-    def read(cls, path) -> Spectra:
-        """Read a spectra Parquet file written by ``armfit estimate``.
+    def read(cls, path, *, level=None, kind=None, axis=None) -> Spectra:
+        """Read a spectra Parquet file written by ``armfit estimate``, a row group at a time.
 
         Parameters
         ----------
         path : str or os.PathLike
             The file.
+        level, kind, axis : str or sequence of str, optional
+            Keep only the responses of these levels (``trial``, ``mean``, ``median``),
+            kinds and stimulated axes (None: all). Every row is read and checked, kept
+            or not, so the result and the errors are those of
+            ``Spectra.read(path).select(...)``; the rows left out are never held.
 
         Returns
         -------
@@ -1508,43 +1518,27 @@ class Spectra:
         BadInputError
             Naming the file (and the missing column) if it is not a spectra table, or the
             row of an axis other than x, y or z.
-        """
-        import json
 
-        import pyarrow as pa
-        import pyarrow.parquet as pq
+        Notes
+        -----
+        A file armfit wrote holds whole responses in each row group (:data:`WRITE_ROWS`
+        per group), so the rows are turned into responses group by group and only one
+        group of the long table is in memory besides the responses kept. A file whose
+        response continues into a later group, or one that is unreadable or bad, is read
+        whole instead, which gives the same responses or names what is wrong.
+        """
         p = Path(path)
         if not p.is_file():
             raise NoInputError(f"{p}: no such spectra file")
+        wanted = {k: (v,) if isinstance(v, str) else tuple(v)
+                  for k, v in (("level", level), ("kind", kind), ("axis", axis))
+                  if v is not None}
         try:
-            table = pq.read_table(p)
-        except (pa.ArrowException, OSError) as exc:
-            raise BadInputError(f"not a readable Parquet spectra file "
-                                f"({str(exc).splitlines()[0]}); make one with "
-                                "`armfit estimate`", file=str(p)) from None
-        for c in SPECTRA_COLUMNS:
-            if c not in table.column_names:
-                raise BadInputError("missing column; not a spectra file written by "
-                                    "`armfit estimate`", file=str(p), column=c)
-        kv = table.schema.metadata or {}
-        try:
-            meta = json.loads(kv[SPECTRA_META_KEY]) if SPECTRA_META_KEY in kv else {}
-        except ValueError:
-            meta = {}
-        masses = meta.get("mp_kg") if isinstance(meta, dict) else None
-        for axis, mp in masses.items() if isinstance(masses, dict) else ():
-            # the device mass the derived dynamics were estimated with (fit-uncertainty)
-            check_in_range(parse_numbers([mp], errors="coerce"),
-                           DEVICE_MASS_RANGE, file=str(p),
-                           column=None, name=f"the device mass of axis {axis} in the "
-                           "metadata (mp_kg)", shown=[mp])
-        df = table.select(list(SPECTRA_COLUMNS)).to_pandas()
-        for col in ("axis", "out_axis"):  # rows of another axis would be dropped silently
-            bad = np.flatnonzero(~df[col].isin(list(AXES)).to_numpy())
-            if bad.size:
-                raise BadInputError(f"axis {cell(df[col].iloc[bad[0]])} is not x, y or z",
-                                    file=str(p), column=col, row=int(bad[0]) + 1)
-        return cls.from_frame(df, meta=meta, source=str(p))
+            return _read_by_group(p, wanted)
+        except Exception:  # noqa: BLE001 - the whole read decides: same result or error
+            pass
+        whole = _read_whole(p)
+        return whole.take(_wanted_rows(whole, wanted)) if wanted else whole
 
     def write(self, path, *, overwrite: bool = False):
         """Write the spectra Parquet file (zstd), atomically, with :attr:`meta` as JSON
@@ -1627,6 +1621,139 @@ class Spectra:
         ax.set_xlabel("Frequency (Hz)")
         ax.set_ylabel("Magnitude (dB re 1 m/N)" if db else "Phase (deg)")
         return ax
+
+
+def _file_meta(kv: Mapping | None, p: Path) -> dict:
+    """armfit's metadata of a spectra file (``{}`` if absent or not JSON), its device
+    masses checked against their range."""
+    import json
+    kv = kv or {}
+    try:
+        meta = json.loads(kv[SPECTRA_META_KEY]) if SPECTRA_META_KEY in kv else {}
+    except ValueError:
+        meta = {}
+    masses = meta.get("mp_kg") if isinstance(meta, dict) else None
+    for axis, mp in masses.items() if isinstance(masses, dict) else ():
+        # the device mass the derived dynamics were estimated with (fit-uncertainty)
+        check_in_range(parse_numbers([mp], errors="coerce"),
+                       DEVICE_MASS_RANGE, file=str(p),
+                       column=None, name=f"the device mass of axis {axis} in the "
+                       "metadata (mp_kg)", shown=[mp])
+    return meta
+
+
+def _check_axes(df, p: Path, first_row: int = 0) -> None:
+    """Refuse a row whose ``axis`` or ``out_axis`` is not x, y or z (``first_row``: the
+    file row before the frame's first)."""
+    for col in ("axis", "out_axis"):  # rows of another axis would be dropped silently
+        bad = np.flatnonzero(~df[col].isin(list(AXES)).to_numpy())
+        if bad.size:
+            raise BadInputError(f"axis {cell(df[col].iloc[bad[0]])} is not x, y or z",
+                                file=str(p), column=col, row=first_row + int(bad[0]) + 1)
+
+
+def _read_whole(p: Path) -> Spectra:
+    """The spectra file ``p`` read in one piece (see :meth:`Spectra.read`)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    try:
+        table = pq.read_table(p)
+    except (pa.ArrowException, OSError) as exc:
+        raise BadInputError(f"not a readable Parquet spectra file "
+                            f"({str(exc).splitlines()[0]}); make one with "
+                            "`armfit estimate`", file=str(p)) from None
+    for c in SPECTRA_COLUMNS:
+        if c not in table.column_names:
+            raise BadInputError("missing column; not a spectra file written by "
+                                "`armfit estimate`", file=str(p), column=c)
+    meta = _file_meta(table.schema.metadata, p)
+    df = table.select(list(SPECTRA_COLUMNS)).to_pandas()
+    del table
+    _check_axes(df, p)
+    return Spectra.from_frame(df, meta=meta, source=str(p))
+
+
+class _NotByGroup(Exception):
+    """The file cannot be read group by group (see :meth:`Spectra.read`)."""
+
+
+def _wanted_rows(sp: Spectra, wanted: Mapping[str, tuple]) -> np.ndarray:
+    """Indices of the responses of ``sp`` whose keys are among ``wanted``'s values."""
+    keep = np.ones(len(sp), bool)
+    for k, values in wanted.items():
+        keep &= np.array([v in values for v in sp.keys[k]], bool)
+    return np.flatnonzero(keep)
+
+
+def _response_keys(sp: Spectra) -> set[tuple]:
+    """The identities of ``sp``'s responses (a missing grip or run as None)."""
+    cols = [[None if v is None or v != v else v for v in sp.keys[k]] for k in SPECTRA_KEYS]
+    return set(zip(*cols, strict=True))
+
+
+def _read_by_group(p: Path, wanted: Mapping[str, tuple]) -> Spectra:
+    """:meth:`Spectra.read` of ``p`` a row group at a time, keeping the responses
+    ``wanted`` selects; raises :class:`_NotByGroup` (or the error of a bad file) when
+    the whole read must decide."""
+    import pyarrow.parquet as pq
+    pf = pq.ParquetFile(p)
+    schema = pf.schema_arrow
+    if pf.num_row_groups == 0 or any(c not in schema.names for c in SPECTRA_COLUMNS):
+        raise _NotByGroup
+    meta = _file_meta(schema.metadata, p)
+    parts: list[Spectra] = []
+    seen: set[tuple] = set()
+    first_row = 0
+    empty = None
+    for g in range(pf.num_row_groups):
+        df = pf.read_row_group(g, columns=list(SPECTRA_COLUMNS)).to_pandas()
+        _check_axes(df, p, first_row)
+        part = Spectra.from_frame(df, meta=meta, source=str(p))
+        first_row += len(df)
+        del df
+        keys = _response_keys(part)
+        if not seen.isdisjoint(keys):   # a response split over groups: read it whole
+            raise _NotByGroup
+        seen |= keys
+        rows = _wanted_rows(part, wanted) if wanted else np.arange(len(part))
+        if empty is None:
+            empty = part.take(rows[:0])
+        if rows.size:
+            parts.append(part if rows.size == len(part) else part.take(rows))
+        del part
+    return _concat(parts, meta, str(p)) if parts else empty
+
+
+def _concat(parts: list[Spectra], meta: Mapping, source: str) -> Spectra:
+    """The responses of ``parts`` in order, on the union of their frequencies (each part
+    is released as soon as it is copied)."""
+    grid = np.unique(np.concatenate([p.freq_hz for p in parts]))
+    nr, nf = sum(len(p) for p in parts), grid.size
+    h = np.empty((nr, nf), complex)
+    values = {c: np.empty((nr, nf)) for c in SPECTRA_VALUES}
+    flags = np.empty((nr, nf), object)
+    present = np.empty((nr, nf), bool)
+    keys = {k: np.concatenate([p.keys[k] for p in parts]) for k in parts[0].keys}
+    i = 0
+    parts.reverse()
+    while parts:
+        part = parts.pop()
+        rows = slice(i, i + len(part))
+        i += len(part)
+        if part.freq_hz.size == nf and np.array_equal(part.freq_hz, grid):
+            cols = slice(None)
+        else:   # on a grid of its own: the other frequencies absent
+            cols = np.searchsorted(grid, part.freq_hz)
+            h[rows], flags[rows], present[rows] = np.nan, "", False
+            for c in SPECTRA_VALUES:
+                values[c][rows] = np.nan
+        h[rows, cols] = part.h
+        flags[rows, cols] = part.flags
+        present[rows, cols] = part.present
+        for c in SPECTRA_VALUES:
+            values[c][rows, cols] = part.values[c]
+        del part
+    return Spectra(grid, keys, h, values, flags, present, dict(meta), source)
 
 
 #: Numeric columns of the spectra table; ``run`` and ``n`` hold whole numbers.

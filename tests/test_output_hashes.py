@@ -86,7 +86,7 @@ EXPECTED: dict[str, str] = {
     "run/trial_params.csv":
         "c472ded99324406191766407550b6ab6b9062b22cf4b64c927a07fffd46b6408",
     "run/trials.parquet":
-        "f11d71fa08bdbf7aaa708763a1b50612aec51f96af640c7cc23806c513ff7855",
+        "34eb582f5fec86f6d7c0d27c62e2eb917c898821d3fbf387c5b22af4ba5c9bea",
     "run/wu.csv":
         "4824f188576131bfb98155414a9dd6c73bf99a5e039738c5f58cf77502c84500",
     "run/wu.tex":

@@ -89,7 +89,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
     Example: ``armfit compare spectra.parquet --model nominal_params.csv --effect delay``
     """
     model = ModelFit.read(model_path)
-    data = Spectra.read(spectra)
+    data = Spectra.read(spectra, kind="measured")   # all a comparison uses
     result = api_compare(data, model, level=level, band=band,
                          effects=_effects(effect_names))
     level, rows = result.level, result.rows
@@ -172,7 +172,8 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_
     if no_share and share:
         raise UsageError("give --share or --no-share, not both")
     model = ModelFit.read(model_path)
-    data = Spectra.read(spectra)
+    # the trials' on-axis responses, and their cross-axis ones for the coupling
+    data = Spectra.read(spectra, level="trial", kind=("measured", "cross"))
     notes = comparison_notes(data, model.table, "trial", spectra_label=spectra,
                              params_label=model_path, action="diagnosed")
     for text in notes:

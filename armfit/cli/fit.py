@@ -72,7 +72,9 @@ def _run(which: str, spectra: str, output: str, cost: str, band, bootstrap: int,
     check_output(output, overwrite=overwrite, inputs=[spectra])
     if latex is not None:
         check_output(latex, overwrite=overwrite, inputs=[spectra, output])
-    data = Spectra.read(spectra)
+    # the measured aggregates (and the trials only for the bootstrap's resamples)
+    data = Spectra.read(spectra, kind="measured",
+                        level=None if bootstrap else ("mean", "median"))
 
     def report(axis, grip, fit):
         where = f"{axis}" + (f" {grip:g} N" if grip is not None else "")

@@ -118,7 +118,7 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
     for path in outputs:
         check_output(path, overwrite=overwrite, inputs=inputs)
 
-    data = Spectra.read(spectra)
+    data = Spectra.read(spectra, level="trial", kind="derived")   # all W_max uses
     params = ModelFit.read(nominal)
     given = {}
     if check_weights:

@@ -223,7 +223,7 @@ def fit_trials_command(spectra, output, cost, band, effects, method, max_nfev, j
     bands = bands_by_axis(band, PAPER_BANDS)
     effect_objs = effect_items(effects)
     check_output(output, overwrite=overwrite, inputs=[spectra])
-    data = Spectra.read(spectra)
+    data = Spectra.read(spectra, level=("trial", "mean"), kind="measured")  # trials, starts
 
     def report(tf):
         who = f"{tf.axis} subject {tf.subject} {tf.grip_N:g} N" + (

@@ -5,7 +5,7 @@ on a subset of trials and its stuck trials rescued by single-trial fits."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import special
@@ -23,8 +23,13 @@ from armfit.diagnosis.tuning import (
 from armfit.fitting import ParamSpace, fit_response
 from armfit.models.arm import ClosedLoopModel
 
-__all__ = ["JointFit", "JointProblem", "joint_fit", "refine", "rescue_trials", "screen_starts",
-           "trial_fit"]
+__all__ = ["JAC_TRIALS", "JointFit", "JointProblem", "joint_fit", "refine", "rescue_trials",
+           "screen_starts", "trial_fit"]
+
+#: Trials whose Jacobian blocks :meth:`JointProblem.jac` evaluates in one go: enough to
+#: keep numpy's loops long, few enough that the temporaries (about 40 kB a trial) stay
+#: small for any study.
+JAC_TRIALS = 64
 
 
 @dataclass(frozen=True)
@@ -87,23 +92,34 @@ class JointProblem:
         (T, m, 5), shared (T, m, k); see :mod:`armfit.blocklsq`), all columns in one
         vectorised evaluation: column j of every trial is perturbed at once (the trials'
         blocks do not overlap), shared columns for all trials together. Steps
-        √eps·max(1, |z|), taken backwards at an upper bound."""
+        √eps·max(1, |z|), taken backwards at an upper bound. The trials are taken
+        :data:`JAC_TRIALS` at a time (each trial's values are its own, whatever its
+        company), so the temporaries do not grow with the number of trials."""
         z = self.unpack(x)                                    # (T, P)
-        T, P = z.shape
+        m = 2 * self.f.size
+        jb, js = np.empty((self.T, m, self.nb)), np.empty((self.T, m, self.k))
+        for a in range(0, self.T, JAC_TRIALS):
+            rows = slice(a, a + JAC_TRIALS)
+            D = self._jac_rows(z[rows], rows)                 # (t, m, P)
+            jb[rows], js[rows] = D[..., : self.nb], D[..., self.nb:]
+        return jb, js
+
+    def _jac_rows(self, z: np.ndarray, rows: slice) -> np.ndarray:
+        """The Jacobian of the trials ``rows`` (their parameters ``z``), (t, m, P)."""
+        t, P = z.shape
         h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(z))
         h = np.where(z + h > self.space.zhi, -h, h)
-        Z = np.repeat(z[None], P + 1, axis=0)                 # (P + 1, T, P)
+        Z = np.repeat(z[None], P + 1, axis=0)                 # (P + 1, t, P)
         idx = np.arange(P)
         Z[idx + 1, :, idx] += h.T
         theta = self.space.to_theta(Z)
         values = {n: theta[..., i:i + 1] for i, n in enumerate(self.space.names)}
         with np.errstate(all="ignore"):
-            r_db, r_deg = residuals(self.h[None], self.model.response(self.f, values))
-            R = np.concatenate([r_db * self.w_db, r_deg * self.w_deg], axis=-1)
+            r_db, r_deg = residuals(self.h[None, rows], self.model.response(self.f, values))
+            R = np.concatenate([r_db * self.w_db[rows], r_deg * self.w_deg[rows]], axis=-1)
         R = np.where(np.isfinite(R), R, 1e6)
-        D = (R[1:] - R[:1]) / h.T[:, :, None]                  # (P, T, m)
-        D = np.moveaxis(D, 0, -1)                              # (T, m, P)
-        return np.ascontiguousarray(D[..., : self.nb]), np.ascontiguousarray(D[..., self.nb:])
+        D = (R[1:] - R[:1]) / h.T[:, :, None]                  # (P, t, m)
+        return np.moveaxis(D, 0, -1)                           # (t, m, P)
 
     def solve(self, x0: np.ndarray, max_nfev: int, **tol) -> blocklsq.BlockResult:
         """The joint least-squares fit from ``x0`` (:func:`armfit.blocklsq.solve`)."""
@@ -180,7 +196,11 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
 
 
 def refine(prob: JointProblem, x0: np.ndarray, max_nfev: int) -> blocklsq.BlockResult:
-    return prob.solve(x0, max_nfev, ftol=1e-8, xtol=1e-8)
+    """The joint fit from ``x0``, without its Jacobian blocks (``jb``, ``js`` None): a
+    joint fit holds several results at once, each block as large as the study, and the
+    intervals evaluate the Jacobian again at the solution (:func:`_shared_ci`; the same
+    values, :meth:`JointProblem.jac` being a function of the parameters alone)."""
+    return replace(prob.solve(x0, max_nfev, ftol=1e-8, xtol=1e-8), jb=None, js=None)
 
 
 def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, sel, res,
@@ -289,7 +309,8 @@ def _shared_ci(prob: JointProblem, res, names) -> tuple[dict[str, float], dict[s
     m, p = res.fun.size, res.x.size
     s2 = 2 * res.cost / max(m - p, 1)
     k = len(names)
-    var = s2 * np.diag(blocklsq.shared_covariance(res.jb, res.js))
+    jb, js = (res.jb, res.js) if res.jb is not None else prob.jac(res.x)
+    var = s2 * np.diag(blocklsq.shared_covariance(jb, js))
     half = special.ndtri(0.975) * np.sqrt(np.maximum(var, 0))
     z = res.x[-k:]
     sp = prob.space

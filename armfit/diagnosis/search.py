@@ -4,6 +4,7 @@ the noise, and the axes' shared effects compared."""
 from __future__ import annotations
 
 import itertools
+import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
@@ -47,6 +48,7 @@ from armfit.diagnosis.tuning import (
 )
 from armfit.diagnosis.verdict import verdict_text
 from armfit.errors import EffectDefinitionError
+from armfit.memory import release_memory
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
 from armfit.spectra import Spectra
@@ -324,8 +326,12 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
                   min_effect_deg: float = MIN_EFFECT_DEG,
                   share: Sequence[str] | None = None,
                   executor: Executor | None = None) -> list[AxisDiagnosis]:
-    """Diagnose every axis present in both ``spectra`` (a spectra DataFrame) and
-    ``params`` (a params DataFrame, grip or nominal fits) by a stepwise search.
+    """Diagnose every axis present in both ``spectra`` (a Spectra, a spectra DataFrame,
+    or the path of a spectra file) and ``params`` (a params DataFrame, grip or nominal
+    fits) by a stepwise search. Of a file, the trial rows of one axis are read at a time
+    (:meth:`armfit.spectra.Spectra.read`), and only the arrays the search uses and the
+    axis's cross-axis coupling are kept (the memory of the rest is given back before the
+    search starts); the result is that of the file read whole.
 
     Per axis: fit the base model to every trial (arm parameters per trial); while the
     model is not adequate (:func:`adequacy`), fit the current model plus each remaining
@@ -350,14 +356,21 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     as its own fits are done (:mod:`armfit.diagnosis.schedule`).
     """
     effects = list(EFFECTS.values()) if effects is None else list(effects)
-    spectra = Spectra.of(spectra)
+    trial_rows = _trial_rows(spectra)
     searches: list[_Search] = []
+    coupling: dict[str, dict[str, float]] = {}
     for axis in axes:
-        data = axis_data(spectra, params, axis)
-        if data is None:
+        if not (params["axis"] == axis).any():
             continue
-        b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
-        searches.append(_Search(data, b, effects, max_steps, min_effect_db, min_effect_deg))
+        rows = trial_rows(axis)
+        data = axis_data(rows, params, axis)
+        if data is not None:
+            b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
+            coupling[axis] = cross_coupling(rows, data, b)
+            searches.append(_Search(data, b, effects, max_steps, min_effect_db,
+                                    min_effect_deg))
+        del rows
+    release_memory()
     if not searches:
         return []
     share = SHARED_EFFECTS if share is None else tuple(share)
@@ -370,11 +383,23 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     out = []
     for s in searches:
         d = s.result()
-        out.append(replace(d, coupling=cross_coupling(spectra, s.data, s.band)))
+        out.append(replace(d, coupling=coupling[s.data.axis]))
     agreement = cross_axis_agreement(out, share)
     if agreement:
         out = [replace(d, shared=agreement) for d in out]
     return out
+
+
+def _trial_rows(spectra) -> Callable[[str], Spectra]:
+    """``axis ->`` responses of ``spectra`` holding the trial rows the diagnosis of that
+    stimulated axis uses (measured and cross): read from the file when ``spectra`` is a
+    path, else ``spectra`` itself (the diagnosis selects them)."""
+    if isinstance(spectra, str | os.PathLike):
+        return lambda axis: Spectra.read(spectra, level="trial", kind=("measured", "cross"),
+                                         axis=axis)
+    sp = Spectra.of(spectra)
+    return lambda axis: sp
+
 
 
 #: Priorities of the search's tasks (lower first): a candidate's joint fit on all trials
