@@ -4,6 +4,7 @@ on a subset of trials and its stuck trials rescued by single-trial fits."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -248,6 +249,7 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
 #: the screening's on a subset.
 _TRIAL_FITS: dict[tuple, object] = {}
 _TRIAL_FITS_KEPT = 64
+_TRIAL_FITS_LOCK = threading.Lock()     # an executor may run tasks in threads
 
 
 def trial_fit(model: ClosedLoopModel, data: AxisData, i: int, band: tuple[float, float],
@@ -261,15 +263,17 @@ def trial_fit(model: ClosedLoopModel, data: AxisData, i: int, band: tuple[float,
     key = (model, band, None if start is None else tuple(start.items()),
            data.f_hz.tobytes(), data.h[i].tobytes(), data.se_db[i].tobytes(),
            data.se_deg[i].tobytes())
-    fit = _TRIAL_FITS.get(key)
+    with _TRIAL_FITS_LOCK:
+        fit = _TRIAL_FITS.get(key)
     if fit is None:
         fit = fit_response(model, data.f_hz, data.h[i], se_db=data.se_db[i],
                            se_deg=data.se_deg[i], band=band, x0=start,
                            global_search=start is None, strict=False, intervals=False,
                            second_opinion=False)
-        if len(_TRIAL_FITS) >= _TRIAL_FITS_KEPT:
-            del _TRIAL_FITS[next(iter(_TRIAL_FITS))]
-        _TRIAL_FITS[key] = fit
+        with _TRIAL_FITS_LOCK:
+            while len(_TRIAL_FITS) >= _TRIAL_FITS_KEPT:
+                del _TRIAL_FITS[next(iter(_TRIAL_FITS))]
+            _TRIAL_FITS[key] = fit
     return fit
 
 
