@@ -579,7 +579,7 @@ def _fit_summary(model: api.ModelFit, cost: str) -> str:
 def _diagnosis(path: Path, spectra: Spectra, grip: api.ModelFit, axes: Sequence[str],
                jobs: int) -> api.Diagnosis:
     """The diagnosis of ``axes`` started from the grip fits: the trial rows of the
-    spectra file ``path``, read an axis and a kind at a time; the aggregates ``spectra``
+    spectra file ``path``, read an axis at a time; the aggregates ``spectra``
     are kept with it (all its plot needs)."""
     axes_done = tuple(diagnose_axes(path, grip.table, axes=axes, jobs=jobs))
     release_memory()

@@ -24,13 +24,15 @@ from armfit.diagnosis.tuning import (
 from armfit.fitting import ParamSpace, fit_response
 from armfit.models.arm import ClosedLoopModel
 
-__all__ = ["JAC_TRIALS", "JointFit", "JointProblem", "joint_fit", "refine", "rescue_trials",
+__all__ = ["CHUNK_TRIALS", "JointFit", "JointProblem", "joint_fit", "refine", "rescue_trials",
            "screen_starts", "trial_fit"]
 
-#: Trials whose Jacobian blocks :meth:`JointProblem.jac` evaluates in one go: enough to
-#: keep numpy's loops long, few enough that the temporaries (about 40 kB a trial) stay
-#: small for any study.
-JAC_TRIALS = 64
+#: Trials whose residuals and Jacobian blocks :class:`JointProblem` evaluates in one go:
+#: enough to keep numpy's loops long, few enough that the temporaries (about 40 kB a
+#: trial for the Jacobian) stay small for any study. Up to this many trials an axis's
+#: values are those of one evaluation of all; beyond, they may differ from it in the
+#: last bits (numpy's vector loops round the tail of an array alike, not bit for bit).
+CHUNK_TRIALS = 64
 
 
 @dataclass(frozen=True)
@@ -73,14 +75,20 @@ class JointProblem:
         ze = np.broadcast_to(x[self.T * self.nb:], (self.T, self.k))
         return np.concatenate([zb, ze], axis=1)
 
-    def response(self, x: np.ndarray) -> np.ndarray:
-        theta = self.space.to_theta(self.unpack(x))
+    def response(self, x: np.ndarray, rows: slice = slice(None)) -> np.ndarray:
+        """The model's response of the trials ``rows`` at ``x``, (t, n)."""
+        theta = self.space.to_theta(self.unpack(x)[rows])
         values = {n: theta[:, i:i + 1] for i, n in enumerate(self.space.names)}
         return self.model.response(self.f, values)
 
     def split_res(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        with np.errstate(all="ignore"):
-            r_db, r_deg = residuals(self.h, self.response(x))
+        """Residuals (dB, deg) of every trial at ``x``, (T, n), :data:`CHUNK_TRIALS`
+        trials at a time (each trial's are its own, whatever its company)."""
+        r_db, r_deg = np.empty(self.h.shape), np.empty(self.h.shape)
+        for a in range(0, self.T, CHUNK_TRIALS):
+            rows = slice(a, a + CHUNK_TRIALS)
+            with np.errstate(all="ignore"):
+                r_db[rows], r_deg[rows] = residuals(self.h[rows], self.response(x, rows))
         return r_db, r_deg
 
     def fun(self, x: np.ndarray) -> np.ndarray:
@@ -94,13 +102,13 @@ class JointProblem:
         vectorised evaluation: column j of every trial is perturbed at once (the trials'
         blocks do not overlap), shared columns for all trials together. Steps
         √eps·max(1, |z|), taken backwards at an upper bound. The trials are taken
-        :data:`JAC_TRIALS` at a time (each trial's values are its own, whatever its
-        company), so the temporaries do not grow with the number of trials."""
+        :data:`CHUNK_TRIALS` at a time, so the temporaries do not grow with the number of
+        trials."""
         z = self.unpack(x)                                    # (T, P)
         m = 2 * self.f.size
         jb, js = np.empty((self.T, m, self.nb)), np.empty((self.T, m, self.k))
-        for a in range(0, self.T, JAC_TRIALS):
-            rows = slice(a, a + JAC_TRIALS)
+        for a in range(0, self.T, CHUNK_TRIALS):
+            rows = slice(a, a + CHUNK_TRIALS)
             D = self._jac_rows(z[rows], rows)                 # (t, m, P)
             jb[rows], js[rows] = D[..., : self.nb], D[..., self.nb:]
         return jb, js

@@ -1,0 +1,264 @@
+"""Reading by row group gives what a whole read gives, and the canonical dataset's
+encoding keeps every value.
+
+The references are computed independently of the code under test: a spectra file read
+whole by pyarrow and turned into a Spectra by ``Spectra.from_frame`` (the reader's former
+route), and the rows a selection keeps picked with numpy from that reference's keys; the
+trials read straight from the raw files of the sample study.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+import armfit
+from armfit import spectra as S
+from armfit.diagnosis import diagnose_axes
+from armfit.diagnosis.joint import JointProblem
+from armfit.diagnosis.responses import axis_data
+from armfit.errors import BadInputError
+from armfit.fitting import trial_groups
+from armfit.io.schema import SPECTRA_META_KEY, SPECTRA_VALUES
+from armfit.io.trials import dataset_sources, discover, read_trial, write_dataset
+from armfit.models.arm import ClosedLoopModel
+
+STUDY = Path(__file__).resolve().parents[1] / "sample_data" / "study"
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory) -> dict[str, Path]:
+    """The sample study's spectra (36 trials, 192 responses) written three ways: one row
+    group (as armfit writes a study this size), groups of 7 responses, and groups of 50."""
+    root = tmp_path_factory.mktemp("spectra")
+    sp = armfit.estimate(STUDY)
+    out = {"one group": root / "one.parquet"}
+    sp.write(out["one group"])
+    for rows in (7, 50):
+        out[f"{rows} a group"] = root / f"by{rows}.parquet"
+        S.write_parts(sp.parts(rows), sp.meta, out[f"{rows} a group"])
+    return out
+
+
+def whole(path: Path) -> S.Spectra:
+    """The file read in one piece by pyarrow, made a Spectra from its long table."""
+    table = pq.read_table(path)
+    meta = json.loads(table.schema.metadata[SPECTRA_META_KEY])
+    return S.Spectra.from_frame(table.to_pandas(), meta=meta, source=str(path))
+
+
+def assert_same(a: S.Spectra, b: S.Spectra) -> None:
+    """Equal responses: keys, grid, every value (NaN where NaN), flags, presence, meta."""
+    assert np.array_equal(a.freq_hz, b.freq_hz)
+    assert list(a.keys) == list(b.keys)
+    for k in a.keys:
+        x, y = list(a.keys[k]), list(b.keys[k])
+        assert len(x) == len(y), k
+        assert all(u == v or (u != u and v != v) for u, v in zip(x, y, strict=True)), k
+    assert np.array_equal(a.h, b.h, equal_nan=True)
+    for c in SPECTRA_VALUES:
+        assert np.array_equal(a.values[c], b.values[c], equal_nan=True), c
+    assert np.array_equal(a.flags, b.flags)
+    assert np.array_equal(a.present, b.present)
+    assert a.meta == b.meta and a.source == b.source
+
+
+@pytest.mark.parametrize("layout", ["one group", "7 a group", "50 a group"])
+def test_reading_by_row_group_gives_the_whole_table(sample, layout):
+    path = sample[layout]
+    assert pq.ParquetFile(path).num_row_groups == {"one group": 1, "7 a group": 28,
+                                                   "50 a group": 4}[layout]
+    assert_same(S.Spectra.read(path), whole(path))
+
+
+@pytest.mark.parametrize("wanted", [
+    {"level": "trial"},
+    {"level": ("mean", "median")},
+    {"kind": "derived", "axis": "y"},
+    {"level": "trial", "kind": ("measured", "cross"), "axis": "z"},
+    {"level": "nothing of the kind"},
+])
+def test_a_selection_read_by_row_group_keeps_what_select_keeps(sample, wanted):
+    path = sample["7 a group"]
+    ref = whole(path)
+    keep = np.ones(len(ref), bool)
+    for k, v in wanted.items():
+        keep &= np.isin(np.array([str(x) for x in ref.keys[k]]),
+                        [v] if isinstance(v, str) else list(v))
+    got = S.Spectra.read(path, **wanted)
+    # the rows the numpy mask keeps, in file order, on the frequencies they have
+    assert_same(got, ref.take(np.flatnonzero(keep)))
+    assert len(got) == int(keep.sum())
+
+
+def test_a_spectra_file_is_never_read_whole(sample, monkeypatch):
+    """The reader takes the file a row group at a time: pyarrow's whole-file reader is
+    not called, and no long table bigger than a group is turned into responses."""
+    path = sample["7 a group"]
+    ref = whole(path)
+
+    def no_whole_read(*args, **kwargs):
+        raise AssertionError("the whole spectra file was read")
+
+    sizes = []
+    real = S.Spectra.from_frame.__func__
+
+    def counted(cls, df, **kwargs):
+        sizes.append(len(df))
+        return real(cls, df, **kwargs)
+
+    monkeypatch.setattr(pq, "read_table", no_whole_read)
+    monkeypatch.setattr(S.Spectra, "from_frame", classmethod(counted))
+    assert_same(S.Spectra.read(path), ref)
+    assert len(sizes) == 28 and max(sizes) == 7 * ref.freq_hz.size
+    sizes.clear()
+    assert len(S.Spectra.read(path, level="mean")) == int(np.sum(ref.keys["level"] == "mean"))
+    assert max(sizes) == 7 * ref.freq_hz.size
+
+
+def test_the_run_reads_its_spectra_by_row_group(tmp_path, monkeypatch):
+    """`armfit run` never holds spectra.parquet as one table: every Spectra it makes from
+    the file comes from at most one row group's rows (groups of 16 responses here)."""
+    monkeypatch.setattr(S, "WRITE_ROWS", 16)
+    real_read, real_from = pq.read_table, S.Spectra.from_frame.__func__
+    sizes = []
+
+    def read_table(source, *args, **kwargs):
+        assert Path(str(source)).name != "spectra.parquet", "spectra.parquet read whole"
+        return real_read(source, *args, **kwargs)
+
+    def counted(cls, df, **kwargs):
+        sizes.append(len(df))
+        return real_from(cls, df, **kwargs)
+
+    monkeypatch.setattr(pq, "read_table", read_table)
+    monkeypatch.setattr(S.Spectra, "from_frame", classmethod(counted))
+    result = armfit.run(STUDY, tmp_path / "out", figures=False)
+    nf = len(S.EstimateConfig().grid())
+    assert result.trials == 36
+    assert pq.ParquetFile(tmp_path / "out" / "spectra.parquet").num_row_groups == 12
+    assert sizes and max(sizes) <= 16 * nf
+
+
+def test_a_response_split_over_row_groups_is_read_as_one(sample, tmp_path):
+    """A file another program wrote may continue a response in the next row group: the
+    reader then gives the responses of the whole table."""
+    table = pq.read_table(sample["one group"])
+    path = tmp_path / "split.parquet"
+    with pq.ParquetWriter(path, table.schema) as w:
+        w.write_table(table.slice(0, 150))   # 1.5 responses of 100 frequencies
+        w.write_table(table.slice(150))
+    assert pq.ParquetFile(path).num_row_groups == 2
+    assert_same(S.Spectra.read(path), whole(path))
+
+
+def test_a_bad_row_in_a_later_group_is_named_by_its_row_in_the_file(sample, tmp_path):
+    table = pq.read_table(sample["7 a group"])
+    df = table.to_pandas()
+    bad = 2000            # a data row in the third group of 700 rows
+    df.loc[bad, "out_axis"] = "w"
+    path = tmp_path / "bad.parquet"
+    bad_table = pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(
+        table.schema.metadata)
+    pq.write_table(bad_table, path, row_group_size=700)
+    with pytest.raises(BadInputError) as exc:
+        S.Spectra.read(path, level="mean")
+    assert exc.value.row == bad + 1 and exc.value.column == "out_axis"
+    assert "axis 'w' is not x, y or z" in str(exc.value)
+
+
+def test_the_diagnosis_of_a_file_read_axis_by_axis_is_that_of_the_whole(sample):
+    path = sample["7 a group"]
+    grip = armfit.fit_grip(S.Spectra.read(path, level="mean"))
+    by_file = diagnose_axes(path, grip.table)
+    in_memory = diagnose_axes(whole(path), grip.table)
+    assert [d.axis for d in by_file] == ["x", "y", "z"]
+    doc = armfit.Diagnosis(tuple(by_file)).to_dict()
+    assert doc == armfit.Diagnosis(tuple(in_memory)).to_dict()
+    assert all(doc["axes"][a]["cross_coupling_db"] for a in "xyz")
+
+
+def test_trial_groups_of_a_file_are_those_of_its_spectra(sample):
+    path = sample["50 a group"]
+    by_file, in_memory = trial_groups(path), trial_groups(whole(path))
+    assert len(by_file) == 36
+    for (k1, rows1), (k2, rows2) in zip(by_file, in_memory, strict=True):
+        assert k1 == k2
+        assert all(np.array_equal(a, b, equal_nan=True)
+                   for a, b in zip(rows1, rows2, strict=True))
+
+
+def test_take_of_every_row_is_the_spectra_itself(sample):
+    sp = S.Spectra.read(sample["one group"])
+    assert sp.take(np.arange(len(sp))) is sp
+    assert sp.select() is sp
+    part = sp.take(np.arange(1, len(sp)))
+    assert part is not sp and len(part) == len(sp) - 1
+    assert np.array_equal(part.h, sp.h[1:])
+
+
+def test_the_joint_problem_in_blocks_of_trials_is_the_joint_problem(sample, monkeypatch):
+    """Each trial's residuals and Jacobian rows depend on that trial only: evaluated a few
+    trials at a time they agree with one evaluation of all (to round-off, which the
+    forward difference magnifies to ~1e-8 relative)."""
+    from armfit.diagnosis import joint
+
+    sp = S.Spectra.read(sample["one group"], level=("trial", "mean"), kind="measured")
+    grip = armfit.fit_grip(sp)
+    data = axis_data(sp, grip.table, "y")
+    prob = JointProblem(ClosedLoopModel.for_axis("y"), data, np.ones(data.f_hz.size, bool))
+    x = prob.pack(np.array([[s[n] for n in ("Ma", "k1", "k2", "b1", "b2")]
+                            for s in data.starts]), {})
+    jb, js = prob.jac(x)
+    r = prob.fun(x)
+    monkeypatch.setattr(joint, "CHUNK_TRIALS", 5)
+    jb5, js5 = prob.jac(x)
+    assert jb.shape == jb5.shape == (12, 2 * data.f_hz.size, 5) and js5.shape[2] == 0
+    np.testing.assert_allclose(jb5, jb, rtol=1e-6, atol=1e-9 * np.abs(jb).max())
+    # the residuals themselves, a few trials at a time, to round-off
+    np.testing.assert_allclose(prob.fun(x), r, rtol=1e-12, atol=1e-12 * np.abs(r).max())
+
+
+@pytest.fixture(scope="module")
+def sample_trials():
+    """The sample study's trials as read from their raw files."""
+    sources, _ = discover([STUDY])
+    return [read_trial(s) for s in sources]
+
+
+def test_the_dataset_reads_back_every_value_bit_for_bit(sample_trials, tmp_path):
+    path = tmp_path / "trials.parquet"
+    write_dataset(sample_trials, path)
+    back = [read_trial(s) for s in dataset_sources(path)]
+    assert len(back) == len(sample_trials) == 36
+    for t, b in zip(sample_trials, back, strict=True):
+        assert b.meta == t.meta
+        for x, y in ((t.force, b.force), (t.pos, b.pos), (t.grip, b.grip)):
+            # the same bits, NaN (absent axis, missing grip sample) included
+            assert np.array_equal(x.view(np.uint64), y.view(np.uint64))
+
+
+def test_the_dataset_is_plain_parquet_no_larger_than_the_raw_files(sample_trials, tmp_path):
+    path = tmp_path / "trials.parquet"
+    write_dataset(sample_trials, path)
+    df = pd.read_parquet(path)                    # any Parquet reader: pandas here
+    assert len(df) == sum(t.meta.n_samples for t in sample_trials)
+    first = df[df["trial"] == 0]
+    t = sample_trials[0]
+    assert np.array_equal(first["force_x_N"].to_numpy(), t.force[:, 0], equal_nan=True)
+    assert np.array_equal(first["pos_z_m"].to_numpy(), t.pos[:, 2], equal_nan=True)
+    column = pq.ParquetFile(path).metadata.row_group(0)
+    enc = {column.column(i).path_in_schema: column.column(i) for i in range(column.num_columns)}
+    assert {c.compression for c in enc.values()} == {"ZSTD"}
+    assert "BYTE_STREAM_SPLIT" in enc["force_x_N"].encodings
+    assert "RLE_DICTIONARY" in enc["pos_x_m"].encodings
+    # the sample study's raw files are zstd Parquet (level 9) with time stored: the
+    # dataset, without time, measured 0.96 x their size
+    raw = sum(p.stat().st_size for p in STUDY.iterdir())
+    assert path.stat().st_size <= raw
