@@ -16,8 +16,7 @@ Stages: :func:`read_trials`, :func:`estimate`, :func:`fit_grip`, :func:`fit_nomi
 :class:`Param` and the effect library :data:`EFFECTS`.
 """
 
-from importlib import import_module
-
+from armfit._lazy import lazy_exports
 from armfit._version import __version__
 
 #: The public names and the module each comes from. They are imported on first use, so
@@ -47,13 +46,4 @@ _EXPORTS: dict[str, str] = {
 __all__ = ["__version__", *_EXPORTS]
 
 
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        value = getattr(import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'armfit' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

@@ -13,21 +13,15 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_startup import wall  # noqa: E402  (seconds from a command's start to its exit)
 
 ARMFIT = str(Path(sys.executable).with_name("armfit"))
 TRIAL = Path(__file__).resolve().parents[1] / "sample_data/study/sub-01_axis-x_grip-1N.parquet"
-
-
-def wall(cmd: list[str]) -> float:
-    """Seconds from the start of ``cmd`` to its exit."""
-    t0 = time.perf_counter()
-    subprocess.run(cmd, stdout=subprocess.DEVNULL, check=True)
-    return time.perf_counter() - t0
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """Arm, device and closed-loop models, the effect library, and the literature models."""
 
-from importlib import import_module
+from armfit._lazy import lazy_exports
 
 #: The package's names and the module each comes from, imported on first use (so
 #: that importing one light module of the package does not load the others).
@@ -29,13 +29,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        value = getattr(import_module(_EXPORTS[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

@@ -1,0 +1,48 @@
+"""Names of a package imported on first use (PEP 562 module ``__getattr__``).
+
+A package lists its public names and the module each comes from; importing the package
+then imports none of them, so that a worker process or a command that needs one light
+module does not load the others (matplotlib, pandas, the fitting stack).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from importlib import import_module
+
+
+def lazy_exports(namespace: dict, exports: Mapping[str, str]
+                 ) -> tuple[Callable[[str], object], Callable[[], list[str]]]:
+    """The ``__getattr__`` and ``__dir__`` of a package whose ``exports`` (name -> module)
+    are imported when first asked for.
+
+    Parameters
+    ----------
+    namespace : dict
+        The package's ``globals()``: a name, once imported, is stored there, so the
+        next access does not come back here.
+    exports : mapping of str to str
+        Each public name and the module that defines it.
+
+    Returns
+    -------
+    (callable, callable)
+        ``__getattr__(name)`` (AttributeError naming the package for an unknown name)
+        and ``__dir__()``.
+    """
+    package = namespace["__name__"]
+
+    def __getattr__(name: str):
+        if name in exports:
+            value = getattr(import_module(exports[name]), name)
+            namespace[name] = value
+            return value
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    def __dir__() -> list[str]:
+        return sorted(set(namespace) | set(exports))
+
+    return __getattr__, __dir__
+
+
+__all__ = ["lazy_exports"]
