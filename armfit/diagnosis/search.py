@@ -298,9 +298,16 @@ class _Search:
                                                     for n, r in self.failed.items()))
 
 
+# Each task gives back the memory its fit freed (:func:`armfit.memory.release_memory`): a
+# worker runs fit after fit over all of an axis's trials, and would otherwise keep the
+# pages of every one.
+
 def _base_task(args):
     data, band = args
-    return fit_base(data, band)
+    try:
+        return fit_base(data, band)
+    finally:
+        release_memory()
 
 
 def _screen_task(args):
@@ -309,6 +316,8 @@ def _screen_task(args):
         return screen_candidate(data, band, current, effect)
     except EffectDefinitionError as exc:     # the effect's own code broke the fit
         return FailedCandidate(effect.name, str(exc))
+    finally:
+        release_memory()
 
 
 def _extend_task(args):
@@ -317,6 +326,8 @@ def _extend_task(args):
         return fit_extend(data, band, current, effect, screened)
     except EffectDefinitionError as exc:     # the effect's own code broke the fit
         return FailedCandidate(effect.name, str(exc))
+    finally:
+        release_memory()
 
 
 def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
@@ -499,6 +510,8 @@ def _borrow_task(args):
         return fit_borrowed(data, band, current, model, agreement)
     except EffectDefinitionError:   # an effect's own code broke the refit: keep the search's
         return None
+    finally:
+        release_memory()
 
 
 def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]
