@@ -685,3 +685,40 @@ def test_existing_output_is_73_on_every_command(command, study, spectra, nominal
 def test_bad_input_error_names_file_column_row():
     e = BadInputError("bad", file="f.csv", column="force_x_N", row=3)
     assert str(e) == "f.csv, column 'force_x_N', row 3: bad"
+
+
+def _interrupted_while_a_class_is_created(*args, **kwargs):
+    """What a SIGINT raises when it lands while Python creates a class during a lazy import:
+    Python (3.11) wraps the KeyboardInterrupt of ``__set_name__`` in a RuntimeError."""
+    class Field:
+        def __set_name__(self, owner, name):
+            raise KeyboardInterrupt
+
+    class Stream:  # noqa: F841 - creating it is the point
+        skipped = Field()
+
+
+@pytest.mark.parametrize("command", ["estimate", "fit-nominal"])
+def test_a_signal_that_python_wrapped_is_a_stop_not_a_bug(command, study, tmp_path,
+                                                           monkeypatch):
+    """A stop is a stop (code 130, one line) even when Python wrapped its KeyboardInterrupt
+    in another exception, as it does in ``__set_name__`` while a module is imported."""
+    monkeypatch.setattr("armfit.cli.estimate.estimate_study_result",
+                        _interrupted_while_a_class_is_created)
+    monkeypatch.setattr("armfit.cli.fit.api_fit_nominal", _interrupted_while_a_class_is_created)
+    spectra = tmp_path / "s.parquet"
+    if command == "fit-nominal":
+        monkeypatch.undo()
+        assert CliRunner().invoke(cli, ["estimate", str(study), "-o", str(spectra)]).exit_code == 0
+        monkeypatch.setattr("armfit.cli.fit.api_fit_nominal",
+                            _interrupted_while_a_class_is_created)
+    args = ([command, str(study), "-o", str(tmp_path / "s2.parquet")] if command == "estimate"
+            else [command, str(spectra), "-o", str(tmp_path / "nom.csv")])
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == EXIT_INTERRUPTED, result.output
+    assert "internal error" not in result.output
+    with pytest.raises(RuntimeError) as caught:
+        _interrupted_while_a_class_is_created()
+    from armfit.cli.entry import wrapped_stop
+    assert isinstance(wrapped_stop(caught.value), KeyboardInterrupt)
+    assert wrapped_stop(RuntimeError("a bug")) is None

@@ -156,6 +156,32 @@ def stop_line(exc: BaseException) -> int:
     return code
 
 
+def wrapped_stop(exc: BaseException) -> KeyboardInterrupt | None:
+    """The signal's exception (KeyboardInterrupt or :class:`armfit.errors.Terminated`)
+    that ``exc`` wraps, else None.
+
+    Python wraps some exceptions raised while it runs library code: a signal that arrives
+    while a class is created during an import surfaces as ``RuntimeError: Error calling
+    __set_name__ ...`` whose cause is the KeyboardInterrupt. Such a stop is still a stop.
+
+    Parameters
+    ----------
+    exc : BaseException
+
+    Returns
+    -------
+    KeyboardInterrupt or None
+    """
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return cur
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return None
+
+
 def main() -> None:
     """Console entry point of ``armfit``."""
     install_signal_handlers()
@@ -167,6 +193,11 @@ def main() -> None:
         from armfit.cli.main import cli  # numpy, pandas, pyarrow, click, ...
     except KeyboardInterrupt as exc:  # signal while importing: one line, no traceback
         _exit_now(SystemExit(stop_line(exc)))
+    except Exception as exc:  # a signal Python wrapped while importing, else a bug
+        stop = wrapped_stop(exc)
+        if stop is None:
+            raise
+        _exit_now(SystemExit(stop_line(stop)))
     try:
         cli.main(prog_name="armfit")
     except KeyboardInterrupt as exc:  # outside a subcommand (e.g. while parsing options)

@@ -15,7 +15,7 @@ import traceback
 import click
 
 from armfit._version import __version__
-from armfit.cli.entry import stop_line
+from armfit.cli.entry import stop_line, wrapped_stop
 from armfit.cli.messages import cli_message
 from armfit.errors import EXIT_INTERNAL, ArmfitError
 from armfit.workers import stop_workers
@@ -79,6 +79,10 @@ class ArmfitGroup(click.Group):
         except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
             raise
         except Exception as exc:  # a bug: say so in one line, traceback with -v
+            stop = wrapped_stop(exc)  # a signal Python wrapped (a lazy import's class)
+            if stop is not None:
+                stop_workers()
+                ctx.exit(stop_line(stop))
             _report(ctx, exc, internal=True)
             ctx.exit(EXIT_INTERNAL)
 
