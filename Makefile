@@ -1,7 +1,7 @@
 # armfit — set-up, demo and tests. `make demo` and `make test` are all a new machine needs.
 #
 # The virtual environment .venv gets the locked, tested versions of requirements.lock;
-# `make lock` regenerates that file from a clean environment, the dask extra included
+# `make lock` regenerates that file from a clean environment, the dask, control and hdf5 extras included
 # (see the README's developer section). `make test-latest` and `make test-oldest` run the
 # suite against the newest versions pyproject.toml allows and against its lower bounds,
 # each in its own venv.
@@ -44,15 +44,15 @@ bench: $(STAMP) compile
 # a clean venv, frozen with exact versions. Run `make test` (and commit) afterwards.
 lock:
 	rm -rf .venv-lock && $(PYTHON) -m venv .venv-lock
-	.venv-lock/bin/$(PIP) '.[dev,dask]'
+	.venv-lock/bin/$(PIP) '.[dev,dask,control,hdf5]'
 	{ echo "# Exact versions the test suite is green with. Regenerate: make lock"; \
 	  .venv-lock/bin/python -m pip freeze --exclude armfit; } > requirements.lock
 	rm -rf .venv-lock
 
-# The newest versions pyproject.toml allows (no lock), the dask extra included.
+# The newest versions pyproject.toml allows (no lock), the dask, control and hdf5 extras included.
 test-latest:
 	rm -rf .venv-latest && $(PYTHON) -m venv .venv-latest
-	.venv-latest/bin/$(PIP) --upgrade -e '.[dev,dask]'
+	.venv-latest/bin/$(PIP) --upgrade -e '.[dev,dask,control,hdf5]'
 	.venv-latest/bin/python -m pip freeze --exclude armfit
 	.venv-latest/bin/python -m pytest -q -p no:cacheprovider
 
