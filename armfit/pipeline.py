@@ -89,6 +89,7 @@ from armfit.constants import AXES, PAPER_BANDS
 from armfit.diagnosis import diagnose_axes
 from armfit.errors import ArmfitError, OutputError
 from armfit.fitting import TrialFit, fit_trial_models, grip_fit_starts, trial_fits_table
+from armfit.htmlreport import report_html
 from armfit.io.artifacts import write_params
 from armfit.io.atomic import (
     atomic_path,
@@ -118,7 +119,7 @@ FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.pn
 #: in worker processes from the end of fit-grip on, alongside fit-nominal.
 STAGES: tuple[str, ...] = ("ingest", "estimate", "fit-grip", "fit-nominal", "diagnose",
                            "adopt", "fit-uncertainty", "fit-trials", "stability",
-                           "figures", "compare", "residuals", "report")
+                           "figures", "compare", "residuals", "drawing", "report")
 
 __all__ = ["AGGREGATES", "COMPARE_COLUMNS", "FIGURES", "STABILITY_FIGURE", "STAGES", "Background",
            "Compared", "Diagnosed", "Drawn", "Estimated", "GripFits", "Ingested", "Models",
@@ -157,11 +158,22 @@ class RunOptions:
 
 @dataclass(frozen=True)
 class Stage:
-    """One finished stage: its name, wall time (s) and a one-line summary."""
+    """One finished stage: its name, the run's wall time spent on it (s: from the end of
+    the stage before to its own end, so that the stages' times add up to the run's), a
+    one-line summary, and, for a stage that started alongside earlier ones, its own wall
+    time from its start (``alongside_s``; None otherwise)."""
 
     name: str
     seconds: float
     summary: str
+    alongside_s: float | None = None
+
+    def line(self) -> str:
+        """The stage's progress line: ``estimate: 2.1 s — ...`` (and ``(ran 3.0 s, from
+        alongside the stages before)`` for a stage that started earlier)."""
+        extra = ("" if self.alongside_s is None else
+                 f" (ran {self.alongside_s:.1f} s, started alongside the stages before)")
+        return f"{self.name}: {self.seconds:.1f} s — {self.summary}{extra}"
 
 
 @dataclass(frozen=True)
@@ -239,7 +251,7 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
     try:
         with atomic_path(out, overwrite=options.overwrite, folder=True) as tmp:
             result = _run_in(list(inputs), tmp, options, on_stage=on_stage, warn=warn,
-                             executor=executor)
+                             executor=executor, outdir=str(outdir))
     except ArmfitError as exc:
         # a message about a file of the temporary folder names it as it would be in OUTDIR
         text = str(exc)
@@ -260,7 +272,8 @@ class RunConfig:
     inputs: the inputs as given; folder: the (empty) folder the stages write into;
     options: the run's options; estimate: the estimator's configuration; bands: the
     paper's fit bands {axis: (lo, hi) Hz}, those of the base model's fits; warn:
-    receives data warnings (None: they are dropped).
+    receives data warnings (None: they are dropped); outdir: the output folder as given
+    (what report.md's command line shows).
     """
 
     inputs: tuple[str | os.PathLike, ...]
@@ -269,6 +282,7 @@ class RunConfig:
     estimate: EstimateConfig
     bands: Mapping[str, tuple[float, float]]
     warn: Warn | None = None
+    outdir: str = "OUTDIR"
 
     def path(self, name: str) -> Path:
         """``folder / name``."""
@@ -499,7 +513,7 @@ class StabilityChecked(StageResult):
 @dataclass(frozen=True)
 class Drawn(StageResult):
     """figures, residuals: the figures drawn (relative to OUTDIR; written once the
-    report stage has waited for them)."""
+    drawing stage has waited for them)."""
 
     figures: tuple[str, ...] = ()
 
@@ -817,25 +831,38 @@ def _residuals(config: RunConfig, workers: _Workers, spectra: Spectra, models: M
     return Drawn(figures=tuple(out), summary=f"{len(out)} figure(s)")
 
 
+def _drawing(workers: _Workers, paper: Drawn, residuals: Drawn,
+             stability: StabilityChecked) -> Drawn:
+    """Wait for the figures the worker pool draws alongside the stages (Figs. 5-7, the
+    residual figures and the stability figure)."""
+    workers.drawings.wait()
+    n = len(paper.figures) + len(residuals.figures) + bool(stability.wall.figure)
+    return Drawn(summary=f"{n} figure(s) drawn")
+
+
 def _report(config: RunConfig, workers: _Workers, written: Sequence[str],
             estimated: Estimated, diagnosed: Diagnosed, models: Models,
             uncertainty: api.Uncertainty, stability: StabilityChecked, compared: Compared,
             drawn: Sequence[str]) -> Reported:
-    """Wait for the figures, then write report.md from the results above and the
-    configuration they used (``written``: the files of the stages before)."""
+    """Wait for any figure still drawn, then write report.md from the results above and
+    the configuration they used (``written``: the files of the stages before)."""
     workers.drawings.wait()
     wall = stability.wall
     figures = (*drawn, *((wall.figure,) if wall.figure else ()))
     record = RunRecord(
-        inputs=tuple(str(p) for p in config.inputs), options=config.options,
+        inputs=tuple(str(p) for p in config.inputs), outdir=config.outdir,
+        options=config.options,
         config=config.estimate, n_trials=estimated.n_trials,
         skipped=estimated.skipped, grip=models.grip, nominal=models.nominal,
         base_grip=models.base_grip, base_nominal=models.base_nominal, bands=models.bands,
         uncertainty=uncertainty, diagnosis=diagnosed.diagnosis,
         adoption=diagnosed.adoption, comparisons=compared.comparisons, wall=wall,
-        figures=figures, files=(*written, *figures, "report.md"))
-    write_text_atomic(config.path("report.md"), report_markdown(record))
-    return Reported(files=(*figures, "report.md"), summary="report.md")
+        figures=figures, files=(*written, *figures, "report.md", "report.html"))
+    text = report_markdown(record)
+    write_text_atomic(config.path("report.md"), text)
+    write_text_atomic(config.path("report.html"), report_html(text, config.folder))
+    return Reported(files=(*figures, "report.md", "report.html"),
+                    summary="report.md, report.html")
 
 
 # ---------------------------------------------------------------------------
@@ -846,9 +873,10 @@ R = TypeVar("R", bound=StageResult)
 
 
 class _Clock:
-    """Times stages and reports each one as it finishes: a stage lasts from the end of
-    the previous one, unless it started earlier (a stage that ran alongside others). Keeps
-    the files the stages wrote."""
+    """Times stages and reports each one as it finishes: a stage's time is the run's wall
+    time from the end of the previous stage to its own end (the times add up to the
+    run's); a stage that started earlier, alongside others, also has its own duration.
+    Keeps the files the stages wrote."""
 
     def __init__(self, on_stage: OnStage | None):
         self.stages: list[Stage] = []
@@ -859,8 +887,9 @@ class _Clock:
     def done(self, name: str, result: R) -> R:
         """Record the stage ``name`` that returned ``result``; returns ``result``."""
         now = time.perf_counter()
-        since = self.t0 if result.started is None else result.started
-        stage = Stage(name, now - since, result.summary)
+        alongside = (now - result.started if result.started is not None
+                     and result.started < self.t0 else None)
+        stage = Stage(name, now - self.t0, result.summary, alongside)
         self.stages.append(stage)
         self.files += result.files
         self.t0 = now
@@ -874,9 +903,9 @@ class _Clock:
 
 def _run_in(inputs: list, folder: Path, options: RunOptions, *,
             on_stage: OnStage | None, warn: Warn | None,
-            executor: Executor | None = None) -> RunResult:
+            executor: Executor | None = None, outdir: str = "OUTDIR") -> RunResult:
     config = RunConfig(tuple(inputs), folder, options, EstimateConfig(method=options.method),
-                       dict(PAPER_BANDS), warn)
+                       dict(PAPER_BANDS), warn, outdir)
     # the caller's executor, or one pool of worker processes for every stage of the run
     with executor_for(executor, options.jobs) as pool, contextlib.ExitStack() as stack:
         own = pool is not None and pool is not executor
@@ -911,6 +940,8 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
     compared = clock.done("compare", _compare(config, spectra, models, adoption))
     residuals = (clock.done("residuals", _residuals(config, workers, spectra, models,
                                                     diagnosed)) if figures else Drawn())
+    if figures:
+        clock.done("drawing", _drawing(workers, paper, residuals, stability))
     clock.done("report", _report(config, workers, tuple(clock.files), estimated, diagnosed,
                                  models, unc.uncertainty, stability, compared,
                                  (*paper.figures, *residuals.figures)))

@@ -12,6 +12,7 @@ or timings: the same results give the same bytes.
 from __future__ import annotations
 
 import math
+import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -29,7 +30,8 @@ from armfit.spectra import EstimateConfig
 from armfit.tables import param_names, sig4, unit_of
 
 __all__ = ["FIGURE_CAPTIONS", "STABILITY_FIGURE", "RunRecord", "RunSettings", "Wall",
-           "adoption_markdown", "md_table", "report_markdown", "stability_markdown"]
+           "adoption_markdown", "md_table", "params_markdown", "report_markdown",
+           "stability_markdown"]
 
 #: The stability figure written by ``armfit run`` (figures on), relative to OUTDIR.
 STABILITY_FIGURE = "figures/stability.png"
@@ -110,6 +112,8 @@ class RunRecord:
     ----------
     inputs : tuple of str
         The inputs as given.
+    outdir : str
+        The output folder as given.
     options : RunSettings
         The run's options.
     config : EstimateConfig
@@ -139,6 +143,7 @@ class RunRecord:
     """
 
     inputs: tuple[str, ...]
+    outdir: str
     options: RunSettings
     config: EstimateConfig
     n_trials: int
@@ -199,24 +204,67 @@ def _kn(v) -> str:
     return _num(float(v) / 1e3 if v is not None else None, ".3g")
 
 
-def _params_rows(df: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of a parameter table (Table I or II)."""
+#: the footnotes of a parameter table's marks, as the LaTeX tables word them
+_MARK_NOTES = {"†": "† at a physical bound of the fit (within 1 % of its range): a limit, "
+                    "not an estimate.",
+               "‡": "‡ held at the value estimated jointly from every trial of the axis (an "
+                    "effect of the apparatus, shared by the trials), not fitted here."}
+
+
+def _names_in(cell) -> set[str]:
+    """The parameter names of an ``at_bound`` or ``held`` cell (";"-separated)."""
+    if cell is None or (isinstance(cell, float) and not math.isfinite(cell)):
+        return set()
+    return {n for n in str(cell).split(";") if n and n != "nan"}
+
+
+def _params_rows(df: pd.DataFrame) -> tuple[list[str], list[list[str]], set[str]]:
+    """Header, rows and the marks used (``†`` a value at a physical bound, ``‡`` a value
+    held at the diagnosis's) of a parameter table (Table I or II)."""
     names = param_names(df)
     grip = "grip_N" in df.columns
     header = ["axis"] + (["grip (N)"] if grip else []) + \
         [f"{n} ({unit_of(n).replace('*', '·')})" for n in names] + \
         ["rms dB", "rms deg", "rms × noise"]
-    rows = []
+    rows, marks = [], set()
     for _, r in df.iterrows():
+        stuck = _names_in(r.get("at_bound"))
+        held = _names_in(r.get("held"))
+        cells = []
+        for n in names:
+            mark = ("†" if n in stuck else "") + ("‡" if n in held else "")
+            marks.update(mark)
+            cells.append(sig4(float(r[n])) + mark)
         rows.append([str(r["axis"])] + ([f"{float(r['grip_N']):g}"] if grip else [])
-                    + [sig4(float(r[n])) for n in names]
-                    + [_num(r["rms_db"], ".2f"), _num(r["rms_deg"], ".1f"),
-                       _num(r["rms_norm"], ".2f")])
-    return header, rows
+                    + cells + [_num(r["rms_db"], ".2f"), _num(r["rms_deg"], ".1f"),
+                               _num(r["rms_norm"], ".2f")])
+    return header, rows, marks
+
+
+def params_markdown(df: pd.DataFrame) -> list[str]:
+    """A parameter table (Table I or II) in Markdown with its marks' footnotes.
+
+    Parameters
+    ----------
+    df : pandas.DataFrame
+        A params table (the params CSV's columns; ``at_bound`` and ``held`` optional).
+
+    Returns
+    -------
+    list of str
+        The table's lines, then one line per mark used (``†`` at a physical bound, ``‡``
+        held at the diagnosis's value).
+    """
+    header, rows, marks = _params_rows(df)
+    notes = [_MARK_NOTES[m] for m in ("†", "‡") if m in marks]
+    return md_table(header, rows) + ([" ".join(notes), ""] if notes else [])
 
 
 def _pairs_text(reps) -> str:
-    return "; ".join(f"{r.real:.4g} ± {abs(r.imag):.4g}j" for r in reps) or "–"
+    """Each root pair of a Wu as Table III writes it: ``re ± im j``, a double real root
+    (imaginary part 0, as ``wu.csv`` stores it) as ``re (double)``."""
+    return "; ".join(f"{r.real:.4g} (double)" if r.imag == 0
+                     else f"{r.real:.4g} ± {abs(r.imag):.4g}j" for r in reps) or "–"
 
 
 def _bands_text(bands: Mapping[str, tuple[float, float]]) -> str:
@@ -265,12 +313,13 @@ def report_markdown(record: RunRecord) -> str:
     return "\n".join(lines)
 
 
-def _command(inputs: Sequence[str], options: RunSettings) -> str:
-    """The command line that makes the run: OUTDIR stands for the folder, so that the
-    report does not depend on where it was written."""
-    cmd = ["armfit run", *inputs, "-o OUTDIR"]
+def _command(inputs: Sequence[str], outdir: str, options: RunSettings) -> str:
+    """The command line that makes the run, with the output folder as given and every
+    option that shapes the results (those at their defaults written out too), each
+    argument quoted as a shell needs it."""
+    cmd = ["armfit run", *map(shlex.quote, inputs), f"-o {shlex.quote(outdir)}"]
     if options.manifest:
-        cmd.append(f"--manifest {options.manifest}")
+        cmd.append(f"--manifest {shlex.quote(str(options.manifest))}")
     if options.skip_bad:
         cmd.append("--skip-bad")
     cmd += [f"--method {options.method}", f"--cost {options.cost}",
@@ -288,7 +337,7 @@ def _heading(record: RunRecord) -> list[str]:
     return ["# armfit report", "",
             f"armfit {__version__} — human arm dynamics and variability models by the "
             "method of Fu & Çavuşoğlu, ICRA 2010.", "",
-            "```", _command(record.inputs, record.options), "```", ""]
+            "```", _command(record.inputs, record.outdir, record.options), "```", ""]
 
 
 def adoption_markdown(adoption: Adoption, wall: Wall | None) -> list[str]:
@@ -398,22 +447,20 @@ def _parameter_tables(record: RunRecord, adopted: bool) -> list[str]:
     which = "adopted model" if adopted else "the paper's 5-parameter model"
     L = [f"## Grip-dependent parameters (Table I, {which})", "",
          "Fits to the mean over subjects per axis and grip; 95 % intervals are in "
-         "`grip_params.csv` and `grip_params.tex`" + (" (‡: held at the diagnosis's "
-                                                        "value)" if adopted else "")
-         + ".", ""]
-    L += md_table(*_params_rows(record.grip.table))
+         "`grip_params.csv` and `grip_params.tex`.", ""]
+    L += params_markdown(record.grip.table)
     L += [f"## Nominal parameters (Table II, {which})", "",
           "Fits to the median over all trials of an axis.", ""]
-    L += md_table(*_params_rows(record.nominal.table))
+    L += params_markdown(record.nominal.table)
     if adopted:
         L += ["## The paper's 5-parameter model (base model, not adopted)", "",
               "Kept for comparison with the paper: the same fits without the adopted "
               "effects (`grip_params_base.csv`, `nominal_params_base.csv`). On the "
               "adopted axes the diagnosis found this model inadequate: its parameters "
               "partly imitate the missing effects.", "", "Table I, base model:", ""]
-        L += md_table(*_params_rows(record.base_grip.table))
+        L += params_markdown(record.base_grip.table)
         L += ["Table II, base model:", ""]
-        L += md_table(*_params_rows(record.base_nominal.table))
+        L += params_markdown(record.base_nominal.table)
     return L
 
 
@@ -476,6 +523,10 @@ def _axis_diagnosis(d: AxisDiagnosis) -> list[str]:
               + ", ".join(f"`{t}`" for t in d.tied_with) + ".", ""]
     # candidates of the first step; those the screening left out have no errors
     if d.candidates:
+        L += ["Candidates of the first step. Each is fitted first on a few trials spread "
+              "over the axis (screening); the best of them are then fitted on every trial. "
+              "A candidate the screening left out has no error after it or ΔBIC on all "
+              "trials (–): \"screened out\".", ""]
         L += md_table(["candidate", "parameters", "RMS dB", "RMS deg", "ΔBIC",
                        "significant"], [_candidate_row(c) for c in d.candidates])
     if d.failed_candidates:
@@ -499,7 +550,9 @@ def _candidate_row(c: Candidate) -> list[str]:
     return [c.effect, ", ".join(f"{k}={v:.4g}" for k, v in c.params.items()),
             f"{c.rms_db_before:.2f} → {_num(c.rms_db_after, '.2f')}",
             f"{c.rms_deg_before:.1f} → {_num(c.rms_deg_after, '.1f')}",
-            _num(c.score, ".1f"), "yes" if c.significant else "no"]
+            _num(c.score, ".1f"),
+            "yes" if c.significant else
+            "no (screened out)" if not math.isfinite(c.rms_db_after) else "no"]
 
 
 def _compare_section(comparisons: api.Comparisons) -> list[str]:

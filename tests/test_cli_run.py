@@ -9,9 +9,12 @@ memory), once more with --overwrite --no-figures into the same folder.
 
 from __future__ import annotations
 
+import html
 import io
 import json
 import re
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +38,7 @@ TABLES = ("compare.csv", "grip_params.csv", "nominal_params.csv", "grip_params_b
 EXPECTED = set(TABLES) | {
     "trials.parquet", "spectra.parquet", "grip_params.tex", "nominal_params.tex", "wu.tex",
     "grip_params_base.tex", "nominal_params_base.tex",
-    "diagnosis.json", "report.md", "figures/bode.png", "figures/uncertainty.png",
+    "diagnosis.json", "report.md", "report.html", "figures/bode.png", "figures/uncertainty.png",
     "figures/literature.png", "figures/residual_x.png", "figures/residual_z.png",
     "figures/stability.png"}
 
@@ -95,13 +98,16 @@ def test_stage_lines_and_json_timings(first):
     res, _, _ = first
     stages = ["ingest", "estimate", "fit-grip", "fit-nominal", "diagnose", "adopt",
               "fit-uncertainty", "fit-trials", "stability", "figures", "compare",
-              "residuals", "report"]
+              "residuals", "drawing", "report"]
     lines = [ln for ln in res.stderr.splitlines()
              if re.match(r"^[a-z-]+: \d+\.\d s — ", ln)]
     assert [ln.split(":")[0] for ln in lines] == stages
     doc = json.loads(res.stdout)
     assert list(doc["timings_s"]) == stages
     assert all(v >= 0 for v in doc["timings_s"].values()) and doc["total_s"] > 0
+    # the stages' times add up to the total (each from the end of the stage before), to
+    # the rounding of 14 values to 1 ms and the instants between the last stage and the end
+    assert abs(sum(doc["timings_s"].values()) - doc["total_s"]) < 0.05
 
 
 def test_diagnosis_names_the_simulated_effect_and_adopts_it(first):
@@ -360,3 +366,44 @@ def test_help_lists_the_pipelines_stages_in_order():
     text = " ".join(r.output.split())
     listed = text.split("Stages, in order: ", 1)[1].split(".", 1)[0]
     assert [s.strip() for s in listed.split(",")] == list(STAGES)
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="Chromium not installed")
+def test_report_html_loads_in_a_browser_without_errors_and_every_image_decodes(first,
+                                                                                tmp_path):
+    """report.html in headless Chromium (Debian's chromium): no console error, no script
+    error, and every <img> loaded and decoded (naturalWidth > 0 once the page has loaded);
+    as many images as report.md's figures. The page is checked through a copy with a probe
+    script appended (report.html itself holds no script)."""
+    _, files, _ = first
+    page = files["report.html"].decode()
+    assert "<script" not in page
+    probe = """<script>
+window.__errors = [];
+window.addEventListener("error", e => window.__errors.push(String(e.message)), true);
+window.addEventListener("load", () => {
+  // after "load" every image has been fetched and decoded, or failed (naturalWidth 0)
+  const w = [...document.images].map(i => (i.complete ? i.naturalWidth : 0));
+  const out = document.createElement("pre");
+  out.id = "probe";
+  out.textContent = JSON.stringify({images: w, errors: window.__errors});
+  document.body.appendChild(out);
+});
+</script>"""
+    checked = tmp_path / "report.html"
+    checked.write_text(page.replace("<body>", "<body>" + probe, 1))
+    proc = subprocess.run(
+        ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr",
+         "--v=0", "--virtual-time-budget=20000", "--dump-dom", checked.as_uri()],
+        capture_output=True, text=True, timeout=180)
+    found = re.search(r'<pre id="probe">(.*?)</pre>', proc.stdout, re.S)
+    assert found, proc.stderr[-2000:]
+    probe_out = json.loads(html.unescape(found.group(1)))
+    n_figures = files["report.md"].decode().count("](figures/")
+    # Figs. 5-7, the residuals of the two axes simulated (x, z) and the stability figure
+    assert len(probe_out["images"]) == n_figures == 6
+    assert all(w > 0 for w in probe_out["images"]), probe_out
+    assert probe_out["errors"] == []
+    console_errors = [ln for ln in proc.stderr.splitlines()
+                      if "CONSOLE" in ln and checked.as_uri() in ln]
+    assert console_errors == []

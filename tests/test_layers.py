@@ -30,6 +30,7 @@ LAYERS: dict[str, float] = {
     "figures": 5, "adopt": 5,
     "api": 6,
     "report": 6.5,        # report.md from the typed results; the pipeline imports it
+    "htmlreport": 6.5,    # report.html from report.md
     "pipeline": 7,
     "cli": 8,
     "armfit": 9,

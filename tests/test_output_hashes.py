@@ -77,8 +77,10 @@ EXPECTED: dict[str, str] = {
         "0053d5e5beda45559d72e0e56545143f4882f41b33beb1ecc59fdf3f831e0d37",
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
+    "run/report.html":
+        "826fefb975eba2633694747ec1e98dab33fcf9553c60fcb3feb1ef948c444052",
     "run/report.md":
-        "90746b97efeacde978bbd60d16d94583bef3e7ad0c200e8c897256bd7cdeb2f0",
+        "37bb37d1dd5c1c21262ca1531ca63f2fa1534d15ce5bad7e328c7891cb99b65f",
     "run/spectra.parquet":
         "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
     "run/stability.csv":

@@ -114,12 +114,18 @@ def test_failing_stage_keeps_the_old_outdir_and_leaves_no_temporary(tiny_study, 
 def test_run_gives_the_same_bytes_with_one_or_two_jobs(tiny_study, tmp_path):
     """With --jobs 2 one worker pool serves every stage (the estimate alongside the
     ingest, the diagnosis and per-trial fits in the background, figures drawn in the
-    workers); every file, figures and report included, is the same as with --jobs 1."""
+    workers); every file, figures and report included, is the same as with --jobs 1 (the
+    report's command line names the output folder as given: the same name in another
+    parent folder)."""
     outs = {}
     for jobs in (1, 2):
-        out = tmp_path / f"j{jobs}"
+        (tmp_path / f"j{jobs}").mkdir()
+        out = tmp_path / f"j{jobs}" / "out"
         result = run_pipeline([tiny_study], out, RunOptions(jobs=jobs))
         outs[jobs] = {name: (out / name).read_bytes() for name in result.files}
+        report = outs[jobs]["report.md"].decode()
+        assert f"-o {out} " in report  # the command as run, the folder as given
+        outs[jobs]["report.md"] = report.replace(str(out), "OUT").encode()
     assert sorted(outs[1]) == sorted(outs[2])
     assert any(name.endswith(".png") for name in outs[1])
     assert [n for n in outs[1] if outs[1][n] != outs[2][n]] == []

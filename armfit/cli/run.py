@@ -53,7 +53,8 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, ou
     OUTDIR, e.g. ``armfit run raw/ -o results``.
 
     Stages, in order: ingest, estimate, fit-grip, fit-nominal, diagnose, adopt,
-    fit-uncertainty, fit-trials, stability, figures, compare, residuals, report.
+    fit-uncertainty, fit-trials, stability, figures, compare, residuals, drawing,
+    report.
     adopt refits Tables I and II with the effects the diagnosis names (when it names
     any), and every stage after it uses that adopted model. INPUT are trial files,
     folders or an `armfit ingest` dataset. Nothing is left behind if a stage fails; an
@@ -66,7 +67,7 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, ou
             list(inputs), outdir, manifest=manifest, skip_bad=skip_bad, method=method,
             cost=cost, wu_cost=wu_cost, jobs=jobs, figures=not no_figures,
             overwrite=overwrite, adopt=adopt, outside_loop=outside_loop,
-            on_stage=lambda s: message(f"{s.name}: {s.seconds:.1f} s — {s.summary}"),
+            on_stage=lambda s: message(s.line()),
             warn=lambda text: message(f"warning: {text}"), executor=executor)
     for f, reason in result.skipped:
         message(f"skipped {f}: {reason}")
