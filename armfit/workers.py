@@ -275,6 +275,7 @@ class _Pool(ProcessPoolExecutor):
                          initargs=(_lifeline(),))
         self._armfit_jobs = jobs
         self._armfit_lock = threading.Lock()
+        self._armfit_shutting = threading.Lock()
         self._armfit_started = False
         self._armfit_killed = False
         self._armfit_futures: weakref.WeakSet = weakref.WeakSet()
@@ -340,10 +341,17 @@ class _Pool(ProcessPoolExecutor):
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         """As :meth:`ProcessPoolExecutor.shutdown`; once :func:`stop_workers` has killed
-        the workers, without waiting (what remained of the pool may never end)."""
+        the workers, without waiting (what remained of the pool may never end).
+
+        One call at a time: the thread that made the pool and :func:`cancel_pools` (a
+        failing run stopping a stage in the background) may shut it down together, and
+        two concurrent shutdowns of a ProcessPoolExecutor close its queues twice (EBADF).
+        The second call finds the pool shut down and returns."""
         with _OPEN_LOCK:
             _OPEN.pop(self, None)
-        super().shutdown(wait=wait and not self._armfit_killed, cancel_futures=cancel_futures)
+        with self._armfit_shutting:
+            super().shutdown(wait=wait and not self._armfit_killed,
+                             cancel_futures=cancel_futures)
 
 
 def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:

@@ -135,3 +135,41 @@ def test_every_preloaded_module_exists():
     import: every name must be a module of the package."""
     import importlib.util
     assert [m for m in workers.PRELOAD if importlib.util.find_spec(m) is None] == []
+
+
+def test_two_threads_shutting_a_pool_down_together_take_turns(monkeypatch):
+    """The thread that made a pool and cancel_pools (a failing run stopping a background
+    stage) may shut the pool down at once; ProcessPoolExecutor.shutdown run twice at the
+    same time closes its result queue twice (OSError EBADF, seen in a failing run). The
+    calls take turns: never two inside ProcessPoolExecutor.shutdown together, no error."""
+    inside, most, lock = [0], [0], threading.Lock()
+    real = ProcessPoolExecutor.shutdown
+
+    def counted(self, *args, **kwargs):
+        with lock:
+            inside[0] += 1
+            most[0] = max(most[0], inside[0])
+        try:
+            threading.Event().wait(0.3)   # widen the window in which a second call enters
+            return real(self, *args, **kwargs)
+        finally:
+            with lock:
+                inside[0] -= 1
+
+    monkeypatch.setattr(ProcessPoolExecutor, "shutdown", counted)
+    pool = workers.process_pool(1)
+    assert pool.submit(abs, -3).result() == 3
+    errors = []
+
+    def stop():
+        try:
+            pool.shutdown(wait=True, cancel_futures=True)
+        except BaseException as exc:  # noqa: BLE001 - the test reports it
+            errors.append(exc)
+
+    threads = [threading.Thread(target=stop) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert errors == [] and most[0] == 1
