@@ -642,3 +642,25 @@ def test_reading_a_native_estimate_loads_no_matlab_reader(tmp_path):
     loaded = set(json.loads(res.stderr.strip().splitlines()[-1]))
     assert "armfit.io.colmap" in loaded
     assert not loaded & {"scipy.io", "h5py", "armfit.io.matlab"}
+
+
+def test_resample_reads_the_rates_through_the_maps(runner, tmp_path, monkeypatch):
+    # two files without time, at 1000 Hz and 500 Hz by their maps: the most common rate
+    # (a tie: the first file's) is the reference, the other is resampled to it
+    monkeypatch.chdir(tmp_path)
+    s = _signals(6)
+    _csv(tmp_path / "fast.csv", {"V1": s["f"], "V2": s["x"]})
+    _csv(tmp_path / "slow.csv", {"V1": s["f"][::2], "V2": s["x"][::2]})
+    for rate in (1000, 500):
+        (tmp_path / f"m{rate}.csv").write_text(
+            f"quantity,source,unit,gain,value\nrate_Hz,,Hz,,{rate}\nforce_x_N,V1,V,1,\n"
+            "pos_x_m,V2,V,1,\n")
+    (tmp_path / "manifest.csv").write_text("file,subject,axis,grip_N,map\n"
+                                           "fast.csv,01,x,1,m1000.csv\n"
+                                           "slow.csv,02,x,1,m500.csv\n")
+    res = _ingest(runner, "--manifest", "manifest.csv", "-o", "d.parquet", "--resample")
+    assert res.exit_code == 0, res.stderr
+    assert "slow.csv: resampled from 500 Hz to 1000 Hz" in res.stderr
+    meta = dataset_metadata("d.parquet")
+    assert [(m["fs"], m["n_samples"]) for m in meta] == [(FS, N), (FS, N)]
+    assert meta[1]["column_map"] == read_column_map("m500.csv")
