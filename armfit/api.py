@@ -148,7 +148,8 @@ def read_trials(paths: PathLike | Sequence[PathLike], *, manifest: PathLike | No
                 skip_bad: bool = False, resample: bool = False,
                 f_min_hz: float = EstimateConfig.fmin,
                 force_limit_N: float = EstimateConfig.force_limit_N,
-                warn: Warn | None = None) -> Trials:
+                warn: Warn | None = None, column_map: PathLike | None = None,
+                note: Warn | None = None) -> Trials:
     """Read raw trial files, folders or a canonical dataset into memory.
 
     Parameters
@@ -157,7 +158,8 @@ def read_trials(paths: PathLike | Sequence[PathLike], *, manifest: PathLike | No
         Trial files (CSV, CSV.gz, Parquet) named ``sub-<s>_axis-<a>_grip-<g>N...``,
         folders holding them, or a dataset written by ``armfit ingest``.
     manifest : path, optional
-        CSV with columns file, subject, axis, grip_N[, run] (paths relative to it).
+        CSV with columns file, subject, axis, grip_N[, run][, map] (paths relative to
+        it; ``map``: the column map of the row's file).
     skip_bad : bool
         Leave bad trials out (listed in ``skipped``) instead of raising.
     resample : bool
@@ -168,6 +170,12 @@ def read_trials(paths: PathLike | Sequence[PathLike], *, manifest: PathLike | No
         Device peak force, N; forces reaching it are warned about (saturation).
     warn : callable, optional
         Receives data warnings (saturation, resampling).
+    column_map : path, optional
+        Column map (CSV, see docs/formats.md) of every raw file without one of its own in
+        the manifest: which of its columns or MATLAB variables are time, force and
+        position, and in which units; needed for a MATLAB ``.mat`` file.
+    note : callable, optional
+        Receives, once per distinct column map, the conversions it makes.
 
     Returns
     -------
@@ -182,7 +190,8 @@ def read_trials(paths: PathLike | Sequence[PathLike], *, manifest: PathLike | No
     """
     inputs = [paths] if isinstance(paths, str | os.PathLike) else list(paths)
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, resample=resample,
-                         f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn)
+                         f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn,
+                         column_map=column_map, note=note)
     trials = tuple(stream)
     return Trials(trials, tuple(stream.skipped), tuple(str(p) for p in stream.ignored))
 
@@ -213,7 +222,9 @@ def estimate_study_result(source, config: EstimateConfig | None = None, *,
                           jobs: int = 1, on_open: Callable[[int], object] | None = None,
                           advance: Callable[[], object] | None = None,
                           warn: Warn | None = None,
-                          executor: Executor | None = None) -> StudySpectra:
+                          executor: Executor | None = None,
+                          column_map: PathLike | None = None,
+                          note: Warn | None = None) -> StudySpectra:
     """:func:`estimate` with everything it found: the spectra, the trials kept, the
     trials skipped and files ignored, the sampling rate and data warnings.
 
@@ -229,7 +240,7 @@ def estimate_study_result(source, config: EstimateConfig | None = None, *,
         source = [source]
     return estimate_study(list(source), config, manifest=manifest, skip_bad=skip_bad,
                           jobs=jobs, on_open=on_open, advance=advance, warn=warn,
-                          executor=executor)
+                          executor=executor, column_map=column_map, note=note)
 
 
 def estimate(source, *, method: str = EstimateConfig.method,
@@ -240,7 +251,8 @@ def estimate(source, *, method: str = EstimateConfig.method,
              coherence_min: float = EstimateConfig.coherence_min,
              force_limit_N: float = EstimateConfig.force_limit_N,
              manifest: PathLike | None = None, skip_bad: bool = False, jobs: int = 1,
-             warn: Warn | None = None, executor: Executor | None = None) -> Spectra:
+             warn: Warn | None = None, executor: Executor | None = None,
+             column_map: PathLike | None = None, note: Warn | None = None) -> Spectra:
     """Frequency responses of every trial, and their mean per axis × grip and median per
     axis (``armfit estimate``).
 
@@ -282,6 +294,10 @@ def estimate(source, *, method: str = EstimateConfig.method,
         down; see :mod:`armfit.workers`). The result does not depend on it.
         Each task reads its trial file itself: on a cluster, give paths every machine
         can read.
+    column_map : path, optional
+        Column map of every raw file without one of its own (see :func:`read_trials`).
+    note : callable, optional
+        Receives, once per distinct column map, the conversions it makes.
 
     Returns
     -------
@@ -293,7 +309,8 @@ def estimate(source, *, method: str = EstimateConfig.method,
                              nperseg=nperseg, overlap=overlap, window=window, mp=mp,
                              coherence_min=coherence_min, force_limit_N=force_limit_N)
     return estimate_study_result(source, config, manifest=manifest, skip_bad=skip_bad,
-                                 jobs=jobs, warn=warn, executor=executor).spectra
+                                 jobs=jobs, warn=warn, executor=executor,
+                                 column_map=column_map, note=note).spectra
 
 
 def read_spectra(path: PathLike) -> Spectra:

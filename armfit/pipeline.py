@@ -85,7 +85,7 @@ import numpy as np
 from armfit import api
 from armfit.adopt import Adoption, adopt
 from armfit.api import compare_frame
-from armfit.constants import AXES, PAPER_BANDS
+from armfit.constants import AXES, FORCE_LIMIT_N, GRID_HZ, PAPER_BANDS
 from armfit.diagnosis import diagnose_axes
 from armfit.errors import ArmfitError, OutputError
 from armfit.fitting import TrialFit, fit_trial_models, grip_fit_starts, trial_fits_table
@@ -99,7 +99,7 @@ from armfit.io.atomic import (
     write_text_atomic,
 )
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
-from armfit.io.trials import Warn, ingest
+from armfit.io.trials import Warn, ingest, with_map
 from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.memory import release_memory
 from armfit.models.params import read_param_rows
@@ -141,7 +141,12 @@ class RunOptions:
     see :func:`run_pipeline` for an executor given instead); figures: draw the
     figures; overwrite: replace an existing OUTDIR; adopt: what the diagnosis found
     becomes the model ("auto") or not ("none"), see :mod:`armfit.adopt`; outside_loop:
-    apparatus effects the stability loop leaves out (:func:`armfit.loop.loop_model`).
+    apparatus effects the stability loop leaves out (:func:`armfit.loop.loop_model`);
+    column_map: the column map (CSV) of every raw file without one in the manifest
+    (None: the files have armfit's own columns); force_limit_N: the device's peak force
+    (N), reached forces are warned about and flagged as saturation; fmin, fmax: the
+    frequency grid (Hz; a trial must last 2/fmin s); bands: fit bands (axis, lo, hi) in
+    Hz that replace the paper's of their axis (:data:`armfit.constants.PAPER_BANDS`).
     """
 
     manifest: str | None = None
@@ -154,6 +159,18 @@ class RunOptions:
     overwrite: bool = False
     adopt: str = "auto"
     outside_loop: tuple[str, ...] = ()
+    column_map: str | None = None
+    force_limit_N: float = FORCE_LIMIT_N
+    fmin: float = GRID_HZ[0]
+    fmax: float = GRID_HZ[1]
+    bands: tuple[tuple[str, float, float], ...] = ()
+
+    @property
+    def fit_bands(self) -> dict[str, tuple[float, float]]:
+        """{axis: (lo, hi) Hz}: the paper's bands, with :attr:`bands` in their place."""
+        out = dict(PAPER_BANDS)
+        out.update({a: (lo, hi) for a, lo, hi in self.bands})
+        return out
 
 
 @dataclass(frozen=True)
@@ -208,13 +225,15 @@ OnStage = Callable[[Stage], object]
 # ---------------------------------------------------------------------------
 
 def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike], *,
-                 manifest: str | os.PathLike | None = None, overwrite: bool = False) -> Path:
+                 manifest: str | os.PathLike | None = None, overwrite: bool = False,
+                 column_map: str | os.PathLike | None = None) -> Path:
     """Refuse an OUTDIR whose name or path is over the system's limits, that exists
     without ``overwrite``, is a file or a symbolic link, is or holds an input (replacing
     it would delete the input), could not be removed whole to be replaced, or whose
     folder cannot be written (:func:`armfit.io.atomic.check_output`). Raises OutputError
     (exit 73)."""
     out = check_length(outdir, folder=True)
+    inputs = with_map(inputs, column_map)
     named = [*inputs, *([manifest] if manifest is not None else [])]
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder; give a folder for OUTDIR")
@@ -229,7 +248,8 @@ def check_outdir(outdir: str | os.PathLike, inputs: Sequence[str | os.PathLike],
 
 def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
                  options: RunOptions = RunOptions(), *, on_stage: OnStage | None = None,
-                 warn: Warn | None = None, executor: Executor | None = None) -> RunResult:
+                 warn: Warn | None = None, executor: Executor | None = None,
+                 note: Warn | None = None) -> RunResult:
     """Run every stage on ``inputs`` (raw trial files, folders or a canonical dataset)
     and write the results into ``outdir``, atomically.
 
@@ -240,18 +260,20 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
     with jobs 1); the diagnosis has ``options.jobs`` worker processes of its own.
 
     ``on_stage(stage)`` is called after each stage (e.g. to print its time); ``warn``
-    receives data warnings (saturation). Raises OutputError (exit 73) before any work
+    receives data warnings (saturation); ``note`` the conversions of each column map,
+    once. Raises OutputError (exit 73) before any work
     if ``outdir`` cannot be written, and the error of the first failing stage otherwise
     (BadInputError 65, NoInputError 66, ConvergenceError 3, ...), leaving no new OUTDIR
     and an existing one untouched; a message naming a file of the temporary folder names
     it as it would have been in ``outdir``.
     """
-    out = check_outdir(outdir, inputs, manifest=options.manifest, overwrite=options.overwrite)
+    out = check_outdir(outdir, inputs, manifest=options.manifest, overwrite=options.overwrite,
+                       column_map=options.column_map)
     tmp: Path | None = None
     try:
         with atomic_path(out, overwrite=options.overwrite, folder=True) as tmp:
             result = _run_in(list(inputs), tmp, options, on_stage=on_stage, warn=warn,
-                             executor=executor, outdir=str(outdir))
+                             executor=executor, note=note, outdir=str(outdir))
     except ArmfitError as exc:
         # a message about a file of the temporary folder names it as it would be in OUTDIR
         text = str(exc)
@@ -272,8 +294,9 @@ class RunConfig:
     inputs: the inputs as given; folder: the (empty) folder the stages write into;
     options: the run's options; estimate: the estimator's configuration; bands: the
     paper's fit bands {axis: (lo, hi) Hz}, those of the base model's fits; warn:
-    receives data warnings (None: they are dropped); outdir: the output folder as given
-    (what report.md's command line shows).
+    receives data warnings (None: they are dropped); note: receives the conversions of
+    each column map, once (None: dropped); outdir: the output folder as given (what
+    report.md's command line shows).
     """
 
     inputs: tuple[str | os.PathLike, ...]
@@ -282,6 +305,7 @@ class RunConfig:
     estimate: EstimateConfig
     bands: Mapping[str, tuple[float, float]]
     warn: Warn | None = None
+    note: Warn | None = None
     outdir: str = "OUTDIR"
 
     def path(self, name: str) -> Path:
@@ -543,9 +567,11 @@ def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
     o = config.options
     estimating = workers.start(api.estimate_study_result, list(config.inputs),
                                config.estimate, manifest=o.manifest, skip_bad=o.skip_bad,
-                               jobs=o.jobs, executor=workers.executor)
+                               jobs=o.jobs, executor=workers.executor,
+                               column_map=o.column_map)
     ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
-                 skip_bad=o.skip_bad, warn=config.warn)
+                 skip_bad=o.skip_bad, warn=config.warn, column_map=o.column_map,
+                 force_limit_N=o.force_limit_N, f_min_hz=o.fmin, note=config.note)
     skipped = tuple((s.file, s.reason) for s in ing.skipped)
     return Ingested(len(ing.trials), skipped, estimating, files=("trials.parquet",),
                     summary=f"{len(ing.trials)} trial(s)"
@@ -903,9 +929,12 @@ class _Clock:
 
 def _run_in(inputs: list, folder: Path, options: RunOptions, *,
             on_stage: OnStage | None, warn: Warn | None,
-            executor: Executor | None = None, outdir: str = "OUTDIR") -> RunResult:
-    config = RunConfig(tuple(inputs), folder, options, EstimateConfig(method=options.method),
-                       dict(PAPER_BANDS), warn, outdir)
+            executor: Executor | None = None, note: Warn | None = None,
+            outdir: str = "OUTDIR") -> RunResult:
+    config = RunConfig(tuple(inputs), folder, options,
+                       EstimateConfig(method=options.method, fmin=options.fmin,
+                                      fmax=options.fmax, force_limit_N=options.force_limit_N),
+                       options.fit_bands, warn, note, outdir)
     # the caller's executor, or one pool of worker processes for every stage of the run
     with executor_for(executor, options.jobs) as pool, contextlib.ExitStack() as stack:
         own = pool is not None and pool is not executor
@@ -956,7 +985,11 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
         cost: str = "complex", wu_cost: str = "envelope", jobs: int = 1,
         figures: bool = True, overwrite: bool = False, adopt: str = "auto",
         outside_loop: Sequence[str] = (), on_stage: OnStage | None = None,
-        warn: Warn | None = None, executor: Executor | None = None) -> RunResult:
+        warn: Warn | None = None, executor: Executor | None = None,
+        column_map=None, force_limit_N: float = FORCE_LIMIT_N,
+        fmin: float = GRID_HZ[0], fmax: float = GRID_HZ[1],
+        bands: Mapping[str, tuple[float, float]] | None = None,
+        note: Warn | None = None) -> RunResult:
     """Run every stage on raw trials and write all tables, figures and report.md into
     ``outdir`` (``armfit run``).
 
@@ -997,6 +1030,19 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
         ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
         down; see :func:`run_pipeline`). The trial files are read by its workers: on a
         cluster, give paths every machine can read. The outputs do not depend on it.
+    column_map : path, optional
+        Column map (CSV) of every raw file without one of its own in the manifest
+        (see :func:`armfit.read_trials`).
+    force_limit_N : float
+        The device's peak force, N: forces reaching it are warned about and flagged
+        ``saturation``.
+    fmin, fmax : float
+        The frequency grid, Hz (see :func:`armfit.estimate`); a trial must last 2/fmin s.
+    bands : dict, optional
+        Fit band per axis {axis: (lo, hi)} in Hz, in place of the paper's (x, y 0.1–30
+        Hz, z 0.1–10 Hz) for the axes it names.
+    note : callable, optional
+        Receives, once per distinct column map, the conversions it makes.
 
     Returns
     -------
@@ -1005,9 +1051,13 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
     items = [inputs] if isinstance(inputs, str | os.PathLike) else list(inputs)
     options = RunOptions(manifest=manifest, skip_bad=skip_bad, method=method, cost=cost,
                          wu_cost=wu_cost, jobs=jobs, figures=figures, overwrite=overwrite,
-                         adopt=adopt, outside_loop=tuple(outside_loop))
+                         adopt=adopt, outside_loop=tuple(outside_loop),
+                         column_map=None if column_map is None else str(column_map),
+                         force_limit_N=force_limit_N, fmin=fmin, fmax=fmax,
+                         bands=tuple((a, float(lo), float(hi))
+                                     for a, (lo, hi) in (bands or {}).items()))
     return run_pipeline(items, outdir, options, on_stage=on_stage, warn=warn,
-                        executor=executor)
+                        executor=executor, note=note)
 
 def _warn_at_bound(which: str, model: api.ModelFit, warn: Warn | None) -> None:
     """One warning per fit with a parameter at a physical bound (column ``at_bound``)."""

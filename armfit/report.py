@@ -22,7 +22,7 @@ import pandas as pd
 from armfit import api
 from armfit._version import __version__
 from armfit.adopt import Adoption
-from armfit.constants import AXES, PAPER_BANDS
+from armfit.constants import AXES, FORCE_LIMIT_N, GRID_HZ, PAPER_BANDS
 from armfit.diagnosis import BANDS, AxisDiagnosis, Candidate, Step
 from armfit.io.schema import finite_or_none
 from armfit.loop import WallSettings, certificate_status
@@ -61,6 +61,11 @@ class RunSettings(Protocol):
     figures: bool
     adopt: str
     outside_loop: tuple[str, ...]
+    column_map: str | None
+    force_limit_N: float
+    fmin: float
+    fmax: float
+    bands: tuple[tuple[str, float, float], ...]
 
 
 @dataclass(frozen=True)
@@ -320,6 +325,14 @@ def _command(inputs: Sequence[str], outdir: str, options: RunSettings) -> str:
     cmd = ["armfit run", *map(shlex.quote, inputs), f"-o {shlex.quote(outdir)}"]
     if options.manifest:
         cmd.append(f"--manifest {shlex.quote(str(options.manifest))}")
+    if options.column_map:
+        cmd.append(f"--map {shlex.quote(str(options.column_map))}")
+    if options.force_limit_N != FORCE_LIMIT_N:
+        cmd.append(f"--force-limit {options.force_limit_N:g}")
+    if (options.fmin, options.fmax) != GRID_HZ:
+        cmd.append(f"--fmin {options.fmin:g} --fmax {options.fmax:g}")
+    if options.bands:
+        cmd.append("--band " + ",".join(f"{a}={lo:g}:{hi:g}" for a, lo, hi in options.bands))
     if options.skip_bad:
         cmd.append("--skip-bad")
     cmd += [f"--method {options.method}", f"--cost {options.cost}",

@@ -2091,7 +2091,7 @@ def _estimate_source(source, config: EstimateConfig):
 
 def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: bool = False,
                    jobs: int = 1, on_open=None, advance=None, warn=None,
-                   executor=None) -> StudySpectra:
+                   executor=None, column_map=None, note=None) -> StudySpectra:
     """Estimate every trial of ``inputs`` (raw files, folders or a canonical dataset).
 
     Trials are found by :func:`armfit.io.trials.open_trials`, read and validated one by
@@ -2103,10 +2103,13 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     ``skip_bad`` the first bad trial raises BadInputError; with it, bad trials are listed
     in ``skipped``. ``warn(msg)`` receives saturation warnings,
     ``on_open(n)`` is told the number of trials found, ``advance()`` is called once per
-    trial.
+    trial. ``column_map`` (a map file) is the column map of every raw file without one of
+    its own in the manifest; ``note(msg)`` receives the conversions of each map, once
+    (:func:`armfit.io.trials.open_trials`).
     """
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, f_min_hz=config.fmin,
-                         force_limit_N=config.force_limit_N)
+                         force_limit_N=config.force_limit_N, column_map=column_map,
+                         note=note)
     skipped = [(s.file, s.reason) for s in stream.skipped]
     kept: list[TrialResponses] = []
     warnings: list[str] = []

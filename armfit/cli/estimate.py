@@ -15,6 +15,8 @@ from armfit.cli.options import (
     jobs_option,
     json_option,
     manifest_option,
+    map_note,
+    map_option,
     message,
     output_option,
     overwrite_option,
@@ -26,6 +28,7 @@ from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.errors import UsageError
 from armfit.io.atomic import atomic_outputs, check_output
 from armfit.io.numbers import parse_number
+from armfit.io.trials import with_map
 from armfit.spectra import EstimateConfig
 
 WINDOWS = ("hann", "hamming", "blackman", "blackmanharris", "boxcar")
@@ -57,6 +60,7 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
 @click.argument("paths", nargs=-1, type=click.Path())
 @output_option
 @manifest_option
+@map_option
 @skip_bad_option
 @click.option("--method", type=click.Choice(["h1", "chebwin"]), default=_DEFAULTS.method,
               show_default=True,
@@ -92,7 +96,7 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
 @scheduler_option
 @overwrite_option
 @json_option
-def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, nperseg,
+def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, per_decade, nperseg,
             overlap, window, mp, coherence_min, force_limit, csv_path, jobs, scheduler,
             overwrite, as_json):
     """Estimate frequency responses of every trial and their mean and median, e.g.
@@ -108,7 +112,7 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
     if fmin >= fmax:
         raise UsageError(f"--fmin {fmin:g} Hz must be below --fmax {fmax:g} Hz")
-    inputs = list(paths)
+    inputs = with_map(paths, column_map)
     check_output(output, overwrite=overwrite, inputs=inputs, manifest=manifest)
     if csv_path is not None:
         check_output(csv_path, overwrite=overwrite, inputs=inputs + [output],
@@ -127,7 +131,8 @@ def command(paths, output, manifest, skip_bad, method, fmin, fmax, per_decade, n
                                        skip_bad=skip_bad, jobs=jobs, on_open=on_open,
                                        advance=lambda: bar["advance"](),
                                        warn=lambda text: message(f"warning: {text}"),
-                                       executor=executor)
+                                       executor=executor, column_map=column_map,
+                                       note=map_note)
     meta = result.meta
     with atomic_outputs(overwrite=overwrite):  # the Parquet file and the CSV, or neither
         result.write(output, overwrite=overwrite)

@@ -11,6 +11,8 @@ from armfit.cli.options import (
     emit_json,
     json_option,
     manifest_option,
+    map_note,
+    map_option,
     message,
     output_option,
     overwrite_option,
@@ -26,6 +28,7 @@ from armfit.io.trials import TrialStream, ingest
 @click.argument("paths", nargs=-1, type=click.Path())
 @output_option
 @manifest_option
+@map_option
 @skip_bad_option
 @click.option("--resample", is_flag=True,
               help="Resample trials whose sampling rate differs to the most common rate "
@@ -38,13 +41,15 @@ from armfit.io.trials import TrialStream, ingest
               help="Device peak force; forces reaching it are warned about (saturation).")
 @overwrite_option
 @json_option
-def command(paths, output, manifest, skip_bad, resample, f_min, force_limit, overwrite,
-            as_json):
+def command(paths, output, manifest, column_map, skip_bad, resample, f_min, force_limit,
+            overwrite, as_json):
     """Read raw trial files and folders (CSV, CSV.gz, Parquet) and write one canonical
     dataset, e.g. ``armfit ingest raw/ -o trials.parquet``.
 
     Trials are named sub-<label>_axis-<x|y|z>_grip-<g>N[_run-<k>].<csv|csv.gz|parquet>
-    or listed in --manifest. A canonical dataset is accepted as input too.
+    or listed in --manifest. A canonical dataset is accepted as input too. Files in a
+    lab's own columns and units (CSV, Parquet, MATLAB .mat) are read through a column
+    map (--map, or the manifest's column map).
     """
     if not paths and manifest is None:
         raise click.UsageError("give trial files or folders, or --manifest")
@@ -61,7 +66,8 @@ def command(paths, output, manifest, skip_bad, resample, f_min, force_limit, ove
         result = ingest(paths, output, manifest=manifest, skip_bad=skip_bad,
                         resample=resample, f_min_hz=f_min, force_limit_N=force_limit,
                         overwrite=overwrite, warn=lambda text: message(f"warning: {text}"),
-                        advance=lambda: bar["advance"](), on_open=on_open)
+                        advance=lambda: bar["advance"](), on_open=on_open,
+                        column_map=column_map, note=map_note)
     for s in result.skipped:
         message(f"skipped {s.file}: {s.reason}")
     message(f"ingested {len(result.trials)} trial(s) into {result.output}"
@@ -74,7 +80,9 @@ def command(paths, output, manifest, skip_bad, resample, f_min, force_limit, ove
             "ignored": list(result.ignored),
             "items": [{"subject": m.subject, "axis": m.axis, "grip_N": m.grip_N,
                        "run": m.run, "fs": m.fs, "n_samples": m.n_samples,
-                       "duration_s": m.duration_s, "t0_s": m.t0_s, "source": m.source}
+                       "duration_s": m.duration_s, "t0_s": m.t0_s, "source": m.source,
+                       **({} if m.column_map is None
+                          else {"column_map": m.column_map.path})}
                       for m in result.trials],
         })
 

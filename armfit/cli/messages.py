@@ -26,6 +26,7 @@ OPTION_FLAGS: dict[str, str | tuple[str, ...]] = {
     "delay_samples": "--delay-samples", "effect_files": "--effects",
     "outside_loop": "--outside-loop", "members": "--members",
     "manifest": "--manifest", "skip_bad": "--skip-bad", "resample": "--resample",
+    "column_map": "--map",
     "f_min_hz": ("--f-min", "--fmin"),
 }
 

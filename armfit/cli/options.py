@@ -79,7 +79,30 @@ def _one_manifest(ctx, param, value):
 
 manifest_option = click.option(
     "--manifest", type=click.Path(dir_okay=False), multiple=True, callback=_one_manifest,
-    help="CSV with columns file,subject,axis,grip_N[,run]; paths relative to it. Once.")
+    help="CSV with columns file,subject,axis,grip_N[,run][,map]; paths relative to it. "
+         "Once.")
+
+
+def _one_map(ctx, param, value):
+    """The one ``--map`` given (None without)."""
+    if len(value) > 1:
+        raise click.BadParameter(f"given {len(value)} times ({', '.join(value)}); give one "
+                                 "map here, and a map per file in the manifest's column "
+                                 "'map'", ctx, param)
+    return value[0] if value else None
+
+
+map_option = click.option(
+    "--map", "column_map", type=click.Path(dir_okay=False), multiple=True,
+    callback=_one_map, metavar="FILE",
+    help="Column map (CSV quantity,source,unit[,gain][,lever_m][,sign][,value]) of every "
+         "raw file without one in the manifest: which columns or MATLAB variables hold "
+         "time, force and position, in which units. Once.")
+
+
+def map_note(text: str) -> None:
+    """A column map's conversions, on stderr as ``armfit: ...`` (silenced by -q)."""
+    message(f"armfit: {text}")
 jobs_option = click.option(
     "-j", "--jobs", type=Whole(1, 64), default=1, show_default=True,
     help="Worker processes.")
@@ -295,7 +318,8 @@ def iterate(items: Iterable[_T], total: int, description: str) -> Iterator[_T]:
 __all__ = [
     "Number", "Whole",
     "output_option", "overwrite_option", "json_option", "skip_bad_option",
-    "manifest_option", "jobs_option", "scheduler_option", "cluster_executor",
+    "manifest_option", "map_option", "map_note", "jobs_option", "scheduler_option",
+    "cluster_executor",
     "effect_option", "outside_loop_option", "fit_effect_option", "effect_items",
     "BAND_HELP", "parse_band", "parse_bands", "band_option", "axis_bands_option",
     "bands_by_axis", "clean", "effects_file_option", "effect_files", "verbosity",

@@ -5,18 +5,25 @@ from __future__ import annotations
 import click
 
 from armfit.cli.options import (
+    Number,
+    axis_bands_option,
+    bands_by_axis,
     cluster_executor,
     effects_file_option,
     emit_json,
     jobs_option,
     json_option,
     manifest_option,
+    map_note,
+    map_option,
     message,
     outside_loop_option,
     overwrite_option,
     scheduler_option,
     skip_bad_option,
 )
+from armfit.constants import FORCE_LIMIT_N, GRID_HZ, PAPER_BANDS
+from armfit.errors import UsageError
 from armfit.fitting import COSTS
 from armfit.pipeline import run
 from armfit.spectra import METHODS
@@ -28,6 +35,7 @@ from armfit.spectra import METHODS
 @click.option("-o", "--output", "outdir", required=True, type=click.Path(), metavar="OUTDIR",
               help="Folder to write (built beside it, renamed into place at the end).")
 @manifest_option
+@map_option
 @skip_bad_option
 @click.option("--method", type=click.Choice(METHODS), default="h1", show_default=True,
               help="Measured-dynamics estimator (see `armfit estimate`).")
@@ -42,13 +50,26 @@ from armfit.spectra import METHODS
               help="auto: the effects the diagnosis names become the model of every "
                    "product; none: the paper's 5-parameter model throughout.")
 @outside_loop_option
+@click.option("--fmin", type=Number(min=0, min_open=True), default=GRID_HZ[0],
+              show_default=True, metavar="HZ",
+              help="Lowest grid frequency (a trial must last 2/HZ s).")
+@click.option("--fmax", type=Number(min=0, min_open=True), default=GRID_HZ[1],
+              show_default=True, metavar="HZ", help="Highest grid frequency (<= Nyquist).")
+@axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI) "
+                   "[default: x=0.1:30,y=0.1:30,z=0.1:10, as the paper]; axes not named "
+                   "keep the default.")
+@click.option("--force-limit", "force_limit", type=Number(min=0, min_open=True),
+              default=FORCE_LIMIT_N, show_default=True, metavar="N",
+              help="Device peak force; forces reaching it are warned about and flagged "
+                   "saturation.")
 @jobs_option
 @scheduler_option
 @click.option("--no-figures", is_flag=True, help="Skip the figures (faster).")
 @overwrite_option
 @json_option
-def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, outside_loop,
-            jobs, scheduler, no_figures, overwrite, as_json):
+def command(inputs, outdir, manifest, column_map, skip_bad, method, cost, wu_cost, adopt,
+            outside_loop, fmin, fmax, band, force_limit, jobs, scheduler, no_figures,
+            overwrite, as_json):
     """Run every stage on raw trials and write all tables, figures and report.md into
     OUTDIR, e.g. ``armfit run raw/ -o results``.
 
@@ -62,13 +83,18 @@ def command(inputs, outdir, manifest, skip_bad, method, cost, wu_cost, adopt, ou
     """
     if not inputs and manifest is None:
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
+    if fmin >= fmax:
+        raise UsageError(f"--fmin {fmin:g} Hz must be below --fmax {fmax:g} Hz")
+    bands = bands_by_axis(band, PAPER_BANDS)
     with cluster_executor(scheduler) as executor:
         result = run(
             list(inputs), outdir, manifest=manifest, skip_bad=skip_bad, method=method,
             cost=cost, wu_cost=wu_cost, jobs=jobs, figures=not no_figures,
             overwrite=overwrite, adopt=adopt, outside_loop=outside_loop,
             on_stage=lambda s: message(s.line()),
-            warn=lambda text: message(f"warning: {text}"), executor=executor)
+            warn=lambda text: message(f"warning: {text}"), executor=executor,
+            column_map=column_map, force_limit_N=force_limit, fmin=fmin, fmax=fmax,
+            bands={a: b for a, b in bands.items() if b != PAPER_BANDS[a]}, note=map_note)
     for f, reason in result.skipped:
         message(f"skipped {f}: {reason}")
     for axis, verdict in result.verdicts.items():

@@ -486,7 +486,7 @@ def check_output(path: str | os.PathLike, *, overwrite: bool,
 
     Refused: an output that exists without ``overwrite``; one that would destroy or
     pollute an input (it is one of the ``inputs`` or the ``manifest``, holds one as a
-    folder, is a file listed in the manifest, or lies inside an input folder under a
+    folder, is a file or a column map listed in the manifest, or lies inside an input folder under a
     raw-trial name that reading the folder would pick up; these hold even with
     ``overwrite``); a file output that is an existing folder (``-o .``); a folder output
     that is a symbolic link, or that could not be removed whole to be replaced; a name
@@ -548,13 +548,17 @@ def _check_inputs(out: Path, inputs, manifest) -> None:
                               "choose another output "
                               "(an input is never overwritten, even with {opt:overwrite})")
     if manifest is not None:
-        from armfit.io.trials import read_manifest
+        from armfit.io.trials import manifest_maps, read_manifest
         try:
             listed = read_manifest(manifest)
+            maps = {resolved_path(m) for m in manifest_maps(manifest)}
         except Exception:  # a bad manifest is reported when it is read as an input
-            listed = {}
+            listed, maps = {}, set()
         if out_res in listed:
             raise OutputError(f"{out}: listed as a trial in the manifest {manifest}, so it "
+                              "is also an input; choose another output")
+        if out_res in maps:
+            raise OutputError(f"{out}: a column map named by the manifest {manifest}, so it "
                               "is also an input; choose another output")
 
 

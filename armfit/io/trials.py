@@ -16,6 +16,7 @@ sampling rate Hz. Rows in messages are 1-based data rows (the header is not coun
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import errno
 import functools
@@ -37,10 +38,12 @@ import numpy as np
 from armfit.constants import AXES, FORCE_LIMIT_N, GRID_HZ
 from armfit.errors import ArmfitError, BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path, check_output, resolved_path
+from armfit.io.colmap import ColumnMap, Conversion, read_column_map
 from armfit.io.numbers import parse_number, parse_numbers, parse_whole
 
-#: File extensions of raw trials, longest first (".csv.gz" before ".csv").
-TRIAL_EXTENSIONS: tuple[str, ...] = (".csv.gz", ".csv", ".parquet")
+#: File extensions of raw trials, longest first (".csv.gz" before ".csv"). A MATLAB file
+#: (".mat") is read only through a column map (:mod:`armfit.io.colmap`).
+TRIAL_EXTENSIONS: tuple[str, ...] = (".csv.gz", ".csv", ".parquet", ".mat")
 
 #: Sample columns of the canonical dataset besides ``trial`` (float64, SI units).
 DATASET_COLUMNS: tuple[str, ...] = (
@@ -93,7 +96,8 @@ class TrialMeta:
 
     subject: alphanumeric label; axis: stimulated axis 'x'|'y'|'z'; grip_N: target grip
     force (N); run: repeat index or None; fs: sampling rate (Hz); n_samples; t0_s: time of
-    the first sample (s); source: the file it was read from.
+    the first sample (s); source: the file it was read from; column_map: the map its SI
+    columns were made with (None: the file has armfit's own columns).
     """
 
     subject: str
@@ -104,6 +108,7 @@ class TrialMeta:
     n_samples: int
     t0_s: float
     source: str
+    column_map: ColumnMap | None = None
 
     @property
     def duration_s(self) -> float:
@@ -154,7 +159,8 @@ class TrialSource:
 
     path: a raw trial file, or a canonical dataset file when ``index`` (its row group,
     0-based) is set; subject, axis, grip_N (N), run: the trial's identity, from the file
-    name, a manifest, or the dataset's metadata.
+    name, a manifest, or the dataset's metadata; column_map: how the raw file's columns
+    become armfit's (None: it has armfit's own columns).
     """
 
     path: str
@@ -163,6 +169,7 @@ class TrialSource:
     grip_N: float
     run: int | None = None
     index: int | None = None
+    column_map: ColumnMap | None = None
 
     @property
     def key(self) -> tuple[str, str, float, int | None]:
@@ -240,6 +247,7 @@ class _ManifestRow:
     given: Path                   # the file as the manifest names it, relative to it
     key: Path                     # the file it leads to (see _key)
     ident: tuple[str, str, float, int | None]
+    map: Path | None = None       # its column map (column 'map'), relative to the manifest
 
 
 def _manifest_rows(path: str | os.PathLike) -> list[_ManifestRow]:
@@ -292,13 +300,15 @@ def _manifest_rows(path: str | os.PathLike) -> list[_ManifestRow]:
         if target in rows:
             raise BadInputError(f"file '{vals['file']}' is listed twice (also row "
                                 f"{rows[target]})", file=file, column="file", row=row_no)
-        out.append(_ManifestRow(row_no, given, target, (subject, axis, grip, run)))
+        cmap = mpath.parent / vals["map"] if vals.get("map") else None
+        out.append(_ManifestRow(row_no, given, target, (subject, axis, grip, run), cmap))
         rows[target] = row_no
     return out
 
 
 def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, int | None]]:
-    """Read a manifest CSV (``file,subject,axis,grip_N[,run]``; files relative to it).
+    """Read a manifest CSV (``file,subject,axis,grip_N[,run][,map]``; files and column
+    maps relative to it).
 
     Returns {resolved file path: (subject, axis, grip_N, run)}. Raises BadInputError
     naming the manifest, column and row of a bad entry (a grip that is not a
@@ -306,6 +316,12 @@ def read_manifest(path: str | os.PathLike) -> dict[Path, tuple[str, str, float, 
     :mod:`armfit.io.numbers`).
     """
     return {r.key: r.ident for r in _manifest_rows(path)}
+
+
+def manifest_maps(path: str | os.PathLike) -> list[Path]:
+    """The column map files a manifest names (its column ``map``, relative to it), each
+    once, in the order of the rows; raises as :func:`read_manifest`."""
+    return list(dict.fromkeys(r.map for r in _manifest_rows(path) if r.map is not None))
 
 
 _KINDS = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
@@ -402,12 +418,18 @@ def _skip_or_raise(exc: ArmfitError, bad: list[Skipped] | None, file: str) -> No
 class _Finder:
     """The search of :func:`discover`: PATHs walked or taken as given, then the manifest
     rows not met under them. With ``bad`` a list (``skip_bad``) problems are appended to
-    it, not raised."""
+    it, not raised. A raw file is read through its manifest row's column map, else
+    through ``column_map`` (a bad map is raised, never skipped: it is no trial's)."""
 
-    def __init__(self, manifest: str | os.PathLike | None, bad: list[Skipped] | None):
+    def __init__(self, manifest: str | os.PathLike | None, bad: list[Skipped] | None,
+                 column_map: str | os.PathLike | None = None):
         self.manifest = manifest
         self.rows = _manifest_rows(manifest) if manifest is not None else []
         self.entries = {r.key: r.ident for r in self.rows}
+        self.default_map = None if column_map is None else read_column_map(column_map)
+        maps = {m: read_column_map(m) for m in dict.fromkeys(
+            r.map for r in self.rows if r.map is not None)}
+        self.maps = {r.key: maps[r.map] for r in self.rows if r.map is not None}
         self.bad = bad
         self.sources: list[TrialSource] = []
         self.ignored: list[Path] = []
@@ -432,15 +454,35 @@ class _Finder:
         if problem is not None:
             self.fail(problem, path)
         elif res in self.entries:       # named by the manifest: read wherever it is
-            if _trial_ext(path.name) is None:
-                self.fail(BadInputError("unsupported file type; expected .csv, .csv.gz or "
-                                        ".parquet", file=str(path)), path)
+            cmap = self.maps.get(res, self.default_map)
+            if _trial_ext(path.name) is None and cmap is None:
+                self.fail(BadInputError("unsupported file type; expected .csv, .csv.gz, "
+                                        ".parquet, or .mat with a column map",
+                                        file=str(path)), path)
             else:
-                self.sources.append(TrialSource(str(path), *self.entries[res]))
+                self.source(path, self.entries[res], cmap)
         elif explicit and is_dataset(path):
             self.sources.extend(dataset_sources(path))
         else:
             self.named(path, explicit)
+
+    def source(self, path: Path, ident: tuple[str, str, float, int | None],
+               cmap: ColumnMap | None) -> None:
+        """A raw trial: kept, or refused when it cannot be read as it is (a MATLAB file
+        without a column map, a map without the stimulated axis)."""
+        file = str(path)
+        try:
+            if cmap is None and _trial_ext(path.name) == ".mat":
+                raise BadInputError("a MATLAB file has no column names armfit knows: a "
+                                    "column map is needed ({opt:column_map} FILE, or the "
+                                    "manifest's column 'map') to say which variables "
+                                    "hold time, force and position", file=file)
+            if cmap is not None:
+                cmap.check_axis(ident[1], file)
+        except BadInputError as exc:
+            self.fail(exc, path)
+            return
+        self.sources.append(TrialSource(file, *ident, column_map=cmap))
 
     def named(self, path: Path, explicit: bool) -> None:
         """A file whose identity is its name."""
@@ -455,7 +497,7 @@ class _Finder:
             if problem is not None:
                 self.fail(problem, path)
             else:
-                self.sources.append(TrialSource(str(path), *ident))
+                self.source(path, ident, self.default_map)
         elif explicit:
             extra = (", and it is not an armfit dataset"
                      if _trial_ext(path.name) == ".parquet" else "")
@@ -514,13 +556,15 @@ class _Finder:
 
 
 def _discover(inputs: Sequence[str | os.PathLike], manifest: str | os.PathLike | None,
-              bad: list[Skipped] | None) -> tuple[list[TrialSource], list[Path]]:
+              bad: list[Skipped] | None, column_map: str | os.PathLike | None = None
+              ) -> tuple[list[TrialSource], list[Path]]:
     """:func:`discover`; with ``bad`` a list, bad names are appended to it, not raised."""
-    return _Finder(manifest, bad).run(inputs)
+    return _Finder(manifest, bad, column_map).run(inputs)
 
 
 def discover(inputs: Sequence[str | os.PathLike], *,
              manifest: str | os.PathLike | None = None,
+             column_map: str | os.PathLike | None = None,
              ) -> tuple[list[TrialSource], list[Path]]:
     """Find the trials in ``inputs`` (raw files, folders, canonical dataset files).
 
@@ -528,9 +572,12 @@ def discover(inputs: Sequence[str | os.PathLike], *,
     trial names (and not in the manifest) are returned as ignored. A file named
     explicitly must be a trial name, a manifest entry, or a canonical dataset. With a
     manifest and no inputs, the manifest's files are the inputs. The manifest's identity
-    wins over the file name. Returns (sources, ignored files).
+    wins over the file name. A raw file is read through the column map of its manifest
+    row (column ``map``), else through ``column_map`` (a map file,
+    :func:`armfit.io.colmap.read_column_map`); a MATLAB file needs one. Returns
+    (sources, ignored files).
     """
-    return _discover(inputs, manifest, None)
+    return _discover(inputs, manifest, None, column_map)
 
 
 # ---------------------------------------------------------------------------
@@ -783,12 +830,17 @@ def read_trial(source: TrialSource, *, f_min_hz: float = GRID_HZ[0],
     non-constant force on the stimulated axis. |force| at or above ``force_limit_N`` (N)
     on any axis (:func:`saturated_samples`) is reported through ``warn`` (saturation),
     not raised. Positions in mm are
-    converted to m. ``grip`` False leaves the grip force unread (``Trial.grip`` None).
+    converted to m. A source with a column map is read through it (its columns or
+    MATLAB variables, converted to SI units; the same checks follow, their messages
+    naming the source column). ``grip`` False leaves the grip force unread
+    (``Trial.grip`` None).
     The metadata's ``source`` is the file read (for a symbolic link, the file it leads
     to). Raises BadInputError naming file, column and row.
     """
     if source.index is not None:
         trial = _read_dataset_trial(source, grip=grip)
+    elif source.column_map is not None:
+        trial = _read_mapped_trial(source, grip=grip)
     else:
         path = Path(source.path)
         file = source.path
@@ -815,9 +867,142 @@ def read_trial(source: TrialSource, *, f_min_hz: float = GRID_HZ[0],
         trial = Trial(meta, force, pos, None if grip is None else np.array(grip))
         del cols, t, grip
         _release_arrow_memory()
-    _check_trial(trial, source.label, f_min_hz=f_min_hz, force_limit_N=force_limit_N,
-                 warn=warn)
+    if source.column_map is not None:
+        _check_mapped(trial, source, f_min_hz=f_min_hz, force_limit_N=force_limit_N,
+                      warn=warn)
+    else:
+        _check_trial(trial, source.label, f_min_hz=f_min_hz, force_limit_N=force_limit_N,
+                     warn=warn)
     return trial
+
+
+# ---------------------------------------------------------------------------
+# Reading through a column map
+# ---------------------------------------------------------------------------
+
+def _source_columns(path: Path, convs: Sequence[Conversion], file: str
+                    ) -> dict[str, np.ndarray]:
+    """{source text: raw samples} of the conversions ``convs``: MATLAB variables, or the
+    columns of a CSV or Parquet file (a missing one named with the file's columns)."""
+    _check_regular(path)
+    wanted = list(dict.fromkeys(c.source for c in convs))
+    if _trial_ext(path.name) == ".mat":
+        from armfit.io.matlab import read_matlab
+        spec = {c.source: (c.name, c.column) for c in convs}
+        return read_matlab(path, [(s, spec[s]) for s in wanted], file=file)
+    names = _column_names(path)
+    counts = Counter(names)
+    for c in convs:
+        if c.source not in counts:
+            have = ", ".join(n for n in names if n) or "none"
+            raise BadInputError(f"no such column, named by the column map for {c.quantity} "
+                                f"(map row {c.row}); the file's columns: {have}",
+                                file=file, column=c.source)
+        if counts[c.source] > 1:
+            raise BadInputError("duplicate column header; which one holds the data is "
+                                "ambiguous", file=file, column=c.source)
+    return _read_table(path, wanted)
+
+
+def _by_source(exc: BadInputError, conv: Conversion, cmap: ColumnMap) -> BadInputError:
+    """``exc``, about ``conv.quantity``, naming the source column instead (the user's own
+    name) and the conversion that made the quantity."""
+    return BadInputError(f"{exc.reason} ({conv.describe()}, column map {cmap.path} row "
+                         f"{conv.row})", file=exc.file, column=conv.source, row=exc.row,
+                         option=exc.option)
+
+
+@contextlib.contextmanager
+def _named_by_source(conv: Conversion, cmap: ColumnMap):
+    """A check's error in the ``with`` block re-raised by :func:`_by_source`."""
+    try:
+        yield
+    except BadInputError as exc:
+        raise _by_source(exc, conv, cmap) from None
+
+
+def _check_mapped(trial: Trial, source: TrialSource, *, f_min_hz: float,
+                  force_limit_N: float, warn: Warn | None) -> None:
+    """:func:`_check_trial` of a trial read through its column map: its messages and
+    warnings name the source column of a quantity (``column 'vir' (force_x_N)``)."""
+    cmap = source.column_map
+    assert cmap is not None
+    convs = {c.quantity: c for c in cmap.conversions}
+
+    def renamed(text: str) -> None:
+        for q, c in convs.items():
+            text = text.replace(f"column '{q}'", f"column '{c.source}' ({q})")
+        warn(text)  # type: ignore[misc]
+
+    try:
+        _check_trial(trial, source.label, f_min_hz=f_min_hz, force_limit_N=force_limit_N,
+                     warn=None if warn is None else renamed)
+    except BadInputError as exc:
+        conv = convs.get(exc.column or "")
+        if conv is None:
+            raise
+        raise _by_source(exc, conv, cmap) from None
+
+
+def _mapped_rate(source: TrialSource) -> float:
+    """The sampling rate (Hz) of a trial read through its column map (the map's rate, or
+    its time column's)."""
+    cmap = source.column_map
+    if cmap.rate_Hz is not None:  # type: ignore[union-attr]
+        return cmap.rate_Hz  # type: ignore[union-attr]
+    conv = cmap.get("time_s")  # type: ignore[union-attr]
+    raw = _source_columns(Path(source.path), [conv], source.path)[conv.source]
+    with _named_by_source(conv, cmap):  # type: ignore[arg-type]
+        return sampling_rate(conv.apply(raw), file=source.path)
+
+
+def _read_mapped_trial(source: TrialSource, *, grip: bool) -> Trial:
+    """One raw trial read through its column map: the sources converted to SI units and
+    checked as armfit's own columns, each message naming the source column."""
+    cmap = source.column_map
+    assert cmap is not None
+    file = source.path
+    path = Path(file)
+    convs = [c for c in cmap.conversions if grip or c.quantity != "grip_N"]
+    raw = _source_columns(path, convs, file)
+    sizes = {c.source: raw[c.source].size for c in convs}
+    first = convs[0].source
+    for src, size in sizes.items():
+        if size != sizes[first]:
+            raise BadInputError(f"{size} samples, but {first} has {sizes[first]}; the "
+                                "signals of a trial have one length", file=file, column=src)
+    n = sizes[first]
+    force = np.full((n, 3), np.nan)
+    pos = np.full((n, 3), np.nan)
+    grip_N = None
+    for c in convs:
+        with _named_by_source(c, cmap):
+            v = c.apply(raw[c.source])
+            if c.quantity == "grip_N":
+                grip_N = check_grip(v, file).copy()
+            elif c.quantity != "time_s":
+                check_values(v, c.quantity, file, unit_hint="; check the unit in the map")
+                (force if c.quantity.startswith("force_") else pos)[
+                    :, AXES.index(c.quantity.split("_")[1])] = v
+    if cmap.rate_Hz is None:
+        conv = cmap.get("time_s")
+        with _named_by_source(conv, cmap):  # type: ignore[arg-type]
+            t = conv.apply(raw[conv.source])  # type: ignore[union-attr]
+            fs, t0 = sampling_rate(t, file=file), float(t[0])
+    else:
+        fs, t0 = cmap.rate_Hz, 0.0
+        if n < 2:
+            raise BadInputError(f"too short: {n} sample(s); a trial needs many samples",
+                                file=file)
+        if fs < MIN_SAMPLING_RATE_HZ:
+            raise BadInputError(f"sampling rate {fs:g} Hz (rate_Hz of the column map "
+                                f"{cmap.path}) is below {MIN_SAMPLING_RATE_HZ:g} Hz, "
+                                "implausible for a haptic device", file=file)
+    del raw
+    _release_arrow_memory()
+    meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run, fs,
+                     int(n), t0, _provenance(path), cmap)
+    return Trial(meta, force, pos, grip_N)
 
 
 #: Largest |value| of a force (N) or any sample: squares and sums of the samples in the
@@ -828,13 +1013,15 @@ MAX_ABS_VALUE = 1e100
 MAX_POSITION_M = 0.5
 
 
-def check_values(v: np.ndarray, name: str, file: str) -> np.ndarray:
+def check_values(v: np.ndarray, name: str, file: str, *,
+                 unit_hint: str | None = None) -> np.ndarray:
     """Refuse non-finite or absurd samples of a force or position column ``name``.
 
     Non-finite (blank, NaN, inf) → BadInputError; |value| ≥ :data:`MAX_ABS_VALUE`
     (would overflow the spectra) → BadInputError; a position beyond
     :data:`MAX_POSITION_M` (m; a ``pos_*_mm`` column converted) → BadInputError saying it
-    looks like millimetres. Each names the file, column and first offending row.
+    looks like millimetres (or, given, ``unit_hint``). Each names the file, column and
+    first offending row.
     """
     v = np.asarray(v, dtype=np.float64)
     badv = np.flatnonzero(~np.isfinite(v))
@@ -857,6 +1044,8 @@ def check_values(v: np.ndarray, name: str, file: str) -> np.ndarray:
             k = int(far[0])
             hint = (f"; the values look like millimetres: name the column "
                     f"{name[:-2]}_mm" if scale == 1.0 and np.abs(v).max() < 5000 else "")
+            if unit_hint is not None:
+                hint = unit_hint
             raise BadInputError(f"position {cell(float(v[k]))} {'mm' if scale > 1 else 'm'} "
                                 f"is beyond {MAX_POSITION_M:g} m, outside a desktop "
                                 f"device's workspace{hint}", file=file, column=name,
@@ -1028,6 +1217,8 @@ def _checked_record(index: int, rec: object, file: str) -> dict:
     if not (isinstance(cols, list) and all(c in DATASET_COLUMNS for c in cols)):
         raise bad(f"columns {cell(cols)} are not among {', '.join(DATASET_COLUMNS)}")
     out["columns"] = cols
+    if rec.get("column_map") is not None:
+        out["column_map"] = ColumnMap.from_dict(rec["column_map"], where=f"{file}: {where}")
     return out
 
 
@@ -1138,7 +1329,8 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
     del table
     _release_arrow_memory()
     meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
-                     rec["fs"], rec["n_samples"], rec["t0_s"], rec["source"])
+                     rec["fs"], rec["n_samples"], rec["t0_s"], rec["source"],
+                     rec.get("column_map"))
     for j, a in enumerate(AXES):  # a dataset may have been written by other software
         for arr, name in ((force, f"force_{a}_N"), (pos, f"pos_{a}_m")):
             if not np.isnan(arr[:, j]).all():
@@ -1159,9 +1351,12 @@ def _record(index: int, trial: Trial) -> dict:
                 if not np.isnan(trial.pos[:, j]).all()]
     if trial.grip is not None:
         present.append("grip_N")
-    return {"trial": index, "subject": m.subject, "axis": m.axis, "grip_N": m.grip_N,
-            "run": m.run, "fs": m.fs, "n_samples": m.n_samples, "duration_s": m.duration_s,
-            "t0_s": m.t0_s, "source": m.source, "columns": present}
+    rec = {"trial": index, "subject": m.subject, "axis": m.axis, "grip_N": m.grip_N,
+           "run": m.run, "fs": m.fs, "n_samples": m.n_samples, "duration_s": m.duration_s,
+           "t0_s": m.t0_s, "source": m.source, "columns": present}
+    if m.column_map is not None:
+        rec["column_map"] = m.column_map.to_dict()
+    return rec
 
 
 def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
@@ -1281,12 +1476,20 @@ class TrialStream:
             try:
                 if src.index is not None:
                     rates[dataset_metadata(src.path)[src.index]["fs"]] += 1
+                elif src.column_map is not None:
+                    rates[_mapped_rate(src)] += 1
                 else:
                     t = _read_table(Path(src.path), ["time_s"])["time_s"]
                     rates[sampling_rate(t, file=src.path)] += 1
             except (BadInputError, KeyError, IndexError):
                 continue  # reported when the trial itself is read
         return rates.most_common(1)[0][0] if rates else None
+
+
+def with_map(inputs: Iterable[str | os.PathLike], column_map: str | os.PathLike | None
+             ) -> list[str | os.PathLike]:
+    """``inputs`` and the column map, if any: the files an output must not replace."""
+    return [*inputs, *([column_map] if column_map is not None else [])]
 
 
 def resample_trial(trial: Trial, fs: float) -> Trial:
@@ -1308,25 +1511,48 @@ def resample_trial(trial: Trial, fs: float) -> Trial:
         idx = np.minimum((np.arange(n) * down) // up, trial.meta.n_samples - 1)
         grip = trial.grip[idx]
     m = trial.meta
-    meta = TrialMeta(m.subject, m.axis, m.grip_N, m.run, float(fs), int(n), m.t0_s, m.source)
+    meta = TrialMeta(m.subject, m.axis, m.grip_N, m.run, float(fs), int(n), m.t0_s, m.source,
+                     m.column_map)
     return Trial(meta, force, pos, grip)
+
+
+def map_notes(sources: Iterable[TrialSource]) -> list[str]:
+    """One line per distinct column map of ``sources``: the files it is read for and its
+    conversions, e.g. ``DATA_EMPS.mat (column map emps.csv): time_s = t (s); force_x_N =
+    35.15 N/V × vir (V); pos_x_m = qm (m)``."""
+    files: dict[ColumnMap, list[str]] = {}
+    for src in sources:
+        if src.column_map is not None:
+            files.setdefault(src.column_map, []).append(src.path)
+    out = []
+    for cmap, paths in files.items():
+        more = f" and {len(paths) - 1} more file(s)" if len(paths) > 1 else ""
+        out.append(f"{paths[0]}{more} (column map {cmap.path}): {cmap.describe()}")
+    return out
 
 
 def open_trials(inputs: Sequence[str | os.PathLike], *,
                 manifest: str | os.PathLike | None = None, skip_bad: bool = False,
                 resample: bool = False, f_min_hz: float = GRID_HZ[0],
                 force_limit_N: float = FORCE_LIMIT_N,
-                warn: Warn | None = None) -> TrialStream:
+                warn: Warn | None = None,
+                column_map: str | os.PathLike | None = None,
+                note: Warn | None = None) -> TrialStream:
     """Discover the trials in ``inputs`` and return a stream that reads them one by one.
 
     Duplicate trials (same subject, axis, grip, run) are refused naming both files,
     before any is read. With ``skip_bad``, files with bad names go to ``skipped``, and a
     duplicate is one of a trial read before (:meth:`TrialStream.admit`): a good copy is
     read when an earlier copy is bad, and a later copy of a good trial is skipped.
-    Raises NoInputError when nothing is found.
+    ``column_map`` is the map of every raw file without one of its own (see
+    :func:`discover`); ``note`` receives once per distinct map the conversions it makes
+    (:func:`map_notes`). Raises NoInputError when nothing is found.
     """
     bad: list[Skipped] | None = [] if skip_bad else None
-    kept, ignored = _discover(inputs, manifest, bad)
+    kept, ignored = _discover(inputs, manifest, bad, column_map)
+    if note is not None:
+        for line in map_notes(kept):
+            note(line)
     skipped = list(bad or [])
     if not skip_bad:
         first = TrialStream([], [])
@@ -1360,22 +1586,27 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
            force_limit_N: float = FORCE_LIMIT_N,
            overwrite: bool = False, warn: Warn | None = None,
            advance: Callable[[], object] | None = None,
-           on_open: Callable[[TrialStream], object] | None = None) -> IngestResult:
+           on_open: Callable[[TrialStream], object] | None = None,
+           column_map: str | os.PathLike | None = None,
+           note: Warn | None = None) -> IngestResult:
     """Read and validate raw trials and write them as one canonical dataset (Parquet).
 
     The output is refused (OutputError) if it exists without ``overwrite`` or is also
-    an input. Trials stream from :func:`open_trials` into :func:`write_dataset`; the
-    first bad trial stops the run (BadInputError, nothing written) unless ``skip_bad``.
-    ``advance`` is called after each trial, ``on_open`` once with the stream (e.g. to
-    size a progress bar or list ignored files).
+    an input (a column map included). Trials stream from :func:`open_trials` into
+    :func:`write_dataset`; the first bad trial stops the run (BadInputError, nothing
+    written) unless ``skip_bad``. ``advance`` is called after each trial, ``on_open``
+    once with the stream (e.g. to size a progress bar or list ignored files);
+    ``column_map`` and ``note`` as in :func:`open_trials`.
     """
     out = Path(output)
     if _trial_ext(out.name) != ".parquet":
         raise UsageError(f"{out}: the dataset is a Parquet file; give an output ending "
                          "in .parquet")
-    check_output(out, overwrite=overwrite, inputs=inputs, manifest=manifest)
+    check_output(out, overwrite=overwrite, inputs=with_map(inputs, column_map),
+                 manifest=manifest)
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, resample=resample,
-                         f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn)
+                         f_min_hz=f_min_hz, force_limit_N=force_limit_N, warn=warn,
+                         column_map=column_map, note=note)
     if on_open is not None:
         on_open(stream)
 
@@ -1406,5 +1637,6 @@ __all__ = [
     "sampling_rate", "read_trial", "MAX_ABS_VALUE", "MAX_POSITION_M", "check_values",
     "check_grip", "GRIP_TOLERANCE_N", "GRIP_TOLERANCE_FRACTION", "is_dataset",
     "dataset_metadata", "dataset_sources", "write_dataset", "TrialStream",
-    "resample_trial", "open_trials", "IngestResult", "ingest",
+    "resample_trial", "open_trials", "IngestResult", "ingest", "manifest_maps", "map_notes",
+    "with_map",
 ]
