@@ -9,6 +9,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from importlib import import_module
+from types import ModuleType
+
+from armfit.errors import UsageError
 
 
 def lazy_exports(namespace: dict, exports: Mapping[str, str]
@@ -45,4 +48,29 @@ def lazy_exports(namespace: dict, exports: Mapping[str, str]
     return __getattr__, __dir__
 
 
-__all__ = ["lazy_exports"]
+def import_extra(module: str, extra: str, what: str) -> ModuleType:
+    """The optional package ``module`` of the extra ``armfit[extra]``, imported.
+
+    Parameters
+    ----------
+    module : str
+        The package, e.g. ``"control"``.
+    extra : str
+        The extra that installs it, e.g. ``"control"``.
+    what : str
+        What needs it, named in the message (e.g. ``"ModelFit.to_control"``).
+
+    Raises
+    ------
+    UsageError
+        One line when it is not installed: ``<what> needs the optional package
+        '<module>': pip install armfit[<extra>]`` (exit 2 on the command line).
+    """
+    try:
+        return import_module(module)
+    except ImportError:
+        raise UsageError(f"{what} needs the optional package {module!r}: pip install "
+                         f"armfit[{extra}]") from None
+
+
+__all__ = ["lazy_exports", "import_extra"]

@@ -64,6 +64,7 @@ pd = _OnFirstUse("pandas")
 _adopt = _OnFirstUse("armfit.adopt")
 _artifacts = _OnFirstUse("armfit.io.artifacts")
 _diagnosis = _OnFirstUse("armfit.diagnosis")
+_export = _OnFirstUse("armfit.export")
 _fitting = _OnFirstUse("armfit.fitting")
 _loop = _OnFirstUse("armfit.loop")
 _params = _OnFirstUse("armfit.models.params")
@@ -412,6 +413,133 @@ class ModelFit:
         ax.set_xscale("log")
         return ax
 
+    def row_for(self, axis: str, grip: float | None = None):
+        """The params row of ``axis`` (a nominal fit, ``grip`` None) or of ``axis`` and
+        ``grip`` (N, a grip fit), as a pandas Series. UsageError naming the rows there
+        are when there is none."""
+        if axis not in AXES:
+            raise UsageError(f"axis must be x, y or z, got {axis!r}")
+        t = self.table
+        is_grip = "grip_N" in t.columns
+        if grip is None and is_grip:
+            grips = ", ".join(f"{g:g}" for g in t.loc[t["axis"] == axis, "grip_N"])
+            raise UsageError(f"these are grip fits (Table I): give grip= one of {grips or 'none'} "
+                             f"N for axis {axis}; the nominal model is fit_nominal's")
+        if grip is not None and not is_grip:
+            raise UsageError("these are nominal fits (Table II, one per axis): give no grip=")
+        mask = (t["axis"] == axis).to_numpy(copy=True)
+        if grip is not None:
+            mask &= np.isclose(t["grip_N"].to_numpy(float), float(grip), rtol=1e-9, atol=0)
+        if not mask.any():
+            have = ", ".join(_export.model_prefix(a, g) for a, g in zip(
+                t["axis"], t["grip_N"] if is_grip else [None] * len(t), strict=True))
+            raise UsageError(f"no model of axis {axis}"
+                             + ("" if grip is None else f", grip {float(grip):g} N")
+                             + f" (the models: {have or 'none'})")
+        return t[mask].iloc[0]
+
+    def to_control(self, axis: str, grip: float | None = None, *,
+                   kind: str = "closed_loop", pade_order: int | None = None,
+                   exact: bool = False, omega=None):
+        """A model as a python-control system (the optional extra ``armfit[control]``).
+
+        ``kind='closed_loop'``: the measured dynamics X/F of eq. 4, device and arm with
+        every effect of the row, m/N (what the spectra measure and
+        :meth:`armfit.ClosedLoopModel.response` evaluates); ``kind='arm'``: the arm's
+        own H_ARM (eq. 3) with the arm effects of the row (what Wu multiplies). Each
+        effect's rational form (eq. R1 of :mod:`armfit.models.effects`) enters exactly
+        (a low-pass, a resonance, a device's mass or damping); a latency (the output
+        delays, summed, T) becomes the [n/n] Padé approximant of e^(−sT),
+        n = ``pade_order`` (``control.pade``), and a delay inside an impedance (a
+        reflex) the same approximant (:func:`armfit.export.rational_model`).
+
+        Padé error: the approximant is all-pass, so the magnitude is exact; the phase
+        lags that of e^(−jωT) by less than c_n (ωT)^(2n+1) rad, c_n = (n!)²/((2n)!
+        (2n+1)!) (:func:`armfit.export.pade_phase_bound_deg`). For n = 6: below 2e-5°
+        while ωT ≤ 3 (a 12 ms latency up to 40 Hz, beyond the paper's 30 Hz band),
+        below 0.1° while ωT ≤ 6.2, below 1° while ωT ≤ 7.7; raise n for a longer delay
+        or a wider band, or take ``exact=True``.
+
+        Parameters
+        ----------
+        axis : {'x', 'y', 'z'}
+        grip : float, optional
+            None: the nominal model (a fit_nominal result); a grip force (N): that grip's
+            fit (a fit_grip result).
+        kind : {'closed_loop', 'arm'}
+        pade_order : int, optional
+            n of the Padé approximants (default :data:`armfit.export.PADE_ORDER`, 6).
+        exact : bool
+            Return the exact response, delays included, as ``FrequencyResponseData``
+            instead of a transfer function: what :meth:`armfit.ClosedLoopModel.response`
+            (or ``arm_response``) gives, also for an effect that declares no rational form.
+        omega : array_like, optional
+            With ``exact``: the frequencies, rad/s. Default: the grid of the spectra the
+            model was fitted to, else armfit's default grid (0.1–30 Hz, 40 per decade).
+
+        Returns
+        -------
+        control.TransferFunction or control.FrequencyResponseData
+            Input ``F``, output the axis (m/N). Its ``name`` is ``<m>_<kind>`` (``<m>``:
+            ``x``, or ``x_grip2N``; a decimal point written ``p``), with ``_pade<n>``
+            appended when a Padé approximant stands for a delay and ``_exact`` for the
+            exact response; the attribute ``armfit_delays`` holds ``{"delay_s": T,
+            "inner_delays_s": (...), "pade_order": n}`` (delays in s; T and the inner
+            delays are the approximated ones, none with ``exact``).
+
+        Raises
+        ------
+        UsageError
+            python-control is not installed (one line: ``pip install armfit[control]``);
+            no such row; an unknown ``kind``; an effect without a rational form
+            (without ``exact``: the message points to ``exact=True``).
+        """
+        from armfit._lazy import import_extra
+
+        control = import_extra("control", "control", "ModelFit.to_control")
+        n = _export.PADE_ORDER if pade_order is None else pade_order
+        row = self.row_for(axis, grip)
+        model, theta = _params.model_from_params(row)
+        g = None if "grip_N" not in row.index else float(row["grip_N"])
+        base = f"{_export.model_prefix(axis, g)}_{kind}"
+        if kind not in _export.KINDS:
+            raise UsageError(f"kind must be one of {', '.join(_export.KINDS)}, got {kind!r}")
+        if exact:
+            w = self._omega(omega)
+            f_hz = w / (2 * np.pi)
+            h = model.response(f_hz, theta) if kind == "closed_loop" \
+                else model.arm_response(f_hz, theta)
+            sys = control.frd(h, w, name=f"{base}_exact", inputs=["F"], outputs=[axis])
+            sys.armfit_delays = {"delay_s": 0.0, "inner_delays_s": (), "pade_order": None}
+            return sys
+        if omega is not None:
+            raise UsageError("omega= is for exact=True (a transfer function has no grid)")
+        rm = _export.rational_model(
+            model, theta, kind=kind, pade_order=n, what=base,
+            hint="take to_control(..., exact=True) for its exact frequency response "
+                 "(FrequencyResponseData)")
+        num, den = rm.num, rm.den
+        if rm.delay_s > 0:
+            pn, pd = control.pade(rm.delay_s, int(n))
+            num, den = np.polymul(num, pn), np.polymul(den, pd)
+        approx = rm.delay_s > 0 or bool(rm.inner_delays_s)
+        sys = control.tf(num, den, name=base + (f"_pade{int(n)}" if approx else ""),
+                         inputs=["F"], outputs=[axis])
+        sys.armfit_delays = {"delay_s": rm.delay_s, "inner_delays_s": rm.inner_delays_s,
+                             "pade_order": int(n) if approx else None}
+        return sys
+
+    def _omega(self, omega) -> np.ndarray:
+        """The frequencies (rad/s) of an exact response: ``omega``, else the fitted
+        spectra's grid, else the default grid."""
+        if omega is not None:
+            w = np.atleast_1d(np.asarray(omega, dtype=float))
+            if w.ndim != 1 or w.size == 0 or not (np.isfinite(w).all() and (w > 0).all()):
+                raise UsageError("omega must be frequencies > 0 rad/s")
+            return w
+        f = self.spectra.freq_hz if self.spectra is not None else EstimateConfig().grid()
+        return 2 * np.pi * np.asarray(f, dtype=float)
+
 
 def _checked_rows(table: pd.DataFrame, *, keep_row: bool = False) -> pd.DataFrame:
     """A params table given as a DataFrame, with the checks of a params file
@@ -574,6 +702,27 @@ class Uncertainty:
                 write_text_atomic(latex, _tables.wu_latex(self.weights), overwrite=overwrite)
                 out += (Path(latex),)
         return out
+
+    def to_control(self, axis: str):
+        """Wu of ``axis`` as a python-control ``TransferFunction`` (the optional extra
+        ``armfit[control]``), built from its zeros, poles and gain:
+        Wu(s) = K Π(s − z)/Π(s − p) (eq. 7, s in rad/s; ``control.zpk``), stable and
+        minimum phase as armfit fits it. Named ``Wu_<axis>``.
+
+        Raises
+        ------
+        UsageError
+            python-control is not installed (``pip install armfit[control]``), or no
+            weight was fitted for ``axis``.
+        """
+        from armfit._lazy import import_extra
+
+        control = import_extra("control", "control", "Uncertainty.to_control")
+        if axis not in self.weights:
+            raise UsageError(f"no weight for axis {axis!r} (weights: "
+                             f"{', '.join(self.weights) or 'none'})")
+        z, p, k = _export.weight_zpk(self.weights[axis])
+        return control.zpk(z, p, k, name=f"Wu_{axis}")
 
     def plot(self, ax=None):
         """The paper's Fig. 6 (derived dynamics, nominal H_ARM, W_max and |Wu|); with

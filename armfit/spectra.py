@@ -1622,6 +1622,79 @@ class Spectra:
         ax.set_ylabel("Magnitude (dB re 1 m/N)" if db else "Phase (deg)")
         return ax
 
+    # -- out to python-control ------------------------------------------------------
+
+    def to_frd(self, *, axis: str, grip: float | None = None, level: str = "mean",
+               kind: str = "measured", subject: str | None = None, run: int | None = None,
+               out_axis: str | None = None, method: str | None = None):
+        """One response as a python-control ``FrequencyResponseData`` (the optional
+        extra ``armfit[control]``), frequencies in rad/s (ω = 2π f).
+
+        The arguments pick one row, as :meth:`select` does: the mean of an axis × grip
+        over subjects (``level='mean'``, the default: give ``grip``), the median of an
+        axis over all trials (``level='median'``, no ``grip``), or one trial
+        (``level='trial'``: ``subject`` and ``grip``, and ``run`` when the study
+        repeats trials). ``kind``: 'measured' (X/F of eq. 4, the default), 'derived'
+        (Xa/Fa, the arm without the device) or 'cross' (then ``out_axis``, the position
+        axis). The frequencies where the response has no value (a cell without signal)
+        are left out.
+
+        Parameters
+        ----------
+        axis : {'x', 'y', 'z'}
+            The stimulated axis.
+        grip : float, optional
+            Target grip force, N.
+        level : {'mean', 'median', 'trial'}
+        kind : {'measured', 'derived', 'cross'}
+        subject : str, optional
+        run : int, optional
+        out_axis : {'x', 'y', 'z'}, optional
+            Position axis (default ``axis``; required for 'cross').
+        method : str, optional
+            The estimator, when the spectra hold several.
+
+        Returns
+        -------
+        control.FrequencyResponseData
+            The response in m/N at ``omega`` (rad/s); named after the row
+            (``x_measured_mean_grip-2N``), input ``F`` and output ``x`` (the axes').
+
+        Raises
+        ------
+        UsageError
+            python-control is not installed (``pip install armfit[control]``), or the
+            arguments pick no response or several (the message lists them).
+        """
+        from armfit._lazy import import_extra
+
+        control = import_extra("control", "control", "Spectra.to_frd")
+        if level not in ("mean", "median", "trial"):
+            raise UsageError(f"level must be mean, median or trial, got {level!r}")
+        if kind == "cross" and out_axis is None:
+            raise UsageError("kind 'cross' needs out_axis=, the position axis")
+        sel = self.select(axis=axis, grip=grip, kind=kind, level=level,
+                          out_axis=axis if out_axis is None else out_axis, method=method,
+                          subject=subject)
+        if run is not None:
+            sel = sel.take(np.array([r is not None and int(r) == int(run)
+                                     for r in sel.keys["run"]], bool))
+        if len(sel) != 1:
+            what = (f"{kind} responses of level {level}, axis {axis}"
+                    + ("" if grip is None else f", grip {float(grip):g} N"))
+            found = ", ".join(sel.labels()[:6]) + (", ..." if len(sel) > 6 else "")
+            raise UsageError(f"{len(sel)} {what} in the spectra"
+                             + (f" ({found}): give grip=, subject=, run= or method= to "
+                                "pick one" if len(sel) else ""))
+        f, h, _, _ = sel.row(0)
+        keep = np.isfinite(h)
+        if not keep.any():
+            raise UsageError(f"the {kind} response {sel.labels()[0]} of axis {axis} has no "
+                             "value at any frequency")
+        name = f"{axis}_{kind}_{sel.labels()[0]}".replace(".", "p")
+        return control.frd(h[keep], 2 * np.pi * f[keep], name=name, inputs=["F"],
+                           outputs=[sel.keys["out_axis"][0]])
+
 
 def _file_meta(kv: Mapping | None, p: Path) -> dict:
     """armfit's metadata of a spectra file (``{}`` if absent or not JSON), its device

@@ -27,7 +27,7 @@ LAYERS: dict[str, float] = {
     "models": 3,
     "fitting": 4, "uncertainty": 4, "diagnosis": 4, "simulation": 4, "tables": 4,
     "loop": 4, "blocklsq": 4,
-    "figures": 5, "adopt": 5,
+    "figures": 5, "adopt": 5, "export": 5,
     "api": 6,
     "report": 6.5,        # report.md from the typed results; the pipeline imports it
     "htmlreport": 6.5,    # report.html from report.md

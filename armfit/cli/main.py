@@ -166,6 +166,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                  "Find the physical effects the model is missing, per axis."),
     "stability": ("armfit.cli.stability:stability_command",
                   "K_max: the stiffest virtual wall rendered stably."),
+    "export": ("armfit.cli.export:command",
+               "Export fitted models and weights for MATLAB, Octave or JSON."),
     "plot": ("armfit.cli.plot:command",
              "Draw a figure of the paper or of a diagnosis."),
     "simulate": ("armfit.cli.simulate:command",
