@@ -46,4 +46,10 @@ _EXPORTS: dict[str, str] = {
 __all__ = ["__version__", *_EXPORTS]
 
 
-__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)
+__getattr__ = lazy_exports(globals(), _EXPORTS)[0]
+del lazy_exports
+
+
+def __dir__() -> list[str]:
+    """The public API (:data:`__all__`): no helper, submodule or imported name."""
+    return sorted(__all__)

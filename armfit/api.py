@@ -20,6 +20,7 @@ Equations cited are those of Fu & Çavuşoğlu, ICRA 2010 (see docs/methods.md).
 
 from __future__ import annotations
 
+import html
 import importlib
 import json
 import os
@@ -30,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from armfit.constants import AXES, GRID_HZ
+from armfit.constants import AXES
 from armfit.diagnosis.tuning import MAX_STEPS, MIN_EFFECT_DB, MIN_EFFECT_DEG
 from armfit.errors import BadInputError, ConvergenceError, UsageError
 from armfit.io.atomic import atomic_outputs, atomic_path, write_text_atomic
@@ -101,11 +102,103 @@ def _fit_effects(effects):
 
 
 # ---------------------------------------------------------------------------
+# Notebook display and figures of one axis
+# ---------------------------------------------------------------------------
+
+#: Rows of a result's table shown by its notebook display (``_repr_html_``).
+HTML_ROWS = 6
+#: Columns of that table (the others are elided).
+HTML_COLUMNS = 10
+
+
+class _HtmlTable:
+    """A compact HTML display for notebooks (``_repr_html_``): a one-line summary and the
+    first :data:`HTML_ROWS` rows of ``to_frame()``, all text escaped."""
+
+    def _html_summary(self) -> str:
+        return type(self).__name__
+
+    def _repr_html_(self) -> str:
+        frame = self.to_frame()
+        head = frame.head(HTML_ROWS).to_html(escape=True, max_cols=HTML_COLUMNS,
+                                             index=False, border=0, float_format="{:.4g}".format)
+        more = f" ({len(frame) - HTML_ROWS} more rows)" if len(frame) > HTML_ROWS else ""
+        return (f"<div><p><b>{html.escape(type(self).__name__)}</b>: "
+                f"{html.escape(self._html_summary())}{html.escape(more)}</p>{head}</div>")
+
+
+def _new_axes(n: int):
+    """A new matplotlib Figure (Agg canvas, no pyplot) with ``n`` panels one above the
+    other; returns (figure, list of Axes)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(5.0, 1.9 * n + 0.6), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig, list(fig.subplots(n, 1, squeeze=False)[:, 0])
+
+
+def _one_axis(axis: str | None, have: Sequence[str]) -> str | None:
+    """``axis`` checked against the axes a result holds (``have``); None when not
+    given and the result holds several."""
+    if axis is not None:
+        if axis not in AXES:
+            raise UsageError(f"axis must be x, y or z, got {axis!r}")
+        if axis not in have:
+            raise UsageError(f"no axis {axis} here (axes: {', '.join(have) or 'none'})")
+        return axis
+    return have[0] if len(have) == 1 else None
+
+
+def _panel_targets(ax, panel: str | None, names: Sequence[str], groups: Mapping[str, tuple],
+                   single: str) -> tuple[object, dict]:
+    """(figure or None, {panel name: Axes or None}) for a ``plot(axis, ax, panel)``.
+
+    ``names``: the panels a result draws, top to bottom; ``groups``: names that stand
+    for several (e.g. "both": magnitude and phase); ``single``: the panel a lone Axes
+    gets. ``ax`` None: a new figure with the panels asked for; one Axes: one panel; a
+    sequence of Axes: as many panels, in order ("both" for two)."""
+    given = None if ax is None else (list(ax) if isinstance(ax, Sequence | np.ndarray)
+                                     else [ax])
+    if panel is None:
+        n = len(names) if given is None else len(given)
+        panel = single if n == 1 else next(
+            (g for g, members in groups.items() if len(members) == n), "")
+    wanted = groups.get(panel) or ((panel,) if panel in names else None)
+    if not wanted:
+        raise UsageError(f"panel must be one of {', '.join([*names, *groups])}, "
+                         f"got {panel!r}")
+    fig = None
+    if given is None:
+        fig, given = _new_axes(len(wanted))
+    if len(given) != len(wanted):
+        raise UsageError(f"panel {panel!r} draws {len(wanted)} panel(s); "
+                         f"give as many Axes, got {len(given)}")
+    targets = dict.fromkeys(names)
+    targets.update(zip(wanted, given, strict=True))
+    return fig, targets
+
+
+def _label_panels(targets: Mapping[str, object], labels: Mapping[str, str],
+                  entries: Mapping) -> None:
+    """Y labels of the panels drawn, the x label of the lowest, and a legend of
+    ``entries`` (artists or (handle, label) pairs) on the first."""
+    drawn = [(name, a) for name, a in targets.items() if a is not None]
+    for name, a in drawn:
+        a.set_ylabel(labels.get(name, ""))
+    if drawn and "x" in labels:
+        drawn[-1][1].set_xlabel(labels["x"])
+        pairs = [e if isinstance(e, tuple) else (e, e.get_label()) for e in entries.values()]
+        pairs = [p for p in pairs if not isinstance(p[1], str) or p[1]]
+        if pairs:
+            drawn[0][1].legend([h for h, _ in pairs], [t for _, t in pairs], fontsize=6)
+
+
+# ---------------------------------------------------------------------------
 # Trials
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class Trials:
+class Trials(_HtmlTable):
     """Raw trials read and validated against the trial contract (docs/formats.md).
 
     Attributes
@@ -330,7 +423,7 @@ def _spectra(spectra) -> Spectra:
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
-class ModelFit:
+class ModelFit(_HtmlTable):
     """Fitted arm models: one row per axis (nominal, Table II) or axis × grip (Table I).
 
     Attributes
@@ -396,22 +489,49 @@ class ModelFit:
                 write_text_atomic(latex, self.latex(), overwrite=overwrite)
         return Path(path)
 
-    def plot(self, ax=None):
-        """The Bode figure of the fitted spectra with these models (the paper's Fig. 5);
-        with ``ax``, the models' magnitude (dB re 1 m/N) drawn on it."""
-        if ax is None:
-            if self.spectra is None:
-                raise UsageError("this model holds no spectra to draw; use "
-                                 "armfit.figures.bode_figure(spectra, model.table)")
-            return _figures().bode_figure(self.spectra, self.table)
-        f = np.geomspace(*GRID_HZ, 400)
-        for _, row in self.table.iterrows():
-            model, theta = _params.model_from_params(row)
-            grip = f" {float(row['grip_N']):g} N" if "grip_N" in row else ""
-            ax.plot(f, 20 * np.log10(np.abs(model.response(f, theta))), ls="--",
-                    label=f"{row['axis']}{grip}")
-        ax.set_xscale("log")
-        return ax
+    def axes(self) -> list[str]:
+        """The axes with a model row, in x, y, z order."""
+        return [a for a in AXES if (self.table["axis"] == a).any()]
+
+    def plot(self, axis: str | None = None, ax=None, *, panel: str | None = None):
+        """The Bode pair of one axis: the fitted spectra (single trials, grip means with
+        their spread) and these models — the paper's Fig. 5 for that axis.
+
+        Parameters
+        ----------
+        axis : {'x', 'y', 'z'}, optional
+            The axis to draw; default the only one, or with ``ax`` None every axis
+            (the whole Fig. 5).
+        ax : matplotlib Axes or sequence of two, optional
+            Draw on these: one Axes draws one panel (``panel``, default the
+            magnitude), two draw magnitude and phase. Default: a new figure.
+        panel : {'magnitude', 'phase', 'both'}, optional
+
+        Returns
+        -------
+        matplotlib.figure.Figure or the ``ax`` given
+            Without ``ax``, a new figure (:func:`armfit.figures.bode_figure` when both
+            panels and spectra are there); else ``ax``, drawn on.
+        """
+        figures = _figures()
+        one = _one_axis(axis, self.axes())
+        if ax is None and panel in (None, "both") and self.spectra is not None:
+            return figures.bode_figure(self.spectra, self.table, axis=one)
+        if one is None:
+            raise UsageError(f"this fit holds axes {', '.join(self.axes())}: choose one "
+                             "with axis=")
+        fig, t = _panel_targets(ax, panel, ("magnitude", "phase"),
+                                {"both": ("magnitude", "phase")}, "magnitude")
+        entries = figures.bode_axes(t["magnitude"], t["phase"], self.spectra, self.table,
+                                    axis=one)
+        _label_panels(t, {"magnitude": figures.MAG_LABEL, "phase": figures.PHASE_LABEL,
+                          "x": figures.FREQ_LABEL}, entries)
+        return fig if ax is None else ax
+
+    def _html_summary(self) -> str:
+        return (f"{self.which} fits, {len(self.table)} row(s), axes "
+                f"{', '.join(self.axes()) or 'none'}"
+                + (f", from {self.source}" if self.source else ""))
 
     def row_for(self, axis: str, grip: float | None = None):
         """The params row of ``axis`` (a nominal fit, ``grip`` None) or of ``axis`` and
@@ -645,7 +765,7 @@ def read_model(path: PathLike) -> ModelFit:
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
-class Uncertainty:
+class Uncertainty(_HtmlTable):
     """W_max (eq. 6) and the fitted weight Wu (eq. 7) of every axis.
 
     Attributes
@@ -724,16 +844,47 @@ class Uncertainty:
         z, p, k = _export.weight_zpk(self.weights[axis])
         return control.zpk(z, p, k, name=f"Wu_{axis}")
 
-    def plot(self, ax=None):
-        """The paper's Fig. 6 (derived dynamics, nominal H_ARM, W_max and |Wu|); with
-        ``ax``, W_max (dots) and |Wu| (lines) in dB drawn on it."""
-        if ax is None:
-                return _figures().uncertainty_figure(self.spectra, self.nominal.table, self.weights)
-        for r in self.axes:
-            ax.plot(r.f_hz, 20 * np.log10(r.wmax_raw), ".", ms=2, label=f"W_max {r.axis}")
-            ax.plot(r.f_hz, r.result.weight.magnitude_db(r.f_hz), label=f"|Wu| {r.axis}")
-        ax.set_xscale("log")
-        return ax
+    def plot(self, axis: str | None = None, ax=None, *, panel: str | None = None):
+        """One axis of the paper's Fig. 6: the derived arm dynamics with the nominal
+        H_ARM (magnitude and phase), and W_max with |Wu| (relative uncertainty, dB).
+
+        Parameters
+        ----------
+        axis : {'x', 'y', 'z'}, optional
+            Default the only one, or with ``ax`` None every axis (the whole Fig. 6).
+        ax : matplotlib Axes or sequence of them, optional
+            One Axes draws one panel (``panel``, default 'uncertainty'), two the Bode
+            pair, three all. Default: a new figure.
+        panel : {'magnitude', 'phase', 'uncertainty', 'both', 'all'}, optional
+            'both': magnitude and phase; 'all': the three.
+
+        Returns
+        -------
+        matplotlib.figure.Figure or the ``ax`` given
+        """
+        figures = _figures()
+        have = [r.axis for r in self.axes]
+        one = _one_axis(axis, have)
+        if self.spectra is None or self.nominal is None:
+            raise UsageError("this result holds no spectra or nominal fit to draw")
+        if ax is None and panel in (None, "all"):
+            return figures.uncertainty_figure(self.spectra, self.nominal, self, axis=one)
+        if one is None:
+            raise UsageError(f"this fit holds axes {', '.join(have)}: choose one with axis=")
+        names = ("magnitude", "phase", "uncertainty")
+        fig, t = _panel_targets(ax, panel, names, {"both": names[:2], "all": names},
+                                "uncertainty")
+        entries = figures.uncertainty_axes(t["magnitude"], t["phase"], t["uncertainty"],
+                                           self.spectra, self.nominal, self, axis=one)
+        _label_panels(t, {"magnitude": figures.MAG_LABEL, "phase": figures.PHASE_LABEL,
+                          "uncertainty": figures.UNCERTAINTY_LABEL,
+                          "x": figures.FREQ_LABEL}, entries)
+        return fig if ax is None else ax
+
+    def _html_summary(self) -> str:
+        orders = ", ".join(f"{r.axis}: {len(r.result.weight.zeros)} pair(s)"
+                           for r in self.axes)
+        return f"Wu per axis ({orders}), cost {self.cost}"
 
 
 def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | None = None,
@@ -809,7 +960,7 @@ def read_weights(path: PathLike) -> dict[str, _uncertainty.WuWeight]:
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
-class Comparisons:
+class Comparisons(_HtmlTable):
     """Errors of models against measurements, overall and per band.
 
     Attributes
@@ -908,7 +1059,7 @@ def _effect_name(m) -> str:
 
 
 @dataclass(frozen=True, eq=False)
-class Diagnosis:
+class Diagnosis(_HtmlTable):
     """Which physical effect each axis's model is missing.
 
     Attributes
@@ -961,18 +1112,47 @@ class Diagnosis:
                           + "\n", overwrite=overwrite)
         return Path(path)
 
-    def plot(self, ax=None):
-        """Normalised residuals of the model with the diagnosis's failing bands shaded
-        (:func:`armfit.figures.residual_figure`); with ``ax``, each axis's base-model
-        error per failing band drawn as spans on it."""
-        bands = {d.axis: [(fb.lo_hz, fb.hi_hz) for fb in d.failing] for d in self.axes}
-        if ax is None:
-                return _figures().residual_figure(self.spectra, self.model.table, bands=bands)
-        for axis, spans in bands.items():
-            for lo, hi in spans:
-                ax.axvspan(lo, hi, alpha=0.2, label=f"{axis} fails")
-        ax.set_xscale("log")
-        return ax
+    def plot(self, axis: str | None = None, ax=None, *, panel: str | None = None):
+        """Normalised residuals (measurement − model)/SE of the diagnosed model, one
+        axis: shaded where they leave the noise band
+        (:func:`armfit.figures.residual_figure`).
+
+        Parameters
+        ----------
+        axis : {'x', 'y', 'z'}, optional
+            Default the only one, or with ``ax`` None every axis diagnosed.
+        ax : matplotlib Axes or sequence of two, optional
+            One Axes draws one panel (``panel``, default the magnitude), two draw both.
+            Default: a new figure.
+        panel : {'magnitude', 'phase', 'both'}, optional
+
+        Returns
+        -------
+        matplotlib.figure.Figure or the ``ax`` given
+        """
+        figures = _figures()
+        have = [d.axis for d in self.axes]
+        one = _one_axis(axis, have)
+        if self.spectra is None or self.model is None:
+            raise UsageError("this diagnosis holds no spectra or model to draw")
+        table = self.model.table[self.model.table["axis"].isin(have)]
+        if ax is None and panel in (None, "both"):
+            return figures.residual_figure(self.spectra, table, axis=one)
+        if one is None:
+            raise UsageError(f"this diagnosis holds axes {', '.join(have)}: choose one "
+                             "with axis=")
+        fig, t = _panel_targets(ax, panel, ("magnitude", "phase"),
+                                {"both": ("magnitude", "phase")}, "magnitude")
+        entries = figures.residual_axes(t["magnitude"], t["phase"], self.spectra, table,
+                                        axis=one)
+        _label_panels(t, {"magnitude": "Magnitude residual / SE",
+                          "phase": "Phase residual / SE", "x": figures.FREQ_LABEL},
+                      entries)
+        return fig if ax is None else ax
+
+    def _html_summary(self) -> str:
+        return "; ".join(f"{a}: {', '.join(e) or 'nothing missing'}"
+                         for a, e in self.added.items())
 
 
 def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
@@ -1041,7 +1221,7 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
-class TrialFits:
+class TrialFits(_HtmlTable):
     """One fit of H_CL (eq. 4) per trial (``armfit fit-trials``).
 
     Attributes
@@ -1211,7 +1391,7 @@ def _adopted_tables(sp: Spectra, ad: _adopt.Adoption, cost: str, jobs: int,
 
 
 @dataclass(frozen=True, eq=False)
-class Stability:
+class Stability(_HtmlTable):
     """The stiffest virtual wall a sampled haptic device renders stably with each arm
     model (``armfit stability``).
 
@@ -1245,15 +1425,45 @@ class Stability:
             self.table.to_csv(tmp, index=False, float_format="%.10g")
         return Path(path)
 
-    def plot(self, ax=None):
-        """K_max per model and against servo rate (:func:`armfit.figures.stability_figure`);
-        with ``ax``, K_max (kN/m) of each model drawn as points on it."""
-        if ax is None:
-            return _figures().stability_figure(self.models, self.settings)
-        k = self.table["k_max_N_per_m"].to_numpy(float) / 1e3
-        ax.plot(np.arange(k.size), k, "o")
-        ax.set_ylabel("K_max (kN/m)")
-        return ax
+    def plot(self, axis: str | None = None, ax=None, *, panel: str | None = None):
+        """K_max of each model, and against the servo rate, for one axis
+        (:func:`armfit.figures.stability_figure`).
+
+        Parameters
+        ----------
+        axis : {'x', 'y', 'z'}, optional
+            Default the only one, or with ``ax`` None every axis.
+        ax : matplotlib Axes or sequence of two, optional
+            One Axes draws one panel (``panel``, default 'kmax'), two draw both.
+            Default: a new figure.
+        panel : {'kmax', 'sweep', 'both'}, optional
+            'kmax': K_max per model at the settings; 'sweep': against servo rate 1/T
+            for computation delays of 0, 1 and 2 samples.
+
+        Returns
+        -------
+        matplotlib.figure.Figure or the ``ax`` given
+        """
+        figures = _figures()
+        have = [a for a in AXES if (self.table["axis"] == a).any()]
+        one = _one_axis(axis, have)
+        if ax is None and panel in (None, "both"):
+            rows = self.models if one is None else \
+                self.models[(self.models["axis"] == one).to_numpy()]
+            return figures.stability_figure(rows, self.settings)
+        if one is None:
+            raise UsageError(f"this result holds axes {', '.join(have)}: choose one "
+                             "with axis=")
+        fig, t = _panel_targets(ax, panel, ("kmax", "sweep"), {"both": ("kmax", "sweep")},
+                                "kmax")
+        entries = figures.stability_axes(t["kmax"], t["sweep"], self, axis=one)
+        _label_panels(t, {}, entries)
+        return fig if ax is None else ax
+
+    def _html_summary(self) -> str:
+        st = self.settings
+        return (f"{len(self.table)} model(s); T = {st.sample_time_s * 1e3:g} ms, "
+                f"B = {st.damping_Ns_per_m:g} N·s/m, d = {st.delay_samples}")
 
 
 def stability(model, *, weights=None, sample_time_s: float | None = None,
@@ -1344,7 +1554,7 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
 # ---------------------------------------------------------------------------
 
 @dataclass(frozen=True, eq=False)
-class Simulation:
+class Simulation(_HtmlTable):
     """A simulated study of the paper's protocol with known truth.
 
     Attributes

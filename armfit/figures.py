@@ -2,15 +2,20 @@
 
 Every figure function takes data in the shapes of armfit's own files — the spectra table
 (:data:`armfit.io.artifacts.SPECTRA_COLUMNS`), a fitted-parameters table (one row per axis,
-or per axis × grip) and an uncertainty-weight table (``axis,kind,index,real,imag``) — and
-returns a :class:`matplotlib.figure.Figure`. Nothing here reads files or prints;
+or per axis × grip) and uncertainty weights ({axis: WuWeight}) — or the result objects of
+:mod:`armfit.api` that hold them (``Spectra``, ``ModelFit``, ``AdoptedModel``,
+``TrialFits``, ``Uncertainty``, ``Stability``), and returns a
+:class:`matplotlib.figure.Figure`; each ``*_axes`` function draws one axis of a figure
+on Axes of your own (the result objects' ``plot``). Nothing here reads files or prints;
 :func:`save_figure` is the only writer.
 
 Figures are drawn on the Agg canvas (headless; pyplot is never used), sized for a journal
 column (3.5 in per panel column, 8 pt text), with one consistent style and a fixed layout
-computed once from the sizes of the texts around the panels (no layout engine at save). Each plotted
-artist carries a ``gid`` naming what it shows (``trial:…``, ``mean:…``, ``fit:…``,
-``nominal:…``, ``wmax:…``, ``wu:…``, ``literature:…``) so that a figure can be inspected;
+computed once from the sizes of the texts around the panels (no layout engine at save),
+legends kept within the figure's width, tick labels with one minus sign (U+2212). Each
+plotted artist carries a ``gid`` naming what it shows (``trial:…``, ``mean:…``, ``fit:…``,
+``fit-outside:…``, ``nominal:…``, ``wmax:…``, ``wu:…``, ``literature:…``, ``failing:…``,
+``kmax:…``) so that a figure can be inspected;
 single trials are one LineCollection per panel and grip (``trial:<axis>:<grip>N``; in
 the uncertainty figure one per panel, ``trial:<axis>``), one line per trial in the order
 of (grip, subject, run).
@@ -39,13 +44,19 @@ from typing import Any
 import matplotlib as mpl
 import numpy as np
 import pandas as pd
-from matplotlib import patheffects
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import TICKDOWN, TICKUP, Line2D
 from matplotlib.patches import Patch
-from matplotlib.ticker import FuncFormatter, Locator, LogLocator, NullFormatter, NullLocator
+from matplotlib.ticker import (
+    FixedLocator,
+    FuncFormatter,
+    Locator,
+    LogLocator,
+    NullFormatter,
+    NullLocator,
+)
 
 from armfit import noise
 from armfit.constants import AXES, GRID_HZ
@@ -89,13 +100,18 @@ FREQ_LABEL = "Frequency (Hz)"
 #: Drawing order: data (single trials, means, bands) below, model lines on top of them.
 DATA_ZORDER = 2.0
 MODEL_ZORDER = 3.0
-#: A thin white edge under each dashed model line of the Bode plot, so that it stays
-#: visible where it lies on the thicker mean line of the same colour.
-MODEL_HALO = (patheffects.Stroke(linewidth=2.0, foreground="white"), patheffects.Normal())
 
 #: Colour-blind-safe palette (Okabe & Ito, with wine for their hard-to-see yellow); grips
 #: take the first colours in order.
 PALETTE = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#882255")
+
+#: Half-width of the noise band of a normalised residual: |(measurement − model)/SE| ≤
+#: this value is within the noise.
+NOISE_BAND = 2.0
+#: Colour of the bands where a model leaves the noise band.
+FAILING_COLOUR = "#D55E00"
+#: The minus sign of every tick label (matplotlib's own: U+2212).
+MINUS = "\u2212"
 
 #: Residual axes whose |z| exceeds 3× this value are linear for |z| ≤ this value and
 #: logarithmic beyond (symlog), so the noise band stays readable next to residuals of
@@ -202,6 +218,40 @@ def model_from_row(row: Mapping[str, Any]) -> tuple[ClosedLoopModel, dict[str, f
     return model, theta
 
 
+def _params_table(params, which: str = "grip") -> pd.DataFrame | None:
+    """A params table from what the figures take: a DataFrame as it is, or a result
+    object of :mod:`armfit.api` — a ``ModelFit`` (its table), an ``AdoptedModel`` (its
+    ``which`` fits: "grip" or "nominal"), ``TrialFits`` (the converged fits) or
+    ``Stability`` (the models it analysed). None stays None."""
+    if params is None or isinstance(params, pd.DataFrame):
+        return params
+    if hasattr(params, "adoption"):                       # AdoptedModel
+        return getattr(params, which).table
+    if hasattr(params, "settings") and hasattr(params, "models"):   # Stability
+        return params.models
+    if isinstance(getattr(params, "table", None), pd.DataFrame):   # ModelFit
+        return params.table
+    if hasattr(params, "fits") and hasattr(params, "to_frame"):     # TrialFits
+        rows = params.to_frame()
+        return rows[rows["converged"].astype(bool)].reset_index(drop=True)
+    raise UsageError(f"expected a params table or a fit, got {type(params).__name__}")
+
+
+def _spectra_of(spectra) -> Spectra:
+    """A :class:`Spectra` from a Spectra or its long table."""
+    return Spectra.of(spectra)
+
+
+def _weights_of(weights) -> Mapping[str, WuWeight] | None:
+    """{axis: WuWeight} from a mapping or an ``Uncertainty`` result (its fitted weights)."""
+    if weights is None or isinstance(weights, Mapping):
+        return weights
+    if hasattr(weights, "weights"):
+        return weights.weights
+    raise UsageError(f"expected {{axis: WuWeight}} or an uncertainty fit, "
+                     f"got {type(weights).__name__}")
+
+
 def _model_label(row: Mapping[str, Any]) -> str:
     names = row.get("effects", "")
     if names is None or (isinstance(names, float) and math.isnan(names)) or not str(names):
@@ -306,6 +356,7 @@ class Curve:
     se_deg: np.ndarray
     q_db: tuple[np.ndarray, np.ndarray]
     q_deg: tuple[np.ndarray, np.ndarray]
+    coherence: np.ndarray | None = None
 
 
 def _select(spectra: Spectra, *, level: str, kind: str, axis: str) -> Spectra:
@@ -340,7 +391,8 @@ def _curves(rows: Spectra, by: Sequence[str]) -> list[Curve]:
                          v["mag_db"][i, m], v["phase_deg"][i, m], rows.h[i, m],
                          v["se_db"][i, m], v["se_deg"][i, m],
                          (v["q25_db"][i, m], v["q75_db"][i, m]),
-                         (v["q25_deg"][i, m], v["q75_deg"][i, m])))
+                         (v["q25_deg"][i, m], v["q75_deg"][i, m]),
+                         v["coherence"][i, m]))
     return out
 
 
@@ -461,7 +513,8 @@ def _grid(nrows: int, ncols: int, *, legend_rows: int = 1) -> tuple[Figure, np.n
     artists are in place. The figure is made at the PNG resolution (:data:`DPI`), so that
     the texts measured for the layout are the ones drawn (matplotlib caches text metrics
     by resolution)."""
-    fig = Figure(figsize=(PANEL_WIDTH_IN * ncols, PANEL_HEIGHT_IN * nrows + 0.25 * legend_rows),
+    fig = Figure(figsize=(PANEL_WIDTH_IN * ncols,
+                         PANEL_HEIGHT_IN * nrows + LEGEND_ROW_IN * legend_rows),
                  dpi=DPI)
     FigureCanvasAgg(fig)
     axs = np.atleast_2d(fig.subplots(nrows, ncols, sharex="col", squeeze=False))
@@ -623,10 +676,61 @@ def _fixed_layout(fig: Figure, axs: np.ndarray) -> None:
             break
 
 
-def _legend(fig: Figure, handles: list, ncol: int | None = None) -> None:
-    if handles:
-        fig.legend(handles=handles, loc="outside lower center",
-                   ncol=ncol or min(len(handles), 4))
+#: Height (in) the figures are given per legend row they are made for (:func:`_grid`).
+LEGEND_ROW_IN = 0.25
+
+
+def _legend_layouts(handles: list, ncol: int | None) -> list[tuple[list, int]]:
+    """The layouts :func:`_legend` tries, widest first: (entries in matplotlib's
+    column-major order, columns). ``handles`` as a list of groups (lists): one column
+    per group, then one row per group, then fewer columns; blank entries pad the groups
+    to one length. A flat list: ``ncol`` columns (default up to 4), then fewer."""
+    def pair(h):
+        return h if isinstance(h, tuple) else (h, h.get_label())
+
+    if handles and isinstance(handles[0], list):
+        size = max(len(g) for g in handles)
+        blank = (Line2D([], [], alpha=0.0), "")
+        groups = [[pair(h) for h in g] + [blank] * (size - len(g)) for g in handles]
+        flat = [e for g in groups for e in g]
+        by_row = [g[j] for j in range(size) for g in groups]
+        dense = [pair(h) for g in handles for h in g]     # no blanks once columns mix
+        out = [(flat, len(groups)), (by_row, size)]
+        return out + [(dense, n) for n in range(size - 1, 0, -1)]
+    flat = [pair(h) for h in handles]
+    return [(flat, n) for n in range(max(1, ncol or min(len(flat), 4)), 0, -1)]
+
+
+def _legend(fig: Figure, handles: list, ncol: int | None = None, *,
+            sized_rows: int = 1) -> None:
+    """The figure's legend below the panels, within the figure's width.
+
+    ``handles``: artists with their labels, or (handle, label) pairs (a handle may be a
+    tuple of artists, drawn on top of each other); or a list of groups of them (lists),
+    each group a column where the figure is wide enough and a row otherwise.
+
+    ``ncol`` columns (default: up to 4) unless the legend would be wider than the
+    figure less its padding: then as many columns as fit (one at least), so a figure of
+    one panel column never cuts a legend entry. A legend of more rows than the
+    ``sized_rows`` the figure was made for makes the figure taller by the extra rows
+    (the panels keep their height: :func:`_fixed_layout` places them after this)."""
+    if not handles:
+        return
+    renderer = fig.canvas.get_renderer()
+    room = fig.get_figwidth() - 2.0 * LAYOUT_PAD_IN
+    layouts = _legend_layouts(handles, ncol)
+    for k, (entries, n) in enumerate(layouts):
+        legend = fig.legend([h for h, _ in entries], [t for _, t in entries],
+                            loc="outside lower center", ncol=n)
+        if k == len(layouts) - 1 or \
+                legend.get_window_extent(renderer).width / renderer.dpi <= room:
+            break
+        legend.remove()
+    rows = -(-len(entries) // n)
+    if rows > sized_rows:
+        width, height = fig.get_size_inches()
+        per_row = legend.get_window_extent(renderer).height / renderer.dpi / rows
+        fig.set_size_inches(width, height + (rows - sized_rows) * per_row, forward=False)
 
 
 def _trial_lines(ax, xs: Sequence[np.ndarray], ys: Sequence[np.ndarray], *, color: str,
@@ -652,103 +756,297 @@ def _trial_lines(ax, xs: Sequence[np.ndarray], ys: Sequence[np.ndarray], *, colo
 # Fig. 5: Bode plot of measured dynamics with fits
 # ---------------------------------------------------------------------------
 
+#: Marker of each grip's mean (grips in ascending order), so that grips whose means
+#: coincide stay apart; hollow, so that a marker drawn over another leaves it visible.
+GRIP_MARKERS = ("o", "s", "^", "D", "v", "P", "X")
+#: Size (pt) of the mean markers.
+MEAN_MARKER_PT = 3.5
+#: Markers per decade on each mean line (the line itself joins every distinct estimate).
+MARKERS_PER_DECADE = 5
+
+
+def _grip_markers(grips: Sequence[float | None]) -> dict[float | None, str]:
+    known = sorted(g for g in set(grips) if g is not None)
+    out: dict[float | None, str] = {g: GRIP_MARKERS[i % len(GRIP_MARKERS)]
+                                    for i, g in enumerate(known)}
+    out[None] = "o"
+    return out
+
+
+def _darker(colour, black: float = 0.45) -> tuple[float, float, float]:
+    """``colour`` mixed with ``black`` (0…1) parts of black: a grip's model line."""
+    r, g, b = mpl.colors.to_rgb(colour)
+    return (r * (1.0 - black), g * (1.0 - black), b * (1.0 - black))
+
+
+def independent_points(coherence: np.ndarray) -> np.ndarray:
+    """Indices of the points of a response that stand for distinct estimates.
+
+    At low frequencies, where the native bins are coarser than a grid point's band,
+    consecutive grid points average the same nearest bins
+    (:func:`armfit.spectra.band_bins`): one estimate, moved along its fitted slope to
+    each grid frequency, and one coherence value. Such a run of points with the same
+    (finite) coherence is one estimate: its middle point is kept; every other point is
+    its own estimate.
+
+    Parameters
+    ----------
+    coherence : array_like, shape (nf,)
+        The response's coherence at its frequencies, ascending (NaN where unknown).
+
+    Returns
+    -------
+    ndarray of int
+        Ascending indices into the response's points.
+    """
+    c = np.asarray(coherence, dtype=float)
+    if c.size == 0:
+        return np.zeros(0, dtype=int)
+    shares = np.isfinite(c[1:]) & (c[1:] == c[:-1])  # point i+1 shares point i's estimate
+    starts = np.flatnonzero(np.concatenate([[True], ~shares]))
+    ends = np.append(starts[1:], c.size)
+    return starts + (ends - starts - 1) // 2
+
+
+@dataclass(frozen=True)
+class _BodeStyle:
+    """How one panel column of the Bode plot is drawn: per grip a colour and a marker,
+    the spread around the means ("se" or "quartiles") and whether single trials show."""
+
+    colour: Mapping[float | None, str]
+    marker: Mapping[float | None, str]
+    band: str = "se"
+    trials: bool = True
+
+
+def _bode_style(spectra: Spectra | None, params: pd.DataFrame | None, band: str,
+                trials: bool) -> _BodeStyle:
+    grips = [] if spectra is None else \
+        [_grip_key(g) for g in dict.fromkeys(spectra.key("grip_N"))]
+    if params is not None and "grip_N" in params.columns:
+        grips += [_grip_key(g) for g in params["grip_N"].unique()]
+    return _BodeStyle(_grip_colours(grips), _grip_markers(grips), band, trials)
+
+
+def _bode_models(params: pd.DataFrame | None, axis: str, f: np.ndarray) -> list[tuple]:
+    """(grip, row, f, H, phase, fit band) of each model row of ``axis`` on the dense grid
+    ``f`` (Hz), the edges of the row's fit band added to it."""
+    out = []
+    for g, row in _params_for(params, axis):
+        model, theta = model_from_row(row)
+        fb = fit_band(row)
+        fd = f if fb is None else np.union1d(f, [x for x in fb if f[0] <= x <= f[-1]])
+        h = model.response(fd, theta)
+        out.append((g, row, fd, h, _phase_deg(h), fb))
+    return out
+
+
+def _draw_bode_trials(mag, ph, axis: str, curves: list[Curve], ref_for, style: _BodeStyle,
+                      raster: bool) -> None:
+    by_grip: dict[float | None, list[Curve]] = {}
+    for c in curves:
+        by_grip.setdefault(_grip_key(c.key[0]), []).append(c)
+    for g, cs in by_grip.items():
+        gid = _trial_gid(axis, g, None, None)
+        for a, is_phase in ((mag, False), (ph, True)):
+            if a is None:
+                continue
+            ys = [_aligned_phase(c, ref_for(g))[0] if is_phase else c.mag_db for c in cs]
+            _trial_lines(a, [c.freq_hz for c in cs], ys, color=style.colour.get(g, "grey"),
+                         gid=gid, rasterized=raster)
+
+
+def _marker_steps(f: np.ndarray, g: float | None, style: _BodeStyle) -> tuple[int, int]:
+    """(first, step) of the points of a mean that carry its grip's marker: about
+    :data:`MARKERS_PER_DECADE` per decade, each grip starting at its own point so that
+    the markers of grips whose means coincide stand side by side, not on each other."""
+    decades = math.log10(f[-1] / f[0]) if f.size > 1 and f[0] > 0 else 1.0
+    step = max(1, round(f.size / max(decades * MARKERS_PER_DECADE, 1.0)))
+    known = sorted(k for k in style.marker if k is not None)
+    i = known.index(g) if g in known else 0
+    return (i * step) // max(len(known), 1), step
+
+
+def _draw_bode_mean(mag, ph, axis: str, c: Curve, ref: _PhaseRef, style: _BodeStyle
+                    ) -> tuple:
+    """A grip's mean: a line through its distinct estimates (:func:`independent_points`)
+    with its spread shaded, and its grip's marker on some of them (hollow). Returns its
+    legend handle."""
+    g = _grip_key(c.key[0])
+    col, marker = style.colour.get(g, "black"), style.marker.get(g, "o")
+    phase, moved = _aligned_phase(c, ref)
+    lo_hi = ((c.mag_db - c.se_db, c.mag_db + c.se_db),
+             (phase - c.se_deg, phase + c.se_deg)) if style.band == "se" \
+        else (c.q_db, (c.q_deg[0] + moved, c.q_deg[1] + moved))
+    keep = independent_points(c.coherence if c.coherence is not None
+                              else np.full(c.freq_hz.size, np.nan))
+    f = c.freq_hz[keep]
+    tag = _grip_text(g).replace(" ", "")
+    line = dict(lw=1.5, color=col, marker=marker, ms=MEAN_MARKER_PT, mfc="white", mec=col,
+                mew=0.8)
+    for a, y, (lo, hi) in ((mag, c.mag_db, lo_hi[0]), (ph, phase, lo_hi[1])):
+        if a is None:
+            continue
+        a.fill_between(f, lo[keep], hi[keep], color=col, alpha=0.2, lw=0,
+                       gid=f"band:{axis}:{tag}", zorder=DATA_ZORDER)
+        a.plot(f, y[keep], **line, markevery=_marker_steps(f, g, style),
+               gid=f"mean:{axis}:{tag}", zorder=DATA_ZORDER + 0.1)
+    return (Patch(color=col, alpha=0.2, lw=0), Line2D([], [], **line))
+
+
+def _draw_bode_model(mag, ph, axis: str, model: tuple, style: _BodeStyle) -> bool:
+    """A model line: solid in a darker shade of its grip's colour over its fit band,
+    dashed beyond it. Returns whether a dashed part was drawn."""
+    g, _row, f, h, phase, fb = model
+    col = _darker(style.colour.get(g, "black")) if g is not None else "black"
+    inside = np.ones(f.size, bool) if fb is None else (f >= fb[0]) & (f <= fb[1])
+    outside = ~inside
+    outside[:-1] |= ~inside[1:]     # with the band's edge points, so the lines join
+    outside[1:] |= ~inside[:-1]
+    tag = _grip_text(g).replace(" ", "")
+    for a, y in ((mag, _db(h)), (ph, phase)):
+        if a is None:
+            continue
+        a.plot(f[inside], y[inside], lw=0.9, ls="-", color=col, zorder=MODEL_ZORDER,
+               gid=f"fit:{axis}:{tag}")
+        if not inside.all():
+            a.plot(f, np.where(outside, y, np.nan), lw=0.9, ls=(0, (3, 2)), color=col,
+                   zorder=MODEL_ZORDER, gid=f"fit-outside:{axis}:{tag}")
+    return not inside.all()
+
+
+def bode_axes(mag, ph, spectra=None, params=None, *, axis: str, band: str = "se",
+              kind: str = "measured", trials: bool = True, style: _BodeStyle | None = None
+              ) -> dict[tuple, Any]:
+    """Draw the Bode pair of one axis — the column of Fig. 5 — on Axes of your own.
+
+    Parameters
+    ----------
+    mag, ph : matplotlib.axes.Axes or None
+        Where the magnitude (dB re 1 m/N) and the phase (deg) go; None leaves that
+        panel out. Both get a log frequency axis.
+    spectra : Spectra, pandas.DataFrame or None
+        Single trials (level "trial") and grip means (level "mean") of ``kind``; None
+        draws the models alone.
+    params : pandas.DataFrame, ModelFit or AdoptedModel, optional
+        Model rows (grip or nominal fits); those of ``axis`` are drawn.
+    axis : {'x', 'y', 'z'}
+    band, kind, trials
+        As :func:`bode_figure`.
+
+    Returns
+    -------
+    dict
+        The legend entries drawn, {(grip order, entry order, …): handle}.
+    """
+    spectra = None if spectra is None else Spectra.of(spectra)
+    params = _params_table(params, "grip")
+    style = style or _bode_style(spectra, params, band, trials)
+    mean_curves: list[Curve] = []
+    trial_curves: list[Curve] = []
+    raster = False
+    f = np.geomspace(*GRID_HZ, 400)
+    if spectra is not None:
+        trial_rows = _select(spectra, level="trial", kind=kind, axis=axis)
+        mean_rows = _select(spectra, level="mean", kind=kind, axis=axis)
+        trial_curves = _curves(trial_rows, ("grip_N", "subject", "run")) if trials else []
+        mean_curves = _curves(mean_rows, ("grip_N",))
+        raster = _points(trial_rows) > RASTER_POINTS
+        f_all = np.concatenate([trial_rows.freq_hz, mean_rows.freq_hz])
+        f = _log_grid(f_all if f_all.size else spectra.freq_hz[spectra.freq_hz > 0])
+    models = _bode_models(params, axis, f)     # the phase references of the data
+    refs = {g: _PhaseRef(fd, p) for g, _, fd, _, p, _ in models}
+    consensus = None if refs else _consensus_ref(trial_curves + mean_curves)
+
+    def ref_for(g) -> _PhaseRef:
+        if g in refs:
+            return refs[g]
+        if None in refs:
+            return refs[None]
+        return consensus if consensus is not None else next(iter(refs.values()))
+
+    seen: dict[tuple, Any] = {}
+    if trial_curves:
+        _draw_bode_trials(mag, ph, axis, trial_curves, ref_for, style, raster)
+        seen[(math.inf, 0)] = (Line2D([], [], lw=0.4, color="grey"), "single trials")
+    spread = "± SE" if band == "se" else "quartiles"
+    for c in mean_curves:
+        g = _grip_key(c.key[0])
+        handle = _draw_bode_mean(mag, ph, axis, c, ref_for(g), style)
+        seen[(_order(g), 0)] = (handle, f"{_grip_text(g)}: mean {spread}")
+    for model in models:
+        g, row = model[0], model[1]
+        label = (f"{_grip_text(g)}: " if g is not None else "") + _model_label(row)
+        col = _darker(style.colour.get(g, "black")) if g is not None else "black"
+        if _draw_bode_model(mag, ph, axis, model, style):
+            seen[(math.inf, 1)] = (Line2D([], [], lw=1.0, ls=(0, (3, 2)), color="0.3"),
+                                   "model beyond its fit band")
+        seen[(_order(g), 1, label)] = (Line2D([], [], lw=1.0, color=col), label)
+    _log_x(mag, ph)
+    return dict(sorted(seen.items(), key=lambda kv: _entry_order(kv[0])))
+
+
+def _entry_order(k: tuple) -> tuple:
+    """Sort key of :func:`bode_axes`' legend entries: by grip, then mean before model."""
+    return (k[0], k[1], str(k[2:]))
+
+
+def _log_x(*axes) -> None:
+    """A log frequency axis on each of ``axes`` that is not one yet (None skipped)."""
+    for a in axes:
+        if a is not None and a.get_xscale() != "log":
+            a.set_xscale("log")
+
+
+def _entries(seen: Mapping[tuple, Any]) -> list[list[tuple[Any, str]]]:
+    """(handle, label) of :func:`bode_axes`' legend entries in groups, in the order of
+    their keys: one group per grip (mean, model), then single trials and the dashed
+    model."""
+    groups: dict[float, list] = {}
+    for k in sorted(seen, key=_entry_order):
+        groups.setdefault(k[0], []).append(seen[k])
+    return list(groups.values())
+
+
 @_styled
-def bode_figure(spectra: pd.DataFrame, params: pd.DataFrame | None = None, *,
-                axis: str | None = None, band: str = "se", kind: str = "measured",
-                trials: bool = True) -> Figure:
+def bode_figure(spectra, params=None, *, axis: str | None = None, band: str = "se",
+                kind: str = "measured", trials: bool = True) -> Figure:
     """Bode plot per axis — the paper's Fig. 5.
 
-    Each trial's response (level "trial") thin and light; the mean per grip (level
-    "mean") thick with its error band (``band`` "se": ± se_db / ± se_deg, or
-    "quartiles": q25…q75); one model line per row of ``params`` (H_CL of eq. 4 with the
-    row's effects, :meth:`ClosedLoopModel.response`), coloured by grip, dashed, on top
-    of the data. Magnitude in dB re 1 m/N, phase in degrees, against frequency in Hz;
-    each phase curve unwrapped from its low-frequency end and moved by whole turns to
-    lie nearest the model of its grip (else the nominal row, else the curves' circular
-    mean); a mean's band moves with it. ``axis`` None draws every axis present side by
-    side. The single trials of a panel and grip are one LineCollection
-    (gid ``trial:<axis>:<grip>N``).
+    Each trial's response (level "trial") thin and light; each grip's mean (level
+    "mean") as hollow markers, one marker shape per grip, at its distinct estimates only
+    (:func:`independent_points`), with its spread shaded (``band`` "se": ± se_db /
+    ± se_deg, or "quartiles": q25…q75); one model line per row of ``params`` (H_CL of
+    eq. 4 with the row's effects, :meth:`ClosedLoopModel.response`) in a darker shade of
+    its grip's colour, solid over the band it was fitted on (``band_lo_hz`` …
+    ``band_hi_hz`` of the row) and dashed beyond it, on top of the data. Magnitude in
+    dB re 1 m/N, phase in degrees, against frequency in Hz; each phase curve unwrapped
+    from its low-frequency end and moved by whole turns to lie nearest the model of its
+    grip (else the nominal row, else the curves' circular mean); a mean's band moves
+    with it. ``axis`` None draws every axis present side by side. The single trials of
+    a panel and grip are one LineCollection (gid ``trial:<axis>:<grip>N``).
+
+    ``spectra`` is a :class:`~armfit.spectra.Spectra` or its long table; ``params`` a
+    params table, a ``ModelFit`` or an ``AdoptedModel`` (its grip fits). One panel
+    column per axis; :func:`bode_axes` draws one column on Axes of your own.
     """
     if band not in ("se", "quartiles"):
         raise UsageError(f"band must be 'se' or 'quartiles', got {band!r}")
-    spectra = Spectra.of(spectra)
+    spectra = _spectra_of(spectra)
+    params = _params_table(params, "grip")
     axes = _axes_in(spectra, kind, axis)
-    grips = [_grip_key(g) for g in dict.fromkeys(spectra.key("grip_N"))]
-    if params is not None and "grip_N" in params.columns:
-        grips += [_grip_key(g) for g in params["grip_N"].unique()]
-    colour = _grip_colours(grips)
+    style = _bode_style(spectra, params, band, trials)
     fig, axs = _grid(2, len(axes), legend_rows=2)
-    band_text = "± SE" if band == "se" else "quartiles"
-    seen: dict[tuple, Any] = {}  # legend entries by (grip order, entry order)
+    seen: dict[tuple, Any] = {}
     for j, ax_name in enumerate(axes):
-        mag, ph = axs[0, j], axs[1, j]
-        mag.set_title(AXIS_TITLES[ax_name])
-        trial_rows = _select(spectra, level="trial", kind=kind, axis=ax_name)
-        mean_rows = _select(spectra, level="mean", kind=kind, axis=ax_name)
-        trial_curves = _curves(trial_rows, ("grip_N", "subject", "run")) if trials else []
-        mean_curves = _curves(mean_rows, ("grip_N",))
-        f_all = np.concatenate([trial_rows.freq_hz, mean_rows.freq_hz])
-        if f_all.size == 0:
-            f_all = spectra.freq_hz[spectra.freq_hz > 0]
-        f = _log_grid(f_all)
-        # model lines first (drawn on top, below): they are the phase references
-        models = []
-        for g, row in _params_for(params, ax_name):
-            model, theta = model_from_row(row)
-            h = model.response(f, theta)
-            models.append((g, row, h, _phase_deg(h)))
-        refs = {g: _PhaseRef(f, p) for g, _, _, p in models}
-        consensus = None if refs else _consensus_ref(trial_curves + mean_curves)
-
-        def ref_for(g, refs=refs, consensus=consensus) -> _PhaseRef:
-            if g in refs:
-                return refs[g]
-            if None in refs:
-                return refs[None]
-            return consensus if consensus is not None else next(iter(refs.values()))
-
-        if trial_curves:
-            raster = _points(trial_rows) > RASTER_POINTS
-            by_grip: dict[float | None, list[Curve]] = {}
-            for c in trial_curves:
-                by_grip.setdefault(_grip_key(c.key[0]), []).append(c)
-            for g, cs in by_grip.items():
-                gid = _trial_gid(ax_name, g, None, None)
-                phases = [_aligned_phase(c, ref_for(g))[0] for c in cs]
-                for a, ys in ((mag, [c.mag_db for c in cs]), (ph, phases)):
-                    _trial_lines(a, [c.freq_hz for c in cs], ys, color=colour.get(g, "grey"),
-                                 gid=gid, rasterized=raster)
-            seen.setdefault((math.inf, 0), Line2D([], [], lw=0.4, color="grey",
-                                             label="single trials"))
-        for c in mean_curves:
-            g = _grip_key(c.key[0])
-            col = colour.get(g, "black")
-            phase, moved = _aligned_phase(c, ref_for(g))
-            lo_hi = ((c.mag_db - c.se_db, c.mag_db + c.se_db),
-                     (phase - c.se_deg, phase + c.se_deg)) if band == "se" \
-                else (c.q_db, (c.q_deg[0] + moved, c.q_deg[1] + moved))
-            for a, y, (lo, hi) in ((mag, c.mag_db, lo_hi[0]), (ph, phase, lo_hi[1])):
-                a.fill_between(c.freq_hz, lo, hi, color=col, alpha=0.25, lw=0,
-                               gid=f"band:{ax_name}:{_grip_text(g)}".replace(" ", ""))
-                a.plot(c.freq_hz, y, lw=1.6, color=col, label=f"{_grip_text(g)} mean",
-                       gid=f"mean:{ax_name}:{_grip_text(g)}".replace(" ", ""),
-                       zorder=DATA_ZORDER)
-            seen.setdefault((_order(g), 0), Line2D([], [], lw=1.6, color=col,
-                                               label=f"{_grip_text(g)}: mean {band_text}"))
-        for g, row, h, phase in models:
-            col = colour.get(g, "black")
-            label = f"{_grip_text(g)}: {_model_label(row)}" if g is not None \
-                else _model_label(row)
-            for a, y in ((mag, _db(h)), (ph, phase)):
-                a.plot(f, y, lw=1.0, ls="--", color=col, label=label, zorder=MODEL_ZORDER,
-                       gid=f"fit:{ax_name}:{_grip_text(g)}".replace(" ", ""),
-                       path_effects=MODEL_HALO)
-            seen.setdefault((_order(g), 1, label), Line2D([], [], lw=1.0, ls="--", color=col,
-                                                     label=label))
+        axs[0, j].set_title(AXIS_TITLES[ax_name])
+        seen.update(bode_axes(axs[0, j], axs[1, j], spectra, params, axis=ax_name,
+                              band=band, kind=kind, trials=trials, style=style))
     axs[0, 0].set_ylabel(MAG_LABEL)
     axs[1, 0].set_ylabel(PHASE_LABEL)
-    # One legend column per grip (mean above fit), single trials last.
-    _legend(fig, [seen[k] for k in sorted(seen)], ncol=len({k[0] for k in seen}))
+    # One legend column per grip (mean above model), single trials last; one row per
+    # grip where the figure is too narrow for that.
+    _legend(fig, _entries(seen), sized_rows=2)
     _minor_ticks_as_lines(fig)
     _fixed_layout(fig, axs)
     return fig
@@ -855,28 +1153,182 @@ def residual_labels(spectra: pd.DataFrame, params: pd.DataFrame, axis: str, *,
             for g, norm, (lo, hi) in zip(res.grips, res.rms_norm, res.bands, strict=True)}
 
 
-def _residual_scale(ax) -> None:
-    """Symlog y (linear within ±RESIDUAL_LINEAR_LIMIT) once residuals reach 3× that."""
+def _residual_scale(ax) -> bool:
+    """Symlog y (linear within ±RESIDUAL_LINEAR_LIMIT, logarithmic beyond) once the
+    residuals drawn reach 3× that; labelled ticks at 0, ±half the limit, ±the limit and
+    the 1-2-5 steps beyond (the other multiples unlabelled), with the typographic minus,
+    and dotted lines where the scale turns logarithmic. Returns whether the axis is
+    symlog."""
     ys = [np.abs(ln.get_ydata()) for ln in ax.get_lines() if len(ln.get_ydata()) > 1]
     top = max((float(np.nanmax(y)) for y in ys if np.isfinite(y).any()), default=0.0)
-    if top > 3 * RESIDUAL_LINEAR_LIMIT:
-        ax.set_yscale("symlog", linthresh=RESIDUAL_LINEAR_LIMIT)
-        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+    lim = RESIDUAL_LINEAR_LIMIT
+    if top <= 3 * lim:
+        return False
+    ax.set_yscale("symlog", linthresh=lim)
+    first, last = int(math.log10(lim)) + 1, int(math.ceil(math.log10(top)))
+    powers = [10.0 ** k for k in range(first, last + 1)]
+    majors = [0.0, lim / 2, lim, *(m * p / 10 for p in powers for m in (2, 5, 10))]
+    minors = [m * p / 10 for p in powers for m in (3, 4, 6, 7, 8, 9)]
+    ax.yaxis.set_major_locator(_InView(FixedLocator(sorted({s * v for v in majors
+                                                             for s in (-1, 1)}))))
+    ax.yaxis.set_minor_locator(_InView(FixedLocator(sorted({s * v for v in minors
+                                                             for s in (-1, 1)}))))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: _signed(v)))
+    for y in (-lim, lim):
+        ax.axhline(y, color="0.5", ls=":", lw=0.6, zorder=1, gid="symlog-edge")
+    return True
+
+
+def _signed(v: float) -> str:
+    """``v`` as %g with the typographic minus (U+2212), the sign matplotlib's own tick
+    labels use."""
+    return f"{v + 0.0:g}".replace("-", MINUS)   # + 0.0: no sign on a zero
+
+
+def failing_spans(freq_hz, z, *, limit: float = NOISE_BAND, forward=None
+                  ) -> list[tuple[float, float]]:
+    """Where drawn residual curves leave the noise band.
+
+    Each row of ``z`` is drawn as straight segments between its points on a log
+    frequency axis and a y axis whose scale maps values by ``forward``; a span is where
+    at least one curve, as drawn, lies beyond ±``limit``: its edges are where a segment
+    crosses ±limit (interpolated in log frequency and in the scale's coordinate), or the
+    curve's first or last point.
+
+    Parameters
+    ----------
+    freq_hz : array_like, shape (nf,)
+        Frequencies (Hz), ascending, positive.
+    z : array_like, shape (nf,) or (k, nf)
+        Normalised residuals (dimensionless; NaN where there is none).
+    limit : float
+        Half-width of the noise band (:data:`NOISE_BAND`).
+    forward : callable, optional
+        The y scale's forward map of an array (e.g. ``ax.yaxis.get_transform().transform``
+        of a symlog axis); identity by default (a linear axis).
+
+    Returns
+    -------
+    list of (float, float)
+        Disjoint (lo_hz, hi_hz), ascending.
+    """
+    f = np.asarray(freq_hz, dtype=float)
+    rows = np.atleast_2d(np.asarray(z, dtype=float))
+    fwd = (lambda y: np.asarray(y, dtype=float)) if forward is None else forward
+    u = np.log(f)
+    pieces: list[tuple[float, float]] = []
+    for row in rows:
+        y = fwd(row)
+        ok = np.isfinite(y)
+        seg = ok[:-1] & ok[1:]
+        for sign in (1.0, -1.0):
+            thr = float(np.asarray(fwd(np.array([sign * limit])))[0])
+            out = ok & (sign * (y - thr) > 0)
+            a, b = out[:-1], out[1:]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.clip((thr - y[:-1]) / (y[1:] - y[:-1]), 0.0, 1.0)
+            has = seg & (a | b)
+            du = u[1:] - u[:-1]
+            lo = u[:-1] + np.where(a, 0.0, t) * du
+            hi = u[:-1] + np.where(b, 1.0, t) * du
+            pieces += list(zip(lo[has], hi[has], strict=True))
+            lone = out & ~np.concatenate([[False], seg]) & ~np.concatenate([seg, [False]])
+            pieces += [(x, x) for x in u[lone]]
+    merged: list[list[float]] = []
+    for lo, hi in sorted(pieces):
+        if merged and lo <= merged[-1][1] + 1e-12:
+            merged[-1][1] = max(merged[-1][1], hi)
+        else:
+            merged.append([lo, hi])
+    return [(math.exp(lo), math.exp(hi)) for lo, hi in merged]
+
+
+def residual_axes(mag, ph, spectra, params, params2=None, *, axis: str,
+                  bands: Sequence[tuple[float, float]] | None = None,
+                  kind: str = "measured", colour: Mapping | None = None) -> dict[str, Any]:
+    """Draw the normalised residuals of one axis — a column of :func:`residual_figure`
+    — on Axes of your own.
+
+    Parameters
+    ----------
+    mag, ph : matplotlib.axes.Axes or None
+        Where the magnitude and the phase residual go; None leaves that panel out.
+    spectra : Spectra or pandas.DataFrame
+    params, params2 : pandas.DataFrame, ModelFit or AdoptedModel
+        The models (solid) and optionally a second set (dashed); see
+        :func:`normalised_residuals` for which rows are compared.
+    axis : {'x', 'y', 'z'}
+    bands : sequence of (lo_hz, hi_hz), optional
+        Bands to shade instead of those where the solid curves leave the noise band.
+    kind : str
+        Kind of the spectra rows.
+
+    Returns
+    -------
+    dict
+        The legend entries of the shading, {name: (handle, label)}.
+    """
+    spectra = _spectra_of(spectra)
+    params = _params_table(params, "nominal")
+    params2 = _params_table(params2, "nominal")
+    panels = [(a, attr) for a, attr in ((mag, "z_db"), (ph, "z_deg")) if a is not None]
+    if colour is None:
+        grips = [_grip_key(g) for g in params["grip_N"]] if "grip_N" in params.columns else []
+        colour = _grip_colours(grips + [None])
+    handles: dict[str, Any] = {"noise": (Patch(color="0.85", lw=0),
+                                         f"noise band: |residual| ≤ {NOISE_BAND:g} SE")}
+    for a, _ in panels:
+        a.axhspan(-NOISE_BAND, NOISE_BAND, color="0.85", lw=0, zorder=0, gid=f"noise:{axis}")
+        a.axhline(0.0, color="0.4", lw=0.5, zorder=1)
+    first = None
+    for which, table, ls in (("model", params, "-"), ("model2", params2, "--")):
+        if table is None:
+            continue
+        res = normalised_residuals(spectra, table, axis, kind=kind)
+        labels = residual_labels(spectra, table, axis, kind=kind)
+        first = first or res
+        for i, g in enumerate(res.grips):
+            gid = f"{which}:{axis}:{_grip_text(g)}".replace(" ", "")
+            for a, attr in panels:
+                a.plot(res.freq_hz, getattr(res, attr)[i], ls=ls, lw=0.9 if ls == "-" else 1.1,
+                       color=colour.get(g, "black"), gid=gid, label=labels[g])
+    what = "band marked" if bands is not None else (
+        ("solid " if params2 is not None else "")
+        + f"model outside the noise band (|residual| > {NOISE_BAND:g} SE)")
+    for a, attr in panels:
+        _residual_scale(a)
+        spans = bands if bands is not None else failing_spans(
+            first.freq_hz, getattr(first, attr), forward=a.yaxis.get_transform().transform)
+        for lo, hi in spans:
+            a.axvspan(lo, hi, color=FAILING_COLOUR, alpha=0.15, lw=0, zorder=0,
+                      gid=f"failing:{axis}:{lo:g}-{hi:g}")
+            handles["failing"] = (Patch(color=FAILING_COLOUR, alpha=0.15, lw=0), what)
+    if panels:
+        panels[0][0].legend(loc="best", fontsize=6)
+    _log_x(mag, ph)
+    return handles
 
 
 @_styled
-def residual_figure(spectra: pd.DataFrame, params: pd.DataFrame,
-                    params2: pd.DataFrame | None = None, *, axis: str | None = None,
+def residual_figure(spectra, params, params2=None, *, axis: str | None = None,
                     bands: Mapping[str, Sequence[tuple[float, float]]] | None = None,
                     kind: str = "measured") -> Figure:
     """Normalised residuals (measurement − model)/SE against frequency, per axis.
 
     Top row magnitude (of 20 log10|H|), bottom row phase; one solid line per grip for
-    ``params``, dashed for ``params2`` (e.g. the same model with an effect). The noise
-    band |z| ≤ 2 is shaded grey; ``bands`` ({axis: [(lo_hz, hi_hz), ...]}) are shaded
-    red as failing bands. See :func:`normalised_residuals` for which rows are compared.
+    ``params``, dashed for ``params2`` (e.g. the same model with an effect), each
+    labelled with its "× noise" over its fit band (:func:`residual_labels`). The noise
+    band |residual| ≤ :data:`NOISE_BAND` SE is shaded grey; shaded red, in each panel,
+    the frequencies where a solid curve of that panel, as drawn, lies outside it
+    (:func:`failing_spans`) — or, given ``bands`` ({axis: [(lo_hz, hi_hz), ...]}), those
+    bands instead. A panel whose residuals pass 3 × :data:`RESIDUAL_LINEAR_LIMIT` has a
+    symlog y axis, linear within ±that limit (dotted lines, and said in the axis label).
+    See :func:`normalised_residuals` for which rows are compared. ``params`` and
+    ``params2``: params tables, ``ModelFit`` or ``AdoptedModel`` (its nominal fits).
     """
-    spectra = Spectra.of(spectra)
+    spectra = _spectra_of(spectra)
+    params = _params_table(params, "nominal")
+    params2 = _params_table(params2, "nominal")
     axes = [a for a in _axes_in(spectra, kind, axis)
             if axis is not None or (params["axis"] == a).any()]
     if not axes:
@@ -886,36 +1338,15 @@ def residual_figure(spectra: pd.DataFrame, params: pd.DataFrame,
     fig, axs = _grid(2, len(axes), legend_rows=2)
     handles: dict[str, Any] = {}
     for j, ax_name in enumerate(axes):
-        top, bot = axs[0, j], axs[1, j]
-        top.set_title(AXIS_TITLES[ax_name])
-        for a in (top, bot):
-            a.axhspan(-2.0, 2.0, color="0.85", lw=0, zorder=0, gid=f"noise:{ax_name}")
-            a.axhline(0.0, color="0.4", lw=0.5, zorder=1)
-        handles["noise"] = Patch(color="0.85", label="noise band |z| ≤ 2")
-        for lo, hi in (bands or {}).get(ax_name, ()):
-            for a in (top, bot):
-                a.axvspan(lo, hi, color="#D55E00", alpha=0.15, lw=0, zorder=0,
-                          gid=f"failing:{ax_name}:{lo:g}-{hi:g}")
-            handles["failing"] = Patch(color="#D55E00", alpha=0.15, label="failing band")
-        for which, table, ls in (("model", params, "-"), ("model2", params2, "--")):
-            if table is None:
-                continue
-            res = normalised_residuals(spectra, table, ax_name, kind=kind)
-            labels = residual_labels(spectra, table, ax_name, kind=kind)
-            for i, g in enumerate(res.grips):
-                label = labels[g]
-                gid = f"{which}:{ax_name}:{_grip_text(g)}".replace(" ", "")
-                col = colour[g]
-                lw = 0.9 if ls == "-" else 1.1
-                top.plot(res.freq_hz, res.z_db[i], ls=ls, lw=lw, color=col, gid=gid, label=label)
-                bot.plot(res.freq_hz, res.z_deg[i], ls=ls, lw=lw, color=col, gid=gid,
-                         label=label)
-        top.legend(loc="best", fontsize=6)
-        for a in (top, bot):
-            _residual_scale(a)
-    axs[0, 0].set_ylabel("Magnitude residual / SE (–)")
-    axs[1, 0].set_ylabel("Phase residual / SE (–)")
-    _legend(fig, list(handles.values()), ncol=2)
+        axs[0, j].set_title(AXIS_TITLES[ax_name])
+        handles.update(residual_axes(axs[0, j], axs[1, j], spectra, params, params2,
+                                     axis=ax_name, kind=kind, colour=colour,
+                                     bands=None if bands is None else bands.get(ax_name, ())))
+    for i, what in enumerate(("Magnitude", "Phase")):
+        symlog = any(a.get_yscale() == "symlog" for a in axs[i])
+        axs[i, 0].set_ylabel(f"{what} residual / SE" + (
+            f"\n(linear within ±{RESIDUAL_LINEAR_LIMIT:g}, log beyond)" if symlog else ""))
+    _legend(fig, list(handles.values()), ncol=2, sized_rows=2)
     _minor_ticks_as_lines(fig)
     _fixed_layout(fig, axs)
     return fig
@@ -925,10 +1356,80 @@ def residual_figure(spectra: pd.DataFrame, params: pd.DataFrame,
 # Fig. 6: derived arm dynamics, nominal model, W_max and |Wu|
 # ---------------------------------------------------------------------------
 
+#: The y label of W_max and |Wu|: magnitudes of a relative (dimensionless) error in dB.
+UNCERTAINTY_LABEL = "Relative uncertainty\n(dB, dimensionless)"
+
+
+def uncertainty_axes(mag, ph, unc, spectra, nominal, weights=None, *, axis: str
+                     ) -> dict[str, Any]:
+    """Draw one axis of Fig. 6 — a column of :func:`uncertainty_figure` — on Axes of your
+    own.
+
+    Parameters
+    ----------
+    mag, ph, unc : matplotlib.axes.Axes or None
+        Where the derived arm dynamics' magnitude (dB re 1 m/N) and phase (deg), and
+        W_max with |Wu| (dB of a dimensionless ratio) go; None leaves a panel out.
+    spectra : Spectra or pandas.DataFrame
+        With the derived trials of ``axis``.
+    nominal : pandas.DataFrame, ModelFit or AdoptedModel
+        Nominal fits (its nominal, for an adopted model).
+    weights : {axis: WuWeight} or Uncertainty, optional
+    axis : {'x', 'y', 'z'}
+
+    Returns
+    -------
+    dict
+        The legend entries drawn, {name: handle}.
+    """
+    spectra = _spectra_of(spectra)
+    nominal = _params_table(nominal, "nominal")
+    weights = _weights_of(weights)
+    rows = _select(spectra, level="trial", kind="derived", axis=axis)
+    curves = _curves(rows, ("grip_N", "subject", "run"))
+    if not curves:
+        raise BadInputError(f"no derived trial rows for axis {axis}", column="level")
+    f = curves[0].freq_hz
+    pairs = _params_for(nominal, axis)
+    if not pairs:
+        raise BadInputError(f"no nominal model row for axis {axis}", column="axis")
+    model, theta = model_from_row(pairs[0][1])
+    if model.apparatus_effects:    # the arm alone, as W_max sees it (arm_trials)
+        curves = [_arm_curve(c, pairs[0][1], spectra, axis) for c in curves]
+    fd = _log_grid(f)
+    ref = _PhaseRef(fd, _phase_deg(model.arm_response(fd, theta)))
+    handles: dict[str, Any] = {}
+    raster = _points(rows) > RASTER_POINTS
+    for a, is_phase in ((mag, False), (ph, True)):
+        if a is None:
+            continue
+        ys = [_aligned_phase(c, ref)[0] if is_phase else c.mag_db for c in curves]
+        _trial_lines(a, [c.freq_hz for c in curves], ys, color="#0072B2", alpha=0.4,
+                     gid=f"trial:{axis}", rasterized=raster)
+        a.plot(fd, ref.phase_deg if is_phase else _db(model.arm_response(fd, theta)),
+               color="black", ls="-.", lw=1.3, gid=f"nominal:{axis}", zorder=MODEL_ZORDER)
+        handles["trials"] = Line2D([], [], lw=0.4, color="#0072B2",
+                                   label="derived arm dynamics (trials)")
+        handles["nominal"] = Line2D([], [], color="black", ls="-.", lw=1.3,
+                                    label="nominal H_ARM")
+    if unc is not None:
+        if not all(c.freq_hz.shape == f.shape and np.allclose(c.freq_hz, f) for c in curves):
+            raise BadInputError(f"axis {axis}: trials are on different frequency grids",
+                                column="freq_hz")
+        wm = w_max(np.vstack([c.h for c in curves]), model.arm_response(f, theta))
+        unc.plot(f, _db(wm), ls="none", marker=".", ms=2.0, color="0.25", gid=f"wmax:{axis}")
+        handles["wmax"] = Line2D([], [], ls="none", marker=".", color="0.25",
+                                 label="W_max = max over trials |H/H_nom − 1|")
+        if weights is not None and axis in weights:
+            unc.plot(fd, _db(weights[axis].response(fd)), color="#D55E00", lw=1.3,
+                     gid=f"wu:{axis}")
+            handles["wu"] = Line2D([], [], color="#D55E00", lw=1.3, label="|Wu|")
+    _log_x(mag, ph, unc)
+    return handles
+
+
 @_styled
-def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
-                       weights: Mapping[str, WuWeight] | None = None, *,
-                       axis: str | None = None) -> Figure:
+def uncertainty_figure(spectra, nominal, weights=None, *, axis: str | None = None) -> Figure:
     """Derived arm dynamics with the nominal H_ARM, and W_max with |Wu| — paper Fig. 6.
 
     Rows: magnitude and phase of every trial's derived arm dynamics Xa/Fa (kind
@@ -937,61 +1438,21 @@ def uncertainty_figure(spectra: pd.DataFrame, nominal: pd.DataFrame,
     :meth:`ClosedLoopModel.arm_response` of the ``nominal`` row of the axis; black
     dash-dot), then W_max = max over trials |H/H̄ − 1| in dB (eq. 6; dots) with |Wu(jω)|
     in dB (eq. 7, ``weights`` {axis: WuWeight} as :func:`armfit.io.artifacts.read_wu`
-    returns; line).
+    returns, or an ``Uncertainty`` result; line), both ratios, dimensionless. ``nominal``:
+    a params table, ``ModelFit`` or ``AdoptedModel``.
     """
-    spectra = Spectra.of(spectra)
+    spectra = _spectra_of(spectra)
     axes = _axes_in(spectra, "derived", axis)
     fig, axs = _grid(3, len(axes), legend_rows=1)
     handles: dict[str, Any] = {}
     for j, ax_name in enumerate(axes):
-        mag, ph, wax = axs[:, j]
-        mag.set_title(AXIS_TITLES[ax_name])
-        rows = _select(spectra, level="trial", kind="derived", axis=ax_name)
-        raster = _points(rows) > RASTER_POINTS
-        curves = _curves(rows, ("grip_N", "subject", "run"))
-        if not curves:
-            raise BadInputError(f"no derived trial rows for axis {ax_name}", column="level")
-        f = curves[0].freq_hz
-        pairs = _params_for(nominal, ax_name)
-        if not pairs:
-            raise BadInputError(f"no nominal model row for axis {ax_name}", column="axis")
-        model, theta = model_from_row(pairs[0][1])
-        if model.apparatus_effects:    # the arm alone, as W_max sees it (arm_trials)
-            curves = [_arm_curve(c, pairs[0][1], spectra, ax_name) for c in curves]
-        fd = _log_grid(f)
-        h_nom_dense = model.arm_response(fd, theta)
-        ref = _PhaseRef(fd, _phase_deg(h_nom_dense))
-        gid = f"trial:{ax_name}"
-        for a, ys in ((mag, [c.mag_db for c in curves]),
-                      (ph, [_aligned_phase(c, ref)[0] for c in curves])):
-            _trial_lines(a, [c.freq_hz for c in curves], ys, color="#0072B2", alpha=0.4,
-                         gid=gid, rasterized=raster)
-        handles["trials"] = Line2D([], [], lw=0.4, color="#0072B2",
-                                   label="derived arm dynamics (trials)")
-        mag.plot(fd, _db(h_nom_dense), color="black", ls="-.", lw=1.3,
-                 gid=f"nominal:{ax_name}", zorder=MODEL_ZORDER)
-        ph.plot(fd, ref.phase_deg, color="black", ls="-.", lw=1.3,
-                gid=f"nominal:{ax_name}", zorder=MODEL_ZORDER)
-        handles["nominal"] = Line2D([], [], color="black", ls="-.", lw=1.3,
-                                    label="nominal H_ARM")
-        same_grid = all(c.freq_hz.shape == f.shape and np.allclose(c.freq_hz, f)
-                        for c in curves)
-        if not same_grid:
-            raise BadInputError(f"axis {ax_name}: trials are on different frequency grids",
-                                column="freq_hz")
-        wm = w_max(np.vstack([c.h for c in curves]), model.arm_response(f, theta))
-        wax.plot(f, _db(wm), ls="none", marker=".", ms=2.0, color="0.25",
-                 gid=f"wmax:{ax_name}")
-        handles["wmax"] = Line2D([], [], ls="none", marker=".", color="0.25",
-                                 label="W_max (max over trials)")
-        if weights is not None and ax_name in weights:
-            wax.plot(fd, _db(weights[ax_name].response(fd)), color="#D55E00", lw=1.3,
-                     gid=f"wu:{ax_name}")
-            handles["wu"] = Line2D([], [], color="#D55E00", lw=1.3, label="|Wu|")
+        axs[0, j].set_title(AXIS_TITLES[ax_name])
+        handles.update(uncertainty_axes(*axs[:, j], spectra, nominal, weights, axis=ax_name))
     axs[0, 0].set_ylabel(MAG_LABEL)
     axs[1, 0].set_ylabel(PHASE_LABEL)
-    axs[2, 0].set_ylabel("Uncertainty (dB)")
-    _legend(fig, list(handles.values()))
+    axs[2, 0].set_ylabel(UNCERTAINTY_LABEL)
+    _legend(fig, [handles[k] for k in ("trials", "nominal", "wmax", "wu") if k in handles],
+            sized_rows=1)
     _minor_ticks_as_lines(fig)
     _fixed_layout(fig, axs)
     return fig
@@ -1016,8 +1477,9 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
 
     The row's H_ARM (eq. 3, :meth:`ClosedLoopModel.arm_response`) is the black dashed
     line; each literature model (:func:`armfit.models.literature.literature_models`) a
-    solid colour line. Magnitude in dB re 1 m/N and phase in degrees over ``f_hz``
-    (default 0.1–30 Hz, the band of the fits).
+    solid colour line, labelled with the author and year of its source
+    (:attr:`~armfit.models.literature.LiteratureModel.label`). Magnitude in dB re
+    1 m/N and phase in degrees over ``f_hz`` (default 0.1–30 Hz, the band of the fits).
     """
     f = np.geomspace(*GRID_HZ, 400) if f_hz is None else np.asarray(f_hz, dtype=float)
     lit = literature_models() if models is None else list(models)
@@ -1034,8 +1496,8 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
         col = PALETTE[i % len(PALETTE)]
         ls = "-" if i < len(PALETTE) else ":"
         gid = f"literature:{m.name.replace(' ', '-')}"
-        mag.plot(f, _db(h), color=col, ls=ls, lw=1.0, label=m.name, gid=gid)
-        ph.plot(f, _phase_deg(h), color=col, ls=ls, lw=1.0, label=m.name, gid=gid)
+        mag.plot(f, _db(h), color=col, ls=ls, lw=1.0, label=m.label, gid=gid)
+        ph.plot(f, _phase_deg(h), color=col, ls=ls, lw=1.0, label=m.label, gid=gid)
     h = model.arm_response(f, theta)
     mag.plot(f, _db(h), color="black", ls="--", lw=1.5, label=label, gid="arm-model")
     ph.plot(f, _phase_deg(h), color="black", ls="--", lw=1.5, label=label, gid="arm-model")
@@ -1043,7 +1505,7 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
     ph.set_ylabel(PHASE_LABEL)
     mag.set_title("Arm dynamics H_ARM = Xa/Fa")
     handles, _ = mag.get_legend_handles_labels()
-    _legend(fig, handles, ncol=2)
+    _legend(fig, handles, ncol=2, sized_rows=3)
     _minor_ticks_as_lines(fig)
     _fixed_layout(fig, axs)
     return fig
@@ -1064,97 +1526,225 @@ SWEEP_MAX_LATENCY_SAMPLES = 36
 #: Computation delays (samples) of the sweep.
 SWEEP_DELAYS = (0, 1, 2)
 _DELAY_COLOURS = ("black", "#CC79A7", "#56B4E9")  # apart from the grip colours
+#: A sweep whose K_max spans more than this ratio is drawn on a log K_max axis (a linear
+#: one from 0 would flatten its low rates); a narrower one on a linear axis from 0.
+SWEEP_LOG_RATIO = 10.0
+
+
+def _stability_inputs(params, settings) -> tuple[pd.DataFrame, pd.DataFrame, WallSettings]:
+    """(model rows with a ``row`` column, their stability table, the settings) of what
+    the stability figure takes: a params table (or fit) and settings, or a ``Stability``
+    result (its models, table and settings unless others are given)."""
+    if hasattr(params, "settings") and hasattr(params, "models"):      # Stability
+        st = params.settings if settings is None else settings
+        rows = params.models
+        table = params.table if settings is None else None
+    else:
+        st = WallSettings() if settings is None else settings
+        rows, table = _params_table(params, "grip"), None
+    if "row" not in rows.columns:
+        rows = rows.assign(row=np.arange(1, len(rows) + 1))
+    if table is None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # unstable at K = 0: K_max 0
+            table = stability_table(rows, st)
+    return rows, table, st
+
+
+def _kmax_panel(top, t: pd.DataFrame, axis: str, colour: Mapping, marker: Mapping
+                ) -> dict[tuple, Any]:
+    """The top panel of one axis: K_max (kN/m) of each model, one column per subject (or
+    row), each grip with its marker, side by side within the column; the lowest K_max as
+    a dashed line, its value written just below it; the axis from 0."""
+    has_subject = t["subject"].notna().any()
+    labels = sorted(t["subject"].dropna().astype(str).unique()) if has_subject \
+        else [str(r) for r in t["row"]]
+    xpos = {lab: i for i, lab in enumerate(labels)}
+    known = sorted({g for g in (_grip_key(v) for v in t["grip_N"]) if g is not None})
+    width = 0.6 / max(len(known), 1)
+    handles: dict[tuple, Any] = {}
+    for _, r in t.iterrows():
+        g = _grip_key(r["grip_N"])
+        shift = (known.index(g) - (len(known) - 1) / 2) * width if g in known else 0.0
+        x = xpos[str(r["subject"])] if has_subject else xpos[str(r["row"])]
+        style = dict(ls="none", marker=marker.get(g, "o"), ms=4.0,
+                     color=colour.get(g, "black"), mec="white", mew=0.4)
+        top.plot([x + shift], [r["k_max_N_per_m"] / 1e3], **style,
+                 gid=f"kmax:{axis}:row{int(r['row'])}")
+        handles.setdefault((_order(g), 0), Line2D(
+            [], [], **style, label=_grip_text(g) if g is not None else "model"))
+    kmin = float(t["k_max_N_per_m"].min()) / 1e3
+    kmax = float(t["k_max_N_per_m"].max()) / 1e3
+    top.set_ylim(0.0, kmax * 1.12 if kmax > 0 else 1.0)
+    top.axhline(kmin, color="0.3", ls="--", lw=0.8, gid=f"kmin:{axis}", zorder=1)
+    room = kmin > 0.15 * top.get_ylim()[1]      # below the line, where no model lies
+    top.annotate(f"lowest: {kmin:.3g} kN/m", (0.01, kmin),
+                 xycoords=top.get_yaxis_transform(), xytext=(2, -3 if room else 3),
+                 textcoords="offset points", va="top" if room else "bottom", fontsize=6,
+                 gid=f"kmin-label:{axis}")
+    handles[(math.inf, 0)] = Line2D([], [], color="0.3", ls="--", lw=0.8,
+                                    label="lowest K_max of the models")
+    top.set_xticks(range(len(labels)), labels, rotation=90 if len(labels) > 6 else 0)
+    top.set_xlim(-0.6, len(labels) - 0.4)
+    top.set_xlabel("Subject" if has_subject else "Row")
+    return handles
+
+
+def _sweep_panel(bot, rows: pd.DataFrame, axis: str, st: WallSettings,
+                 rates_hz: Sequence[float], delays: Sequence[int]) -> dict[tuple, Any]:
+    """The bottom panel of one axis: K_max (kN/m, from 0) against the servo rate 1/T
+    (Hz, log) for each delay — the lowest over the models (line) and their range (band)
+    — and the top row's 1/T (dotted)."""
+    plants = [plant_from_model(*model_from_row(r)) for _, r in rows.iterrows()]
+    sweep = k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m,
+                        max_delay_samples=SWEEP_MAX_LATENCY_SAMPLES)
+    handles: dict[tuple, Any] = {}
+    for i, d in enumerate(delays):
+        col = _DELAY_COLOURS[i % len(_DELAY_COLOURS)]
+        with warnings.catch_warnings():   # a rate whose loop is too long: a gap
+            warnings.simplefilter("ignore", RuntimeWarning)
+            lo = np.nanmin(sweep[i], axis=1) / 1e3
+            hi = np.nanmax(sweep[i], axis=1) / 1e3
+        bot.fill_between(rates_hz, lo, hi, color=col, alpha=0.2, lw=0,
+                         gid=f"sweep-range:{axis}:d{d}")
+        bot.plot(rates_hz, lo, color=col, lw=1.2, marker=".", ms=2.5,
+                 gid=f"sweep-min:{axis}:d{d}")
+        handles[(math.inf, 1, d)] = Line2D(
+            [], [], color=col, lw=1.2,
+            label=f"delay d = {d} sample{'' if d == 1 else 's'}: lowest model")
+    handles[(math.inf, 2)] = Patch(color="0.5", alpha=0.3, lw=0,
+                                   label="shaded: range over the models")
+    bot.set_xscale("log")
+    # the whole swept range, also where a long latency leaves gaps
+    bot.set_xlim(rates_hz[0] / 1.1, rates_hz[-1] * 1.1)
+    if np.isnan(sweep).any():
+        bot.annotate(f"gaps: more than {SWEEP_MAX_LATENCY_SAMPLES} samples of latency, "
+                     "not analysed", (0.98, 0.04), xycoords="axes fraction",
+                     ha="right", fontsize=6, gid=f"sweep-gap:{axis}")
+    rate = 1.0 / st.sample_time_s
+    bot.axvline(rate, color="0.5", ls=":", lw=0.8, gid=f"top-row-rate:{axis}")
+    handles[(math.inf, 3)] = Line2D([], [], color="0.5", ls=":", lw=0.8,
+                                    label=f"1/T of the top row ({rate:g} Hz)")
+    bot.set_xlabel("Servo rate 1/T (Hz)")
+    return handles
+
+
+def _sweep_span(bot) -> tuple[float, float]:
+    """The smallest positive and the largest K_max (kN/m) of a sweep panel's bands."""
+    ys = [p.vertices[:, 1] for c in bot.collections
+          if (c.get_gid() or "").startswith("sweep-range:") for p in c.get_paths()]
+    y = np.concatenate(ys) if ys else np.zeros(0)
+    y = y[np.isfinite(y) & (y > 0)]
+    return (float(y.min()), float(y.max())) if y.size else (np.nan, np.nan)
+
+
+def _sweep_log(bot) -> bool:
+    """Whether a sweep panel wants a log K_max axis: when its K_max spans more than
+    :data:`SWEEP_LOG_RATIO` (a linear axis from 0 would flatten its low rates)."""
+    lo, hi = _sweep_span(bot)
+    return bool(np.isfinite(lo) and hi / lo > SWEEP_LOG_RATIO)
+
+
+def _sweep_scale(bot, log: bool) -> None:
+    """The K_max axis of a sweep panel: from 0 (linear), or logarithmic with plain-number
+    labels (:func:`_log_labels_within_decades`) and "log scale" in its label."""
+    lo, hi = _sweep_span(bot)
+    if log:
+        bot.set_yscale("log")
+        _log_labels_within_decades(bot.yaxis, lo, hi)
+        bot.set_ylabel("K_max (kN/m, log scale)")
+    else:
+        bot.set_yscale("linear")
+        bot.set_ylim(bottom=0.0)
+        bot.set_ylabel("K_max (kN/m)")
+
+
+def stability_axes(top, bot, params, settings=None, *, axis: str,
+                   rates_hz: Sequence[float] = SWEEP_RATES_HZ,
+                   delays: Sequence[int] = SWEEP_DELAYS) -> dict[tuple, Any]:
+    """Draw one axis of :func:`stability_figure` on Axes of your own.
+
+    Parameters
+    ----------
+    top, bot : matplotlib.axes.Axes or None
+        Where K_max per model and K_max against the servo rate go; None leaves that
+        panel out.
+    params : pandas.DataFrame, ModelFit, TrialFits, AdoptedModel or Stability
+        The models (a ``Stability`` result brings its settings too).
+    settings : armfit.loop.WallSettings, optional
+        The top panel's wall (default T = 1 ms, B = 0, d = 1).
+    axis : {'x', 'y', 'z'}
+    rates_hz, delays
+        As :func:`stability_figure`.
+
+    Returns
+    -------
+    dict
+        The legend entries drawn.
+    """
+    rows, table, st = _stability_inputs(params, settings)
+    sel = (table["axis"] == axis).to_numpy()
+    if not sel.any():
+        raise BadInputError(f"no model row for axis {axis}", column="axis")
+    grips = [_grip_key(g) for g in table["grip_N"]]
+    handles: dict[tuple, Any] = {}
+    if top is not None:
+        handles.update(_kmax_panel(top, table[sel], axis, _grip_colours(grips),
+                                   _grip_markers(grips)))
+        top.set_ylabel("K_max (kN/m)")
+    if bot is not None:
+        handles.update(_sweep_panel(bot, rows[sel], axis, st, rates_hz, delays))
+        _sweep_scale(bot, _sweep_log(bot))
+    return handles
 
 
 @_styled
-def stability_figure(params: pd.DataFrame, settings=None, *,
+def stability_figure(params, settings=None, *,
                      rates_hz: Sequence[float] = SWEEP_RATES_HZ,
                      delays: Sequence[int] = SWEEP_DELAYS) -> Figure:
     """The stiffest stable virtual wall per arm model, and its sensitivity to T and d.
 
-    Top row, per axis: K_max (kN/m, :func:`armfit.loop.stability_table` at
-    ``settings``, default T = 1 ms, B = 0, d = 1) of each row of ``params`` (any
-    parameters table: per-trial fits with ``subject``, grip or nominal fits), one column
-    per subject (or per row), coloured by grip, with the population minimum as a dashed
-    line. Bottom row: K_max against servo rate 1/T (``rates_hz``, log-log) for each
-    delay d in ``delays`` — the minimum over the rows (line) and their range (band); a
-    rate at which a model's latency exceeds :data:`SWEEP_MAX_LATENCY_SAMPLES` samples is
-    left out (a gap).
+    Top row, per axis: K_max (kN/m, from 0; :func:`armfit.loop.stability_table` at
+    ``settings``, default T = 1 ms, B = 0, d = 1, stated in the row's titles) of each
+    row of ``params`` (any parameters table or fit: per-trial fits with ``subject``,
+    grip or nominal fits; or a ``Stability`` result), one column per subject (or per
+    row), each grip with its colour and marker, side by side, with the lowest K_max as a
+    dashed line and its value below it. Bottom row: K_max (kN/m, from 0) against servo
+    rate 1/T (``rates_hz``, log) for each delay d in ``delays`` — the lowest over the
+    rows (line) and their range (band), the top row's 1/T dotted; a rate at which a
+    model's latency exceeds :data:`SWEEP_MAX_LATENCY_SAMPLES` samples is left out (a
+    gap).
     """
-    st = WallSettings() if settings is None else settings
-    if "row" not in params.columns:
-        params = params.assign(row=np.arange(1, len(params) + 1))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)   # rows unstable at K = 0: K_max 0
-        table = stability_table(params, st)
+    rows, table, st = _stability_inputs(params, settings)
     axes = [a for a in AXES if (table["axis"] == a).any()]
     if not axes:
         raise BadInputError("no model rows", column="axis")
     fig = Figure(figsize=(PANEL_WIDTH_IN * len(axes), PANEL_HEIGHT_IN * 2 + 0.5), dpi=DPI)
     FigureCanvasAgg(fig)
     axs = np.atleast_2d(fig.subplots(2, len(axes), squeeze=False))
-    grips = [_grip_key(g) for g in table["grip_N"]]
-    colour = _grip_colours(grips)
-    handles: dict[Any, Any] = {}
+    handles: dict[tuple, Any] = {}
+    wall = (f"T = {st.sample_time_s * 1e3:g} ms, d = {st.delay_samples}, "
+            f"B = {st.damping_Ns_per_m:g} N·s/m")
     for j, axis in enumerate(axes):
-        top, bot = axs[0, j], axs[1, j]
-        sel = table["axis"] == axis
-        t = table[sel]
-        has_subject = t["subject"].notna().any()
-        labels = sorted(t["subject"].dropna().astype(str).unique()) if has_subject \
-            else [str(r) for r in t["row"]]
-        xpos = {lab: i for i, lab in enumerate(labels)}
-        for _, r in t.iterrows():
-            g = _grip_key(r["grip_N"])
-            x = xpos[str(r["subject"])] if has_subject else xpos[str(r["row"])]
-            top.plot([x], [r["k_max_N_per_m"] / 1e3], ls="none", marker="o", ms=3.5,
-                     color=colour.get(g, "black"),
-                     gid=f"kmax:{axis}:row{int(r['row'])}")
-            handles.setdefault((_order(g), 0), Line2D(
-                [], [], ls="none", marker="o", ms=3.5, color=colour.get(g, "black"),
-                label=_grip_text(g) if g is not None else "model"))
-        kmin = float(t["k_max_N_per_m"].min())
-        top.axhline(kmin / 1e3, color="0.3", ls="--", lw=0.8, gid=f"kmin:{axis}")
-        top.annotate(f"min {kmin / 1e3:.3g} kN/m", (0.02, 0.04), xycoords="axes fraction",
-                     fontsize=6)
-        top.set_xticks(range(len(labels)), labels, rotation=90 if len(labels) > 6 else 0)
-        top.set_xlim(-0.6, len(labels) - 0.4)
-        top.set_title(AXIS_TITLES[axis])
-        top.set_xlabel("Subject" if has_subject else "Row")
-        rows = params[sel.to_numpy()]
-        plants = [plant_from_model(*model_from_row(r)) for _, r in rows.iterrows()]
-        sweep = k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m,
-                            max_delay_samples=SWEEP_MAX_LATENCY_SAMPLES)
-        for i, d in enumerate(delays):
-            col = _DELAY_COLOURS[i % len(_DELAY_COLOURS)]
-            with warnings.catch_warnings():   # a rate whose loop is too long: a gap
-                warnings.simplefilter("ignore", RuntimeWarning)
-                lo = np.nanmin(sweep[i], axis=1) / 1e3
-                hi = np.nanmax(sweep[i], axis=1) / 1e3
-            bot.fill_between(rates_hz, lo, hi, color=col, alpha=0.2, lw=0,
-                             gid=f"sweep-range:{axis}:d{d}")
-            bot.plot(rates_hz, lo, color=col, lw=1.2, marker=".", ms=2.5,
-                     gid=f"sweep-min:{axis}:d{d}")
-            handles.setdefault((math.inf, 1, d), Line2D([], [], color=col, lw=1.2,
-                                                        label=f"d = {d}: minimum (band: range)"))
-        bot.set_xscale("log")
-        bot.set_yscale("log")
-        # the whole swept range, also where a long latency leaves gaps
-        bot.set_xlim(rates_hz[0] / 1.1, rates_hz[-1] * 1.1)
-        if np.isnan(sweep).any():
-            bot.annotate(f"gaps: more than {SWEEP_MAX_LATENCY_SAMPLES} samples of latency, "
-                         "not analysed", (0.98, 0.04), xycoords="axes fraction",
-                         ha="right", fontsize=6, gid=f"sweep-gap:{axis}")
-        _log_labels_within_decades(bot.yaxis, np.nanmin(sweep) / 1e3,
-                                   np.nanmax(sweep) / 1e3)
-        bot.axvline(1.0 / st.sample_time_s, color="0.5", ls=":", lw=0.8)
-        bot.set_xlabel("Servo rate 1/T (Hz)")
-    axs[0, 0].set_ylabel("K_max (kN/m)")
-    axs[1, 0].set_ylabel("K_max (kN/m)")
-    fig.suptitle(f"Stiffest stable wall: T = {st.sample_time_s * 1e3:g} ms, "
-                 f"B = {st.damping_Ns_per_m:g} N·s/m, d = {st.delay_samples}", fontsize=8)
-    _legend(fig, [handles[k] for k in sorted(handles, key=lambda k: (k[0], k[1], k[2:]))],
-            ncol=min(len(handles), 4))
+        handles.update(stability_axes(axs[0, j], axs[1, j], rows, st, axis=axis,
+                                      rates_hz=rates_hz, delays=delays))
+        axs[0, j].set_title(f"{AXIS_TITLES[axis]}\nwall at {wall}")
+        axs[1, j].set_title(f"against servo rate, B = {st.damping_Ns_per_m:g} N·s/m")
+    # one K_max scale for the whole bottom row: log if any axis's sweep needs it
+    log = any(_sweep_log(ax) for ax in axs[1])
+    for ax in axs[1]:
+        _sweep_scale(ax, log)
+    for ax in axs[:, 1:].flat:
+        ax.set_ylabel("")
+    # legend columns: the grips, the lowest K_max, the delays, the shading and the
+    # top row's rate (keys of _kmax_panel and _sweep_panel)
+    keys = sorted(handles, key=lambda k: (k[0], k[1], k[2:]))
+    columns = [[handles[k] for k in keys if k[0] != math.inf],
+               [handles[k] for k in keys if k[:2] == (math.inf, 0)],
+               [handles[k] for k in keys if k[:2] == (math.inf, 1)],
+               [handles[k] for k in keys if k[0] == math.inf and k[1] >= 2]]
+    columns = [c for c in columns if c]
+    _legend(fig, columns, sized_rows=2)
     for ax in axs.flat:
         _ticks_in_view(ax)
     _fixed_layout(fig, axs)

@@ -843,17 +843,17 @@ def _compare(config: RunConfig, spectra: Spectra, models: Models,
 def _residuals(config: RunConfig, workers: _Workers, spectra: Spectra, models: Models,
                diagnosed: Diagnosed) -> Drawn:
     """One residual figure per diagnosed axis (they need the diagnosis and the refits):
-    the base nominal model solid, the adopted nominal model dashed where it differs, the
-    diagnosis's failing bands shaded."""
+    the base nominal model solid, the adopted nominal model dashed where it differs,
+    shaded where the solid curve leaves the noise band (as `armfit plot residual`
+    shades)."""
     base = (models.base_nominal or models.nominal).table
     adopted = diagnosed.adoption.adopted_axes
     out = []
     for d in sorted(diagnosed.diagnosis.axes, key=lambda d: d.axis):
-        bands = {d.axis: [(fb.lo_hz, fb.hi_hz) for fb in d.failing]}
         out.append(workers.drawings.draw(config.folder, f"figures/residual_{d.axis}.png",
                                          "residual_figure", spectra, base,
                                          models.nominal.table if d.axis in adopted else None,
-                                         axis=d.axis, bands=bands))
+                                         axis=d.axis))
     return Drawn(figures=tuple(out), summary=f"{len(out)} figure(s)")
 
 

@@ -1591,36 +1591,85 @@ class Spectra:
             self.to_frame().to_csv(tmp, index=False, float_format=CSV_FLOAT_FORMAT)
         return path
 
-    def plot(self, ax=None, *, db: bool = True):
-        """Draw the magnitude (``db``) or phase of every row against frequency.
+    def axes(self) -> list[str]:
+        """The stimulated axes with a response, in x, y, z order."""
+        return [a for a in AXES if (self.keys["axis"] == a).any()]
+
+    def plot(self, axis: str | None = None, ax=None, *, panel: str | None = None,
+             kind: str = "measured"):
+        """The Bode pair of one axis: magnitude (dB re 1 m/N) and phase (deg) of every
+        row of ``kind`` on that axis's own position, against log frequency (Hz).
 
         Parameters
         ----------
-        ax : matplotlib.axes.Axes, optional
-            Where to draw; a new figure's axes when None.
-        db : bool
-            Magnitude in dB re 1 m/N (True) or phase in degrees (False).
+        axis : {'x', 'y', 'z'}, optional
+            Default: the only axis the rows hold.
+        ax : matplotlib.axes.Axes or sequence of two, optional
+            One Axes draws one panel (``panel``, default the magnitude); two draw
+            magnitude and phase. Default: a new figure with the panels asked for.
+        panel : {'magnitude', 'phase', 'both'}, optional
+            Default 'both' (one Axes: 'magnitude').
+        kind : {'measured', 'derived'}
+            Which responses (cross-axis responses are left out).
 
         Returns
         -------
-        matplotlib.axes.Axes
-            The axes drawn on (log frequency axis); each line is labelled by
-            :meth:`labels`. The publication figures are :func:`armfit.figures.bode_figure`.
+        matplotlib.figure.Figure or the ``ax`` given
+            Each line is labelled by :meth:`labels`; trials thin, aggregates (mean,
+            median) thick. The publication figures are :func:`armfit.figures.bode_figure`
+            and the result objects' ``plot``.
         """
-        if ax is None:
+        have = self.axes()
+        if axis is None:
+            if len(have) != 1:
+                raise UsageError(f"these spectra hold axes {', '.join(have) or 'none'}: "
+                                 "choose one with axis=")
+            axis = have[0]
+        elif axis not in have:
+            raise UsageError(f"no axis {axis!r} here (axes: {', '.join(have) or 'none'})")
+        given = None if ax is None else (list(ax) if isinstance(ax, Sequence | np.ndarray)
+                                         else [ax])
+        panel = panel or ("magnitude" if given is not None and len(given) == 1 else "both")
+        wanted = {"both": ("magnitude", "phase"), "magnitude": ("magnitude",),
+                  "phase": ("phase",)}.get(panel)
+        if wanted is None or (given is not None and len(given) != len(wanted)):
+            raise UsageError(f"panel must be magnitude, phase or both (one Axes per panel), "
+                             f"got {panel!r} with {len(given or ())} Axes")
+        fig = None
+        if given is None:
             from matplotlib.backends.backend_agg import FigureCanvasAgg
             from matplotlib.figure import Figure
-            fig = Figure(figsize=(5, 3.5), layout="constrained")
+            fig = Figure(figsize=(5.0, 1.9 * len(wanted) + 0.6), layout="constrained")
             FigureCanvasAgg(fig)
-            ax = fig.add_subplot()
-        y = self.mag_db if db else self.phase_deg
-        for i, label in enumerate(self.labels()):
-            m = self.present[i]
-            ax.plot(self.freq_hz[m], y[i, m], lw=0.8, label=label)
-        ax.set_xscale("log")
-        ax.set_xlabel("Frequency (Hz)")
-        ax.set_ylabel("Magnitude (dB re 1 m/N)" if db else "Phase (deg)")
-        return ax
+            given = list(fig.subplots(len(wanted), 1, sharex=True, squeeze=False)[:, 0])
+        rows = self.select(axis=axis, kind=kind, out_axis=axis)
+        for name, a in zip(wanted, given, strict=True):
+            y = rows.mag_db if name == "magnitude" else rows.phase_deg
+            for i, label in enumerate(rows.labels()):
+                m = rows.present[i]
+                a.plot(rows.freq_hz[m], y[i, m], label=label,
+                       lw=0.6 if rows.keys["level"][i] == "trial" else 1.6)
+            a.set_xscale("log")
+            a.set_ylabel("Magnitude (dB re 1 m/N)" if name == "magnitude" else "Phase (deg)")
+        given[-1].set_xlabel("Frequency (Hz)")
+        return fig if ax is None else ax
+
+    def _repr_html_(self) -> str:
+        """A compact HTML table for notebooks: the size and band, then the identity of
+        the first rows (escaped)."""
+        import html
+
+        import pandas as pd
+        ids = pd.DataFrame({k: list(self.keys[k]) for k in
+                            ("level", "axis", "grip_N", "subject", "run", "kind", "method",
+                             "n")})
+        band = (f", {self.freq_hz[0]:g}–{self.freq_hz[-1]:g} Hz" if self.freq_hz.size
+                else "")
+        more = f" ({len(self) - 6} more rows)" if len(self) > 6 else ""
+        head = ids.head(6).to_html(escape=True, index=False, border=0)
+        return (f"<div><p><b>Spectra</b>: {html.escape(str(len(self)))} responses × "
+                f"{self.freq_hz.size} frequencies{html.escape(band)}"
+                f"{html.escape(more)}</p>{head}</div>")
 
     # -- out to python-control ------------------------------------------------------
 

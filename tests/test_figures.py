@@ -373,8 +373,9 @@ def test_residual_figure(delayed):
     with_delay = params_table(rows, effects={"delay.delay_s": 0.01}, effect_name="delay")
     fig = figures.residual_figure(delayed, base, with_delay, bands={"x": [(5.0, 30.0)]})
     top, bot = fig.axes
-    assert top.get_ylabel() == "Magnitude residual / SE (–)"
-    assert bot.get_ylabel() == "Phase residual / SE (–)"
+    assert top.get_ylabel() == "Magnitude residual / SE"
+    # the phase axis passes |z| = 30: symlog, its linear band said in its label
+    assert bot.get_ylabel() == "Phase residual / SE\n(linear within ±10, log beyond)"
     assert bot.get_xlabel() == "Frequency (Hz)"
     assert len(lines(top, "model:")) == 3 and len(lines(top, "model2:")) == 3
     assert all(ln.get_linestyle() == "--" for ln in lines(bot, "model2:"))
@@ -386,7 +387,7 @@ def test_residual_figure(delayed):
     xs = fail.get_path().transformed(fail.get_patch_transform()).vertices[:, 0]
     assert (xs.min(), xs.max()) == pytest.approx((5.0, 30.0))
     texts = legend_texts(fig)
-    assert "noise band |z| ≤ 2" in texts and "failing band" in texts
+    assert "noise band: |residual| ≤ 2 SE" in texts and "band marked" in texts
     # the legend gives each model's "× noise" over its band (here the whole grid)
     res = figures.normalised_residuals(delayed, with_delay, "x")
     label = f"1 N: model + delay ({res.rms_norm[0]:.2f}× noise, 0.1–30 Hz)"
@@ -434,7 +435,7 @@ def unc(spectra):
 def test_uncertainty_figure(unc, spectra):
     axs = np.array(unc.axes).reshape(3, 3)
     assert axs[0, 0].get_ylabel() == "Magnitude (dB re 1 m/N)"
-    assert axs[2, 0].get_ylabel() == "Uncertainty (dB)"
+    assert axs[2, 0].get_ylabel() == "Relative uncertainty\n(dB, dimensionless)"
     assert axs[2, 1].get_xlabel() == "Frequency (Hz)"
     for j, a in enumerate("xyz"):
         assert n_trials(axs[0, j], f"trial:{a}") == 6  # 2 subjects x 3 grips
@@ -445,7 +446,7 @@ def test_uncertainty_figure(unc, spectra):
         assert len(lines(axs[2, j], f"wmax:{a}")) == 1
         assert len(lines(axs[2, j], f"wu:{a}")) == 1
     texts = legend_texts(unc)
-    assert {"nominal H_ARM", "W_max (max over trials)", "|Wu|"} <= set(texts)
+    assert {"nominal H_ARM", "W_max = max over trials |H/H_nom − 1|", "|Wu|"} <= set(texts)
     # Nominal line = eq. 3 with Table II's Z row (Ma=1.628, k1=564.7, k2=130.6,
     # b1=37.14, b2=35.36).
     (nom,) = lines(axs[0, 2], "nominal:z")
@@ -486,7 +487,10 @@ def test_literature_figure():
     # Seven Table IV models plus this study's H_ARM.
     assert len(lines(mag, "literature:")) == 7 and len(lines(mag, "arm-model")) == 1
     texts = legend_texts(fig)
-    assert set(paper_table("literature").model) <= set(texts)
+    # each model named by its source (author and year where recorded), else Table IV
+    assert {"Speich et al. 2005, X axis", "Speich et al. 2005, Y axis",
+            "Speich et al. 2005, Z axis", "Speich 1DOF (Table IV)", "Kosuge (Table IV)",
+            "Lawrence (Table IV)", "Tsuji (Table IV)"} <= set(texts)
     assert "this study: X axis, 1 N grip" in texts
     (arm,) = lines(mag, "arm-model")
     assert arm.get_linestyle() == "--" and arm.get_color() == "black"  # as in Fig. 7

@@ -56,7 +56,7 @@ EXPECTED: dict[str, str] = {
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
-        "df075c513fd7911f8c0535505e1cd6a8f6c937eca08e7c8a6164484c4e995463",
+        "d7b98c2c5a8fa0effe56c3bd5763592e06d675bbed13b0caa1197b4a7ec8930f",
     "grip.csv":
         "0deb889a2d14ad30c8e5e6eb89eec8b31a2ab82be4883070caeb2339f5471125",
     "nominal.csv":

@@ -10,7 +10,6 @@ import click
 import numpy as np
 
 from armfit import figures
-from armfit.api import compare
 from armfit.cli.options import Number, Whole
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
@@ -98,9 +97,9 @@ def bode_command(spectra, model_path, axis, spread, no_trials, output, overwrite
 @click.option("--model2", "model2_path", metavar="CSV",
               help="A second parameters file (e.g. the model with an effect), dashed.")
 @click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
-@axis_bands_option("Failing band to shade, in Hz, for one axis (AXIS=LO:HI) or every "
-                   "axis (LO:HI); repeatable. Default: the failing bands `armfit compare` "
-                   "reports for the first model.", multiple=True)
+@axis_bands_option("Band to shade, in Hz, for one axis (AXIS=LO:HI) or every axis "
+                   "(LO:HI); repeatable. Default: where the first model's plotted "
+                   "residual leaves the noise band |residual| <= 2 SE.", multiple=True)
 @output_option
 @overwrite_option
 def residual_command(spectra, model_path, model2_path, axis, band, output, overwrite):
@@ -111,16 +110,13 @@ def residual_command(spectra, model_path, model2_path, axis, band, output, overw
     params2 = read_params(model2_path) if model2_path else None
     axes = [axis] if axis else [a for a in AXES if (params["axis"] == a).any()
                                 and len(df.select(axis=a))]
-    shaded: dict[str, list[tuple[float, float]]] = {a: [] for a in axes}
+    shaded: dict[str, list[tuple[float, float]]] | None = None
+    if band:
+        shaded = {a: [] for a in axes}
+        for a_band, lo, hi in band:
+            for a in ([a_band] if a_band else axes):
+                shaded.setdefault(a, []).append((lo, hi))
     try:
-        if band:
-            for a_band, lo, hi in band:
-                for a in ([a_band] if a_band else axes):
-                    shaded.setdefault(a, []).append((lo, hi))
-        else:
-            for row in compare(df, params).rows:
-                if row.axis in shaded:
-                    shaded[row.axis] += [(fb.lo_hz, fb.hi_hz) for fb in row.failing]
         fig = figures.residual_figure(df, params, params2, axis=axis, bands=shaded)
     except BadInputError as exc:
         raise _with_file(exc, spectra) from None

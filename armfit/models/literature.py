@@ -14,15 +14,37 @@ import pandas as pd
 
 from armfit.models.arm import h_arm, laplace
 
+#: The work each row of Table IV comes from, by model name: (authors as cited, year of
+#: publication, what the row is within that work). A row missing here, or with year
+#: None, has no source recorded: its label names Table IV instead.
+SOURCES: dict[str, tuple[str, int | None, str]] = {
+    "Speich X": ("Speich et al.", 2005, "X axis"),
+    "Speich Y": ("Speich et al.", 2005, "Y axis"),
+    "Speich Z": ("Speich et al.", 2005, "Z axis"),
+}
+
 
 @dataclass(frozen=True)
 class LiteratureModel:
+    """One model of Table IV: parameters in SI units (kg, N/m, N·s/m); ``k2`` and
+    ``b2`` None for a three-parameter model."""
+
     name: str
     Ma: float
     k1: float
     b1: float
     k2: float | None
     b2: float | None
+
+    @property
+    def label(self) -> str:
+        """Author and year of the model's source with the row within it (e.g. "Speich
+        et al. 2005, X axis"), from :data:`SOURCES`; "<name> (Table IV)" where no
+        source is recorded."""
+        authors, year, what = SOURCES.get(self.name, (None, None, None))
+        if authors is None or year is None:
+            return f"{self.name} (Table IV)"
+        return f"{authors} {year}" + (f", {what}" if what else "")
 
     def response(self, f_hz) -> np.ndarray:
         """X/F in m/N at ``f_hz`` (Hz)."""
@@ -46,5 +68,5 @@ def literature_models() -> list[LiteratureModel]:
 
 
 __all__ = [
-    "LiteratureModel", "literature_models",
+    "LiteratureModel", "SOURCES", "literature_models",
 ]
