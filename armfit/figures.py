@@ -69,7 +69,7 @@ from armfit.loop import (
     stability_table,
 )
 from armfit.models.arm import ClosedLoopModel
-from armfit.models.literature import LiteratureModel, literature_models
+from armfit.models.literature import REFERENCES_NOTE, LiteratureModel, literature_models
 from armfit.models.params import fit_band, model_from_params
 from armfit.spectra import Spectra
 from armfit.uncertainty import WuWeight, arm_trials, derived_mass_kg, w_max
@@ -1477,7 +1477,8 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
 
     The row's H_ARM (eq. 3, :meth:`ClosedLoopModel.arm_response`) is the black dashed
     line; each literature model (:func:`armfit.models.literature.literature_models`) a
-    solid colour line, labelled with the author and year of its source
+    solid colour line, labelled with the authors, the paper's reference number and the
+    year of its source
     (:attr:`~armfit.models.literature.LiteratureModel.label`). Magnitude in dB re
     1 m/N and phase in degrees over ``f_hz`` (default 0.1–30 Hz, the band of the fits).
     """
@@ -1505,6 +1506,8 @@ def literature_figure(row: Mapping[str, Any], *, label: str | None = None,
     ph.set_ylabel(PHASE_LABEL)
     mag.set_title("Arm dynamics H_ARM = Xa/Fa")
     handles, _ = mag.get_legend_handles_labels()
+    # what the bracketed numbers of the labels are: the paper's references
+    handles.append((Line2D([], [], alpha=0.0), REFERENCES_NOTE))
     _legend(fig, handles, ncol=2, sized_rows=3)
     _minor_ticks_as_lines(fig)
     _fixed_layout(fig, axs)

@@ -488,9 +488,9 @@ def test_literature_figure():
     assert len(lines(mag, "literature:")) == 7 and len(lines(mag, "arm-model")) == 1
     texts = legend_texts(fig)
     # each model named by its source (author and year where recorded), else Table IV
-    assert {"Speich et al. 2005, X axis", "Speich et al. 2005, Y axis",
-            "Speich et al. 2005, Z axis", "Speich 1DOF (Table IV)", "Kosuge (Table IV)",
-            "Lawrence (Table IV)", "Tsuji (Table IV)"} <= set(texts)
+    assert {"Speich et al. [18] 2005, X axis", "Speich et al. [18] 2005, Y axis",
+            "Speich et al. [18] 2005, Z axis", "Speich et al. [18] 2005, 1 DOF",
+            "Kosuge et al. [13] 1993", "Lawrence [12]", "Tsuji et al. [10] 1995"} <= set(texts)
     assert "this study: X axis, 1 N grip" in texts
     (arm,) = lines(mag, "arm-model")
     assert arm.get_linestyle() == "--" and arm.get_color() == "black"  # as in Fig. 7

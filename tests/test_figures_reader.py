@@ -333,10 +333,16 @@ def test_uncertainty_axis_says_relative_and_dimensionless(spectra, nominal):
 
 def test_literature_legend_names_sources():
     by_name = {m.name: m for m in literature_models()}
-    assert by_name["Speich X"].label == "Speich et al. 2005, X axis"
-    assert by_name["Kosuge"].label == "Kosuge (Table IV)"   # no source recorded here
+    # the paper's Sec. IV: "Speich et al. [18], Kosuge et al. [13], Lawrence [12], and
+    # Tsuji et al. [10]"
+    assert by_name["Speich X"].label == "Speich et al. [18] 2005, X axis"
+    assert by_name["Kosuge"].label == "Kosuge et al. [13] 1993"
+    assert by_name["Lawrence"].label == "Lawrence [12]"          # no year recorded
+    assert by_name["Tsuji"].label == "Tsuji et al. [10] 1995"
     fig = figures.literature_figure(params_table(table1()).iloc[0])
-    assert "Speich et al. 2005, Z axis" in legend_texts(fig)
+    texts = legend_texts(fig)
+    assert "Speich et al. [18] 2005, Z axis" in texts
+    assert "[n]: reference n of Fu & Çavuşoğlu, ICRA 2010" in texts
 
 
 # ---------------------------------------------------------------------------

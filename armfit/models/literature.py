@@ -14,14 +14,21 @@ import pandas as pd
 
 from armfit.models.arm import h_arm, laplace
 
-#: The work each row of Table IV comes from, by model name: (authors as cited, year of
-#: publication, what the row is within that work). A row missing here, or with year
-#: None, has no source recorded: its label names Table IV instead.
-SOURCES: dict[str, tuple[str, int | None, str]] = {
-    "Speich X": ("Speich et al.", 2005, "X axis"),
-    "Speich Y": ("Speich et al.", 2005, "Y axis"),
-    "Speich Z": ("Speich et al.", 2005, "Z axis"),
+#: The work each row of Table IV comes from, by model name: (authors as cited, the
+#: reference number in Fu & Çavuşoğlu 2010, year of publication or None where armfit does
+#: not record it, what the row is within that work). The paper cites "Speich et al. [18],
+#: Kosuge et al. [13], Lawrence [12], and Tsuji et al. [10]" for these models (Sec. IV).
+SOURCES: dict[str, tuple[str, int, int | None, str]] = {
+    "Speich X": ("Speich et al.", 18, 2005, "X axis"),
+    "Speich Y": ("Speich et al.", 18, 2005, "Y axis"),
+    "Speich Z": ("Speich et al.", 18, 2005, "Z axis"),
+    "Speich 1DOF": ("Speich et al.", 18, 2005, "1 DOF"),
+    "Kosuge": ("Kosuge et al.", 13, 1993, ""),
+    "Lawrence": ("Lawrence", 12, None, ""),
+    "Tsuji": ("Tsuji et al.", 10, 1995, ""),
 }
+#: Where the reference numbers of :data:`SOURCES` point, for a figure's legend.
+REFERENCES_NOTE = "[n]: reference n of Fu & Çavuşoğlu, ICRA 2010"
 
 
 @dataclass(frozen=True)
@@ -38,13 +45,14 @@ class LiteratureModel:
 
     @property
     def label(self) -> str:
-        """Author and year of the model's source with the row within it (e.g. "Speich
-        et al. 2005, X axis"), from :data:`SOURCES`; "<name> (Table IV)" where no
-        source is recorded."""
-        authors, year, what = SOURCES.get(self.name, (None, None, None))
-        if authors is None or year is None:
+        """Authors, reference number in Fu & Çavuşoğlu 2010 and year of the model's
+        source, with the row within it (e.g. "Speich et al. [18] 2005, X axis"), from
+        :data:`SOURCES`; "<name> (Table IV)" for a model with no source recorded."""
+        if self.name not in SOURCES:
             return f"{self.name} (Table IV)"
-        return f"{authors} {year}" + (f", {what}" if what else "")
+        authors, ref, year, what = SOURCES[self.name]
+        return (f"{authors} [{ref}]" + ("" if year is None else f" {year}")
+                + (f", {what}" if what else ""))
 
     def response(self, f_hz) -> np.ndarray:
         """X/F in m/N at ``f_hz`` (Hz)."""
@@ -68,5 +76,5 @@ def literature_models() -> list[LiteratureModel]:
 
 
 __all__ = [
-    "LiteratureModel", "SOURCES", "literature_models",
+    "REFERENCES_NOTE", "LiteratureModel", "SOURCES", "literature_models",
 ]
