@@ -245,7 +245,9 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
         text = str(exc)
         if tmp is None or str(tmp) not in text:
             raise
-        raise type(exc)(text.replace(str(tmp), str(out))) from exc
+        renamed = type(exc)(text.replace(str(tmp), str(out)))
+        renamed.skipped = exc.skipped
+        raise renamed from exc
     return replace(result, outdir=str(out))
 
 
@@ -530,8 +532,14 @@ def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
     estimating = workers.start(api.estimate_study_result, list(config.inputs),
                                config.estimate, manifest=o.manifest, skip_bad=o.skip_bad,
                                jobs=o.jobs, executor=workers.executor)
-    ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
-                 skip_bad=o.skip_bad, warn=config.warn)
+    opened = []
+    try:
+        ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
+                     skip_bad=o.skip_bad, warn=config.warn, on_open=opened.append)
+    except ArmfitError as exc:  # e.g. every trial bad: the error carries the skipped ones
+        if opened and not exc.skipped:
+            exc.skipped = tuple((s.file, s.reason) for s in opened[0].skipped)
+        raise
     skipped = tuple((s.file, s.reason) for s in ing.skipped)
     return Ingested(len(ing.trials), skipped, estimating, files=("trials.parquet",),
                     summary=f"{len(ing.trials)} trial(s)"

@@ -2103,7 +2103,8 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     ``skip_bad`` the first bad trial raises BadInputError; with it, bad trials are listed
     in ``skipped``. ``warn(msg)`` receives saturation warnings,
     ``on_open(n)`` is told the number of trials found, ``advance()`` is called once per
-    trial.
+    trial. When no trial is left, NoInputError, whose ``skipped`` lists the trials left
+    out, each with its reason.
     """
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, f_min_hz=config.fmin,
                          force_limit_N=config.force_limit_N)
@@ -2162,8 +2163,10 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
             if advance is not None:
                 advance()
     if not kept:
-        raise NoInputError("no trial could be estimated"
+        err = NoInputError("no trial could be estimated"
                            + (f" ({len(skipped)} skipped)" if skipped else ""))
+        err.skipped = tuple(skipped)
+        raise err
     fs = ref[0] if ref else None
     return StudySpectra(tuple(kept), tuple(skipped), tuple(str(p) for p in stream.ignored),
                         fs, tuple(warnings), study_metadata(config, fs, len(kept), skipped))

@@ -592,8 +592,8 @@ def test_decimal_parquet_column_is_a_number(tmp_path, cols):
 
 def test_too_short_names_each_commands_own_option(tmp_path, write_trial, make_columns):
     path = write_trial(tmp_path / f"{NAME}.csv", make_columns("y", duration_s=15.0))
-    # ingest --f-min, estimate --fmin, run has neither (its grid is fixed)
-    expected = {"ingest": "; lower --f-min or drop the trial",
+    # ingest and estimate --fmin, run has neither (its grid is fixed)
+    expected = {"ingest": "; lower --fmin or drop the trial",
                 "estimate": "; lower --fmin or drop the trial", "run": None}
     outputs = {"ingest": "t.parquet", "estimate": "s.parquet", "run": "out"}
     for command, hint in expected.items():
