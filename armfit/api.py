@@ -74,6 +74,8 @@ _tables = _OnFirstUse("armfit.tables")
 _uncertainty = _OnFirstUse("armfit.uncertainty")
 
 PathLike = str | os.PathLike
+#: A band in Hz: one (lo, hi) for every axis, or {axis: (lo, hi)}.
+_Band = tuple[float, float] | Mapping[str, tuple[float, float]]
 
 
 def _figures():
@@ -888,7 +890,7 @@ class Uncertainty(_HtmlTable):
 
 
 def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | None = None,
-                    band: tuple[float, float] | None = None, smooth_oct: float | None = None,
+                    band: _Band | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
                     check: Mapping[str, Mapping[str, _uncertainty.WuWeight]] | None = None,
                     jobs: int = 1, executor: Executor | None = None) -> Uncertainty:
@@ -908,8 +910,9 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
         'paper': dB least squares against W_max (no guarantee).
     order : int, optional
         Zero pairs = pole pairs, 0..5 (default: the smallest within 0.1 dB of the best).
-    band : (float, float), optional
-        Band in Hz (default 0.01–30 Hz, limited to the spectra).
+    band : (float, float) or dict, optional
+        Band in Hz, (lo, hi) for every axis or {axis: (lo, hi)} (default 0.01–30 Hz, also
+        for an axis the dict does not name; limited to the spectra).
     smooth_oct : float, optional
         Smooth each trial's relative error over this many octaves before W_max.
     method : str, optional
@@ -1021,7 +1024,7 @@ def compare_frame(rows) -> pd.DataFrame:
 
 
 def compare(spectra, model, *, level: str | None = None,
-            band: tuple[float, float] | None = None,
+            band: _Band | None = None,
             effects: Iterable[Effect | str] = ()) -> Comparisons:
     """Compare fitted models with the measurements (``armfit compare``): RMS magnitude
     (dB), phase (deg) and noise-normalised error overall and per band, and the bands
@@ -1034,8 +1037,9 @@ def compare(spectra, model, *, level: str | None = None,
         Grip or nominal fits.
     level : {'mean', 'median', 'trial'}, optional
         Measurements to compare with (default: mean for grip fits, median for nominal).
-    band : (float, float), optional
-        Band in Hz (default: the whole grid).
+    band : (float, float) or dict, optional
+        Band in Hz, (lo, hi) for every axis or {axis: (lo, hi)} (default: the whole
+        grid, also for an axis the dict does not name).
     effects : sequence of Effect or str
         Add these effects, refit, and report the error before and after.
 
@@ -1155,7 +1159,7 @@ class Diagnosis(_HtmlTable):
                          for a, e in self.added.items())
 
 
-def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
+def diagnose(spectra, model, *, band: _Band | None = None,
              effects: Iterable[Effect | str] | None = None, jobs: int = 1,
              max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
              min_effect_deg: float = MIN_EFFECT_DEG,
@@ -1172,8 +1176,9 @@ def diagnose(spectra, model, *, band: tuple[float, float] | None = None,
         With trial-level measured responses.
     model : ModelFit, DataFrame or path
         Grip fits (preferred: per-grip starts) or nominal fits.
-    band : (float, float), optional
-        Band in Hz (default: the whole grid).
+    band : (float, float) or dict, optional
+        Band in Hz, (lo, hi) for every axis or {axis: (lo, hi)} (default: the whole
+        grid, also for an axis the dict does not name).
     effects : sequence of Effect or str, optional
         Candidates (default: the whole effect library). A candidate whose own code
         fails in its fit (its term raises, or is NaN or infinite on the band) is left

@@ -7,6 +7,7 @@ Nothing here imports from armfit: every module may use it.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 #: The device's Cartesian axes, in the order of every table and figure.
 AXES: tuple[str, ...] = ("x", "y", "z")
@@ -38,8 +39,18 @@ PAPER_BANDS: dict[str, tuple[float, float]] = {
     "x": (0.1, 30.0), "y": (0.1, 30.0), "z": (0.1, 10.0)}
 
 
+def axis_band(band, axis: str):
+    """The band of ``axis`` (Hz) in a stage's ``band`` argument: ``band`` itself when it
+    is one (lo, hi) for every axis, ``band[axis]`` when it is a mapping {axis: (lo, hi)}
+    (None for an axis it does not name), None when ``band`` is None (the stage's
+    default then applies)."""
+    if isinstance(band, Mapping):
+        return band.get(axis)
+    return band
+
+
 __all__ = [
     "FORCE_LIMIT_N", "GRID_HZ", "POINTS_PER_DECADE",
     "AXES", "PARAM_NAMES", "DEVICE_MASS_KG", "DB_PER_NEPER", "UNIT_SE_DEG",
-    "PAPER_BANDS",
+    "PAPER_BANDS", "axis_band",
 ]

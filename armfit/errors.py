@@ -52,6 +52,9 @@ class ArmfitError(ValueError):
     """
 
     exit_code = EXIT_INTERNAL
+    #: The trials left out (``skip_bad``) before this error ended the work, each as
+    #: (file, reason): the command line lists them, one line each, before the error.
+    skipped: tuple[tuple[str, str], ...] = ()
 
     def __init__(self, message: str = "", *, option: str | None = None):
         self.template = message

@@ -279,7 +279,9 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
         text = str(exc)
         if tmp is None or str(tmp) not in text:
             raise
-        raise type(exc)(text.replace(str(tmp), str(out))) from exc
+        renamed = type(exc)(text.replace(str(tmp), str(out)))
+        renamed.skipped = exc.skipped
+        raise renamed from exc
     return replace(result, outdir=str(out))
 
 
@@ -569,9 +571,16 @@ def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
                                config.estimate, manifest=o.manifest, skip_bad=o.skip_bad,
                                jobs=o.jobs, executor=workers.executor,
                                column_map=o.column_map)
-    ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
-                 skip_bad=o.skip_bad, warn=config.warn, column_map=o.column_map,
-                 force_limit_N=o.force_limit_N, f_min_hz=o.fmin, note=config.note)
+    opened = []
+    try:
+        ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
+                     skip_bad=o.skip_bad, warn=config.warn, on_open=opened.append,
+                     column_map=o.column_map, force_limit_N=o.force_limit_N,
+                     f_min_hz=o.fmin, note=config.note)
+    except ArmfitError as exc:  # e.g. every trial bad: the error carries the skipped ones
+        if opened and not exc.skipped:
+            exc.skipped = tuple((s.file, s.reason) for s in opened[0].skipped)
+        raise
     skipped = tuple((s.file, s.reason) for s in ing.skipped)
     return Ingested(len(ing.trials), skipped, estimating, files=("trials.parquet",),
                     summary=f"{len(ing.trials)} trial(s)"

@@ -2227,7 +2227,8 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     ``on_open(n)`` is told the number of trials found, ``advance()`` is called once per
     trial. ``column_map`` (a map file) is the column map of every raw file without one of
     its own in the manifest; ``note(msg)`` receives the conversions of each map, once
-    (:func:`armfit.io.trials.open_trials`).
+    (:func:`armfit.io.trials.open_trials`). When no trial is left, NoInputError, whose
+    ``skipped`` lists the trials left out, each with its reason.
     """
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, f_min_hz=config.fmin,
                          force_limit_N=config.force_limit_N, column_map=column_map,
@@ -2287,8 +2288,10 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
             if advance is not None:
                 advance()
     if not kept:
-        raise NoInputError("no trial could be estimated"
+        err = NoInputError("no trial could be estimated"
                            + (f" ({len(skipped)} skipped)" if skipped else ""))
+        err.skipped = tuple(skipped)
+        raise err
     fs = ref[0] if ref else None
     return StudySpectra(tuple(kept), tuple(skipped), tuple(str(p) for p in stream.ignored),
                         fs, tuple(warnings), study_metadata(config, fs, len(kept), skipped))

@@ -40,7 +40,7 @@ import pandas as pd
 from scipy import optimize
 from threadpoolctl import threadpool_limits
 
-from armfit.constants import AXES
+from armfit.constants import AXES, axis_band
 from armfit.errors import BadInputError, ConvergenceError, UsageError, cell
 from armfit.io.artifacts import read_wu_rows
 from armfit.io.numbers import parse_number, parse_numbers
@@ -764,7 +764,8 @@ def _fit_wu_task(args) -> WuResult:
 
 
 def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None = None,
-                    band: tuple[float, float] | None = None, smooth_oct: float | None = None,
+                    band: tuple[float, float] | Mapping[str, tuple[float, float]] | None = None,
+                    smooth_oct: float | None = None,
                     method: str | None = None,
                     given: Mapping[str, Mapping[str, WuWeight]] | None = None,
                     jobs: int = 1, executor=None, source: str | None = None
@@ -774,7 +775,9 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
 
     ``spectra``: DataFrame in the spectra schema (trial rows of kind "derived" are used);
     ``params``: DataFrame in the parameters-CSV layout, one row per axis (a fit-nominal
-    file); ``band``: Hz, default 0.01–30 Hz, limited to the frequencies the spectra hold;
+    file); ``band``: Hz, one (lo, hi) for every axis or {axis: (lo, hi)}, default (also
+    for an axis a mapping does not name) 0.01–30 Hz, limited to the frequencies the
+    spectra hold;
     ``smooth_oct``: smoothing width in octaves (None: raw W_max); ``given``:
     {label: {axis: WuWeight}} weights to evaluate on the same data; ``jobs`` > 1: the
     axes' Wu fits in that many worker processes, or on ``executor`` (a
@@ -808,7 +811,7 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
         f, H, _ = derived_trials(trial_rows, axis, method=method)
         H = arm_trials(rows.iloc[0], f, H, derived_mass_kg(spectra, axis))
         Hn = nominal_arm_response(rows.iloc[0], f)
-        lo, hi = PAPER_BAND_HZ if band is None else band
+        lo, hi = axis_band(band, axis) or PAPER_BAND_HZ
         finite = f[np.isfinite(H).any(axis=0) & (f > 0)]
         if finite.size < 2:
             raise BadInputError(f"axis {axis}: derived spectra hold fewer than 2 finite "

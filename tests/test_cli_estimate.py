@@ -142,7 +142,7 @@ def test_bad_trial_stops_or_is_skipped(runner, study, tmp_path):
 
 
 def test_bad_mp_option(runner, study, tmp_path):
-    res = runner.invoke(cli, ["estimate", str(study["study"]), "-o", str(tmp_path / "s.pq"),
+    res = runner.invoke(cli, ["estimate", str(study["study"]), "-o", str(tmp_path / "s.parquet"),
                               "--mp", "w=0.1"])
     assert res.exit_code == 2 and "AXIS=KG" in res.stderr
 

@@ -215,7 +215,7 @@ def test_f_min_option_sets_the_length_rule(tmp_path, runner, write_trial, good_c
     cols = {k: v[:1000] for k, v in good_columns.items()}  # 10 s
     path = write_trial(tmp_path / f"{NAME}.csv", cols)
     # 2 / 0.2 Hz = 10 s: the 10 s trial now just reaches the lowest frequency.
-    res = _ingest(runner, path, "-o", tmp_path / "t.parquet", "--f-min", "0.2")
+    res = _ingest(runner, path, "-o", tmp_path / "t.parquet", "--fmin", "0.2")
     assert res.exit_code == 0, res.stderr
 
 
@@ -322,8 +322,8 @@ def test_usage_errors(tmp_path, runner, study):
     res = _ingest(runner, "-o", tmp_path / "t.parquet")
     assert res.exit_code == 2
     res = _ingest(runner, study, "-o", tmp_path / "t.csv")
-    assert res.exit_code == 2 and "ending in .parquet" in res.stderr
-    res = _ingest(runner, study, "-o", tmp_path / "t.parquet", "--f-min", "0")
+    assert res.exit_code == 2 and "ingest writes .parquet; not .csv" in res.stderr
+    res = _ingest(runner, study, "-o", tmp_path / "t.parquet", "--fmin", "0")
     assert res.exit_code == 2
 
 

@@ -107,7 +107,7 @@ def test_unknown_extension(runner, files, tmp_path):
     out = tmp_path / "fig5.jpg"
     r = run(runner, "bode", files["spectra"], "-o", out)
     assert r.exit_code == EXIT_USAGE
-    assert "unknown figure extension '.jpg'" in r.stderr
+    assert "plot bode writes .png, .svg or .pdf; not .jpg" in r.stderr
     assert "Traceback" not in r.output + r.stderr
     assert not out.exists()
 

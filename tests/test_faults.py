@@ -451,7 +451,7 @@ def test_duplicate_column_header(tmp_path, make_columns):
     lines = [",".join(names)] + [",".join(repr(float(v)) for v in row)
                                  for row in zip(*cols.values(), cols["pos_x_m"], strict=True)]
     path.write_text("\n".join(lines[:200]) + "\n")
-    res = invoke("ingest", path, "-o", tmp_path / "t.parquet", "--f-min", "2")
+    res = invoke("ingest", path, "-o", tmp_path / "t.parquet", "--fmin", "2")
     assert res.exit_code == EXIT_DATAERR
     assert "column 'pos_x_m': duplicate column header" in one_line_error(res.stderr)
 

@@ -510,7 +510,8 @@ STDERR_COMMANDS = {
     "estimate": (["estimate", "{study}", "-o", "{out}/s.parquet", "-j", "2", "--json"],
                  EXIT_OK),
     "missing input": (["estimate", "{out}/nope", "-o", "{out}/s.parquet"], EXIT_NOINPUT),
-    "output exists": (["fit-nominal", "{spectra}", "-o", "{spectra}"], EXIT_CANTCREAT),
+    "output exists": (["fit-nominal", "{spectra}", "-o", "{study}/../nominal.csv"],
+                      EXIT_CANTCREAT),
 }
 
 

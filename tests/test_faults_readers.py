@@ -592,8 +592,8 @@ def test_decimal_parquet_column_is_a_number(tmp_path, cols):
 
 def test_too_short_names_each_commands_own_option(tmp_path, write_trial, make_columns):
     path = write_trial(tmp_path / f"{NAME}.csv", make_columns("y", duration_s=15.0))
-    # ingest --f-min; estimate and run --fmin
-    expected = {"ingest": "; lower --f-min or drop the trial",
+    # one spelling, --fmin, in every command that reads raw trials
+    expected = {"ingest": "; lower --fmin or drop the trial",
                 "estimate": "; lower --fmin or drop the trial",
                 "run": "; lower --fmin or drop the trial"}
     outputs = {"ingest": "t.parquet", "estimate": "s.parquet", "run": "out"}

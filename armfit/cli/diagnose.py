@@ -4,13 +4,14 @@ which physical effect is missing."""
 from __future__ import annotations
 
 import click
-from rich.console import Console
 from rich.markup import escape
+from rich.measure import Measurement
 from rich.table import Table
 
 from armfit.api import ModelFit
 from armfit.api import compare as api_compare
 from armfit.api import diagnose as api_diagnose
+from armfit.cli.grammar import JSON, file_output_option, table_console
 from armfit.cli.options import (
     Number,
     Whole,
@@ -30,7 +31,9 @@ from armfit.io.atomic import check_output
 from armfit.models.effects import EFFECTS, get_effect
 from armfit.spectra import Spectra
 
-_BAND_HELP = "Frequency band in Hz (default: the whole grid of the spectra file)."
+_BAND_HELP = ("Frequency band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI); "
+              "repeatable, later items win [default: the whole grid of the spectra "
+              "file]; axes not named keep the default.")
 
 
 def _effects(names) -> list:
@@ -38,7 +41,7 @@ def _effects(names) -> list:
 
 
 def _console(stderr: bool = False):
-    return Console(soft_wrap=False, width=120, stderr=stderr)
+    return table_console(stderr=stderr)
 
 
 @click.command("effects")
@@ -104,20 +107,10 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
     title = f"model vs measurements ({level}); cells: RMS dB/deg/× noise"
     if band is None and level != "trial":
         title += "; overall: over each model's fit band"
-    t = Table(title=title)
-    for c in ("axis", "grip N", "model", "overall"):
-        t.add_column(c)
-    band_names = [f"{b.lo_hz:g}–{b.hi_hz:g} Hz" for b in rows[0].bands]
-    for name in band_names:
-        t.add_column(name)
-
-    def cell(b):
-        return f"{b.rms_db:.2f}/{b.rms_deg:.1f}/{b.rms_norm:.2f}" if b.n_points else "–"
-
-    for r in rows:
-        t.add_row(r.axis, "" if r.grip_N is None else f"{r.grip_N:g}", r.model,
-                  cell(r.overall), *[cell(b) for b in r.bands])
     con = _console()
+    t = _compare_table(title, rows, "/")
+    if Measurement.get(con, con.options.update_width(10**6), t).maximum > con.width:
+        t = _compare_table(title, rows, "/ ")   # too wide: cells may wrap after a "/"
     con.print(t)
     for r in rows:
         head = f"{r.axis}" + ("" if r.grip_N is None else f" {r.grip_N:g} N") + f" {r.model}"
@@ -130,6 +123,26 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
                       highlight=False)
 
 
+def _compare_table(title: str, rows, sep: str) -> Table:
+    """The table of ``compare``: one row per comparison, one column per band of any row
+    (a row's cell is empty for a band outside its own), cells ``dB{sep}deg{sep}× noise``."""
+    spans = sorted({(b.lo_hz, b.hi_hz) for r in rows for b in r.bands})
+    t = Table(title=title)
+    for c in ("axis", "grip N", "model", "overall",
+              *(f"{lo:g}–{hi:g} Hz" for lo, hi in spans)):
+        t.add_column(c, overflow="fold")
+
+    def cell(b):
+        return sep.join((f"{b.rms_db:.2f}", f"{b.rms_deg:.1f}", f"{b.rms_norm:.2f}")) \
+            if b.n_points else "–"
+
+    for r in rows:
+        by_span = {(b.lo_hz, b.hi_hz): cell(b) for b in r.bands}
+        t.add_row(r.axis, "" if r.grip_N is None else f"{r.grip_N:g}", r.model,
+                  cell(r.overall), *(by_span.get(span, "") for span in spans))
+    return t
+
+
 @click.command("diagnose")
 @effects_file_option
 @click.argument("spectra", type=click.Path(dir_okay=False))
@@ -138,18 +151,22 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 @band_option(_BAND_HELP)
 @click.option("--effect", "effect_names", multiple=True, metavar="NAME",
               help="Only these candidates (repeatable; default: the whole effect library).")
-@click.option("-o", "--output", type=click.Path(dir_okay=False),
-              help="Also write the JSON document to this file (atomically).")
+@file_output_option("-o", "--output", "output", formats=JSON,
+                    help="Also write the JSON document to this file (atomically).")
 @jobs_option
 @click.option("--max-steps", type=Whole(0, 10), default=MAX_STEPS, show_default=True,
-              help="At most this many effects added, one per step.")
+              metavar="N", help="At most N effects added, one per step (0: only judge "
+                                "the base model).")
 @click.option("--min-effect-db", type=Number(0.0), default=MIN_EFFECT_DB,
-              show_default=True,
-              help="Practical floor: an effect must change the response by more than this "
-                   "(dB, and more than the noise) somewhere in the band, or ...")
+              show_default=True, metavar="DB",
+              help="Practical floor in magnitude, dB: an effect is named only if it "
+                   "changes the fitted response by more than DB (and more than the noise) "
+                   "somewhere in the band, or by more than --min-effect-deg in phase.")
 @click.option("--min-effect-deg", type=Number(0.0), default=MIN_EFFECT_DEG,
-              show_default=True,
-              help="... by more than this in phase (deg).")
+              show_default=True, metavar="DEG",
+              help="Practical floor in phase, deg: an effect is named only if it "
+                   "changes the fitted phase by more than DEG (and more than the noise) "
+                   "somewhere in the band, or the magnitude by more than the floor in dB.")
 @click.option("--share", "share", multiple=True, metavar="NAME",
               help="Effects whose parameters are compared across axes (repeatable; default: "
                    f"{' and '.join(SHARED_EFFECTS)}, the apparatus effects).")
@@ -211,7 +228,7 @@ def _print_steps(results, doc, con) -> None:
                         f"{d.band[0]:.3g}–{d.band[1]:.3g} Hz — stepwise search")
         for c in ("step", "effect added", "parameters (95 % interval)", "RMS dB",
                   "RMS deg", "× noise", "ΔBIC"):
-            t.add_column(c)
+            t.add_column(c, overflow="fold")
         for i, st in enumerate(d.steps):
             ps = ", ".join(
                 f"{k}={v:.4g}" + (f" ({st.params_lo[k]:.4g}…{st.params_hi[k]:.4g})"

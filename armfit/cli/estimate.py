@@ -7,6 +7,7 @@ import contextlib
 import click
 
 from armfit.api import estimate_config, estimate_study_result
+from armfit.cli.grammar import extension, file_output_option, old_spelling
 from armfit.cli.options import (
     Number,
     Whole,
@@ -18,7 +19,6 @@ from armfit.cli.options import (
     map_note,
     map_option,
     message,
-    output_option,
     overwrite_option,
     progress,
     scheduler_option,
@@ -56,9 +56,16 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
     return mp
 
 
+#: What ``-o`` writes, by extension.
+_FORMATS = {".parquet": "the spectra file the later commands read",
+                  ".csv": "the same table as CSV, for other tools"}
+
+
 @click.command("estimate")
 @click.argument("paths", nargs=-1, type=click.Path())
-@output_option
+@file_output_option("-o", "--output", "output", required=True, formats=_FORMATS,
+                    help="The spectra table to write (atomically); its format follows "
+                         "the extension.")
 @manifest_option
 @map_option
 @skip_bad_option
@@ -67,37 +74,39 @@ def _parse_mp(ctx, param, value: str | None) -> dict[str, float]:
               help="Measured-dynamics estimator: Welch H1 (best on simulated truth) or the "
                    "paper's whole-record FFT ratio with 100 dB Chebyshev windows.")
 @click.option("--fmin", type=Number(min=0, min_open=True), default=_DEFAULTS.fmin,
-              show_default=True, metavar="HZ", help="Lowest grid frequency.")
+              show_default=True, metavar="HZ", help="Lowest grid frequency, Hz.")
 @click.option("--fmax", type=Number(min=0, min_open=True), default=_DEFAULTS.fmax,
-              show_default=True, metavar="HZ", help="Highest grid frequency (<= Nyquist).")
+              show_default=True, metavar="HZ",
+              help="Highest grid frequency, Hz (<= Nyquist).")
 @click.option("--per-decade", type=Whole(1, 1000), default=_DEFAULTS.per_decade,
-              show_default=True,
+              show_default=True, metavar="N",
               help="Grid points per decade (log-spaced, band-averaged).")
 @click.option("--nperseg", type=Whole(8), default=None, metavar="SAMPLES",
               help="H1 segment length [default: power of 2 lasting >= 2/fmin, halved down "
                    "to 1/fmin while a trial holds fewer than 4 segments].")
 @click.option("--overlap", type=Number(0, 1, max_open=True), default=_DEFAULTS.overlap,
-              show_default=True, help="H1 segment overlap (fraction).")
+              show_default=True, metavar="F", help="H1 segment overlap (fraction).")
 @click.option("--window", type=click.Choice(WINDOWS), default=_DEFAULTS.window,
               show_default=True,
               help="H1 window.")
 @click.option("--mp", "mp", callback=_parse_mp, metavar="AXIS=KG,...",
               help="Device mass per axis for the derived arm dynamics [default: the paper's "
                    "x=0.09,y=0.095,z=0.091].")
-@click.option("--coherence-min", type=Number(0, 1), default=_DEFAULTS.coherence_min,
-              show_default=True,
-              help="Grid points with lower coherence are flagged low_coherence.")
+@click.option("--min-coherence", type=Number(0, 1), default=_DEFAULTS.coherence_min,
+              show_default=True, metavar="F",
+              help="Grid points with lower coherence (0..1) are flagged low_coherence.")
+@old_spelling("--coherence-min", "--min-coherence")
 @click.option("--force-limit", "force_limit", type=Number(min=0, min_open=True),
               default=_DEFAULTS.force_limit_N, show_default=True, metavar="N",
-              help="Device peak force; trials reaching it are flagged saturation.")
-@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,
-              metavar="FILE", help="Also write the table as CSV.")
+              help="Device peak force, N; trials reaching it are flagged saturation.")
+@file_output_option("--csv", "csv_path", formats={".csv": "the table as CSV"},
+                    help="Also write the table as CSV.")
 @jobs_option
 @scheduler_option
 @overwrite_option
 @json_option
-def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, per_decade, nperseg,
-            overlap, window, mp, coherence_min, force_limit, csv_path, jobs, scheduler,
+def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, per_decade,
+            nperseg, overlap, window, mp, min_coherence, force_limit, csv_path, jobs, scheduler,
             overwrite, as_json):
     """Estimate frequency responses of every trial and their mean and median, e.g.
     ``armfit estimate trials.parquet -o spectra.parquet``.
@@ -106,7 +115,8 @@ def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, p
     Per trial: measured dynamics X/F (and cross-axis responses), derived arm dynamics
     Xa/Fa with Fa = F - Mp*x'' (tfestimate semantics); on a log grid fmin..fmax, with
     coherence, standard errors and flags. Aggregates: mean per axis x grip over subjects,
-    median per axis over all trials. Output: one Parquet table (see docs/formats.md).
+    median per axis over all trials. Output: one table (see docs/formats.md), Parquet
+    for the later commands (OUTPUT.parquet) or CSV (OUTPUT.csv).
     """
     if not paths and manifest is None:
         raise click.UsageError("give trial files or folders, a dataset, or --manifest")
@@ -119,7 +129,7 @@ def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, p
                      manifest=manifest)
     config = estimate_config(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
                              nperseg=nperseg, overlap=overlap, window=window, mp=mp,
-                             coherence_min=coherence_min, force_limit_N=force_limit)
+                             coherence_min=min_coherence, force_limit_N=force_limit)
     with contextlib.ExitStack() as stack:
         executor = stack.enter_context(cluster_executor(scheduler))
         bar = {}
@@ -134,8 +144,11 @@ def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, p
                                        executor=executor, column_map=column_map,
                                        note=map_note)
     meta = result.meta
-    with atomic_outputs(overwrite=overwrite):  # the Parquet file and the CSV, or neither
-        result.write(output, overwrite=overwrite)
+    with atomic_outputs(overwrite=overwrite):  # the table and the CSV, or neither
+        if extension(output) == ".csv":
+            result.spectra.write_csv(output, overwrite=overwrite)
+        else:
+            result.write(output, overwrite=overwrite)
         if csv_path is not None:
             result.spectra.write_csv(csv_path, overwrite=overwrite)
     for f, r in result.skipped:

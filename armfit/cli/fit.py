@@ -11,6 +11,7 @@ import click
 
 from armfit.api import fit_grip as api_fit_grip
 from armfit.api import fit_nominal as api_fit_nominal
+from armfit.cli.grammar import CSV, LATEX, file_output_option
 from armfit.cli.options import Whole
 from armfit.constants import PAPER_BANDS
 from armfit.fitting import COSTS
@@ -27,7 +28,6 @@ from .options import (
     fit_effect_option,
     json_option,
     message,
-    output_option,
     overwrite_option,
 )
 
@@ -35,18 +35,20 @@ from .options import (
 def _options(f):
     for deco in reversed([
         click.argument("spectra", type=click.Path(dir_okay=False)),
-        output_option,
+        file_output_option("-o", "--output", "output", required=True, formats=CSV,
+                           help="The params CSV to write (atomically)."),
         click.option("--cost", type=click.Choice(COSTS), default="complex", show_default=True,
                      help="complex: log-magnitude and phase errors, each divided by its "
                           "standard error; paper: dB magnitude error only (eq. 5, Wt = 1)."),
         axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis "
-                          "(LO:HI) [default: x=0.1:30,y=0.1:30,z=0.1:10, as the paper]; "
-                          "axes not named keep the default."),
+                          "(LO:HI); repeatable, later items win [default: "
+                          "x=0.1:30,y=0.1:30,z=0.1:10, as the paper]; axes not named "
+                          "keep the default."),
         click.option("--bootstrap", type=Whole(0, 100000), default=0,
-                     show_default=True,
+                     show_default=True, metavar="N",
                      help="Resample subjects N times for percentile intervals "
                           "(0: intervals from the Jacobian)."),
-        click.option("--seed", type=Whole(), default=0, show_default=True,
+        click.option("--seed", type=Whole(), default=0, show_default=True, metavar="N",
                      help="Seed of the bootstrap resampling (the fit itself uses none)."),
         fit_effect_option,
         effects_file_option,
@@ -55,8 +57,9 @@ def _options(f):
         click.option("--max-nfev", type=Whole(1, None), default=None, metavar="N",
                      help="Evaluation budget of each final local fit [default: 200 per "
                           "parameter]; a fit that runs out exits 3."),
-        click.option("--latex", "latex", type=click.Path(dir_okay=False), default=None,
-                     help="Also write a booktabs LaTeX table laid out like the paper's."),
+        file_output_option("--latex", "latex", formats=LATEX,
+                           help="Also write a booktabs LaTeX table laid out like the "
+                                "paper's."),
         json_option,
         overwrite_option,
     ]):

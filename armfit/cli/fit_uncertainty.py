@@ -17,6 +17,7 @@ import click
 
 from armfit.api import ModelFit
 from armfit.api import fit_uncertainty as api_fit_uncertainty
+from armfit.cli.grammar import CSV, LATEX, file_output_option
 from armfit.cli.options import Whole
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
@@ -34,7 +35,6 @@ from .options import (
     jobs_option,
     json_option,
     message,
-    output_option,
     overwrite_option,
     scheduler_option,
 )
@@ -73,7 +73,9 @@ def _pairs(reps) -> list[list[float]]:
 @click.argument("spectra", type=click.Path(dir_okay=False))
 @click.option("--nominal", required=True, type=click.Path(dir_okay=False),
               help="Nominal parameters CSV written by `armfit fit-nominal` (H_ARM per axis).")
-@output_option
+@file_output_option("-o", "--output", "output", required=True, formats=CSV,
+                    help="The Wu CSV to write (atomically); OUTPUT_summary.csv and "
+                         "OUTPUT_wmax.csv are written beside it.")
 @click.option("--cost", type=click.Choice(["envelope", "paper"]), default="envelope",
               show_default=True,
               help="envelope: |Wu| >= W_max on and between grid points, as tight as "
@@ -81,22 +83,24 @@ def _pairs(reps) -> list[list[float]]:
 @click.option("--order", type=Whole(0, MAX_PAIRS), default=None, metavar="N",
               help=f"Zero pairs = pole pairs of Wu, 0..{MAX_PAIRS} [default: the smallest "
                    "order within 0.1 dB of the best].")
-@band_option("Band in Hz [default: 0.01:30 as the paper, limited to the spectra].")
+@band_option("Band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI); "
+             "repeatable, later items win [default: 0.01:30 as the paper, limited to the "
+             "spectra]; axes not named keep the default.")
 @click.option("--smooth", default=None, metavar="OCT",
               help="Smooth each trial's relative error over a window OCT octaves wide "
                    "(e.g. 1/3) before taking W_max; raw W_max is still reported.")
 @click.option("--method", default=None, metavar="NAME",
               help="Estimator of the derived spectra when SPECTRA holds several.")
-@click.option("--check-weights", "check_weights", default=None, metavar="FILE",
+@click.option("--check-weights", "check_weights", default=None, metavar="FILE|paper",
               help="Also evaluate this Wu CSV against the data ('paper': Table III).")
-@click.option("--latex", type=click.Path(dir_okay=False), default=None,
-              help="Also write a Table III-style LaTeX table of the fitted weights.")
+@file_output_option("--latex", "latex", formats=LATEX,
+                    help="Also write a Table III-style LaTeX table of the fitted weights.")
 @jobs_option
 @scheduler_option
 @json_option
 @overwrite_option
 def command(spectra: str, nominal: str, output: str, cost: str, order: int | None,
-            band: str | None, smooth: str | None, method: str | None,
+            band, smooth: str | None, method: str | None,
             check_weights: str | None, latex: str | None, jobs: int,
             scheduler: str | None, as_json: bool, overwrite: bool) -> None:
     """Fit the multiplicative uncertainty weight Wu per axis (Table III).
@@ -113,8 +117,6 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
     summary_path, points_path = wu_sidecar_paths(output)
     inputs = [spectra, nominal] + ([check_weights] if check_weights else [])
     outputs = [output, summary_path, points_path] + ([latex] if latex else [])
-    if len({Path(p).resolve() for p in outputs}) < len(outputs):
-        raise UsageError("--latex must differ from the output and its _summary/_wmax files")
     for path in outputs:
         check_output(path, overwrite=overwrite, inputs=inputs)
 

@@ -6,6 +6,7 @@ import contextlib
 
 import click
 
+from armfit.cli.grammar import file_output_option, old_spelling
 from armfit.cli.options import (
     Number,
     emit_json,
@@ -14,34 +15,39 @@ from armfit.cli.options import (
     map_note,
     map_option,
     message,
-    output_option,
     overwrite_option,
     progress,
     skip_bad_option,
     verbosity,
 )
 from armfit.constants import FORCE_LIMIT_N, GRID_HZ
+from armfit.errors import ArmfitError
 from armfit.io.trials import TrialStream, ingest
 
 
 @click.command("ingest")
 @click.argument("paths", nargs=-1, type=click.Path())
-@output_option
+@file_output_option("-o", "--output", "output", required=True,
+                    formats={".parquet": "the canonical dataset"},
+                    help="The dataset to write (atomically).")
 @manifest_option
 @map_option
 @skip_bad_option
 @click.option("--resample", is_flag=True,
               help="Resample trials whose sampling rate differs to the most common rate "
                    "(default: such a trial is an error).")
-@click.option("--f-min", "f_min", type=Number(min=0, min_open=True), default=GRID_HZ[0],
+@click.option("--fmin", type=Number(min=0, min_open=True), default=GRID_HZ[0],
               show_default=True, metavar="HZ",
-              help="Lowest frequency to be estimated; a trial must last at least 2/HZ s.")
+              help="Lowest frequency to be estimated, Hz; a trial must last at least "
+                   "2/HZ s.")
+@old_spelling("--f-min", "--fmin")
 @click.option("--force-limit", "force_limit", type=Number(min=0, min_open=True),
               default=FORCE_LIMIT_N, show_default=True, metavar="N",
-              help="Device peak force; forces reaching it are warned about (saturation).")
+              help="Device peak force, N; forces reaching it are warned about "
+                   "(saturation).")
 @overwrite_option
 @json_option
-def command(paths, output, manifest, column_map, skip_bad, resample, f_min, force_limit,
+def command(paths, output, manifest, column_map, skip_bad, resample, fmin, force_limit,
             overwrite, as_json):
     """Read raw trial files and folders (CSV, CSV.gz, Parquet) and write one canonical
     dataset, e.g. ``armfit ingest raw/ -o trials.parquet``.
@@ -58,16 +64,23 @@ def command(paths, output, manifest, column_map, skip_bad, resample, f_min, forc
         bar = {}
 
         def on_open(stream: TrialStream) -> None:
+            bar["stream"] = stream
             if verbosity() > 0:
                 for p in stream.ignored:
                     message(f"ignored (not a trial name): {p}")
             bar["advance"] = stack.enter_context(progress(len(stream), "ingest"))
 
-        result = ingest(paths, output, manifest=manifest, skip_bad=skip_bad,
-                        resample=resample, f_min_hz=f_min, force_limit_N=force_limit,
-                        overwrite=overwrite, warn=lambda text: message(f"warning: {text}"),
-                        advance=lambda: bar["advance"](), on_open=on_open,
-                        column_map=column_map, note=map_note)
+        try:
+            result = ingest(paths, output, manifest=manifest, skip_bad=skip_bad,
+                            resample=resample, f_min_hz=fmin, force_limit_N=force_limit,
+                            overwrite=overwrite,
+                            warn=lambda text: message(f"warning: {text}"),
+                            advance=lambda: bar["advance"](), on_open=on_open,
+                            column_map=column_map, note=map_note)
+        except ArmfitError as exc:  # the trials left out so far are listed with it
+            if "stream" in bar and not exc.skipped:
+                exc.skipped = tuple((s.file, s.reason) for s in bar["stream"].skipped)
+            raise
     for s in result.skipped:
         message(f"skipped {s.file}: {s.reason}")
     message(f"ingested {len(result.trials)} trial(s) into {result.output}"

@@ -16,6 +16,12 @@ import click
 
 from armfit._version import __version__
 from armfit.cli.entry import stop_line, wrapped_stop
+from armfit.cli.grammar import (
+    add_verbosity_options,
+    apply_verbosity,
+    verbosity_options,
+    written_verbosity,
+)
 from armfit.cli.messages import cli_message
 from armfit.errors import EXIT_INTERNAL, ArmfitError
 from armfit.workers import stop_workers
@@ -45,7 +51,7 @@ class ArmfitGroup(click.Group):
             cmd = getattr(importlib.import_module(module), attr)
             if cmd_name in self.summaries:
                 cmd.short_help = self.summaries[cmd_name]
-            self.add_command(cmd, cmd_name)
+            self.add_command(add_verbosity_options(cmd), cmd_name)
         return cmd
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
@@ -57,6 +63,12 @@ class ArmfitGroup(click.Group):
         if rows:
             with formatter.section("Commands"):
                 formatter.write_dl(rows)
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        # -v/-q as written anywhere on the line, for an error raised while the options are
+        # read, before the subcommand's own -v is processed (after an eager --effects)
+        ctx.meta["armfit.verbosity_written"] = written_verbosity(args)
+        return super().parse_args(ctx, args)
 
     def make_context(self, info_name, args, parent=None, **extra) -> click.Context:
         # a signal while the group's options are parsed: the same line and code as in a
@@ -88,7 +100,13 @@ class ArmfitGroup(click.Group):
 
 
 def _report(ctx: click.Context, exc: BaseException, internal: bool = False) -> None:
-    verbose = (ctx.obj or {}).get("verbosity", 0) > 0
+    verbosity = (ctx.obj or {}).get("verbosity", 0)
+    written = ctx.meta.get("armfit.verbosity_written", 0)
+    verbosity = -1 if written < 0 else max(verbosity, written)
+    verbose = verbosity > 0
+    if verbosity >= 0:  # the trials --skip-bad left out before the error, each with why
+        for file, reason in getattr(exc, "skipped", ()):
+            click.echo(f"skipped {file}: {reason}", err=True)
     if verbose:
         traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
     # the command that raised names the options by its own flags, and none it lacks
@@ -118,28 +136,28 @@ def _raising_command(ctx: click.Context, exc: BaseException) -> click.Command | 
         if name and isinstance(ctx.command, click.Group) else None
 
 
+def _with_verbosity(f):
+    """The group's ``-v``/``-q`` (the same options every subcommand gets)."""
+    f.__click_params__ = [*getattr(f, "__click_params__", []), *verbosity_options()[::-1]]
+    return f
+
+
 @click.group(cls=ArmfitGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="armfit")
-@click.option("-v", "--verbose", "verbose", count=True,
-              help="More messages on stderr (repeat for debug); tracebacks on errors.")
-@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr.")
+@_with_verbosity
 @click.pass_context
-def cli(ctx: click.Context, verbose: int, quiet: bool) -> None:
+def cli(ctx: click.Context) -> None:
     """armfit — human arm and hand dynamics and variability models from stylus
     haptic-device trials (the method of Fu & Çavuşoğlu, ICRA 2010).
+
+    -v and -q work before the command or anywhere after it.
 
     Exit codes (the same on every command): 0 success, 1 internal error (a bug),
     2 usage error, 3 fit did not converge, 65 bad input data, 66 input not found or
     unreadable, 73 output exists, is an input, or cannot be written (path and OS reason
     given), 130 interrupted (SIGINT), 143 terminated (SIGTERM).
     """
-    verbosity = -1 if quiet else verbose
-    ctx.ensure_object(dict)
-    ctx.obj["verbosity"] = verbosity
-    level = {-1: logging.ERROR, 0: logging.INFO}.get(verbosity, logging.DEBUG)
-    logging.basicConfig(level=level, format="armfit: %(message)s", stream=sys.stderr,
-                        force=True)
-    log.setLevel(level)
+    apply_verbosity(ctx.ensure_object(dict))
 
 
 #: The subcommands: name -> ("module:attribute", one-line summary). The summary is what

@@ -27,7 +27,7 @@ OPTION_FLAGS: dict[str, str | tuple[str, ...]] = {
     "outside_loop": "--outside-loop", "members": "--members",
     "manifest": "--manifest", "skip_bad": "--skip-bad", "resample": "--resample",
     "column_map": "--map",
-    "f_min_hz": ("--f-min", "--fmin"),
+    "f_min_hz": "--fmin",
 }
 
 
@@ -61,9 +61,8 @@ def flag(name: str, command: click.Command | None = None) -> str | None:
     Returns
     -------
     str or None
-        The command's own spelling (``--f-min`` for ``ingest``, ``--fmin`` for
-        ``estimate``), None when it has no such option (``run`` has no ``--fmin``);
-        outside any command, the usual flag.
+        The command's own spelling (of those listed for ``name``), None when it has no
+        such option (``run`` has no ``--fmin``); outside any command, the usual flag.
     """
     spellings = _spellings(name)
     commands = [command] if command is not None else _running()

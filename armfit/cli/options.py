@@ -36,6 +36,17 @@ def _signed_whole(text: str) -> int:
     return sign * parse_whole(body[1:] if body[:1] in "+-" else body)
 
 
+def _range_text(lo, hi, lo_open: bool, hi_open: bool) -> str:
+    """A range as --help shows it (``x>0``, ``0<=x<1``); empty when unbounded."""
+    if lo is None and hi is None:
+        return ""
+    if lo is None:
+        return f"x{'<' if hi_open else '<='}{hi:g}"
+    if hi is None:
+        return f"x{'>' if lo_open else '>='}{lo:g}"
+    return f"{lo:g}{'<' if lo_open else '<='}x{'<' if hi_open else '<='}{hi:g}"
+
+
 class Number(click.FloatRange):
     """A float option (optionally bounded, as :class:`click.FloatRange`) whose text is
     read by :func:`armfit.io.numbers.parse_number`."""
@@ -45,6 +56,9 @@ class Number(click.FloatRange):
     def convert(self, value, param, ctx):
         return super().convert(_strict(value, parse_number, param, ctx, self.fail),
                                param, ctx)
+
+    def _describe_range(self) -> str:
+        return _range_text(self.min, self.max, self.min_open, self.max_open)
 
 
 class Whole(click.IntRange):
@@ -56,6 +70,9 @@ class Whole(click.IntRange):
     def convert(self, value, param, ctx):
         return super().convert(_strict(value, _signed_whole, param, ctx, self.fail),
                                param, ctx)
+
+    def _describe_range(self) -> str:
+        return _range_text(self.min, self.max, self.min_open, self.max_open)
 
 
 output_option = click.option(
@@ -104,7 +121,7 @@ def map_note(text: str) -> None:
     """A column map's conversions, on stderr as ``armfit: ...`` (silenced by -q)."""
     message(f"armfit: {text}")
 jobs_option = click.option(
-    "-j", "--jobs", type=Whole(1, 64), default=1, show_default=True,
+    "-j", "--jobs", type=Whole(1, 64), default=1, show_default=True, metavar="N",
     help="Worker processes.")
 scheduler_option = click.option(
     "--scheduler", default=None, metavar="ADDRESS",
@@ -135,8 +152,10 @@ def cluster_executor(address: str | None) -> Iterator[Any]:
     with client:
         yield client.get_executor()
 effect_option = click.option(
-    "--effect", "effects", multiple=True, metavar="NAME",
-    help="Add a physical effect to the model (repeatable; see `armfit effects`).")
+    "--effect", "effects", multiple=True, metavar="NAME=VALUES",
+    help="Add a physical effect with its values: NAME=V1[,V2..] in parameter order "
+         "or NAME=PARAM:V[,PARAM:V..], e.g. delay=0.012 (repeatable; see `armfit "
+         "effects`).")
 
 outside_loop_option = click.option(
     "--outside-loop", "outside_loop", multiple=True, metavar="EFFECT",
@@ -212,20 +231,42 @@ def parse_bands(values, *, option: str = "--band") -> list[tuple[str | None, flo
             for v in values or () for item in v.split(",") if item.strip()]
 
 
+def band_spec(items) -> tuple[float, float] | dict[str, tuple[float, float]] | None:
+    """The ``band`` of a command that takes one band per axis over the data's whole grid
+    by default (compare, diagnose, fit-uncertainty), from parsed ``[AXIS=]LO:HI`` items:
+    None without items, (lo, hi) when no item names an axis (the last wins), else
+    {axis: (lo, hi)} (an item without an axis sets every axis, later items win; an axis
+    not named keeps the command's default)."""
+    items = list(items or ())
+    if not items:
+        return None
+    if all(axis is None for axis, _, _ in items):
+        return items[-1][1:]
+    bands: dict[str, tuple[float, float]] = {}
+    for axis, lo, hi in items:
+        for a in ([axis] if axis else AXES):
+            bands[a] = (lo, hi)
+    return bands
+
+
+BANDS_METAVAR = "[AXIS=]LO:HI[,...]"
+
+
 def band_option(help_text: str):
-    """``--band LO:HI``: one band in Hz for every axis (None if not given)."""
+    """``--band [AXIS=]LO:HI[,...]`` (repeatable) for a command whose default is the
+    data's whole grid: the value is :func:`band_spec` of the items."""
     def convert(ctx, param, value):
-        return None if value is None else parse_band(value)[1:]
-    return click.option("--band", metavar="LO:HI", default=None, callback=convert,
-                        help=help_text)
+        return band_spec(parse_bands(value))
+    return click.option("--band", "band", metavar=BANDS_METAVAR, multiple=True,
+                        callback=convert, help=help_text)
 
 
-def axis_bands_option(help_text: str, *, multiple: bool = False):
-    """``--band [AXIS=]LO:HI[,...]``: bands in Hz, each for one axis or for every axis;
-    the value is a list of (axis or None, lo, hi)."""
+def axis_bands_option(help_text: str, *, multiple: bool = True):
+    """``--band [AXIS=]LO:HI[,...]`` (repeatable): bands in Hz, each for one axis or for
+    every axis; the value is a list of (axis or None, lo, hi), in the order given."""
     def convert(ctx, param, value):
         return parse_bands(value)
-    return click.option("--band", "band", metavar="[AXIS=]LO:HI[,...]", multiple=multiple,
+    return click.option("--band", "band", metavar=BANDS_METAVAR, multiple=multiple,
                         default=None, callback=convert, help=help_text)
 
 
@@ -321,7 +362,8 @@ __all__ = [
     "manifest_option", "map_option", "map_note", "jobs_option", "scheduler_option",
     "cluster_executor",
     "effect_option", "outside_loop_option", "fit_effect_option", "effect_items",
-    "BAND_HELP", "parse_band", "parse_bands", "band_option", "axis_bands_option",
+    "BAND_HELP", "parse_band", "parse_bands", "band_spec", "BANDS_METAVAR", "band_option",
+    "axis_bands_option",
     "bands_by_axis", "clean", "effects_file_option", "effect_files", "verbosity",
     "message", "emit_json", "progress", "iterate",
 ]

@@ -10,6 +10,7 @@ import click
 import numpy as np
 
 from armfit import figures
+from armfit.cli.grammar import FIGURE, file_output_option
 from armfit.cli.options import Number, Whole
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
@@ -24,11 +25,16 @@ from .options import (
     axis_bands_option,
     effects_file_option,
     message,
-    output_option,
     overwrite_option,
 )
 
 AXIS_CHOICE = click.Choice(list(AXES))
+
+#: ``-o`` of every figure: the format follows the extension.
+_figure_output = file_output_option("-o", "--output", "output", required=True,
+                                   formats=FIGURE, metavar="FIGURE",
+                                   help="The figure to write (atomically): .png (300 dpi), "
+                                        ".svg or .pdf.")
 
 
 # ---------------------------------------------------------------------------
@@ -65,16 +71,16 @@ def command() -> None:
     """
 
 
-@command.command("bode")
+@command.command("bode", short_help="Measured dynamics X/F with the fits (Fig. 5).")
 @effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
-@click.option("--model", "model_path", metavar="CSV",
+@click.option("--model", "model_path", metavar="FILE",
               help="Fitted parameters (fit-grip or fit-nominal output) to overlay.")
 @click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
 @click.option("--spread", type=click.Choice(["se", "quartiles"]), default="se",
               show_default=True, help="Shaded spread around each grip's mean.")
 @click.option("--no-trials", is_flag=True, help="Leave out the single-trial responses.")
-@output_option
+@_figure_output
 @overwrite_option
 def bode_command(spectra, model_path, axis, spread, no_trials, output, overwrite):
     """Measured dynamics X/F per axis with the model fits (the paper's Fig. 5)."""
@@ -88,19 +94,19 @@ def bode_command(spectra, model_path, axis, spread, no_trials, output, overwrite
     _save(fig, output, overwrite)
 
 
-@command.command("residual")
+@command.command("residual", short_help="Normalised residuals and failing bands.")
 @effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
-@click.option("--model", "model_path", required=True, metavar="CSV",
+@click.option("--model", "model_path", required=True, metavar="FILE",
               help="Fitted parameters: grip fits are compared with each grip's mean, "
                    "nominal fits with each axis's median.")
-@click.option("--model2", "model2_path", metavar="CSV",
+@click.option("--model2", "model2_path", metavar="FILE",
               help="A second parameters file (e.g. the model with an effect), dashed.")
 @click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
 @axis_bands_option("Band to shade, in Hz, for one axis (AXIS=LO:HI) or every axis "
                    "(LO:HI); repeatable. Default: where the first model's plotted "
                    "residual leaves the noise band |residual| <= 2 SE.", multiple=True)
-@output_option
+@_figure_output
 @overwrite_option
 def residual_command(spectra, model_path, model2_path, axis, band, output, overwrite):
     """Normalised residual (measurement - model)/SE with the noise and failing bands."""
@@ -123,16 +129,16 @@ def residual_command(spectra, model_path, model2_path, axis, band, output, overw
     _save(fig, output, overwrite)
 
 
-@command.command("uncertainty")
+@command.command("uncertainty", short_help="Derived arm dynamics, W_max and |Wu| (Fig. 6).")
 @effects_file_option
 @click.argument("spectra", metavar="SPECTRA")
-@click.option("--nominal", "nominal_path", required=True, metavar="CSV",
+@click.option("--nominal", "nominal_path", required=True, metavar="FILE",
               help="Nominal fit (fit-nominal output): its H_ARM is the reference.")
-@click.option("--weights", "weights_path", metavar="CSV",
+@click.option("--weights", "weights_path", metavar="FILE",
               help="Uncertainty weights Wu (fit-uncertainty output, or Table III layout: "
                    "axis,kind,index,real,imag; pairs in rad/s).")
 @click.option("--axis", type=AXIS_CHOICE, help="Only this axis (default: every axis).")
-@output_option
+@_figure_output
 @overwrite_option
 def uncertainty_command(spectra, nominal_path, weights_path, axis, output, overwrite):
     """Derived arm dynamics with the nominal H_ARM, W_max and |Wu| (the paper's Fig. 6)."""
@@ -147,15 +153,15 @@ def uncertainty_command(spectra, nominal_path, weights_path, axis, output, overw
     _save(fig, output, overwrite)
 
 
-@command.command("literature")
+@command.command("literature", short_help="H_ARM against Table IV's models (Fig. 7).")
 @effects_file_option
-@click.option("--model", "model_path", metavar="CSV",
+@click.option("--model", "model_path", metavar="FILE",
               help="Fitted parameters; default: the paper's Table I.")
 @click.option("--axis", type=AXIS_CHOICE, default="x", show_default=True,
               help="Axis of the row to draw.")
-@click.option("--grip", type=Number(), default=1.0, show_default=True,
-              help="Grip force (N) of the row to draw, when the file has grip fits.")
-@output_option
+@click.option("--grip", type=Number(), default=1.0, show_default=True, metavar="N",
+              help="Grip force, N, of the row to draw, when the file has grip fits.")
+@_figure_output
 @overwrite_option
 def literature_command(model_path, axis, grip, output, overwrite):
     """This study's H_ARM against the literature models of Table IV (the paper's Fig. 7)."""
@@ -183,16 +189,16 @@ def literature_command(model_path, axis, grip, output, overwrite):
     _save(fig, output, overwrite)
 
 
-@command.command("stability")
+@command.command("stability", short_help="K_max per subject and against servo rate.")
 @effects_file_option
 @click.argument("params", metavar="PARAMS")
 @click.option("--sample-time", "sample_time", type=Number(), default=1e-3, show_default=True,
-              metavar="S", help="Servo period T in seconds of the top row.")
+              metavar="S", help="Servo period T of the top row, s.")
 @click.option("--damping", type=Number(), default=0.0, show_default=True, metavar="B",
               help="Virtual damping B, N*s/m.")
 @click.option("--delay-samples", "delay", type=Whole(), default=1, show_default=True,
-              metavar="D", help="Computation delay d of the top row, samples.")
-@output_option
+              metavar="D", help="Computation delay d of the top row, whole samples.")
+@_figure_output
 @overwrite_option
 def plot_stability_command(params, sample_time, damping, delay, output, overwrite):
     """K_max per subject and grip, and against servo rate for d = 0, 1, 2.

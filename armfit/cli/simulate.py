@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from armfit.api import simulate
+from armfit.cli.grammar import JSON, file_output_option
 from armfit.cli.options import (
     Number,
     Whole,
@@ -67,19 +68,20 @@ def build_config(*, subjects: int, axes: str, grips: str, duration: str, fs: flo
 @click.command("simulate")
 @effects_file_option
 @click.option("-o", "--output", "output", required=True, type=click.Path(file_okay=False),
+              metavar="DIR",
               help="Study folder to write (one file per trial; written atomically).")
 @click.option("--subjects", type=Whole(1, 999), default=_DEFAULTS.subjects,
-              show_default=True, help="Number of subjects.")
-@click.option("--axes", default="xyz", show_default=True,
+              show_default=True, metavar="N", help="Number of subjects.")
+@click.option("--axes", default="xyz", show_default=True, metavar="AXES",
               help="Stimulated axes, e.g. xyz or z.")
 @click.option("--grips", default="1,2,3", show_default=True, metavar="N[,N..]",
               help="Target grip forces in N (rows of the paper's Table I).")
 @click.option("--duration", default="50,100", show_default=True, metavar="MIN,MAX",
               help="Trial lengths in s, drawn uniformly between MIN and MAX per trial.")
 @click.option("--fs", type=Number(min=0, min_open=True), default=_DEFAULTS.fs,
-              show_default=True, metavar="HZ", help="Sampling rate.")
-@click.option("--seed", type=Whole(min=0), default=_DEFAULTS.seed,
-              show_default=True, help="Random seed: the same seed gives identical files.")
+              show_default=True, metavar="HZ", help="Sampling rate, Hz.")
+@click.option("--seed", type=Whole(min=0), default=_DEFAULTS.seed, show_default=True,
+              metavar="N", help="Random seed: the same seed gives identical files.")
 @click.option("--noise", type=Number(min=0), default=_DEFAULTS.noise_m,
               show_default=True, metavar="M", help="Position sensor noise, m rms.")
 @click.option("--quantum", type=Number(min=0), default=_DEFAULTS.quantum_m,
@@ -98,8 +100,8 @@ def build_config(*, subjects: int, axes: str, grips: str, duration: str, fs: flo
 @effect_option
 @click.option("--effect-axes", "effect_axes", default=None, metavar="AXES",
               help="Axes the effects act on, e.g. z (default: all).")
-@click.option("--truth", type=click.Path(dir_okay=False), default=None, metavar="FILE",
-              help="Truth JSON file [default: <OUTPUT>.truth.json beside the study].")
+@file_output_option("--truth", "truth", formats=JSON,
+                    help="Truth JSON file [default: <OUTPUT>.truth.json beside the study].")
 @overwrite_option
 @json_option
 def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, drift,
@@ -109,7 +111,7 @@ def command(output, subjects, axes, grips, duration, fs, seed, noise, quantum, d
 
     Writes one raw trial file per subject x axis x grip into OUTPUT
     (sub-01_axis-x_grip-1N.parquet, ...) and a truth JSON beside it with every parameter
-    used. Effects: --effect NAME=VALUE[,..], e.g. --effect delay=0.012 or
+    used. Effects: --effect NAME=V1[,V2..], e.g. --effect delay=0.012 or
     --effect reflex=gain_N_per_m:100,delay_s:0.03 (see `armfit effects`).
     """
     config = build_config(subjects=subjects, axes=axes, grips=grips, duration=duration,

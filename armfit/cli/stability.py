@@ -14,6 +14,7 @@ import warnings
 import click
 
 from armfit.api import fit_trials as api_fit_trials
+from armfit.cli.grammar import CSV, file_output_option
 from armfit.cli.options import (
     Number,
     Whole,
@@ -28,7 +29,6 @@ from armfit.cli.options import (
     jobs_option,
     json_option,
     message,
-    output_option,
     outside_loop_option,
     overwrite_option,
     scheduler_option,
@@ -110,16 +110,17 @@ def certificate_sentences(table, summary) -> list[str]:
               metavar="B", help="Virtual damping B of the wall, N*s/m.")
 @click.option("--delay-samples", "delay", type=Whole(), default=DEFAULT_DELAY_SAMPLES,
               show_default=True, metavar="D", help="Computation delay d, whole samples.")
-@click.option("--weights", "weights_path", default=None, metavar="WU.csv",
+@click.option("--weights", "weights_path", default=None, metavar="FILE|paper",
               help="Also the robust certificate against these uncertainty weights "
                    "(fit-uncertainty output; 'paper': Table III).")
-@click.option("--members", "members_path", default=None, metavar="TRIALS.csv",
+@click.option("--members", "members_path", default=None, metavar="FILE",
               help="With --weights: the per-trial fits the weight covers (fit-trials "
                    "output); the certificate never exceeds the smallest K_max among them.")
 @outside_loop_option
 @effects_file_option
-@click.option("-o", "--output", "output", default=None, type=click.Path(dir_okay=False),
-              help="Write the per-model table as CSV (atomically).")
+@file_output_option("-o", "--output", "output", formats=CSV,
+                    help="Write the per-model table as CSV (atomically) instead of "
+                         "printing it.")
 @json_option
 @overwrite_option
 def stability_command(params, sample_time, damping, delay, weights_path, members_path,
@@ -193,13 +194,15 @@ def stability_command(params, sample_time, damping, delay, weights_path, members
 
 @click.command("fit-trials")
 @click.argument("spectra", type=click.Path(dir_okay=False))
-@output_option
+@file_output_option("-o", "--output", "output", required=True, formats=CSV,
+                    help="The per-trial params CSV to write (atomically).")
 @click.option("--cost", type=click.Choice(["complex", "paper"]), default="complex",
               show_default=True,
               help="complex: log-magnitude and phase errors over their standard errors; "
                    "paper: dB magnitude error only (eq. 5).")
-@axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI) "
-                   "[default: x=0.1:30,y=0.1:30,z=0.1:10]; axes not named keep it.")
+@axis_bands_option("Fit band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI); "
+                   "repeatable, later items win [default: x=0.1:30,y=0.1:30,z=0.1:10, as "
+                   "the paper]; axes not named keep the default.")
 @fit_effect_option
 @effects_file_option
 @click.option("--method", default=None, metavar="NAME",

@@ -3,13 +3,13 @@ JSON documents of the comparison and of the diagnosis."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from armfit import noise
-from armfit.constants import AXES, PARAM_NAMES
+from armfit.constants import AXES, PARAM_NAMES, axis_band
 from armfit.diagnosis.bands import (
     BandError,
     FailingBand,
@@ -95,8 +95,9 @@ def _fit_effects_aggregate(base_model, theta, effects, f, h, se_db, se_deg, band
     return model, best.params
 
 
-def compare_models(spectra, params, *, level: str = "mean", band: tuple[float, float] | None = None,
-            effects: Sequence[Effect] = ()) -> list[Comparison]:
+def compare_models(spectra, params, *, level: str = "mean",
+                   band: tuple[float, float] | Mapping[str, tuple[float, float]] | None = None,
+                   effects: Sequence[Effect] = ()) -> list[Comparison]:
     """Compare the model(s) of ``params`` (a params DataFrame) with ``spectra``.
 
     level "mean": each axis × grip mean (the grip's row of grip fits, or the axis row of
@@ -105,9 +106,11 @@ def compare_models(spectra, params, *, level: str = "mean", band: tuple[float, f
     between-subject differences do not count as model error (significance by a t test
     across trials). ``effects``: add these effects and refit (nested, warm-started; shared
     across trials at level "trial"); both the base and the extended model are reported.
-    ``band`` defaults to the whole grid; at levels "mean" and "median" the overall row of
-    a params row's model is then taken over the band it was fitted on (:func:`fit_band`),
-    so its ``rms_norm`` is the params file's (the same noise model on the same bins).
+    ``band`` (Hz): one (lo, hi) for every axis or {axis: (lo, hi)}; it defaults to the
+    whole grid (for an axis a mapping does not name, too); at levels "mean" and
+    "median" the overall row of a params row's model is then taken over the band it was
+    fitted on (:func:`fit_band`), so its ``rms_norm`` is the params file's (the same
+    noise model on the same bins).
     """
     if level not in ("mean", "median", "trial"):
         raise UsageError(f"{{opt}} must be mean, median or trial, got {level!r}",
@@ -125,7 +128,7 @@ def compare_models(spectra, params, *, level: str = "mean", band: tuple[float, f
             data = axis_data(spectra, params, axis)
             if data is None:
                 continue
-            b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
+            b = axis_band(band, axis) or (float(data.f_hz[0]), float(data.f_hz[-1]))
             sel = (data.f_hz >= b[0]) & (data.f_hz <= b[1])
             f = data.f_hz[sel]
             start = start_array(data)
@@ -166,13 +169,13 @@ def compare_models(spectra, params, *, level: str = "mean", band: tuple[float, f
             f, h, se_db, se_deg = rows.row(0)
             prow = param_row(params, axis, grip)
             model, theta = model_from_params(prow)
-            b = band or (float(f[0]), float(f[-1]))
+            b = axis_band(band, axis) or (float(f[0]), float(f[-1]))
             nse = noise.standard_errors(se_db, se_deg)
             with np.errstate(all="ignore"):
                 r_db, r_deg = residuals(h, model.response(f, theta))
             n = int(rows.key("n")[0])
             out.append(_summary(axis, grip, level, model_label(model), f, r_db, r_deg, *nse,
-                                b, {}, n, None if band else fit_band(prow, f)))
+                                b, {}, n, None if axis_band(band, axis) else fit_band(prow, f)))
             if effects:
                 model_e, th_e = _fit_effects_aggregate(model, theta, effects, f, h, se_db,
                                                        se_deg, b)

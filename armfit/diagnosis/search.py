@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import special
 
-from armfit.constants import AXES
+from armfit.constants import AXES, axis_band
 from armfit.diagnosis.bands import BandError, band_error
 from armfit.diagnosis.evidence import (
     Adequacy,
@@ -330,7 +330,8 @@ def _extend_task(args):
         release_memory()
 
 
-def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
+def diagnose_axes(spectra, params, *,
+                  band: tuple[float, float] | Mapping[str, tuple[float, float]] | None = None,
                   axes: Sequence[str] = AXES,
                   effects: Sequence[Effect] | None = None, jobs: int = 1,
                   max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
@@ -360,8 +361,9 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
     step with the message as reason (:attr:`AxisDiagnosis.failed_candidates`); the
     search goes on with the other candidates.
 
-    ``band`` defaults to the whole grid of the spectra; ``jobs`` > 1 runs the fits (one
-    task per axis and candidate) in parallel processes, or ``executor`` (any
+    ``band`` (Hz), one (lo, hi) for every axis or {axis: (lo, hi)}, defaults to the
+    whole grid of the spectra (for an axis a mapping does not name, too); ``jobs`` > 1
+    runs the fits (one task per axis and candidate) in parallel processes, or ``executor`` (any
     :class:`concurrent.futures.Executor`, e.g. a dask client's) runs them — the results
     do not depend on ``jobs`` or the executor. Each axis goes on to its next step as soon
     as its own fits are done (:mod:`armfit.diagnosis.schedule`).
@@ -376,7 +378,7 @@ def diagnose_axes(spectra, params, *, band: tuple[float, float] | None = None,
         rows = trial_rows(axis)
         data = axis_data(rows, params, axis)
         if data is not None:
-            b = band or (float(data.f_hz[0]), float(data.f_hz[-1]))
+            b = axis_band(band, axis) or (float(data.f_hz[0]), float(data.f_hz[-1]))
             coupling[axis] = cross_coupling(rows, data, b)
             searches.append(_Search(data, b, effects, max_steps, min_effect_db,
                                     min_effect_deg))
