@@ -191,6 +191,7 @@ FAILING = {
                          EXIT_NOINPUT),
     "plot literature": (["--model", "nope.csv", "-o", "f.png"], EXIT_NOINPUT),
     "plot stability": (["nope.csv", "-o", "f.png"], EXIT_NOINPUT),
+    "export": (["nope.csv", "-o", "m.mat"], EXIT_NOINPUT),
 }
 
 

@@ -395,10 +395,10 @@ def test_json_holds_the_same_variables(study, tmp_path):
     f = study["files"]
     args = [f["grip"], "--spectra", f["spectra"]]
     assert _invoke("export", *args, "-o", tmp_path / "g.mat").exit_code == 0
-    res = _invoke("export", *args, "--format", "json", "-o", tmp_path / "g.txt")
+    res = _invoke("export", *args, "--format", "json", "-o", tmp_path / "g.json")
     assert res.exit_code == 0, res.output
     S = loadmat(tmp_path / "g.mat")
-    J = json.loads((tmp_path / "g.txt").read_text())
+    J = json.loads((tmp_path / "g.json").read_text())
     assert list(J) == [k for k in S if not k.startswith("__")]
     assert list(J)[:5] == ["Gx_grip1N_num", "Gx_grip1N_den", "Gx_grip1N_delay_s",
                            "Hx_grip1N_num", "Hx_grip1N_den"]
@@ -432,11 +432,16 @@ def test_export_refusals(study, tmp_path):
     assert res.exit_code == 73 and "--overwrite" in res.stderr
     assert _invoke("export", f["nominal"], "-o", out, "--overwrite").exit_code == 0
     res = _invoke("export", f["nominal"], "-o", tmp_path / "m.txt")     # which format?
-    assert res.exit_code == 2 and "--format mat|json" in res.stderr
+    assert res.exit_code == 2 and "export writes .mat or .json; not .txt" in res.stderr
+    res = _invoke("export", f["nominal"], "--format", "json", "-o", tmp_path / "m2.mat")
+    assert res.exit_code == 2 and "the format follows the extension" in res.stderr
     res = _invoke("export", tmp_path / "none.csv", "-o", tmp_path / "n.mat")
     assert res.exit_code == 66
-    res = _invoke("export", f["nominal"], "-o", f["nominal"], "--format", "json",
-                  "--overwrite")                                         # the input
+    res = _invoke("export", f["nominal"], "-o", tmp_path / "n.json", "--overwrite")
+    assert res.exit_code == 0                                            # a new file
+    as_input = tmp_path / "params.json"
+    as_input.write_bytes(Path(f["nominal"]).read_bytes())
+    res = _invoke("export", as_input, "-o", as_input, "--overwrite")    # the input
     assert res.exit_code == 73
     bad = tmp_path / "bad.csv"
     pd.DataFrame([{**HAND_ROWS[0], "Ma": -1.0}]).to_csv(bad, index=False)

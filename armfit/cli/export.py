@@ -12,10 +12,10 @@ from pathlib import Path
 
 import click
 
+from armfit.cli.grammar import file_output_option
 from armfit.cli.options import (
     effects_file_option,
     message,
-    output_option,
     overwrite_option,
 )
 from armfit.errors import UsageError
@@ -27,14 +27,13 @@ from armfit.uncertainty import read_weights_and_bands
 
 
 def _format(fmt: str | None, output: str) -> str:
-    """--format, else the output's suffix (.mat, .json)."""
-    if fmt is not None:
-        return fmt
-    suffix = Path(output).suffix.lower().lstrip(".")
-    if suffix in EXPORT_FORMATS:
-        return suffix
-    raise UsageError(f"--format mat|json: give it, or an output named .mat or .json "
-                     f"(got {output!r})")
+    """The format the output's extension names (.mat, .json); a ``--format`` that names
+    another is a usage error (exit 2)."""
+    by_ext = Path(output).suffix.lower().lstrip(".")
+    if fmt is not None and fmt != by_ext:
+        raise UsageError(f"--format {fmt} but -o {output} names a .{by_ext} file; the "
+                         f"format follows the extension (give -o FILE.{fmt})")
+    return by_ext
 
 
 def _read_spectra(path: str, nominal: bool) -> Spectra:
@@ -56,8 +55,11 @@ def _read_spectra(path: str, nominal: bool) -> Spectra:
                    "fits) or means (grip fits), and the derived trials Wu covers.")
 @click.option("--format", "fmt", type=click.Choice(list(EXPORT_FORMATS)), default=None,
               help="mat: MATLAB/Octave (format 5, scipy.io.savemat); json: the same "
-                   "variables as JSON [default: from the output's suffix].")
-@output_option
+                   "variables as JSON. Optional: the output's extension decides, and a "
+                   "--format that names another is refused.")
+@file_output_option("-o", "--output", "output", required=True,
+                    formats={".mat": "MATLAB/Octave (format 5)", ".json": "JSON"},
+                    help="The file to write (atomically); its format follows the extension.")
 @overwrite_option
 def command(params: str, weights: str | None, spectra_path: str | None, fmt: str | None,
             output: str, overwrite: bool) -> None:
