@@ -82,12 +82,18 @@ def _table(rows: list[str]) -> str:
             + "</tbody></table>")
 
 
-def _data_uri(folder: Path, src: str) -> str:
-    """The image ``folder / src`` as a data URI (PNG, SVG or PDF by its extension)."""
-    path = folder / src
-    kind = {".png": "image/png", ".svg": "image/svg+xml"}.get(path.suffix.lower(),
+def _image(folder: Path, src: str) -> tuple[str, int | None]:
+    """The image ``folder / src`` as a data URI (PNG or SVG by its extension), and the
+    width to show it at, CSS px: half a PNG's pixels (figures are drawn at 300 dpi, so a
+    one-column figure is not blown up to the page's width), None for another kind."""
+    data = (folder / src).read_bytes()
+    suffix = Path(src).suffix.lower()
+    kind = {".png": "image/png", ".svg": "image/svg+xml"}.get(suffix,
                                                               "application/octet-stream")
-    return f"data:{kind};base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+    # a PNG's width: the first field of its IHDR chunk, bytes 16-20 (PNG specification)
+    width = (max(1, int.from_bytes(data[16:20], "big") // 2)
+             if suffix == ".png" and data[12:16] == b"IHDR" else None)
+    return f"data:{kind};base64," + base64.b64encode(data).decode("ascii"), width
 
 
 def _blocks(lines: list[str]) -> Iterator[tuple[str, list[str]]]:
@@ -125,7 +131,7 @@ def _blocks(lines: list[str]) -> Iterator[tuple[str, list[str]]]:
         i = j
 
 
-def _render(kind: str, block: list[str], image: Callable[[str], str],
+def _render(kind: str, block: list[str], image: Callable[[str], tuple[str, int | None]],
             seen: dict[str, int]) -> str:
     """The HTML of one block."""
     if kind == "heading":
@@ -142,7 +148,9 @@ def _render(kind: str, block: list[str], image: Callable[[str], str],
     if kind == "image":
         m = _IMAGE.match(block[0])
         alt = html.escape(m["alt"], quote=True)
-        return (f'<figure><img src="{image(m["src"])}" alt="{alt}">'
+        uri, width = image(m["src"])
+        size = "" if width is None else f' width="{width}"'
+        return (f'<figure><img src="{uri}"{size} alt="{alt}">'
                 f"<figcaption>{_inline(m['alt'])}</figcaption></figure>")
     return "<p>" + " ".join(_inline(ln) for ln in block) + "</p>"
 
@@ -168,7 +176,7 @@ def report_html(markdown: str, folder: str | Path, *, title: str = "armfit repor
     """
     folder = Path(folder)
     seen: dict[str, int] = {}
-    body = [_render(kind, block, lambda src: _data_uri(folder, src), seen)
+    body = [_render(kind, block, lambda src: _image(folder, src), seen)
             for kind, block in _blocks(markdown.splitlines())]
     toc = [(m[1], m[2]) for m in (re.match(r'<h2 id="([^"]+)">(.*)</h2>', b) for b in body)
            if m]

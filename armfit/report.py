@@ -694,6 +694,6 @@ def _figures_section(figures: Sequence[str], adoption: Adoption) -> list[str]:
             eff = " + ".join(adoption[axis].effects)
             cap = (f"Normalised residual of the nominal model, axis {axis.upper()}"
                    + (f", adopted model with `{eff}` dashed" if eff else "")
-                   + "; failing bands of the diagnosis shaded")
+                   + "; shaded where the solid curve leaves the noise band (±2 SE)")
         L += [f"### {cap}", "", f"![{cap}]({f})", ""]
     return L

@@ -66,6 +66,8 @@ def test_images_are_embedded_byte_for_byte_and_nothing_is_loaded_from_elsewhere(
     head, data = imgs[0]["src"].split(",", 1)
     assert head == "data:image/png;base64" and base64.b64decode(data) == PNG_1X1
     assert imgs[0]["alt"] == "Fig. 5 <bode>"             # the caption, unescaped by the parser
+    # shown at half its pixels (300 dpi figures), never 0: the 1-pixel image at 1 px
+    assert imgs[0]["width"] == "1"
     # no script, no stylesheet or font fetched, links only within the page
     assert not any(t in ("script", "link", "iframe") for t, _ in parsed.tags)
     assert all(a["href"].startswith("#") for t, a in parsed.tags if t == "a")
