@@ -571,16 +571,9 @@ def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
                                config.estimate, manifest=o.manifest, skip_bad=o.skip_bad,
                                jobs=o.jobs, executor=workers.executor,
                                column_map=o.column_map)
-    opened = []
-    try:
-        ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
-                     skip_bad=o.skip_bad, warn=config.warn, on_open=opened.append,
-                     column_map=o.column_map, force_limit_N=o.force_limit_N,
-                     f_min_hz=o.fmin, note=config.note)
-    except ArmfitError as exc:  # e.g. every trial bad: the error carries the skipped ones
-        if opened and not exc.skipped:
-            exc.skipped = tuple((s.file, s.reason) for s in opened[0].skipped)
-        raise
+    ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
+                 skip_bad=o.skip_bad, warn=config.warn, column_map=o.column_map,
+                 force_limit_N=o.force_limit_N, f_min_hz=o.fmin, note=config.note)
     skipped = tuple((s.file, s.reason) for s in ing.skipped)
     return Ingested(len(ing.trials), skipped, estimating, files=("trials.parquet",),
                     summary=f"{len(ing.trials)} trial(s)"

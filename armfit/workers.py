@@ -209,11 +209,9 @@ def tune_allocator() -> bool:
         True when the settings were applied (a glibc system), False otherwise.
     """
     import ctypes
-    import ctypes.util
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or None)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):     # not glibc (musl, macOS, Windows)
+    try:   # the process's own symbols, the C library's among them (no ldconfig search)
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError, TypeError):   # not glibc (musl, macOS, Windows)
         return False
     m_trim_threshold, m_mmap_threshold = -1, -3          # glibc's <malloc.h>
     return bool(mallopt(m_mmap_threshold, MMAP_THRESHOLD_BYTES)) and \

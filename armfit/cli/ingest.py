@@ -21,7 +21,6 @@ from armfit.cli.options import (
     verbosity,
 )
 from armfit.constants import FORCE_LIMIT_N, GRID_HZ
-from armfit.errors import ArmfitError
 from armfit.io.trials import TrialStream, ingest
 
 
@@ -64,23 +63,16 @@ def command(paths, output, manifest, column_map, skip_bad, resample, fmin, force
         bar = {}
 
         def on_open(stream: TrialStream) -> None:
-            bar["stream"] = stream
             if verbosity() > 0:
                 for p in stream.ignored:
                     message(f"ignored (not a trial name): {p}")
             bar["advance"] = stack.enter_context(progress(len(stream), "ingest"))
 
-        try:
-            result = ingest(paths, output, manifest=manifest, skip_bad=skip_bad,
-                            resample=resample, f_min_hz=fmin, force_limit_N=force_limit,
-                            overwrite=overwrite,
-                            warn=lambda text: message(f"warning: {text}"),
-                            advance=lambda: bar["advance"](), on_open=on_open,
-                            column_map=column_map, note=map_note)
-        except ArmfitError as exc:  # the trials left out so far are listed with it
-            if "stream" in bar and not exc.skipped:
-                exc.skipped = tuple((s.file, s.reason) for s in bar["stream"].skipped)
-            raise
+        result = ingest(paths, output, manifest=manifest, skip_bad=skip_bad,
+                        resample=resample, f_min_hz=fmin, force_limit_N=force_limit,
+                        overwrite=overwrite, warn=lambda text: message(f"warning: {text}"),
+                        advance=lambda: bar["advance"](), on_open=on_open,
+                        column_map=column_map, note=map_note)
     for s in result.skipped:
         message(f"skipped {s.file}: {s.reason}")
     message(f"ingested {len(result.trials)} trial(s) into {result.output}"

@@ -75,9 +75,6 @@ class Whole(click.IntRange):
         return _range_text(self.min, self.max, self.min_open, self.max_open)
 
 
-output_option = click.option(
-    "-o", "--output", "output", required=True, type=click.Path(dir_okay=True),
-    help="Output path (written atomically).")
 overwrite_option = click.option(
     "--overwrite", is_flag=True, help="Replace an existing output.")
 json_option = click.option(
@@ -358,7 +355,7 @@ def iterate(items: Iterable[_T], total: int, description: str) -> Iterator[_T]:
 
 __all__ = [
     "Number", "Whole",
-    "output_option", "overwrite_option", "json_option", "skip_bad_option",
+    "overwrite_option", "json_option", "skip_bad_option",
     "manifest_option", "map_option", "map_note", "jobs_option", "scheduler_option",
     "cluster_executor",
     "effect_option", "outside_loop_option", "fit_effect_option", "effect_items",

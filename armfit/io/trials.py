@@ -671,7 +671,10 @@ def _read_table(path: Path, names: list[str]) -> dict[str, np.ndarray]:
     except (pa.ArrowException, OSError, EOFError) as exc:
         raise BadInputError(f"unreadable or truncated file: {_first_line(exc)}",
                             file=file) from None
-    return {name: table.column(name).to_numpy() for name in names}
+    # parse_numbers reads numeric columns from their buffers: Arrow's to_numpy would
+    # import pandas for a chunked column
+    return {name: parse_numbers(table.column(name), file=file, column=name)
+            for name in names}
 
 
 _MISSING_HINT = {"grip_N": " (a grip sample that is missing is a blank cell or NaN)"}
@@ -1580,6 +1583,21 @@ class IngestResult:
     ignored: tuple[str, ...]
 
 
+def _write_streamed(stream: TrialStream, trials: Iterator[Trial], out: Path,
+                    overwrite: bool) -> list:
+    """:func:`write_dataset` of ``trials`` (read from ``stream``); "every trial was bad"
+    when the stream skipped every one."""
+    try:
+        return write_dataset(trials, out, overwrite=overwrite)
+    except NoInputError:
+        if not stream.skipped:
+            raise
+        first = stream.skipped[0]
+        raise BadInputError(f"every trial was bad ({len(stream.skipped)} skipped, the first "
+                            f"{first.file}: {first.reason}); nothing written",
+                            file=str(out)) from None
+
+
 def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
            manifest: str | os.PathLike | None = None, skip_bad: bool = False,
            resample: bool = False, f_min_hz: float = GRID_HZ[0],
@@ -1617,14 +1635,11 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
                 advance()
 
     try:
-        metas = write_dataset(counted(), out, overwrite=overwrite)
-    except NoInputError:
-        if not stream.skipped:
-            raise
-        first = stream.skipped[0]
-        raise BadInputError(f"every trial was bad ({len(stream.skipped)} skipped, the first "
-                            f"{first.file}: {first.reason}); nothing written",
-                            file=str(out)) from None
+        metas = _write_streamed(stream, counted(), out, overwrite)
+    except ArmfitError as exc:  # the trials left out so far are listed with it
+        if not exc.skipped:
+            exc.skipped = tuple((s.file, s.reason) for s in stream.skipped)
+        raise
     return IngestResult(str(out), tuple(metas), tuple(stream.skipped),
                         tuple(str(p) for p in stream.ignored))
 
