@@ -1397,7 +1397,8 @@ def uncertainty_axes(mag, ph, unc, spectra, nominal, weights=None, *, axis: str
     if model.apparatus_effects:    # the arm alone, as W_max sees it (arm_trials)
         curves = [_arm_curve(c, pairs[0][1], spectra, axis) for c in curves]
     fd = _log_grid(f)
-    ref = _PhaseRef(fd, _phase_deg(model.arm_response(fd, theta)))
+    h_nom = model.arm_response(fd, theta)
+    ref = _PhaseRef(fd, _phase_deg(h_nom))
     handles: dict[str, Any] = {}
     raster = _points(rows) > RASTER_POINTS
     for a, is_phase in ((mag, False), (ph, True)):
@@ -1406,7 +1407,7 @@ def uncertainty_axes(mag, ph, unc, spectra, nominal, weights=None, *, axis: str
         ys = [_aligned_phase(c, ref)[0] if is_phase else c.mag_db for c in curves]
         _trial_lines(a, [c.freq_hz for c in curves], ys, color="#0072B2", alpha=0.4,
                      gid=f"trial:{axis}", rasterized=raster)
-        a.plot(fd, ref.phase_deg if is_phase else _db(model.arm_response(fd, theta)),
+        a.plot(fd, ref.phase_deg if is_phase else _db(h_nom),
                color="black", ls="-.", lw=1.3, gid=f"nominal:{axis}", zorder=MODEL_ZORDER)
         handles["trials"] = Line2D([], [], lw=0.4, color="#0072B2",
                                    label="derived arm dynamics (trials)")
@@ -1686,6 +1687,15 @@ def stability_axes(top, bot, params, settings=None, *, axis: str,
         The legend entries drawn.
     """
     rows, table, st = _stability_inputs(params, settings)
+    return _stability_column(top, bot, rows, table, st, axis=axis, rates_hz=rates_hz,
+                             delays=delays, scale=True)
+
+
+def _stability_column(top, bot, rows, table, st, *, axis: str, rates_hz, delays,
+                      scale: bool) -> dict[tuple, Any]:
+    """One axis of the stability figure from its inputs already computed
+    (:func:`_stability_inputs`); ``scale``: set the sweep's K_max scale from this panel
+    alone (the whole figure sets one scale for its row instead)."""
     sel = (table["axis"] == axis).to_numpy()
     if not sel.any():
         raise BadInputError(f"no model row for axis {axis}", column="axis")
@@ -1697,7 +1707,8 @@ def stability_axes(top, bot, params, settings=None, *, axis: str,
         top.set_ylabel("K_max (kN/m)")
     if bot is not None:
         handles.update(_sweep_panel(bot, rows[sel], axis, st, rates_hz, delays))
-        _sweep_scale(bot, _sweep_log(bot))
+        if scale:
+            _sweep_scale(bot, _sweep_log(bot))
     return handles
 
 
@@ -1729,8 +1740,8 @@ def stability_figure(params, settings=None, *,
     wall = (f"T = {st.sample_time_s * 1e3:g} ms, d = {st.delay_samples}, "
             f"B = {st.damping_Ns_per_m:g} N·s/m")
     for j, axis in enumerate(axes):
-        handles.update(stability_axes(axs[0, j], axs[1, j], rows, st, axis=axis,
-                                      rates_hz=rates_hz, delays=delays))
+        handles.update(_stability_column(axs[0, j], axs[1, j], rows, table, st, axis=axis,
+                                         rates_hz=rates_hz, delays=delays, scale=False))
         axs[0, j].set_title(f"{AXIS_TITLES[axis]}\nwall at {wall}")
         axs[1, j].set_title(f"against servo rate, B = {st.damping_Ns_per_m:g} N·s/m")
     # one K_max scale for the whole bottom row: log if any axis's sweep needs it

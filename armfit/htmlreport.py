@@ -66,8 +66,14 @@ def _slug(text: str, seen: dict[str, int]) -> str:
     return base if n == 0 else f"{base}-{n}"
 
 
+_CELL_SPLIT = re.compile(r"(?<!\\)\|")
+
+
 def _cells(line: str) -> list[str]:
-    return [c.strip() for c in line.strip().strip("|").split("|")]
+    """The cells of a pipe-table row; a ``\\|`` (how :func:`armfit.report.md_table`
+    writes a ``|`` in a cell) is a character of its cell."""
+    inner = line.strip()[1:-1]
+    return [c.strip().replace("\\|", "|") for c in _CELL_SPLIT.split(inner)]
 
 
 def _table(rows: list[str]) -> str:

@@ -868,13 +868,13 @@ def _drawing(workers: _Workers, paper: Drawn, residuals: Drawn,
     return Drawn(summary=f"{n} figure(s) drawn")
 
 
-def _report(config: RunConfig, workers: _Workers, written: Sequence[str],
+def _report(config: RunConfig, written: Sequence[str],
             estimated: Estimated, diagnosed: Diagnosed, models: Models,
             uncertainty: api.Uncertainty, stability: StabilityChecked, compared: Compared,
             drawn: Sequence[str]) -> Reported:
-    """Wait for any figure still drawn, then write report.md from the results above and
-    the configuration they used (``written``: the files of the stages before)."""
-    workers.drawings.wait()
+    """Write report.md and report.html from the results above and the configuration they
+    used (``written``: the files of the stages before; every figure is written by then:
+    the drawing stage waited for them)."""
     wall = stability.wall
     figures = (*drawn, *((wall.figure,) if wall.figure else ()))
     record = RunRecord(
@@ -973,7 +973,7 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
                                                     diagnosed)) if figures else Drawn())
     if figures:
         clock.done("drawing", _drawing(workers, paper, residuals, stability))
-    clock.done("report", _report(config, workers, tuple(clock.files), estimated, diagnosed,
+    clock.done("report", _report(config, tuple(clock.files), estimated, diagnosed,
                                  models, unc.uncertainty, stability, compared,
                                  (*paper.figures, *residuals.figures)))
     return RunResult(outdir=str(config.folder), files=tuple(sorted(clock.files)),

@@ -27,7 +27,7 @@ from armfit.diagnosis import BANDS, AxisDiagnosis, Candidate, Step
 from armfit.io.schema import finite_or_none
 from armfit.loop import WallSettings, certificate_status
 from armfit.spectra import EstimateConfig
-from armfit.tables import param_names, sig4, unit_of
+from armfit.tables import cell_names, param_names, sig4, unit_of
 
 __all__ = ["FIGURE_CAPTIONS", "STABILITY_FIGURE", "RunRecord", "RunSettings", "Wall",
            "adoption_markdown", "md_table", "params_markdown", "report_markdown",
@@ -216,13 +216,6 @@ _MARK_NOTES = {"†": "† at a physical bound of the fit (within 1 % of its ran
                     "effect of the apparatus, shared by the trials), not fitted here."}
 
 
-def _names_in(cell) -> set[str]:
-    """The parameter names of an ``at_bound`` or ``held`` cell (";"-separated)."""
-    if cell is None or (isinstance(cell, float) and not math.isfinite(cell)):
-        return set()
-    return {n for n in str(cell).split(";") if n and n != "nan"}
-
-
 def _params_rows(df: pd.DataFrame) -> tuple[list[str], list[list[str]], set[str]]:
     """Header, rows and the marks used (``†`` a value at a physical bound, ``‡`` a value
     held at the diagnosis's) of a parameter table (Table I or II)."""
@@ -233,8 +226,8 @@ def _params_rows(df: pd.DataFrame) -> tuple[list[str], list[list[str]], set[str]
         ["rms dB", "rms deg", "rms × noise"]
     rows, marks = [], set()
     for _, r in df.iterrows():
-        stuck = _names_in(r.get("at_bound"))
-        held = _names_in(r.get("held"))
+        stuck = cell_names(r.get("at_bound"))
+        held = cell_names(r.get("held"))
         cells = []
         for n in names:
             mark = ("†" if n in stuck else "") + ("‡" if n in held else "")

@@ -43,8 +43,18 @@ def param_names(df: pd.DataFrame) -> list[str]:
     return names
 
 
-def _held(value) -> list[str]:
-    """The parameter names of a ``held`` cell (";"-separated; NaN or "" → none)."""
+def cell_names(value) -> list[str]:
+    """The parameter names of an ``at_bound`` or ``held`` cell of a params table
+    (";"-separated; NaN, None or "" → none).
+
+    Parameters
+    ----------
+    value : str or float or None
+
+    Returns
+    -------
+    list of str
+    """
     return [n for n in value.split(";") if n] if isinstance(value, str) else []
 
 
@@ -71,11 +81,6 @@ def paper_layout(df: pd.DataFrame, *, ci: bool = False) -> pd.DataFrame:
             out[f"{col}_lo"] = df[f"{n}_lo"].astype(float)
             out[f"{col}_hi"] = df[f"{n}_hi"].astype(float)
     return out.reset_index(drop=True)
-
-
-def _stuck(value) -> list[str]:
-    """The parameter names of an ``at_bound`` cell (";"-separated; NaN or "" → none)."""
-    return [n for n in value.split(";") if n] if isinstance(value, str) else []
 
 
 def csv_text(df: pd.DataFrame, *, ci: bool = False) -> str:
@@ -133,8 +138,8 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
     prev_axis = None
     any_stuck = any_held = False
     for _, row in df.iterrows():
-        stuck = _stuck(row["at_bound"]) if "at_bound" in df.columns else []
-        held = _held(row["held"]) if "held" in df.columns else []
+        stuck = cell_names(row["at_bound"]) if "at_bound" in df.columns else []
+        held = cell_names(row["held"]) if "held" in df.columns else []
         axis = str(row["axis"]).upper()
         if prev_axis is not None and axis != prev_axis:
             lines.append(r"\midrule")
@@ -209,6 +214,6 @@ def wu_latex(weights, *, caption: str | None = None, label: str = "tab:uncertain
 
 
 __all__ = [
-    "PAPER_COLUMNS", "param_names", "unit_of", "paper_layout", "csv_text", "sig4",
+    "PAPER_COLUMNS", "cell_names", "param_names", "unit_of", "paper_layout", "csv_text", "sig4",
     "latex_table", "caption_for", "wu_latex",
 ]
