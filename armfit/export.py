@@ -19,8 +19,8 @@ transfer function with an input–output delay cannot hold a delayed feedback.
 
 :func:`export_variables` gathers the coefficients of every row of a params file, the
 uncertainty weights Wu (eq. 7) as zeros, poles and gain, and the measured responses, as
-named numpy arrays that :func:`write_mat` (MATLAB's format 5, ``scipy.io.savemat``) and
-:func:`write_json` write; ``armfit export`` is the command. None of this needs
+named numpy arrays that :func:`write_export` writes (:func:`mat_bytes`: MATLAB's format
+5, ``scipy.io.savemat``; :func:`json_text`); ``armfit export`` is the command. None of this needs
 python-control; :meth:`armfit.api.ModelFit.to_control` builds its objects from the same
 coefficients.
 
@@ -48,7 +48,7 @@ from armfit._version import __version__
 from armfit.constants import AXES, PARAM_NAMES
 from armfit.errors import UsageError
 from armfit.io.atomic import atomic_path
-from armfit.loop import pade_delay
+from armfit.loop import INTERNAL_DELAY_PADE_ORDER, pade_delay, rational_sum
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import EFFECTS, Effect
 from armfit.models.params import model_from_params
@@ -57,7 +57,7 @@ from armfit.uncertainty import WuWeight, arm_trials, derived_mass_kg, derived_tr
 
 #: Default order n of the [n/n] Padé approximant that stands for a latency in a
 #: python-control transfer function (and for a delay inside an impedance everywhere).
-PADE_ORDER = 6
+PADE_ORDER = INTERNAL_DELAY_PADE_ORDER
 
 #: What a model's transfer function describes: the measured closed loop X/F of eq. 4
 #: (device and arm, what the spectra measure) or the arm's own H_ARM (eq. 3).
@@ -87,13 +87,6 @@ class RationalModel:
         """num(jω)/den(jω) · e^(−jω·delay_s) at ``omega_rad_s`` (rad/s), m/N."""
         s = 1j * np.asarray(omega_rad_s, dtype=float)
         return np.polyval(self.num, s) / np.polyval(self.den, s) * np.exp(-s * self.delay_s)
-
-
-def _add(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
-         ) -> tuple[np.ndarray, np.ndarray]:
-    """a + b of two rational functions (num, den)."""
-    return (np.polyadd(np.polymul(a[0], b[1]), np.polymul(b[0], a[1])),
-            np.polymul(a[1], b[1]))
 
 
 def _term(e: Effect, values: Mapping[str, float], mp: float, what: str, hint: str
@@ -152,7 +145,7 @@ def rational_model(model: ClosedLoopModel, theta, *, kind: str = "closed_loop",
     Ma, k1, k2, b1, b2 = (values[n] for n in PARAM_NAMES)
     z = (np.polymul([b1, k1], [Ma, b2, k2]), np.array([Ma, b1 + b2, k1 + k2]))   # Z_ARM
     if kind == "closed_loop":
-        z = _add(z, (np.array([model.mp, 0.0, 0.0]), np.array([1.0])))          # + Mp s²
+        z = rational_sum(z, (np.array([model.mp, 0.0, 0.0]), np.array([1.0])))          # + Mp s²
     out = (np.array([1.0]), np.array([1.0]))
     delay, inner = 0.0, []
     for e in model.effects:
@@ -168,7 +161,7 @@ def rational_model(model: ClosedLoopModel, theta, *, kind: str = "closed_loop",
             pn, pd = pade_delay(tau, int(pade_order))
             num, den = np.polymul(num, pn), np.polymul(den, pd)
             inner.append(float(tau))
-        z = _add(z, (num, den))
+        z = rational_sum(z, (num, den))
     num = np.trim_zeros(np.polymul(out[0], z[1]), "f")
     den = np.trim_zeros(np.polymul(out[1], z[0]), "f")
     return RationalModel(num / den[0], den / den[0], float(delay), tuple(inner),
@@ -197,7 +190,7 @@ def device_impedance(model: ClosedLoopModel, theta, *, pade_order: int = PADE_OR
             pn, pd = pade_delay(tau, int(pade_order))
             num, den = np.polymul(num, pn), np.polymul(den, pd)
             inner.append(float(tau))
-        z = _add(z, (num, den))
+        z = rational_sum(z, (num, den))
     num, den = np.trim_zeros(z[0], "f"), np.trim_zeros(z[1], "f")
     return RationalModel(num / den[0], den / den[0], 0.0, tuple(inner), int(pade_order))
 

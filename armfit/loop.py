@@ -158,8 +158,19 @@ def pade_delay(delay_s: float, order: int) -> tuple[np.ndarray, np.ndarray]:
     return num, tk[::-1].copy()
 
 
-def _add(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
-         ) -> tuple[np.ndarray, np.ndarray]:
+def rational_sum(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """a + b of two rational functions given as (numerator, denominator) coefficients,
+    highest power first.
+
+    Parameters
+    ----------
+    a, b : tuple of numpy.ndarray
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+    """
     return (np.polyadd(np.polymul(a[0], b[1]), np.polymul(b[0], a[1])),
             np.polymul(a[1], b[1]))
 
@@ -200,7 +211,7 @@ def plant_from_model(model: ClosedLoopModel, theta: Mapping[str, float], *,
     values = {n: float(v) for n, v in model.values(theta).items()}
     Ma, k1, k2, b1, b2 = (values[n] for n in ("Ma", "k1", "k2", "b1", "b2"))
     z = (np.polymul([b1, k1], [Ma, b2, k2]), np.array([Ma, b1 + b2, k1 + k2]))
-    z = _add(z, (np.array([model.mp, 0.0, 0.0]), np.array([1.0])))
+    z = rational_sum(z, (np.array([model.mp, 0.0, 0.0]), np.array([1.0])))
     out = (np.array([1.0]), np.array([1.0]))
     delay = 0.0
     for e in model.effects:
@@ -213,7 +224,7 @@ def plant_from_model(model: ClosedLoopModel, theta: Mapping[str, float], *,
         if tau > 0:
             pn, pd = pade_delay(tau, pade_order)
             num, den = np.polymul(num, pn), np.polymul(den, pd)
-        z = _add(z, (num, den))
+        z = rational_sum(z, (num, den))
     num = np.polymul(out[0], z[1])
     den = np.polymul(out[1], z[0])
     num = np.trim_zeros(num, "f")
@@ -1105,6 +1116,7 @@ def k_max_sweep(plants: Sequence[RationalPlant], rates_hz: Sequence[float],
 
 
 __all__ = [
+    "rational_sum",
     "CERTIFICATE_COLUMNS", "CERTIFICATE_STATUSES", "CERT_POINTS_PER_DECADE", "Certificate",
     "WITHHELD", "certificate_sentence", "certificate_status", "DEFAULT_DAMPING_NS_PER_M",
     "DEFAULT_DELAY_SAMPLES", "DEFAULT_SAMPLE_TIME_S", "INTERNAL_DELAY_PADE_ORDER",

@@ -856,7 +856,7 @@ def estimate_trial(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
         nper = config.h1_nperseg(fs, force.shape[0])
         sp = welch_spectra(f, y, fs, nperseg=nper,
                            noverlap=min(nper - 1, int(round(config.overlap * nper))),
-                           window=config.window, method="h1")
+                           window=config.window, method="h1", fmax_hz=grid[-1])
     else:
         sp = chebwin_spectra(f, y, fs)
     _check_finite_spectra(sp, f, axis, source)

@@ -8,11 +8,9 @@ python-control is not needed) and writes them atomically.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
-from armfit.cli.grammar import file_output_option
+from armfit.cli.grammar import extension, file_output_option
 from armfit.cli.options import (
     effects_file_option,
     message,
@@ -29,7 +27,7 @@ from armfit.uncertainty import read_weights_and_bands
 def _format(fmt: str | None, output: str) -> str:
     """The format the output's extension names (.mat, .json); a ``--format`` that names
     another is a usage error (exit 2)."""
-    by_ext = Path(output).suffix.lower().lstrip(".")
+    by_ext = extension(output).lstrip(".")
     if fmt is not None and fmt != by_ext:
         raise UsageError(f"--format {fmt} but -o {output} names a .{by_ext} file; the "
                          f"format follows the extension (give -o FILE.{fmt})")
