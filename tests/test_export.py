@@ -615,10 +615,12 @@ def test_octave_evaluates_the_exported_file(study, tmp_path):
 
 def test_octave_printed_numbers_are_armfit_s(study):
     # the numbers Octave printed (OCTAVE_PRINTED) against armfit's evaluation now:
-    # the same fits on the locked libraries (to the 17 digits printed); an optimiser's
-    # last digits may move on another set of libraries
+    # the same fits on the locked libraries, to the fits' convergence (1e-7): the
+    # spectra's last bits move with the processor's vector instructions, which numpy
+    # and OpenBLAS pick at run time, and the optimiser then stops a few 1e-10 away; on
+    # another set of libraries its last digits move further
     want = _armfit_values(study)
-    rtol = 1e-12 if not unlocked() else 1e-5
+    rtol = 1e-7 if not unlocked() else 1e-5
     for name, values in OCTAVE_PRINTED.items():
         np.testing.assert_allclose(np.array(values), want[name], rtol=rtol, err_msg=name)
     assert set(OCTAVE_PRINTED) == set(want)

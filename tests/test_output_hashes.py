@@ -9,13 +9,21 @@ versions of requirements.lock; a change of these bytes is a change of armfit's r
 
 and say in the commit which outputs changed and why. Floating-point results differ in
 their last bits between library versions, so the test runs only with the locked versions
-of the numerical libraries (skipped otherwise).
+of the numerical libraries (skipped otherwise). They also differ between processors:
+numpy picks its vector loops (AVX2, AVX-512, …) and OpenBLAS its kernels by the CPU it
+runs on. The outputs are therefore produced in a child process whose numpy uses only its
+x86-64 baseline loops (:data:`PINNED_ENV`: ``NPY_DISABLE_CPU_FEATURES``) and whose
+OpenBLAS uses one kernel set (``OPENBLAS_CORETYPE``), the same on any x86-64 machine; on
+another architecture the test is skipped.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import platform
+import subprocess
 import sys
 from pathlib import Path
 
@@ -23,6 +31,14 @@ import pytest
 from locked import unlocked
 
 REPO = Path(__file__).resolve().parents[1]
+
+#: The environment of the child process that produces the outputs: numpy's dispatched
+#: loops above the x86-64-v2 baseline switched off, OpenBLAS's kernels those of one
+#: processor family, so that the bytes do not depend on the machine's vector units.
+PINNED_ENV: dict[str, str] = {
+    "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR",
+    "OPENBLAS_CORETYPE": "Nehalem",
+}
 
 #: The commands run, in order, from a scratch folder holding ``sample_data`` (a link to
 #: the repository's). ``run`` writes every table; the others add their own outputs.
@@ -44,65 +60,65 @@ EXPECTED: dict[str, str] = {
     "run.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "fit-grip.stdout":
-        "c6aded63e03b743ab5c44c78195f63372046318878ab5d34b6c6a5938318cef9",
+        "1a85f0f517451792cf92760ac2c84c6ae5560d7e7c875d267a5af4917ec87d74",
     "fit-nominal.stdout":
-        "99b47e6bcc0cb39d81b6483d08bed6846c0fc810ba63cb5e59e15b828834d482",
+        "f1fc3b0808bd3d1c5e1e9a9936e0869b0b862a3e138d2500cc93833853a3be14",
     "fit-uncertainty.stdout":
-        "7acce02812cb51d19039cda6a48c0b11f5ea8d38283c7016a123d6327b88f10e",
+        "179c93a6a111dcf81a553f61d6d2248b38f0c0f8cfecf9fec1385719f54a1597",
     "compare.stdout":
-        "b9ea909c0d83d61174e52927e107954e637ecfa9487a8d5f47499e41ec73f809",
+        "77fc7927666fa7ab872528c5fd22c688dd3e3fe7b83c7823577a2f1ccb7633ef",
     "diagnose.stdout":
-        "a9e1d9bf2f2dfc4602ac4e75650dd0cbcf56e71417db5309d1f95a9c1f7d3c1b",
+        "8f43140c18e0cdb443186b1ee855230b93a4e59b4dd376e4f63ae000ecdc2fef",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
-        "d7b98c2c5a8fa0effe56c3bd5763592e06d675bbed13b0caa1197b4a7ec8930f",
+        "dc2740e86ae04d0e296505cb92bca6fd32a8e421bc87a689f88cfd9836382350",
     "grip.csv":
-        "0deb889a2d14ad30c8e5e6eb89eec8b31a2ab82be4883070caeb2339f5471125",
+        "8fe7b51ecf2f2b77c017d85f9cf80b54ac2ff2d65a4880d37590533f9edf74fe",
     "nominal.csv":
-        "0053d5e5beda45559d72e0e56545143f4882f41b33beb1ecc59fdf3f831e0d37",
+        "9dc56dd6d9d5f8090fa3a12701b1134c9d95116b70df28a8c40a7927391a54fa",
     "run/adoption.csv":
         "a03dd023790b6e27d056b12e9a0658e098fa0e3ddfd4d75e6ee17b5f5ad43866",
     "run/certificate.csv":
-        "c7de9a4f8bc6659303ebcae12c5a8aa2059fac5fc589cc827bb4c7d5f6cd0990",
+        "201327c5c213fe5451985f8d0c1f8618637512074e0500ce3c5325925c029315",
     "run/compare.csv":
-        "51b8a6179df1704365e6268b0e67b471f7eec0c3013364d104a636d2153bf86d",
+        "178b79f03f672b1e15c0a973f2e9fb6d7b4c45f2cb8dc841f6e47c1ff3d8dd66",
     "run/diagnosis.json":
-        "a9e1d9bf2f2dfc4602ac4e75650dd0cbcf56e71417db5309d1f95a9c1f7d3c1b",
+        "8f43140c18e0cdb443186b1ee855230b93a4e59b4dd376e4f63ae000ecdc2fef",
     "run/grip_params.csv":
-        "0deb889a2d14ad30c8e5e6eb89eec8b31a2ab82be4883070caeb2339f5471125",
+        "8fe7b51ecf2f2b77c017d85f9cf80b54ac2ff2d65a4880d37590533f9edf74fe",
     "run/grip_params.tex":
         "a30e9288acad14b36f41695e560bea5d7201a820e8e1f5151b4040acda5136ca",
     "run/nominal_params.csv":
-        "0053d5e5beda45559d72e0e56545143f4882f41b33beb1ecc59fdf3f831e0d37",
+        "9dc56dd6d9d5f8090fa3a12701b1134c9d95116b70df28a8c40a7927391a54fa",
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.html":
-        "826fefb975eba2633694747ec1e98dab33fcf9553c60fcb3feb1ef948c444052",
+        "ce6be3e3cdca2ed676baaafa9da59a2e3e6d4637d61f0979b6057fbd561592d5",
     "run/report.md":
-        "37bb37d1dd5c1c21262ca1531ca63f2fa1534d15ce5bad7e328c7891cb99b65f",
+        "ba46f70481cc8c0ac169eee1fd0b4b3e0c9a05f4e53cd869b226c90f3ac855ad",
     "run/spectra.parquet":
-        "19eb2ccf12f514cf1809667c550e8cfcf2bf0a5f37d6e50441b3abca55f53fee",
+        "44f3cd21c9fba026654eedf0669a6445d75d8b517036d9a247a1c33d0bd7fd5f",
     "run/stability.csv":
-        "66d8ba0e6d0e027d80bf246397f68a4e736edc64ebf10d6a5230bef283feaa57",
+        "f3df1ad3b5c4dedf2c337f30499d2a7d74144b83f83b053e1258d4b9bd6428dc",
     "run/trial_params.csv":
-        "c472ded99324406191766407550b6ab6b9062b22cf4b64c927a07fffd46b6408",
+        "d415cee8608ec56da3f1d7612649367860eee5bb2a6afbe7fc6e6c014fbfc129",
     "run/trials.parquet":
         "34eb582f5fec86f6d7c0d27c62e2eb917c898821d3fbf387c5b22af4ba5c9bea",
     "run/wu.csv":
-        "4824f188576131bfb98155414a9dd6c73bf99a5e039738c5f58cf77502c84500",
+        "c37cea69e1732f61d2a9d77674c51b087f9cb744c7c6969a11ceec9f6374098e",
     "run/wu.tex":
-        "18f6592c6705c7f76441595eb5b1c686a32460fec1afc99f3361a49e703c7c99",
+        "c0da1267f7c7a4af26773acf74f5a2799a2d247b91dfa96b96862689697517f5",
     "run/wu_summary.csv":
-        "6e204760d044e9ea9442f47c0708e21689a242fd7a435c86356278756bdf2abc",
+        "14bdae00c03cf98cf2401e899fc00b5b5f9f48335197e7c8bd7d081f31c5d15e",
     "run/wu_wmax.csv":
-        "b27c7d622673cf3b81470d7f6d1134362a88990fb8def733286b5beac0425d78",
+        "3ae2f2e2180a3f3b4b0a3d7308ade707de004cace608eecdd658126ab4b4f78f",
     "wu.csv":
-        "4824f188576131bfb98155414a9dd6c73bf99a5e039738c5f58cf77502c84500",
+        "c37cea69e1732f61d2a9d77674c51b087f9cb744c7c6969a11ceec9f6374098e",
     "wu_summary.csv":
-        "6e204760d044e9ea9442f47c0708e21689a242fd7a435c86356278756bdf2abc",
+        "14bdae00c03cf98cf2401e899fc00b5b5f9f48335197e7c8bd7d081f31c5d15e",
     "wu_wmax.csv":
-        "b27c7d622673cf3b81470d7f6d1134362a88990fb8def733286b5beac0425d78",
+        "3ae2f2e2180a3f3b4b0a3d7308ade707de004cace608eecdd658126ab4b4f78f",
 }
 
 
@@ -135,13 +151,24 @@ def produce(folder: Path) -> dict[str, str]:
     return sums
 
 
+def produce_pinned(folder: Path) -> dict[str, str]:
+    """:func:`produce` in a child process with :data:`PINNED_ENV`."""
+    run = subprocess.run([sys.executable, __file__, "--json", str(folder)],
+                         env={**os.environ, **PINNED_ENV}, capture_output=True, text=True,
+                         timeout=900)
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout)
+
+
 @pytest.fixture(scope="module")
 def produced(tmp_path_factory) -> dict[str, str]:
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip(f"output bytes are recorded on x86-64 (this is {platform.machine()})")
     differ = unlocked()
     if differ:
         pytest.skip("output bytes are recorded with the locked versions; installed "
                     + ", ".join(f"{n} {a} (locked {b})" for n, (a, b) in differ.items()))
-    return produce(tmp_path_factory.mktemp("hashes"))
+    return produce_pinned(tmp_path_factory.mktemp("hashes"))
 
 
 def test_outputs_are_the_recorded_bytes(produced):
@@ -152,8 +179,11 @@ def test_outputs_are_the_recorded_bytes(produced):
 
 if __name__ == "__main__":  # re-record EXPECTED (run from the repository root)
     import tempfile
+    if sys.argv[1:2] == ["--json"]:     # the child process of produce_pinned
+        print(json.dumps(produce(Path(sys.argv[2]))))
+        sys.exit(0)
     with tempfile.TemporaryDirectory() as tmp:
-        sums = produce(Path(tmp) / "hashes")
+        sums = produce_pinned(Path(tmp) / "hashes")
     print("EXPECTED: dict[str, str] = {")
     for name, digest in sums.items():
         print(f'    "{name}":\n        "{digest}",')
