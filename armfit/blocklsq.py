@@ -15,6 +15,14 @@ complement S = C − Σ Bᵢᵀ Aᵢ⁻¹ Bᵢ, k × k) and solves each step exa
 O(T·m·(nb + k)²) operations, vectorised over the trials, where a general sparse solver
 iterates in Python.
 
+**Grouped shared parameters.** A shared column may belong to a group of trials only
+(a parameter with one value per subject, the subject's trials its group): then trial
+``i``'s Jacobian holds ``kl`` local shared columns, and ``cols[i]`` (T, kl) names the
+global shared parameters (0 … K − 1) they are. C and the Schur complement are summed
+over the trials into K × K; every step is still solved exactly, the memory of the
+Jacobian stays (T, m, kl), not (T, m, K). Without ``cols`` every trial's local columns
+are the K shared ones (the code path, and the bits, of the plain block-arrow problem).
+
 The method is the trust-region-reflective algorithm of
 :func:`scipy.optimize.least_squares` (``method="trf"``) with every step solved exactly;
 its termination tests and statuses are those of that function (``ftol``, ``xtol``,
@@ -28,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BlockResult", "shared_covariance", "solve"]
+__all__ = ["BlockResult", "Groups", "shared_covariance", "solve"]
 
 #: Residual function: x (T·nb + k,) -> r (T·m,), trial-major.
 Fun = Callable[[np.ndarray], np.ndarray]
@@ -52,13 +60,44 @@ class BlockResult:
     nfev: int
 
 
-def _normal(jb: np.ndarray, js: np.ndarray, r: np.ndarray):
-    """Blocks of JᵀJ (A (T, nb, nb), B (T, nb, k), C (k, k)) and of Jᵀr (gb, gs)."""
+class Groups:
+    """Where each trial's local shared columns go: ``cols`` (T, kl) global indices of
+    the K shared parameters (see the module docstring)."""
+
+    def __init__(self, cols: np.ndarray, K: int):
+        self.cols = np.asarray(cols, dtype=np.intp)
+        self.K = int(K)
+
+    def add_vectors(self, v: np.ndarray) -> np.ndarray:
+        """Σ over trials of per-trial local vectors v (T, kl), scattered to (K,)."""
+        out = np.zeros(self.K)
+        np.add.at(out, self.cols, v)
+        return out
+
+    def add_matrices(self, m: np.ndarray) -> np.ndarray:
+        """Σ over trials of per-trial local matrices m (T, kl, kl), scattered to (K, K)."""
+        out = np.zeros((self.K, self.K))
+        np.add.at(out, (self.cols[:, :, None], self.cols[:, None, :]), m)
+        return out
+
+    def take(self, v: np.ndarray) -> np.ndarray:
+        """The global vector v (K,) seen by each trial, (T, kl)."""
+        return v[self.cols]
+
+
+def _normal(jb: np.ndarray, js: np.ndarray, r: np.ndarray, groups: Groups | None = None):
+    """Blocks of JᵀJ (A (T, nb, nb), B (T, nb, kl), C (K, K)) and of Jᵀr (gb, gs (K,)):
+    B per trial in its local shared columns, C and gs global (K = kl = k without
+    ``groups``)."""
     A = np.einsum("tmp,tmq->tpq", jb, jb)
     B = np.einsum("tmp,tmk->tpk", jb, js)
-    C = np.einsum("tmk,tml->kl", js, js)
     gb = np.einsum("tmp,tm->tp", jb, r)
-    gs = np.einsum("tmk,tm->k", js, r)
+    if groups is None:
+        C = np.einsum("tmk,tml->kl", js, js)
+        gs = np.einsum("tmk,tm->k", js, r)
+    else:
+        C = groups.add_matrices(np.einsum("tmk,tml->tkl", js, js))
+        gs = groups.add_vectors(np.einsum("tmk,tm->tk", js, r))
     return A, B, C, gb, gs
 
 
@@ -67,10 +106,12 @@ class _Scaled:
     the trust-region-reflective method: J_h = J·diag(d), H_h = J_hᵀJ_h + diag(c),
     g_h = d·g, blocks as :func:`_normal` (per-trial part first, then the shared one)."""
 
-    def __init__(self, jb, js, A, B, C, gb, gs, db, ds, cb, cs):
+    def __init__(self, jb, js, A, B, C, gb, gs, db, ds, cb, cs, groups: Groups | None = None):
         self.jb, self.js, self.db, self.ds, self.cb, self.cs = jb, js, db, ds, cb, cs
+        self.groups = groups
         self.A = A * db[:, :, None] * db[:, None, :]
-        self.B = B * db[:, :, None] * ds[None, None, :]
+        dsl = ds[None, None, :] if groups is None else groups.take(ds)[:, None, :]
+        self.B = B * db[:, :, None] * dsl
         self.C = C * np.outer(ds, ds)
         self.gb, self.gs = gb * db, gs * ds
         self.T, self.nb = gb.shape
@@ -83,16 +124,25 @@ class _Scaled:
         if k == 0:
             return np.linalg.solve(Al, rb[..., None])[..., 0], np.zeros(0)
         Cl = self.C + np.diag(self.cs + alpha)
+        kl = self.B.shape[2]
         sol = np.linalg.solve(Al, np.concatenate([self.B, rb[..., None]], axis=2))
-        AiB, Air = sol[..., :k], sol[..., k]
-        S = Cl - np.einsum("tpk,tpl->kl", self.B, AiB)
-        ys = np.linalg.solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))
-        return Air - AiB @ ys, ys
+        AiB, Air = sol[..., :kl], sol[..., kl]
+        g = self.groups
+        if g is None:
+            S = Cl - np.einsum("tpk,tpl->kl", self.B, AiB)
+            ys = np.linalg.solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))
+            return Air - AiB @ ys, ys
+        S = Cl - g.add_matrices(np.einsum("tpk,tpl->tkl", self.B, AiB))
+        ys = np.linalg.solve(S, rs - g.add_vectors(np.einsum("tpk,tp->tk", self.B, Air)))
+        return Air - np.einsum("tpk,tk->tp", AiB, g.take(ys)), ys
 
     def jdot(self, hb: np.ndarray, hs: np.ndarray) -> np.ndarray:
         """J_h·h, (T, m)."""
+        if self.groups is None:
+            return (np.einsum("tmp,tp->tm", self.jb, hb * self.db)
+                    + np.einsum("tmk,k->tm", self.js, hs * self.ds))
         return (np.einsum("tmp,tp->tm", self.jb, hb * self.db)
-                + np.einsum("tmk,k->tm", self.js, hs * self.ds))
+                + np.einsum("tmk,tk->tm", self.js, self.groups.take(hs * self.ds)))
 
     def quadratic_1d(self, s: np.ndarray, s0: np.ndarray | None = None):
         """(a, b, c) of q(s0 + t·s) = a t² + b t + c, q(p) = ½pᵀH_h p + g_hᵀp."""
@@ -237,7 +287,8 @@ def _strictly_inside(x, lower, upper) -> np.ndarray:
 
 def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, *,
           n_trials: int, n_block: int, max_nfev: int = 200, ftol: float = 1e-8,
-          xtol: float = 1e-8, gtol: float = 1e-8) -> BlockResult:
+          xtol: float = 1e-8, gtol: float = 1e-8, cols: np.ndarray | None = None
+          ) -> BlockResult:
     """Minimise ½‖fun(x)‖² over ``lower < x < upper`` for a block-arrow problem.
 
     The trust-region-reflective method of :func:`scipy.optimize.least_squares`
@@ -265,6 +316,10 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
         Stop when a step lowers the cost by less than ``ftol``·cost (with a good
         agreement of the model), when it is below ``xtol``·(``xtol`` + ‖x‖), or when the
         scaled gradient's largest component is below ``gtol``.
+    cols : ndarray of int, shape (T, kl), optional
+        Grouped shared parameters: the global index (0 … K − 1, K = len(x) − T·nb) of
+        each trial's local shared columns, ``jac`` then returning Js (T, m, kl). None:
+        every trial's shared columns are the K shared parameters.
 
     Returns
     -------
@@ -273,11 +328,12 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
     T, nb = n_trials, n_block
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     x = _strictly_inside(np.clip(np.asarray(x0, float), lower, upper), lower, upper)
+    groups = None if cols is None else Groups(cols, x.size - T * nb)
     r = fun(x)
     nfev = 1
     cost = 0.5 * float(r @ r)
     jb, js = jac(x)
-    normal = _normal(jb, js, r.reshape(T, -1))
+    normal = _normal(jb, js, r.reshape(T, -1), groups)
     v, _ = _cl_scaling(x, np.concatenate([normal[3].ravel(), normal[4]]), lower, upper)
     delta = float(np.linalg.norm(x / np.sqrt(v))) or 1.0
     alpha, status = 0.0, 0
@@ -293,7 +349,7 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
         d = np.sqrt(v)
         c = g * dv
         sub = _Scaled(jb, js, A, B, C, gb, gs, d[: T * nb].reshape(T, nb), d[T * nb:],
-                      c[: T * nb].reshape(T, nb), c[T * nb:])
+                      c[: T * nb].reshape(T, nb), c[T * nb:], groups)
         theta = max(0.995, 1.0 - g_norm)
         actual = -1.0
         while actual <= 0 and nfev < max_nfev:
@@ -331,7 +387,7 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
             x, r, cost = x_new, r_new, cost_new
             sub = jb = js = None   # the old Jacobian goes before the new one is made
             jb, js = jac(x)
-            normal = _normal(jb, js, r.reshape(T, -1))
+            normal = _normal(jb, js, r.reshape(T, -1), groups)
     return BlockResult(x, cost, r, jb, js, status, nfev)
 
 
@@ -346,12 +402,18 @@ def _cl_scaling(x, g, lower, upper) -> tuple[np.ndarray, np.ndarray]:
     return v, dv
 
 
-def shared_covariance(jb: np.ndarray, js: np.ndarray) -> np.ndarray:
-    """The shared parameters' block of (JᵀJ)⁺, (k, k): the inverse of the Schur
+def shared_covariance(jb: np.ndarray, js: np.ndarray, cols: np.ndarray | None = None,
+                      n_shared: int | None = None) -> np.ndarray:
+    """The shared parameters' block of (JᵀJ)⁺, (K, K): the inverse of the Schur
     complement C − Σ Bᵢᵀ Aᵢ⁺ Bᵢ (pseudo-inverses, so a parameter the data do not
     determine gets a large variance instead of an error). Multiply by σ² for a
-    covariance."""
-    A, B, C, _, _ = _normal(jb, js, np.zeros(jb.shape[:2]))
+    covariance. ``cols``, ``n_shared``: grouped shared parameters (:func:`solve`'s
+    ``cols`` and K)."""
+    groups = None if cols is None else Groups(cols, n_shared)
+    A, B, C, _, _ = _normal(jb, js, np.zeros(jb.shape[:2]), groups)
     Ai = np.linalg.pinv(A, rcond=1e-12)
-    S = C - np.einsum("tpk,tpq,tql->kl", B, Ai, B)
+    if groups is None:
+        S = C - np.einsum("tpk,tpq,tql->kl", B, Ai, B)
+    else:
+        S = C - groups.add_matrices(np.einsum("tpk,tpq,tql->tkl", B, Ai, B))
     return np.linalg.pinv(S, rcond=1e-12)

@@ -43,7 +43,9 @@ Force: Gaussian white noise through an 8th-order Butterworth low-pass at ``band_
 times uniform in ``hold_s`` (a non-white input whose power falls as 1/f² above a few Hz).
 
 Subjects: log-normal factors exp(``variability`` · z) on the five arm parameters of the
-paper's Table I row (axis, grip); seeds give reproducible studies.
+paper's Table I row (axis, grip); seeds give reproducible studies. An effect parameter
+may differ between subjects (``subject_effects``): each subject draws its own value,
+uniform in a range, kept on every axis and grip.
 
 Units: SI throughout (kg, N/m, N·s/m, s, Hz, m, N).
 """
@@ -88,7 +90,9 @@ class Study:
     (``delay``: delay_s; ``lowpass``: cutoff_hz; ``device-damping``: damping_Ns_per_m;
     ``device-mass``: mass_kg; ``resonance``: freq_hz, zeta, weight; ``reflex``:
     gain_N_per_m, delay_s; ``device-spring``: k_N_per_m). effect_axes: the axes the
-    effects act on (all by default).
+    effects act on (all by default). subject_effects: {effect name: {param: (lo, hi)}},
+    parameters whose value each subject draws uniformly from [lo, hi]
+    (:func:`subject_effect_values`), on top of (or instead of) ``effects``.
     """
 
     subjects: int = 4
@@ -109,6 +113,19 @@ class Study:
     quantum_m: float = 3e-5
     force_step_N: float = 2.0 ** -12
     variability: float = 0.15
+    subject_effects: Mapping[str, Mapping[str, tuple[float, float]]] = field(
+        default_factory=dict)
+
+
+def subject_effect_values(study: Study, subject: int) -> dict[str, dict[str, float]]:
+    """The subject's own values of :attr:`Study.subject_effects` ({effect: {param:
+    value}}), uniform in each range, the same on every axis and grip of the subject."""
+    out: dict[str, dict[str, float]] = {}
+    for i, (name, params) in enumerate(sorted(study.subject_effects.items())):
+        for j, (param, (lo, hi)) in enumerate(sorted(params.items())):
+            u = np.random.default_rng([study.seed, 3, subject, i, j]).uniform()
+            out.setdefault(name, {})[param] = float(lo + (hi - lo) * u)
+    return out
 
 
 def arm_params(study: Study, subject: int, axis: str, grip: float) -> dict[str, float]:
@@ -232,6 +249,9 @@ def simulate_trial(study: Study, subject: int, axis: str, grip: float
     arm = arm_params(study, subject, axis, grip)
     effects = {k: dict(v) for k, v in study.effects.items()} if axis in study.effect_axes \
         else {}
+    if axis in study.effect_axes:
+        for name, values in subject_effect_values(study, subject).items():
+            effects.setdefault(name, {}).update(values)
     num, den = closed_loop_tf(arm, MP_KG[axis], effects)
     force = force_signal(rng, n + lead, study)
     if study.method == "zoh":
@@ -281,6 +301,8 @@ def write_study(study: Study, out: str | Path) -> Path:
                 truths.append(truth)
     settings = asdict(study)
     settings["effects"] = {k: dict(v) for k, v in study.effects.items()}
+    settings["subject_effects"] = {k: {p: list(r) for p, r in v.items()}
+                                   for k, v in study.subject_effects.items()}
     (out / "truth.json").write_text(json.dumps({"generator": "tests/tdsim.py",
                                                 "settings": settings, "trials": truths},
                                                indent=1))

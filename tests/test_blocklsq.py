@@ -104,3 +104,97 @@ def test_shared_covariance_is_the_block_of_the_full_inverse():
     full = np.linalg.inv(J.T @ J)
     np.testing.assert_allclose(blocklsq.shared_covariance(jb, js), full[-1:, -1:],
                                rtol=1e-9)
+
+
+# ---------------------------------------------------------------------------
+# Grouped shared parameters: a rate per group of trials (one value per subject)
+# ---------------------------------------------------------------------------
+
+def _grouped(a, e, rates, group, offset, noise=0.0, seed=0):
+    """Decays y_i = a_i·exp(−c_g(i)·t) + e_i + d·t: per-trial a_i, e_i (nb = 2), a rate
+    per group c_g (grouped shared) and a slope d shared by all (global): x = [a_0, e_0,
+    …, d, c_0, c_1, …]; each trial's local shared columns are (d, c_g(i))."""
+    rng = np.random.default_rng(seed)
+    c_t = rates[group]
+    y = a[:, None] * np.exp(-c_t[:, None] * T_S) + e[:, None] + offset * T_S
+    y = y + noise * rng.standard_normal(y.shape)
+    n, G = a.size, rates.size
+    cols = np.column_stack([np.zeros(n, int), 1 + group])
+
+    def fun(x):
+        ab, eb, d, cc = x[: 2 * n: 2], x[1: 2 * n: 2], x[2 * n], x[2 * n + 1:][group]
+        return (ab[:, None] * np.exp(-cc[:, None] * T_S) + eb[:, None] + d * T_S
+                - y).ravel()
+
+    def jac(x):
+        ab, cc = x[: 2 * n: 2], x[2 * n + 1:][group]
+        ex = np.exp(-cc[:, None] * T_S)
+        jb = np.stack([ex, np.ones_like(ex)], axis=-1)
+        js = np.stack([np.broadcast_to(T_S, ex.shape), -ab[:, None] * T_S * ex], axis=-1)
+        return jb, js
+
+    def dense(x):
+        jb, js = jac(x)
+        J = np.zeros((n * T_S.size, 2 * n + 1 + G))
+        for i in range(n):
+            rows = slice(i * T_S.size, (i + 1) * T_S.size)
+            J[rows, 2 * i:2 * i + 2] = jb[i]
+            J[rows, 2 * n + cols[i]] = js[i]
+        return J
+
+    return fun, jac, dense, cols
+
+
+def test_grouped_rates_noise_free_return_the_truth():
+    # truth: three groups of trials with their own rates, a slope shared by all
+    a = np.array([1.0, 2.5, 0.7, 4.0, 1.5, 3.0])
+    e = np.array([0.1, -0.2, 0.0, 0.3, 0.05, -0.1])
+    group = np.array([0, 0, 1, 1, 2, 2])
+    rates = np.array([0.8, 1.3, 2.1])
+    fun, jac, _, cols = _grouped(a, e, rates, group, offset=0.02)
+    n = a.size
+    x0 = np.concatenate([np.tile([1.0, 0.0], n), [0.0], np.full(3, 1.0)])
+    lo, hi = np.full(x0.size, -10.0), np.full(x0.size, 10.0)
+    res = blocklsq.solve(fun, jac, x0, lo, hi, n_trials=n, n_block=2, cols=cols)
+    assert res.status > 0 and res.cost < 1e-12
+    np.testing.assert_allclose(res.x[2 * n + 1:], rates, rtol=1e-7)
+    np.testing.assert_allclose(res.x[2 * n], 0.02, atol=1e-8)
+    np.testing.assert_allclose(res.x[: 2 * n: 2], a, rtol=1e-7)
+
+
+@pytest.mark.parametrize("c_hi", [10.0, 1.5])
+def test_grouped_rates_agree_with_scipy_trf(c_hi):
+    # the same problem with noise, against scipy's trf on the dense Jacobian; with the
+    # rates bounded by 1.5 the last group's (true 2.1) ends on the bound
+    a = np.array([1.0, 2.5, 0.7, 4.0, 1.5])
+    e = np.array([0.1, -0.2, 0.0, 0.3, 0.05])
+    group = np.array([0, 1, 1, 2, 2])
+    rates = np.array([0.8, 1.3, 2.1])
+    fun, jac, dense, cols = _grouped(a, e, rates, group, offset=0.02, noise=0.05, seed=5)
+    n = a.size
+    x0 = np.concatenate([np.tile([1.0, 0.0], n), [0.0], np.full(3, 0.5)])
+    lo = np.full(x0.size, -10.0)
+    hi = np.concatenate([np.full(2 * n + 1, 10.0), np.full(3, c_hi)])
+    res = blocklsq.solve(fun, jac, x0, lo, hi, n_trials=n, n_block=2, cols=cols)
+    ref = optimize.least_squares(fun, x0, jac=dense, bounds=(lo, hi), method="trf",
+                                 x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12)
+    np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-6)
+    np.testing.assert_allclose(res.x, ref.x, atol=1e-5)
+    if c_hi == 1.5:
+        assert res.x[-1] == pytest.approx(1.5, abs=1e-6)
+
+
+def test_grouped_covariance_is_the_block_of_the_full_inverse():
+    # linear algebra, as for one shared column: the Schur complement's inverse equals
+    # the shared block of the dense (JᵀJ)⁻¹
+    a = np.array([1.0, 2.5, 0.7, 4.0])
+    e = np.array([0.1, -0.2, 0.0, 0.3])
+    group = np.array([0, 1, 1, 0])
+    rates = np.array([0.8, 1.3])
+    _, jac, dense, cols = _grouped(a, e, rates, group, offset=0.02)
+    x = np.concatenate([np.ravel(np.column_stack([a, e])), [0.02], rates])
+    jb, js = jac(x)
+    J = dense(x)
+    full = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(blocklsq.shared_covariance(jb, js, cols, 3),
+                               full[-3:, -3:], rtol=1e-9)

@@ -75,7 +75,8 @@ def _step_by_step(spectra, params) -> list:
     while any(not s.done for s in searches):
         live = [s for s in searches if not s.done]
         stasks = [(s, e) for s in live for e in s.remaining()]
-        sfits = [search._screen_task((s.data, s.band, s.fits[-1], e)) for s, e in stasks]
+        sfits = [search._screen_task((s.data, s.band, s.fits[-1], e, s.by_subject_now(e)))
+                 for s, e in stasks]
         for (s, _), sc in zip(stasks, sfits, strict=True):
             if isinstance(sc, search.FailedCandidate):
                 s.fail(sc)
@@ -85,17 +86,27 @@ def _step_by_step(spectra, params) -> list:
                                           and not isinstance(sc, search.FailedCandidate)])
                     for s in live}
         tasks = [(s, e, sc) for s in live for e, sc in keep_screened(screened[id(s)])]
-        fits = [search._extend_task((s.data, s.band, s.fits[-1], e, sc))
+        fits = [search._extend_task((s.data, s.band, s.fits[-1], e, sc,
+                                     *(((s.min_db, s.min_deg),) if s.by_subject_now(e)
+                                       else ())))
                 for s, e, sc in tasks]
         for (s, _, _), fit in zip(tasks, fits, strict=True):
             if isinstance(fit, search.FailedCandidate):
                 s.fail(fit)
         for s in live:
-            full = {e.name: fit for (t, e, _), fit in zip(tasks, fits, strict=True)
+            full = {e.name: (fit if isinstance(fit, tuple) else (fit,))
+                    for (t, e, _), fit in zip(tasks, fits, strict=True)
                     if t is s and not isinstance(fit, search.FailedCandidate)}
-            s.take([(e, full[e.name]) for e, _ in screened[id(s)] if e.name in full],
+            s.take([(e, *full[e.name]) for e, _ in screened[id(s)] if e.name in full],
                    screened=[(e, sc) for e, sc in screened[id(s)]
                              if e.name not in full and e.name not in s.failed])
+            if s.untested is not None:     # an apparatus effect added: tested per subject
+                rivals = s.tested(search._subject_task(
+                    (s.data, s.band, s.fits[-1], s.untested, s.min_db, s.min_deg)))
+                if rivals:
+                    s.settle(rivals, [search._subject_task(
+                        (s.data, s.band, c.fit, c.effect, s.min_db, s.min_deg))
+                        for c in rivals])
     search._borrow_step(searches, lambda fn, items: [fn(a) for a in items], SHARED_EFFECTS)
     out = [replace(s.result(), coupling=search.cross_coupling(spectra, s.data, s.band))
            for s in searches]

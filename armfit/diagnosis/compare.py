@@ -246,6 +246,33 @@ def band_to_dict(b: BandError) -> dict:
             "rms_norm": b.rms_norm, "bias_norm": b.bias_norm, "n_points": b.n_points}
 
 
+def _missing_to_dict(m) -> dict:
+    """A missing effect in the diagnosis JSON; ``by_subject`` (with its intervals, the
+    parameters varying and their spread) only for an effect whose values differ between
+    subjects."""
+    out = {"effect": m.effect, "params": m.params, "params_lo": m.params_lo,
+           "params_hi": m.params_hi, "at_bound": list(m.at_bound),
+           "rms_norm_after": m.rms_norm_after}
+    if m.varying:
+        out.update(varying=list(m.varying), by_subject=m.by_subject,
+                   by_subject_lo=m.by_subject_lo, by_subject_hi=m.by_subject_hi,
+                   spread={p: {k: finite_or_none(v) for k, v in d.items()}
+                           for p, d in m.spread.items()})
+    return out
+
+
+def _subject_test_to_dict(t) -> dict:
+    """The per-subject test of one effect in the diagnosis JSON."""
+    return {"effect": t.effect, "n_subjects": t.n_subjects, "varying": list(t.varying),
+            "rms_norm_shared": finite_or_none(t.rms_norm_shared),
+            "rms_norm_chosen": finite_or_none(t.rms_norm_chosen),
+            "tried": [{"param": x.param, "delta_bic": finite_or_none(x.delta_bic),
+                       "rss_reduction": finite_or_none(x.rss_reduction),
+                       "practical": x.practical, "change_db": finite_or_none(x.change_db),
+                       "change_deg": finite_or_none(x.change_deg), "kept": x.kept}
+                      for x in t.trials]}
+
+
 def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
     """The JSON document of ``armfit diagnose`` (schema in docs/formats.md, "Diagnosis JSON")."""
     axes = {}
@@ -275,10 +302,7 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
                 "lr": c.lr, "score": finite_or_none(c.score),
                 "rss_reduction": finite_or_none(c.rss_reduction), "significant": c.significant,
             } for c in d.candidates],
-            "missing_effects": [{
-                "effect": m.effect, "params": m.params, "params_lo": m.params_lo,
-                "params_hi": m.params_hi, "at_bound": list(m.at_bound),
-                "rms_norm_after": m.rms_norm_after} for m in d.missing_effects],
+            "missing_effects": [_missing_to_dict(m) for m in d.missing_effects],
             "error_steps": list(d.error_steps),
             "adequate": bool(d.adequate),
             "stop": d.stop,
@@ -296,5 +320,8 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
         if d.failed_candidates:     # (only when one failed: other documents are unchanged)
             axes[d.axis]["failed_candidates"] = [
                 {"effect": c.effect, "reason": c.reason} for c in d.failed_candidates]
+        if d.subject_tests:         # (only when an effect was tested per subject)
+            axes[d.axis]["subject_tests"] = [_subject_test_to_dict(t)
+                                             for t in d.subject_tests]
     shared = next((d.shared for d in results if d.shared), {})
     return {"axes": axes, "shared_effects": shared}

@@ -31,8 +31,8 @@ from armfit.diagnosis.tuning import (
 from armfit.models.effects import Effect
 
 __all__ = [
-    "Adequacy", "adequacy", "band_errors", "effect_size", "practical", "robust_lr",
-    "union_bias",
+    "Adequacy", "adequacy", "band_errors", "effect_size", "practical", "response_change",
+    "robust_lr", "union_bias",
 ]
 
 
@@ -138,14 +138,22 @@ def effect_size(fit: JointFit, effect: Effect, f: np.ndarray) -> tuple[np.ndarra
     """How much ``effect`` at its fitted values changes the fitted response: per grid
     point, the median over trials of |20 log10|H/H₀|| (dB) and |angle(H/H₀)| (deg), H₀
     the same fit with the effect at its null values (every other parameter unchanged)."""
+    return response_change(fit, {f"{effect.name}.{k}": v for k, v in
+                                 effect.null_values(fit.model.mp).items()}, f)
+
+
+def response_change(fit: JointFit, values: dict[str, float], f: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """How much the fitted response changes when the effect parameters ``values``
+    ({``effect.param``: value}) replace the fit's own (every other parameter unchanged):
+    per grid point, the median over trials of |20 log10|H/H₀|| (dB) and |angle(H/H₀)|
+    (deg), H the fit's response and H₀ the one with ``values``."""
     model = fit.model
-    names = model.param_names
     T = fit.base.shape[0]
     theta = {n: fit.base[:, i:i + 1] for i, n in enumerate(PARAM_NAMES)}
-    theta.update({n: np.full((T, 1), fit.shared[n]) for n in names if n not in theta})
+    theta.update({n: v[:, None] for n, v in fit.trial_values().items()})
     null = dict(theta)
-    null.update({f"{effect.name}.{k}": np.full((T, 1), v)
-                 for k, v in effect.null_values(model.mp).items()})
+    null.update({n: np.full((T, 1), v) for n, v in values.items()})
     with np.errstate(all="ignore"):
         d_db, d_deg = residuals(model.response(f, theta), model.response(f, null))
     return np.nanmedian(np.abs(d_db), axis=0), np.nanmedian(np.abs(d_deg), axis=0)

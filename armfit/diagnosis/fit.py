@@ -3,7 +3,8 @@ refit from the values the axes share."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -15,7 +16,7 @@ from armfit.diagnosis.tuning import QUICK_BEST, QUICK_NFEV, QUICK_SCREEN_NFEV
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import Effect
 
-__all__ = ["fit_base", "fit_borrowed", "fit_extend", "start_array"]
+__all__ = ["fit_base", "fit_borrowed", "fit_by_subject", "fit_extend", "start_array"]
 
 
 def start_array(data: AxisData) -> np.ndarray:
@@ -32,14 +33,17 @@ def fit_base(data: AxisData, band: tuple[float, float]) -> JointFit:
 
 def fit_extend(data: AxisData, band: tuple[float, float], current: JointFit,
                effect: Effect, screened: JointFit | None = None, *,
-               quick: bool = False) -> JointFit:
+               quick: bool = False, by_subject: bool = False) -> JointFit:
     """``current``'s model plus ``effect``, all effects refitted jointly (shared across
     the trials), warm-started from ``current`` with the new effect at its null point and
     at the screening's values (:func:`screen_candidate`; or, without one, at the effect's starting
     points, also with each effect added before restarted at its own starting points);
-    never worse than ``current``."""
+    never worse than ``current``. ``by_subject``: every parameter of ``effect`` with one
+    value per subject (each subject starting at the same starting points)."""
     start = start_array(data)
     model = current.model.with_effect(effect)
+    varying = tuple(current.varying) + (tuple(f"{effect.name}.{p}" for p in effect.param_names)
+                                        if by_subject else ())
     null = {**current.shared, **{f"{effect.name}.{k}": v
                                  for k, v in effect.null_values(model.mp).items()}}
     def named(e: Effect, st: Mapping[str, float]) -> dict[str, float]:
@@ -65,10 +69,32 @@ def fit_extend(data: AxisData, band: tuple[float, float], current: JointFit,
     starts = starts + fresh
     opts = {"refine_best": QUICK_BEST, "max_nfev": QUICK_NFEV,
             "screen_nfev": QUICK_SCREEN_NFEV} if quick else {}
-    fit = joint_fit(model, data, band, [current.base], starts, pairs=pairs, **opts)
+    fit = joint_fit(model, data, band, [current.base], starts, pairs=pairs,
+                    varying=varying, by_subject=current.by_subject, **opts)
     if fit.rss > current.rss:  # nested: never worse than the current fit
-        fit = JointFit(model, current.base, null, {}, {}, current.r_db, current.r_deg,
-                       current.rss, current.n_res, current.rho, current.converged)
+        fit = replace(current, model=model, shared=null,
+                      shared_lo={}, shared_hi={})
+    return fit
+
+
+def fit_by_subject(data: AxisData, band: tuple[float, float], current: JointFit,
+                   names: Sequence[str]) -> JointFit:
+    """``current``'s model with the effect parameters ``names`` (``effect.param``) given
+    one value per subject (besides those ``current`` already gives one), refitted jointly
+    from ``current``: every subject starts at the shared value, so the fit is nested in
+    ``current`` and never worse than it."""
+    varying = tuple(n for n in current.model.param_names
+                    if n in set(names) | set(current.varying))
+    start = {n: {**{v: current.shared[v] for v in names}, **dict(b)}
+             for n, b in current.by_subject.items()}
+    fit = joint_fit(current.model, data, band, current.base, (dict(current.shared),),
+                    varying=varying, by_subject=start or None)
+    if fit.rss > current.rss:   # nested: never worse (a subject at the shared value)
+        subjects = data.subject_of_trials()
+        values = {s: {v: (current.by_subject.get(s, {}).get(v, current.shared[v]))
+                      for v in varying} for s in dict.fromkeys(subjects)}
+        fit = replace(current, varying=varying, subjects=tuple(subjects), by_subject=values,
+                      by_subject_lo={}, by_subject_hi={})
     return fit
 
 
@@ -87,4 +113,5 @@ def fit_borrowed(data: AxisData, band: tuple[float, float], current: JointFit,
     st_current = {**null, **current.shared}
     start = start_array(data)
     pairs = [(start_rows(model, data, band, st_common, [start, current.base]), st_common)]
-    return joint_fit(model, data, band, [current.base], [st_common, st_current], pairs=pairs)
+    return joint_fit(model, data, band, [current.base], [st_common, st_current], pairs=pairs,
+                     varying=current.varying, by_subject=current.by_subject)

@@ -1,12 +1,17 @@
 """The joint problem of one axis: every trial's arm parameters and the shared effect
 parameters in one least-squares fit (:mod:`armfit.blocklsq`), its starting points screened
-on a subset of trials and its stuck trials rescued by single-trial fits."""
+on a subset of trials and its stuck trials rescued by single-trial fits.
+
+An effect parameter is either **shared** by every trial of the axis or **per subject**
+(``varying``): one value per subject, shared by that subject's trials (a subject with one
+trial has its own value). Per-subject parameters are grouped shared columns of the
+block-arrow problem (:class:`armfit.blocklsq.Groups`): each trial sees its own subject's."""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import special
@@ -38,7 +43,13 @@ CHUNK_TRIALS = 64
 @dataclass(frozen=True)
 class JointFit:
     """Result of one joint fit: per-trial base parameters (T, 5), shared effect
-    parameters with 95 % intervals, residuals (T, n) and the residual sum of squares."""
+    parameters with 95 % intervals, residuals (T, n) and the residual sum of squares.
+
+    Per-subject parameters (``varying``, full names ``effect.param``): ``by_subject``
+    {subject: {name: value}} with 95 % intervals (``by_subject_lo``, ``by_subject_hi``),
+    ``subjects`` the subject of each trial; ``shared`` then holds their population value
+    (the mean over subjects in the fitter's coordinate, log for log parameters) with the
+    95 % interval of that mean from the subjects' spread."""
 
     model: ClosedLoopModel
     base: np.ndarray
@@ -51,12 +62,60 @@ class JointFit:
     n_res: int
     rho: float
     converged: bool
+    varying: tuple[str, ...] = ()
+    subjects: tuple[str, ...] = ()
+    by_subject: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    by_subject_lo: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    by_subject_hi: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+
+    @property
+    def n_free(self) -> int:
+        """Free parameters: the trials' arm parameters, the shared effect parameters and
+        one value per subject of each per-subject one."""
+        k = len(self.shared) - len(self.varying)
+        return int(self.base.size + k + len(self.by_subject) * len(self.varying))
+
+    def trial_values(self) -> dict[str, np.ndarray]:
+        """Every effect parameter's value in each trial, {name: (T,)}: the shared value,
+        or the trial's subject's."""
+        T = self.base.shape[0]
+        out = {n: np.full(T, float(v)) for n, v in self.shared.items()}
+        for n in self.varying:
+            out[n] = np.array([self.by_subject[s][n] for s in self.subjects], float)
+        return out
+
+    def subset(self, idx: np.ndarray, r_db: np.ndarray | None = None,
+               r_deg: np.ndarray | None = None, rss: float | None = None,
+               n_res: int | None = None) -> JointFit:
+        """The trials ``idx`` of this fit (their subjects' values only); residuals and
+        cost as given (default: the trials' rows, cost and count unchanged)."""
+        subjects = tuple(self.subjects[i] for i in idx) if self.subjects else ()
+        keep = set(subjects)
+
+        def pick(d: Mapping) -> dict:
+            return {k: v for k, v in d.items() if k in keep}
+
+        return replace(self, base=self.base[idx],
+                       r_db=self.r_db[idx] if r_db is None else r_db,
+                       r_deg=self.r_deg[idx] if r_deg is None else r_deg,
+                       rss=self.rss if rss is None else rss,
+                       n_res=self.n_res if n_res is None else n_res, subjects=subjects,
+                       by_subject=pick(self.by_subject),
+                       by_subject_lo=pick(self.by_subject_lo),
+                       by_subject_hi=pick(self.by_subject_hi))
 
 
 class JointProblem:
-    """Residuals of T trials with per-trial base parameters and shared effect parameters."""
+    """Residuals of T trials with per-trial base parameters and shared effect parameters
+    (``varying``: the effect parameters with one value per subject instead).
 
-    def __init__(self, model: ClosedLoopModel, data: AxisData, sel: np.ndarray):
+    The parameter vector x is the trials' base parameters (T·5), then the K values of the
+    effect parameters: the shared ones in the model's order, then per subject (in order of
+    first appearance) its values of the varying ones. ``cols`` (T, k) maps each trial's k
+    effect parameters to those K (None when nothing varies: K = k)."""
+
+    def __init__(self, model: ClosedLoopModel, data: AxisData, sel: np.ndarray,
+                 varying: Sequence[str] = ()):
         self.model = model
         self.space = ParamSpace.of(model)
         self.f = data.f_hz[sel]
@@ -68,12 +127,45 @@ class JointProblem:
         self.k = len(self.space.names) - self.nb
         self.base_idx = np.arange(self.nb)
         self.eff_idx = np.arange(self.nb, self.nb + self.k)
+        self.effect_names = tuple(self.space.names[self.nb:])
+        want = set(varying)
+        self.varying = tuple(n for n in self.effect_names if n in want)
+        self.trial_subjects = tuple(data.subject_of_trials())
+        self.subjects = tuple(dict.fromkeys(self.trial_subjects))
+        self.fixed = tuple(n for n in self.effect_names if n not in want)
+        if self.varying:
+            sidx = np.array([self.subjects.index(s) for s in self.trial_subjects])
+            kf, kv = len(self.fixed), len(self.varying)
+            cols = np.empty((self.T, self.k), dtype=np.intp)
+            for j, n in enumerate(self.effect_names):
+                cols[:, j] = (self.fixed.index(n) if n not in want
+                              else kf + sidx * kv + self.varying.index(n))
+            self.cols = cols
+            self.K = kf + len(self.subjects) * kv
+            self.local = np.empty(self.K, dtype=np.intp)   # global value -> local column
+            self.local[cols] = np.broadcast_to(np.arange(self.k), cols.shape)
+        else:
+            self.cols, self.K, self.local = None, self.k, np.arange(self.k)
 
     def unpack(self, x: np.ndarray) -> np.ndarray:
-        """x (T·5 + k) → z (T, P) in the transformed space."""
+        """x (T·5 + K) → z (T, P) in the transformed space."""
         zb = x[: self.T * self.nb].reshape(self.T, self.nb)
-        ze = np.broadcast_to(x[self.T * self.nb:], (self.T, self.k))
+        tail = x[self.T * self.nb:]
+        ze = np.broadcast_to(tail, (self.T, self.k)) if self.cols is None else tail[self.cols]
         return np.concatenate([zb, ze], axis=1)
+
+    def effect_values(self, x: np.ndarray) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
+        """The effect parameters at ``x`` (their units): ({name: value} of the shared
+        ones, {subject: {name: value}} of the varying ones)."""
+        theta = self.space.to_theta(self.unpack(x))
+        shared = {n: float(theta[0, self.nb + j]) for j, n in enumerate(self.effect_names)
+                  if n not in self.varying}
+        by_subject: dict[str, dict[str, float]] = {}
+        for i, subj in enumerate(self.trial_subjects):
+            if self.varying and subj not in by_subject:
+                by_subject[subj] = {n: float(theta[i, self.nb + self.effect_names.index(n)])
+                                    for n in self.varying}
+        return shared, by_subject
 
     def response(self, x: np.ndarray, rows: slice = slice(None)) -> np.ndarray:
         """The model's response of the trials ``rows`` at ``x``, (t, n)."""
@@ -134,22 +226,34 @@ class JointProblem:
         """The joint least-squares fit from ``x0`` (:func:`armfit.blocklsq.solve`)."""
         lo, hi = self.bounds()
         return blocklsq.solve(self.fun, self.jac, x0, lo, hi, n_trials=self.T,
-                              n_block=self.nb, max_nfev=max_nfev, **tol)
+                              n_block=self.nb, max_nfev=max_nfev, cols=self.cols, **tol)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo = np.concatenate([np.tile(self.space.zlo[: self.nb], self.T),
-                             self.space.zlo[self.nb:]])
+                             self.space.zlo[self.nb:][self.local]])
         hi = np.concatenate([np.tile(self.space.zhi[: self.nb], self.T),
-                             self.space.zhi[self.nb:]])
+                             self.space.zhi[self.nb:][self.local]])
         return lo, hi
 
-    def pack(self, base: np.ndarray, shared: Mapping[str, float]) -> np.ndarray:
+    def pack(self, base: np.ndarray, shared: Mapping[str, float],
+             by_subject: Mapping[str, Mapping[str, float]] | None = None) -> np.ndarray:
+        """x from the trials' base parameters (T, 5) and the effect values: ``shared``
+        {name: value}, and for a varying parameter its subject's value of ``by_subject``
+        where given, else the ``shared`` one."""
         full = np.zeros((self.T, len(self.space.names)))
         full[:, : self.nb] = base
-        for j, n in enumerate(self.space.names[self.nb:]):
+        for j, n in enumerate(self.effect_names):
             full[:, self.nb + j] = shared[n]
+            if n in self.varying and by_subject:
+                full[:, self.nb + j] = [by_subject.get(s, {}).get(n, shared[n])
+                                        for s in self.trial_subjects]
         z = self.space.clip_z(self.space.to_z(full))
-        return np.concatenate([z[:, : self.nb].ravel(), z[0, self.nb:]])
+        if self.cols is None:
+            tail = z[0, self.nb:]
+        else:
+            tail = np.empty(self.K)
+            tail[self.cols] = z[:, self.nb:]
+        return np.concatenate([z[:, : self.nb].ravel(), tail])
 
 
 def _lag1(r: np.ndarray) -> float:
@@ -163,25 +267,30 @@ def _lag1(r: np.ndarray) -> float:
 def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
               base: np.ndarray, starts: Sequence[Mapping[str, float]] = ({},),
               max_nfev: int = 200, pairs: Sequence[tuple[np.ndarray, Mapping]] = (),
-              refine_best: int | None = None, screen_nfev: int | None = None) -> JointFit:
+              refine_best: int | None = None, screen_nfev: int | None = None,
+              varying: Sequence[str] = (),
+              by_subject: Mapping[str, Mapping[str, float]] | None = None) -> JointFit:
     """Fit ``model`` to every trial of ``data`` at once: arm parameters per trial, effect
     parameters shared (see the module docstring). ``base`` (T, 5), or a list of such:
     starting arm parameters (SI units); ``starts``: candidate starting values of the shared
     effect parameters; ``pairs``: further (base, start) combinations. Every combination is
     tried briefly on a subset of trials, the best ``refine_best`` (default
     :data:`REFINE_BEST`) refined on all, at most ``max_nfev`` evaluations each (the brief
-    tries: ``screen_nfev``, default :data:`START_SCREEN_NFEV`).
+    tries: ``screen_nfev``, default :data:`START_SCREEN_NFEV`). ``varying``: effect
+    parameters (``effect.param``) with one value per subject, started at their subject's
+    value of ``by_subject`` {subject: {name: value}} where given, else at the start's.
     """
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
-    prob = JointProblem(model, data, sel)
+    prob = JointProblem(model, data, sel, varying)
     bases = [base] if isinstance(base, np.ndarray) else list(base)
     combos = [(b, st) for b in bases for st in starts] + list(pairs)
     if len(combos) > 1:
         x0s = screen_starts(model, data, sel, combos, prob,
                       REFINE_BEST if refine_best is None else refine_best,
-                      START_SCREEN_NFEV if screen_nfev is None else screen_nfev)
+                      START_SCREEN_NFEV if screen_nfev is None else screen_nfev,
+                      by_subject)
     else:
-        x0s = [prob.pack(*combos[0])]
+        x0s = [prob.pack(*combos[0], by_subject)]
     res = None
     seen = set()
     for x0 in x0s:
@@ -191,23 +300,57 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
         r = rescue_trials(prob, model, data, sel, refine(prob, x0, max_nfev), max_nfev)
         if res is None or r.cost < res.cost:
             res = r
-    z = prob.unpack(res.x)
-    theta = prob.space.to_theta(z)
+    return _result(prob, res)
+
+
+def _result(prob: JointProblem, res: blocklsq.BlockResult) -> JointFit:
+    """The :class:`JointFit` of the solution ``res`` of ``prob``."""
+    theta = prob.space.to_theta(prob.unpack(res.x))
     r_db, r_deg = prob.split_res(res.x)
-    names = prob.space.names[prob.nb:]
-    shared = {n: float(theta[0, prob.nb + j]) for j, n in enumerate(names)}
-    s_lo, s_hi = _shared_ci(prob, res, names)
+    shared, by_subject = prob.effect_values(res.x)
+    lo, hi = _effect_ci(prob, res)
+    s_lo = {n: lo[n] for n in shared}
+    s_hi = {n: hi[n] for n in shared}
+    b_lo = {s: {n: lo[(s, n)] for n in prob.varying} for s in by_subject}
+    b_hi = {s: {n: hi[(s, n)] for n in prob.varying} for s in by_subject}
+    for n in prob.varying:
+        shared[n], s_lo[n], s_hi[n] = _population(prob.space, n, by_subject)
+    shared = {n: shared[n] for n in prob.effect_names}
     zres = np.concatenate([r_db * prob.w_db, r_deg * prob.w_deg], axis=1)
     rho = (_lag1(r_db * prob.w_db) + _lag1(r_deg * prob.w_deg)) / 2
-    return JointFit(model, theta[:, : prob.nb], shared, s_lo, s_hi, r_db, r_deg,
+    return JointFit(prob.model, theta[:, : prob.nb], shared,
+                    {n: s_lo[n] for n in shared}, {n: s_hi[n] for n in shared}, r_db, r_deg,
                     float(np.sum(zres[np.isfinite(zres)] ** 2)), int(zres.size), rho,
-                    bool(res.status > 0))
+                    bool(res.status > 0), prob.varying,
+                    prob.trial_subjects if prob.varying else (), by_subject, b_lo, b_hi)
+
+
+def _population(space: ParamSpace, name: str, by_subject: Mapping[str, Mapping[str, float]]
+                ) -> tuple[float, float, float]:
+    """The population value of a per-subject parameter: the mean of the subjects' values
+    in the fitter's coordinate (log for a log parameter), with the 95 % interval of that
+    mean from their spread (Student's t, subjects − 1 degrees of freedom)."""
+    j = space.names.index(name)
+    vals = np.array([v[name] for v in by_subject.values()], float)
+    full = np.tile(space.to_theta(space.zlo), (vals.size, 1))
+    full[:, j] = vals
+    z = space.to_z(full)[:, j]
+    m = float(np.mean(z))
+    n = z.size
+    half = (float(special.stdtrit(n - 1, 0.975) * np.std(z, ddof=1) / np.sqrt(n))
+            if n > 1 else float("nan"))
+    pts = np.tile(space.to_theta(space.zlo), (3, 1))
+    zz = space.to_z(pts)
+    zz[:, j] = [m, m - half, m + half]
+    zz[1:, j] = np.clip(zz[1:, j], space.zlo[j], space.zhi[j])
+    th = space.to_theta(zz)[:, j]
+    return float(th[0]), float(th[1]), float(th[2])
 
 
 def refine(prob: JointProblem, x0: np.ndarray, max_nfev: int) -> blocklsq.BlockResult:
     """The joint fit from ``x0``, without its Jacobian blocks (``jb``, ``js`` None): a
     joint fit holds several results at once, each block as large as the study, and the
-    intervals evaluate the Jacobian again at the solution (:func:`_shared_ci`; the same
+    intervals evaluate the Jacobian again at the solution (:func:`_effect_ci`; the same
     values, :meth:`JointProblem.jac` being a function of the parameters alone)."""
     return replace(prob.solve(x0, max_nfev, ftol=1e-8, xtol=1e-8), jb=None, js=None)
 
@@ -229,7 +372,6 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
     x0 = res.x.copy()
     zb = x0[: prob.T * prob.nb].reshape(prob.T, prob.nb)
     theta = prob.space.to_theta(prob.unpack(res.x))
-    shared = theta[0, prob.nb:]
     good = np.setdiff1d(np.arange(prob.T), bad)
     typical = np.exp(np.median(np.log(theta[good, : prob.nb]), axis=0)) if good.size else None
     names = prob.space.names
@@ -237,11 +379,13 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
 
     def place(i: int, fit) -> None:
         row = np.array([fit.params[n] for n in PARAM_NAMES])
-        zb[i] = prob.space.clip_z(prob.space.to_z(np.concatenate([row, shared])))[: prob.nb]
+        zb[i] = prob.space.clip_z(prob.space.to_z(np.concatenate(
+            [row, theta[i, prob.nb:]])))[: prob.nb]
 
     for i in bad:
         if typical is not None:
-            start = dict(zip(names, np.concatenate([typical, shared]), strict=True))
+            start = dict(zip(names, np.concatenate([typical, theta[i, prob.nb:]]),
+                             strict=True))
             place(i, trial_fit(model, data, i, band, start))
             r = prob.fun(x0).reshape(prob.T, -1)[i]
             if float(r @ r) <= limit:
@@ -286,20 +430,22 @@ def trial_fit(model: ClosedLoopModel, data: AxisData, i: int, band: tuple[float,
 
 
 def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: int = REFINE_BEST,
-            nfev: int = START_SCREEN_NFEV) -> np.ndarray:
+                  nfev: int = START_SCREEN_NFEV,
+                  by_subject: Mapping[str, Mapping[str, float]] | None = None) -> np.ndarray:
     """Short fits of every (base, start) pair on a spread-out subset of the trials;
-    returns the full starting vectors built from the ``keep`` best."""
+    returns the full starting vectors built from the ``keep`` best (their effect values,
+    and the per-subject values of the subset's subjects, from the short fit; the other
+    subjects' from ``by_subject``)."""
     T = data.h.shape[0]
     idx = np.unique(np.linspace(0, T - 1, min(T, START_SCREEN_TRIALS)).round().astype(int))
-    sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
-                   tuple(data.starts[i] for i in idx))
-    sprob = JointProblem(model, sub, sel)
+    sub = data.subset(idx)
+    sprob = JointProblem(model, sub, sel, prob.varying)
     scored = []
     tried: dict[bytes, blocklsq.BlockResult] = {}
     for b, st in combos:
         # combinations that pack to the same start (e.g. a Levy row that is the given
         # row on every trial) have the same short fit: made once
-        x = sprob.pack(b[idx], st)
+        x = sprob.pack(b[idx], st, by_subject)
         r = tried.get(x.tobytes())
         if r is None:
             r = tried[x.tobytes()] = sprob.solve(x, nfev)
@@ -307,32 +453,47 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
     scored.sort(key=lambda t: t[0])
     out = []
     for _, b, st, xs in scored[:keep]:
-        x0 = prob.pack(b, st)
-        if prob.k:
-            x0[-prob.k:] = xs[-prob.k:]
+        if not prob.varying:
+            x0 = prob.pack(b, st)
+            if prob.k:
+                x0[-prob.k:] = xs[-prob.k:]
+        else:
+            shared, subs = sprob.effect_values(xs)
+            x0 = prob.pack(b, {**st, **shared}, {**(by_subject or {}), **subs})
         out.append(x0)
     return out
 
 
-def _shared_ci(prob: JointProblem, res, names) -> tuple[dict[str, float], dict[str, float]]:
-    """95 % intervals of the shared parameters from the Jacobian (Schur complement)."""
-    if not names:
+def _effect_ci(prob: JointProblem, res) -> tuple[dict, dict]:
+    """95 % intervals of the effect parameters from the Jacobian (Schur complement):
+    {name: value} of the shared ones and {(subject, name): value} of the varying ones,
+    lower and upper."""
+    if not prob.k:
         return {}, {}
     m, p = res.fun.size, res.x.size
     s2 = 2 * res.cost / max(m - p, 1)
-    k = len(names)
+    K = prob.K
     jb, js = (res.jb, res.js) if res.jb is not None else prob.jac(res.x)
-    var = s2 * np.diag(blocklsq.shared_covariance(jb, js))
+    var = s2 * np.diag(blocklsq.shared_covariance(jb, js, prob.cols, K))
     half = special.ndtri(0.975) * np.sqrt(np.maximum(var, 0))
-    z = res.x[-k:]
+    z = res.x[-K:]
     sp = prob.space
-    zl = np.clip(z - half, sp.zlo[prob.nb:], sp.zhi[prob.nb:])
-    zh = np.clip(z + half, sp.zlo[prob.nb:], sp.zhi[prob.nb:])
-    full_l = np.tile(sp.zlo, 1).astype(float)
-    full_h = full_l.copy()
-    full_l[prob.nb:] = zl
-    full_h[prob.nb:] = zh
-    tl = sp.to_theta(full_l)[prob.nb:]
-    th = sp.to_theta(full_h)[prob.nb:]
-    return ({n: float(v) for n, v in zip(names, tl, strict=True)},
-            {n: float(v) for n, v in zip(names, th, strict=True)})
+    zlo, zhi = sp.zlo[prob.nb:][prob.local], sp.zhi[prob.nb:][prob.local]
+    lo_t, hi_t = {}, {}
+    for bound, out in ((np.clip(z - half, zlo, zhi), lo_t), (np.clip(z + half, zlo, zhi), hi_t)):
+        if prob.cols is None:
+            full = np.tile(sp.zlo, 1).astype(float)
+            full[prob.nb:] = bound
+            th = sp.to_theta(full)[prob.nb:]
+            out.update({n: float(v) for n, v in zip(prob.effect_names, th, strict=True)})
+            continue
+        full = np.tile(sp.zlo, (prob.T, 1)).astype(float)
+        full[:, prob.nb:] = bound[prob.cols]
+        th = sp.to_theta(full)[:, prob.nb:]
+        for j, n in enumerate(prob.effect_names):
+            if n in prob.varying:
+                for i, subj in enumerate(prob.trial_subjects):
+                    out[(subj, n)] = float(th[i, j])
+            else:
+                out[n] = float(th[0, j])
+    return lo_t, hi_t

@@ -21,7 +21,9 @@ class AxisData:
 
     f_hz (n,) Hz; h (T, n) complex X/F in m/N; se_db, se_deg (T, n) the trials' standard
     errors as the spectra file holds them (:meth:`noise_se`: the noise model's); starts:
-    per trial the base parameters to start from (e.g. the grip fit of its grip).
+    per trial the base parameters to start from (e.g. the grip fit of its grip); labels:
+    per trial ``sub-<s>_grip-<g>N[_run-<k>]``; subjects: per trial its subject (empty:
+    unknown, every trial its own).
     """
 
     axis: str
@@ -31,6 +33,20 @@ class AxisData:
     se_deg: np.ndarray
     starts: tuple[Mapping[str, float], ...]
     labels: tuple[str, ...] = ()
+    subjects: tuple[str, ...] = ()
+
+    def subset(self, idx: np.ndarray) -> AxisData:
+        """The trials ``idx`` (an index array) of this axis."""
+        return AxisData(self.axis, self.f_hz, self.h[idx], self.se_db[idx],
+                        self.se_deg[idx], tuple(self.starts[i] for i in idx),
+                        tuple(self.labels[i] for i in idx) if self.labels else (),
+                        tuple(self.subjects[i] for i in idx) if self.subjects else ())
+
+    def subject_of_trials(self) -> tuple[str, ...]:
+        """Each trial's subject; a trial of unknown subject is its own (its label)."""
+        if self.subjects:
+            return self.subjects
+        return self.labels or tuple(str(i) for i in range(self.h.shape[0]))
 
     def noise_se(self, sel: np.ndarray | slice = slice(None)
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -81,7 +97,8 @@ def axis_data(spectra, params, axis: str) -> AxisData | None:
         starts.append({n: float(r[n]) for n in PARAM_NAMES})
     names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if run is None else f"_run-{run}")
                   for s, g, run in labels)
-    return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names)
+    return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names,
+                    tuple(str(s) for s, _, _ in labels))
 
 
 def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[str, float]:

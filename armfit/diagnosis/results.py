@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from armfit.diagnosis.bands import BandError, FailingBand
 
 __all__ = ["AxisDiagnosis", "Candidate", "FailedCandidate", "MissingEffect", "Step",
-           "short_params"]
+           "short_by_subject", "short_params"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,7 @@ class AxisDiagnosis:
     stop: str = ""
     shared: dict = field(default_factory=dict)
     failed_candidates: tuple[FailedCandidate, ...] = ()
+    subject_tests: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,9 @@ class Step:
     parameters as fitted at this step (with 95 % intervals; ``at_bound``: those within
     1 % of a physical bound), the errors of the model after the step (RMS dB, deg and
     normalised), ΔBIC against the previous step and the change the effect makes
-    (largest over the band, dB and deg)."""
+    (largest over the band, dB and deg). ``varying``: the effect's parameters with one
+    value per subject (their ``params`` then the population value; the errors those of
+    the per-subject form)."""
 
     effect: str | None
     params: dict[str, float]
@@ -92,12 +95,20 @@ class Step:
     delta_bic: float
     change_db: float = float("nan")
     change_deg: float = float("nan")
+    varying: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
 class MissingEffect:
     """An effect the stepwise search added: its parameters in the final joint fit with
-    95 % intervals, those at a bound, and the error/noise after the step that added it."""
+    95 % intervals, those at a bound, and the error/noise after the step that added it.
+
+    An effect whose values differ between subjects (:mod:`armfit.diagnosis.subjects`):
+    ``varying`` its parameters with one value per subject, ``by_subject`` {subject:
+    {param: value}} with 95 % intervals (``by_subject_lo``, ``by_subject_hi``), ``spread``
+    {param: {min, max, sd}} over the subjects; its ``params`` are then the population
+    values (the subjects' mean, log-mean for a log parameter, with the 95 % interval of
+    that mean)."""
 
     effect: str
     params: dict[str, float]
@@ -105,8 +116,21 @@ class MissingEffect:
     params_hi: dict[str, float]
     at_bound: tuple[str, ...]
     rms_norm_after: float
+    varying: tuple[str, ...] = ()
+    by_subject: dict[str, dict[str, float]] = field(default_factory=dict)
+    by_subject_lo: dict[str, dict[str, float]] = field(default_factory=dict)
+    by_subject_hi: dict[str, dict[str, float]] = field(default_factory=dict)
+    spread: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 def short_params(d: Mapping[str, float], effect: str) -> dict[str, float]:
     pre = effect + "."
     return {k[len(pre):]: float(v) for k, v in d.items() if k.startswith(pre)}
+
+
+def short_by_subject(d: Mapping[str, Mapping[str, float]], effect: str
+                     ) -> dict[str, dict[str, float]]:
+    """{subject: {param: value}} of ``effect``'s per-subject parameters (its own names),
+    subjects without one left out."""
+    out = {s: short_params(v, effect) for s, v in d.items()}
+    return {s: v for s, v in out.items() if v}

@@ -29,30 +29,30 @@ def _trial_subset(data: AxisData, fit: JointFit, idx: np.ndarray,
             band: tuple[float, float]) -> tuple[AxisData, JointFit]:
     """The trials ``idx`` of ``data`` and of ``fit`` (its residuals on ``band``), the
     subset's residual sum of squares weighted as :func:`joint_fit` weighs it."""
-    sub = AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx], data.se_deg[idx],
-                   tuple(data.starts[i] for i in idx))
+    sub = data.subset(idx)
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
     sdb, sdeg = sub.noise_se(sel)
     z = np.concatenate([fit.r_db[idx] / sdb, fit.r_deg[idx] / sdeg], axis=1)
-    return sub, JointFit(fit.model, fit.base[idx], fit.shared, fit.shared_lo, fit.shared_hi,
-                         fit.r_db[idx], fit.r_deg[idx], float(np.sum(z[np.isfinite(z)] ** 2)),
-                         int(z.size), fit.rho, fit.converged)
+    return sub, fit.subset(idx, rss=float(np.sum(z[np.isfinite(z)] ** 2)), n_res=int(z.size))
 
 
 def screen_candidate(data: AxisData, band: tuple[float, float], current: JointFit,
-           effect: Effect) -> JointFit:
+           effect: Effect, by_subject: bool = False) -> JointFit:
     """A cheap fit of ``current``'s model plus ``effect``: the same joint fit as
     :func:`fit_extend` (arm parameters per trial, effects shared, from the effect's null
     and starting points) on :data:`SCREEN_SUBSET` trials spread over the axis (one per
     grip in the paper's design) instead of all. Candidates are ranked by the fraction of
     the subset's cost they remove; the best :data:`SCREEN_KEEP` get the joint fit on all
-    trials, started from the screening's effect values. Returns the subset's fit."""
+    trials, started from the screening's effect values. ``by_subject``: the effect with
+    one value per subject (an effect of the arm, :mod:`armfit.diagnosis.subjects`): on
+    the subset, whose trials are of different subjects in the paper's design, one value
+    per trial. Returns the subset's fit."""
     T = data.h.shape[0]
     if T <= SCREEN_SUBSET:
-        return fit_extend(data, band, current, effect)
+        return fit_extend(data, band, current, effect, by_subject=by_subject)
     idx = np.unique(np.linspace(0, T - 1, SCREEN_SUBSET).round().astype(int))
     sub, cur = _trial_subset(data, current, idx, band)
-    return fit_extend(sub, band, cur, effect, quick=True)
+    return fit_extend(sub, band, cur, effect, quick=True, by_subject=by_subject)
 
 
 def rank_screened(screened: list[tuple[Effect, JointFit]]) -> list[tuple[Effect, JointFit]]:

@@ -32,10 +32,18 @@ from armfit.diagnosis.results import (
     FailedCandidate,
     MissingEffect,
     Step,
+    short_by_subject,
     short_params,
 )
 from armfit.diagnosis.schedule import TaskQueue, task_queue
 from armfit.diagnosis.screen import keep_screened, rank_screened, screen_candidate
+from armfit.diagnosis.subjects import (
+    SubjectTest,
+    by_subject_search,
+    per_subject_default,
+    spread,
+    subjects_allow,
+)
 from armfit.diagnosis.tuning import (
     MAX_STEPS,
     MIN_EFFECT_DB,
@@ -62,7 +70,9 @@ class CandidateFit:
     the current fit: ``score`` (ΔBIC), ``significant`` (statistically and practically),
     ``error`` (the fit's errors over the band), ``rss_reduction`` (fraction of the cost it
     removes), ``lr`` (the likelihood-ratio statistic D) and the largest change it makes
-    to the response (``change_db`` dB, ``change_deg`` deg)."""
+    to the response (``change_db`` dB, ``change_deg`` deg); ``subject_test``: the test of
+    its per-subject form when it was made before the choice (an effect of the arm), the
+    fit then being the form chosen."""
 
     effect: Effect
     fit: JointFit
@@ -73,6 +83,7 @@ class CandidateFit:
     lr: float
     change_db: float
     change_deg: float
+    subject_test: SubjectTest | None = None
 
     @property
     def at_bound(self) -> bool:
@@ -99,9 +110,20 @@ class _Search:
         self.failed: dict[str, str] = {}
         self.stop = ""
         self.done = False
+        self.allow_subjects = subjects_allow(data)
+        self.subject_tests: list[SubjectTest] = []
+        #: the apparatus effect just added, whose per-subject form is still to be tested,
+        #: the step's other candidates fitted on all trials, and the test's outcome
+        self.untested: Effect | None = None
+        self.rivals: list[CandidateFit] = []
+        self.winner: tuple | None = None
 
     def n_params(self, fit: JointFit) -> int:
-        return fit.base.size + len(fit.shared)
+        return fit.n_free
+
+    def by_subject_now(self, effect: Effect) -> bool:
+        """Whether a candidate's per-subject form is tested before the step's choice."""
+        return self.allow_subjects and per_subject_default(effect)
 
     def start(self, base: JointFit) -> None:
         ad = self._adequacy(base)
@@ -135,33 +157,38 @@ class _Search:
         return rank_screened([(e, screen_candidate(self.data, self.band, self.fits[-1], e))
                       for e in self.remaining()])
 
-    def take(self, fits: Sequence[tuple[Effect, JointFit]],
-             screened: Sequence[tuple[Effect, JointFit]] = ()) -> None:
-        """Evaluate this step's candidate fits (on all trials); add the best significant
-        one or stop. ``screened``: candidates left at their screening fit (reported
-        among the candidates of the first step, never added)."""
+    def evaluate(self, eff: Effect, fit: JointFit, cur: JointFit,
+                 test: SubjectTest | None = None) -> CandidateFit:
+        """The evidence for ``fit`` (``cur``'s model plus ``eff``) against ``cur``."""
+        lr, n_eff, reduction = robust_lr(cur, fit, self.se_db, self.se_deg)
+        score = float(lr - (fit.n_free - cur.n_free) * np.log(max(n_eff, 2.0)))
+        err = band_error(self.f, fit.r_db, fit.r_deg, self.se_db, self.se_deg, *self.band)
+        size_db, size_deg = effect_size(fit, eff, self.f)
+        prac, _ = practical(self.f, size_db, size_deg, self.se_db, self.se_deg,
+                            self.min_db, self.min_deg)
+        stat = bool(score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION)
+        return CandidateFit(eff, fit, score, stat and prac, err, reduction, lr,
+                            float(np.nanmax(size_db, initial=0.0)),
+                            float(np.nanmax(size_deg, initial=0.0)), test)
+
+    def take(self, fits: Sequence[tuple], screened: Sequence[tuple[Effect, JointFit]] = ()
+             ) -> None:
+        """Evaluate this step's candidate fits on all trials, each ``(effect, fit)`` or,
+        tested per subject already, ``(effect, fit, test)``; add the best significant one
+        or stop. ``screened``: candidates left at their screening fit (reported among
+        the candidates of the first step, never added). An apparatus effect added
+        shared is left :attr:`untested`: its per-subject test comes next
+        (:meth:`tested`)."""
         cur = self.fits[-1]
-        cands = []
-        for eff, fit in fits:
-            lr, n_eff, reduction = robust_lr(cur, fit, self.se_db, self.se_deg)
-            score = float(lr - len(eff.params) * np.log(max(n_eff, 2.0)))
-            err = band_error(self.f, fit.r_db, fit.r_deg, self.se_db, self.se_deg,
-                             *self.band)
-            size_db, size_deg = effect_size(fit, eff, self.f)
-            prac, _ = practical(self.f, size_db, size_deg, self.se_db, self.se_deg,
-                                self.min_db, self.min_deg)
-            stat = bool(score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION)
-            cands.append(CandidateFit(eff, fit, score, stat and prac, err, reduction, lr,
-                                      float(np.nanmax(size_db, initial=0.0)),
-                                      float(np.nanmax(size_deg, initial=0.0))))
+        cands = [self.evaluate(eff, fit, cur, test[0] if test else None)
+                 for eff, fit, *test in fits]
         cands.sort(key=lambda c: c.score, reverse=True)
         if not self.added:
             self.first_candidates = tuple(self._candidate(c) for c in cands) + tuple(
                 self._screened_candidate(e, sc) for e, sc in screened)
         # an effect with a parameter at a physical bound is only the library's nearest
         # approximation: take it only when no significant candidate is free of bounds
-        free = [c for c in cands if c.significant and not c.at_bound]
-        best = free[0] if free else next((c for c in cands if c.significant), None)
+        best = self._best(cands)
         if not self.added and best is not None:
             self.tied = tuple(c.effect.name for c in cands
                               if c.significant and c.effect is not best.effect
@@ -173,6 +200,59 @@ class _Search:
             return
         self._append(best.effect, best.fit, self._adequacy(best.fit), best.score,
                      best.change_db, best.change_deg)
+        if best.subject_test is not None:
+            self.subject_tests.append(best.subject_test)
+        elif self.allow_subjects:
+            self.untested = best.effect     # an apparatus effect: test it per subject now
+            self.rivals = [c for c in cands if c is not best and c.subject_test is None]
+            return
+        self._check_stop()
+
+    @staticmethod
+    def _best(cands: Sequence[CandidateFit]) -> CandidateFit | None:
+        """The best significant candidate by ΔBIC, one free of physical bounds first."""
+        ranked = sorted(cands, key=lambda c: c.score, reverse=True)
+        free = [c for c in ranked if c.significant and not c.at_bound]
+        return free[0] if free else next((c for c in ranked if c.significant), None)
+
+    def tested(self, result: tuple[JointFit, SubjectTest] | None) -> list[CandidateFit]:
+        """The per-subject test of the apparatus effect just added (:attr:`untested`;
+        ``result`` None when its code failed in a per-subject fit: it stays shared).
+        When the data demand one value per subject, the step's other candidates fitted
+        on all trials (:attr:`rivals`) are returned to be tested per subject too — the
+        step then compares every candidate in the form its data chose
+        (:meth:`settle`); otherwise the step is settled and [] returned."""
+        eff, self.untested = self.untested, None
+        if result is None:
+            self._check_stop()
+            return []
+        fit, test = result
+        self.winner = (eff, fit, test)
+        if test.by_subject and self.rivals:
+            return list(self.rivals)
+        self.settle([], [])
+        return []
+
+    def settle(self, rivals: Sequence[CandidateFit],
+               results: Sequence[tuple[JointFit, SubjectTest] | None]) -> None:
+        """End the step: among the effect added (in the form its test chose) and the
+        ``rivals`` per subject (their tests' ``results``, those the data demanded), the
+        best significant one against the fit before the step is the step's effect."""
+        eff, fit, test = self.winner
+        prev = self.fits[-2]
+        options = [self.evaluate(eff, fit, prev, test)]
+        for c, r in zip(rivals, results, strict=True):
+            if r is not None and r[1].by_subject:
+                options.append(self.evaluate(c.effect, r[0], prev, r[1]))
+        best = self._best(options) or options[0]
+        self.subject_tests.append(best.subject_test)
+        if best.effect is not eff or best.subject_test.by_subject:
+            self.added.pop()
+            self.fits.pop()
+            self.adequacies.pop()
+            self.steps.pop()
+            self._append(best.effect, best.fit, self._adequacy(best.fit), best.score,
+                         best.change_db, best.change_deg)
         self._check_stop()
 
     def _adequacy(self, fit: JointFit) -> Adequacy:
@@ -187,10 +267,11 @@ class _Search:
         self.added.append(eff)
         self.fits.append(fit)
         self.adequacies.append(ad)
+        varying = tuple(short_params({n: 0.0 for n in fit.varying}, eff.name))
         self.steps.append(Step(eff.name, p, short_params(fit.shared_lo, eff.name),
                                short_params(fit.shared_hi, eff.name),
                                tuple(at_bound(eff.params, p)), err.rms_db, err.rms_deg,
-                               err.rms_norm, float(score), change_db, change_deg))
+                               err.rms_norm, float(score), change_db, change_deg, varying))
 
     def _candidate(self, c: CandidateFit) -> Candidate:
         eff, fit, err = c.effect, c.fit, c.error
@@ -277,10 +358,15 @@ class _Search:
         missing = []
         for i, eff in enumerate(self.added):
             p = short_params(final.shared, eff.name)
+            varying = tuple(short_params({n: 0.0 for n in final.varying}, eff.name))
+            by_subj = short_by_subject(final.by_subject, eff.name) if varying else {}
             missing.append(MissingEffect(
                 eff.name, p, short_params(final.shared_lo, eff.name),
                 short_params(final.shared_hi, eff.name), tuple(at_bound(eff.params, p)),
-                self.steps[i + 1].rms_norm))
+                self.steps[i + 1].rms_norm, varying, by_subj,
+                short_by_subject(final.by_subject_lo, eff.name) if varying else {},
+                short_by_subject(final.by_subject_hi, eff.name) if varying else {},
+                spread(by_subj, varying) if varying else {}))
         errors = [s.rms_norm for s in self.steps]
         for i in range(1, len(errors)):      # nested fits: never rises (guard rounding)
             errors[i] = min(errors[i], errors[i - 1])
@@ -295,7 +381,8 @@ class _Search:
             adequate=bool(ad.adequate), steps=tuple(self.steps),
             final_error=ad.overall, final_bands=ad.bands, final_failing=ad.failing,
             stop=self.stop, failed_candidates=tuple(FailedCandidate(n, r)
-                                                    for n, r in self.failed.items()))
+                                                    for n, r in self.failed.items()),
+            subject_tests=tuple(self.subject_tests))
 
 
 # Each task gives back the memory its fit freed (:func:`armfit.memory.release_memory`): a
@@ -311,9 +398,9 @@ def _base_task(args):
 
 
 def _screen_task(args):
-    data, band, current, effect = args
+    data, band, current, effect, by_subject = args
     try:
-        return screen_candidate(data, band, current, effect)
+        return screen_candidate(data, band, current, effect, by_subject)
     except EffectDefinitionError as exc:     # the effect's own code broke the fit
         return FailedCandidate(effect.name, str(exc))
     finally:
@@ -321,11 +408,27 @@ def _screen_task(args):
 
 
 def _extend_task(args):
-    data, band, current, effect, screened = args
+    """The candidate's joint fit on all trials; with ``subjects`` (min_db, min_deg) its
+    per-subject test too, giving (fit of the form chosen, test)."""
+    data, band, current, effect, screened, *subjects = args
     try:
-        return fit_extend(data, band, current, effect, screened)
+        fit = fit_extend(data, band, current, effect, screened)
+        if subjects:
+            return by_subject_search(data, band, fit, effect, *subjects[0])
+        return fit
     except EffectDefinitionError as exc:     # the effect's own code broke the fit
         return FailedCandidate(effect.name, str(exc))
+    finally:
+        release_memory()
+
+
+def _subject_task(args):
+    """The per-subject test of an effect just added: (fit of the form chosen, test)."""
+    data, band, fit, effect, min_db, min_deg = args
+    try:
+        return by_subject_search(data, band, fit, effect, min_db, min_deg)
+    except EffectDefinitionError:    # the effect's own code broke a fit: keep it shared
+        return None
     finally:
         release_memory()
 
@@ -464,7 +567,7 @@ class _AxisSteps:
         parts = _gather(len(effects), lambda sfits: self._screened(effects, sfits))
         for e, then in zip(effects, parts, strict=True):
             self.tasks.add((_SCREEN, step, -len(e.params)), _screen_task,
-                           (s.data, s.band, s.fits[-1], e), then)
+                           (s.data, s.band, s.fits[-1], e, s.by_subject_now(e)), then)
 
     def _screened(self, effects: Sequence[Effect], sfits: Sequence) -> None:
         s = self.s
@@ -476,19 +579,41 @@ class _AxisSteps:
         kept = keep_screened(screened)
         parts = _gather(len(kept), lambda fits: self._take(screened, kept, fits))
         for (e, sc), then in zip(kept, parts, strict=True):
-            self.tasks.add((_EXTEND,), _extend_task, (s.data, s.band, s.fits[-1], e, sc),
-                           then)
+            extra = ((s.min_db, s.min_deg),) if s.by_subject_now(e) else ()
+            self.tasks.add((_EXTEND,), _extend_task,
+                           (s.data, s.band, s.fits[-1], e, sc, *extra), then)
 
     def _take(self, screened, kept, fits) -> None:
         s = self.s
         for fit in fits:
             if isinstance(fit, FailedCandidate):
                 s.fail(fit)
-        full = {e.name: fit for (e, _), fit in zip(kept, fits, strict=True)
+        full = {e.name: (fit if isinstance(fit, tuple) else (fit,))
+                for (e, _), fit in zip(kept, fits, strict=True)
                 if not isinstance(fit, FailedCandidate)}
-        s.take([(e, full[e.name]) for e, _ in screened if e.name in full],
+        s.take([(e, *full[e.name]) for e, _ in screened if e.name in full],
                screened=[(e, sc) for e, sc in screened
                          if e.name not in full and e.name not in s.failed])
+        if s.untested is not None:
+            self.tasks.add((_EXTEND,), _subject_task,
+                           (s.data, s.band, s.fits[-1], s.untested, s.min_db, s.min_deg),
+                           self._tested)
+            return
+        self._step()
+
+    def _tested(self, result) -> None:
+        s = self.s
+        rivals = s.tested(result)
+        if not rivals:
+            self._step()
+            return
+        parts = _gather(len(rivals), lambda results: self._settled(rivals, results))
+        for c, then in zip(rivals, parts, strict=True):
+            self.tasks.add((_EXTEND,), _subject_task,
+                           (s.data, s.band, c.fit, c.effect, s.min_db, s.min_deg), then)
+
+    def _settled(self, rivals, results) -> None:
+        self.s.settle(rivals, results)
         self._step()
 
 
