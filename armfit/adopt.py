@@ -20,6 +20,15 @@ as such.
 * ``arm`` effects (a stretch reflex) belong to the **person**: they are fitted freely in
   every fit, like the five arm parameters.
 
+**Per subject.** An effect whose values the diagnosis found to differ between subjects
+(:mod:`armfit.diagnosis.subjects`) carries them into the per-trial fits: every trial's fit
+holds all of that effect's parameters at its subject's values (the per-subject ones at
+the subject's, the others at the joint fit's), so the stability of each trial, and the
+wall every subject renders stably, follow from them; W_max removes an apparatus effect
+with each trial's own subject's values. The aggregate tables (Table I: grip means over
+subjects; Table II: the axis median) hold an apparatus effect at the subjects' mean
+(the population value of the diagnosis) and fit an arm effect freely, as above.
+
 **Policy** (``auto``, the default of ``armfit run``): every effect the search added, in
 order, up to the first that ended with a parameter at its bound — there the library's
 effect is only the nearest approximation of what the data show, so it and the effects
@@ -33,8 +42,8 @@ the paper does.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 
 import pandas as pd
 
@@ -85,6 +94,12 @@ class AxisAdoption:
         Effects the diagnosis added but this model leaves out, with the reason.
     verdict : str
         The diagnosis's verdict sentence.
+    by_subject : dict
+        {subject: {``effect.param``: value}} of the adopted effects whose values differ
+        between subjects: every parameter of such an effect, held at these values in each
+        subject's per-trial fits (empty when every effect is shared).
+    varying : tuple of str
+        The parameters (``effect.param``) with one value per subject.
     """
 
     axis: str
@@ -96,6 +111,8 @@ class AxisAdoption:
     rms_norm_adopted: float = math.nan
     declined: tuple[tuple[str, str], ...] = ()
     verdict: str = ""
+    by_subject: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    varying: tuple[str, ...] = ()
 
     @property
     def adopted(self) -> bool:
@@ -127,6 +144,29 @@ class AxisAdoption:
                 out.append(name)
         return out
 
+    @property
+    def subject_effects(self) -> tuple[str, ...]:
+        """The adopted effects whose values differ between subjects."""
+        return tuple(dict.fromkeys(n.split(".", 1)[0] for n in self.varying))
+
+    def items_for(self, subject: str) -> list:
+        """The model of one subject's per-trial fits as effect items: :meth:`items`, with
+        every parameter of an effect that differs between subjects held at the
+        subject's values (:attr:`by_subject`); :meth:`items` for a subject the diagnosis
+        did not see."""
+        values = self.by_subject.get(str(subject))
+        if not values:
+            return self.items()
+        per = set(self.subject_effects)
+        out: list = []
+        for item, name in zip(self.items(), self.effects, strict=True):
+            if name in per:
+                out.append((name, {k.split(".", 1)[1]: v for k, v in values.items()
+                                   if k.split(".", 1)[0] == name}))
+            else:
+                out.append(item)
+        return out
+
     def sentence(self) -> str:
         """What was adopted on this axis and why, in one sentence."""
         if not self.effects:
@@ -135,12 +175,22 @@ class AxisAdoption:
             return f"{self.axis.upper()}: base model (nothing adopted){why}"
         held = ", ".join(f"{h.name} = {h.value:.5g}" + (
             f" [{h.lo:.5g}, {h.hi:.5g}]" if math.isfinite(h.lo) and math.isfinite(h.hi)
-            else "") for h in self.held)
+            else "") for h in self.held if h.name not in self.varying)
         parts = [f"{self.axis.upper()}: adopted {' + '.join(self.effects)}"]
         if held:
             parts.append(f"held at the diagnosis's joint fit ({held})")
-        if self.arm:
-            parts.append(f"{', '.join(self.arm)} fitted per row (an effect of the arm)")
+        for name in self.varying:
+            vals = [v[name] for v in self.by_subject.values()]
+            mean = next((h for h in self.held if h.name == name), None)
+            parts.append(f"{name} one value per subject ({min(vals):.5g}–{max(vals):.5g} "
+                         f"over {len(vals)} subjects), each subject's own in its per-trial "
+                         "fits" + (f", the subjects' mean {mean.value:.5g} in Tables I and "
+                                   "II" if mean is not None else ", fitted per row in "
+                                   "Tables I and II"))
+        per = self.subject_effects
+        if self.arm and any(e not in per for e in self.arm):
+            parts.append(f"{', '.join(e for e in self.arm if e not in per)} fitted per row "
+                         "(an effect of the arm)")
         err = (f"error/noise {self.rms_norm_base:.3g} → {self.rms_norm_adopted:.3g}"
                if math.isfinite(self.rms_norm_base) else "")
         parts.append(("adequate" if self.adequate else "still inadequate")
@@ -194,6 +244,30 @@ class Adoption:
         """{axis: adopted apparatus effects}."""
         return {a.axis: a.apparatus for a in self.axes}
 
+    @property
+    def by_subject(self) -> dict[str, Mapping[str, Mapping[str, float]]]:
+        """{axis: {subject: {``effect.param``: value}}} of the axes with an effect whose
+        values differ between subjects (empty when every effect is shared)."""
+        return {a.axis: a.by_subject for a in self.axes if a.by_subject}
+
+    @property
+    def subject_effects(self) -> dict[str, dict[str, list]]:
+        """{axis: {subject: effect items}} of the per-trial fits of the axes with
+        per-subject values (:meth:`AxisAdoption.items_for`)."""
+        return {a.axis: {s: a.items_for(s) for s in a.by_subject} for a in self.axes
+                if a.by_subject}
+
+    def subjects_frame(self) -> pd.DataFrame:
+        """One row per axis, subject and parameter of an effect whose values differ
+        between subjects: ``axis, subject, effect, param, value, per_subject`` (False for
+        a parameter of such an effect that the subjects share)."""
+        rows = [{"axis": a.axis, "subject": subj, "effect": n.split(".", 1)[0],
+                 "param": n.split(".", 1)[1], "value": v, "per_subject": n in a.varying}
+                for a in self.axes for subj, values in a.by_subject.items()
+                for n, v in values.items()]
+        return pd.DataFrame(rows, columns=["axis", "subject", "effect", "param", "value",
+                                           "per_subject"])
+
     def to_frame(self) -> pd.DataFrame:
         """One row per axis: :data:`ADOPTION_COLUMNS` (``held``: ``name=value`` items
         separated by ';'; ``declined``: the effects left out, ';'-separated, with the
@@ -218,7 +292,10 @@ class Adoption:
             "rms_norm_base": _finite(a.rms_norm_base),
             "rms_norm_adopted": _finite(a.rms_norm_adopted),
             "declined": [{"effect": e, "reason": r} for e, r in a.declined],
-            "sentence": a.sentence()} for a in self.axes}}
+            "sentence": a.sentence()} | ({"varying": list(a.varying),
+                                          "by_subject": {s: dict(v) for s, v in
+                                                         a.by_subject.items()}}
+                                         if a.by_subject else {}) for a in self.axes}}
 
 
 def _finite(v: float) -> float | None:
@@ -253,6 +330,8 @@ def _axis_adoption(d, policy: str) -> AxisAdoption:
                             rms_norm_base=base_err, rms_norm_adopted=base_err,
                             declined=tuple(declined), verdict=d.verdict)
     held = []
+    by_subject: dict[str, dict[str, float]] = {}
+    varying: list[str] = []
     for m in taken:
         if get_effect(m.effect).stage in APPARATUS_STAGES:
             for p, v in m.params.items():
@@ -261,12 +340,18 @@ def _axis_adoption(d, policy: str) -> AxisAdoption:
                 held.append(HeldValue(f"{m.effect}.{p}", float(f"{float(v):.10g}"),
                                       float(m.params_lo.get(p, math.nan)),
                                       float(m.params_hi.get(p, math.nan))))
+        for subj, values in m.by_subject.items():
+            row = by_subject.setdefault(subj, {})
+            for p, v in m.params.items():
+                row[f"{m.effect}.{p}"] = float(f"{float(values.get(p, v)):.10g}")
+        varying += [f"{m.effect}.{p}" for p in m.varying]
     err = float(taken[-1].rms_norm_after) if declined else float(final.rms_norm)
     return AxisAdoption(axis, effects=tuple(m.effect for m in taken), held=tuple(held),
                         band_hz=tuple(map(float, d.band)),
                         adequate=bool(d.adequate) and not declined,
                         rms_norm_base=base_err, rms_norm_adopted=err,
-                        declined=tuple(declined), verdict=d.verdict)
+                        declined=tuple(declined), verdict=d.verdict, by_subject=by_subject,
+                        varying=tuple(varying))
 
 
 def adopt(diagnosis, policy: str = "auto") -> Adoption:

@@ -782,6 +782,9 @@ class Uncertainty(_HtmlTable):
     notes : tuple of str
         The axes left out, in sentences (:func:`armfit.uncertainty.weight_axis_notes`):
         derived trials without a nominal row, or a nominal row without derived trials.
+    by_subject : dict
+        {axis: {subject: {``effect.param``: value}}}: effect values per subject with
+        which each trial's apparatus effects were removed (empty: the nominal row's).
     """
 
     axes: tuple[_uncertainty.AxisUncertainty, ...]
@@ -790,6 +793,7 @@ class Uncertainty(_HtmlTable):
     spectra: Spectra | None = None
     nominal: ModelFit | None = None
     notes: tuple[str, ...] = ()
+    by_subject: Mapping[str, Mapping[str, Mapping[str, float]]] = field(default_factory=dict)
 
     @property
     def weights(self) -> dict[str, _uncertainty.WuWeight]:
@@ -893,7 +897,9 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
                     band: _Band | None = None, smooth_oct: float | None = None,
                     method: str | None = None,
                     check: Mapping[str, Mapping[str, _uncertainty.WuWeight]] | None = None,
-                    jobs: int = 1, executor: Executor | None = None) -> Uncertainty:
+                    jobs: int = 1, executor: Executor | None = None,
+                    by_subject: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None
+                    ) -> Uncertainty:
     """W_max (eq. 6) of every trial's derived arm dynamics against the nominal H_ARM and
     the weight Wu(s) = K Π(s − z)/Π(s − p) (eq. 7, s in rad/s) per axis (Table III,
     ``armfit fit-uncertainty``).
@@ -925,6 +931,10 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
         Runs the tasks instead of ``jobs`` worker processes: a process pool of yours, or
         a ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
         down; see :mod:`armfit.workers`). The result does not depend on it.
+    by_subject : dict, optional
+        {axis: {subject: {``effect.param``: value}}}: effect values per subject; each
+        trial's apparatus effects are removed with its subject's (default: an
+        ``AdoptedModel``'s, :attr:`armfit.adopt.Adoption.by_subject`; else none).
 
     Returns
     -------
@@ -939,10 +949,12 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
     """
     sp = _spectra(spectra)
     nom = nominal.nominal if isinstance(nominal, AdoptedModel) else ModelFit.of(nominal)
+    if by_subject is None and isinstance(nominal, AdoptedModel):
+        by_subject = nominal.adoption.by_subject
     results = _uncertainty.fit_weights(sp, nom.table, cost=cost, n_pairs=order,
                                            band=band, smooth_oct=smooth_oct, method=method,
                                            given=check, jobs=jobs, executor=executor,
-                                           source=nom.source)
+                                           source=nom.source, by_subject=by_subject)
     bad = [r.axis for r in results if not r.result.converged]
     if bad and cost == "paper":
         raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "
@@ -950,7 +962,8 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
                                option="order=")
     notes = _uncertainty.weight_axis_notes(sp, nom.table, spectra_label=sp.source,
                                            params_label=nom.source)
-    return Uncertainty(tuple(results), cost, smooth_oct, sp, nom, tuple(notes))
+    return Uncertainty(tuple(results), cost, smooth_oct, sp, nom, tuple(notes),
+                       dict(by_subject or {}))
 
 
 def read_weights(path: PathLike) -> dict[str, _uncertainty.WuWeight]:
@@ -1372,7 +1385,8 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
         starts = _fitting.grip_fit_starts(keys, grip.fits)
         effects = ad.effects
         fits = _fitting.fit_trial_models(sp, cost=cost, bands=bands, effects=effects,
-                                   jobs=jobs, starts=starts, executor=executor)
+                                   jobs=jobs, starts=starts, executor=executor,
+                                   subject_effects=ad.subject_effects or None)
         per_trial = TrialFits(tuple(fits), effects, sp)
     return AdoptedModel(ad, grip, nominal, per_trial, base, diagnosis)
 

@@ -1360,7 +1360,8 @@ def residual_figure(spectra, params, params2=None, *, axis: str | None = None,
 UNCERTAINTY_LABEL = "Relative uncertainty\n(dB, dimensionless)"
 
 
-def uncertainty_axes(mag, ph, unc, spectra, nominal, weights=None, *, axis: str
+def uncertainty_axes(mag, ph, unc, spectra, nominal, weights=None, *, axis: str,
+                     by_subject: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None
                      ) -> dict[str, Any]:
     """Draw one axis of Fig. 6 — a column of :func:`uncertainty_figure` — on Axes of your
     own.
@@ -1376,12 +1377,20 @@ def uncertainty_axes(mag, ph, unc, spectra, nominal, weights=None, *, axis: str
         Nominal fits (its nominal, for an adopted model).
     weights : {axis: WuWeight} or Uncertainty, optional
     axis : {'x', 'y', 'z'}
+    by_subject : dict, optional
+        {axis: {subject: {``effect.param``: value}}}: effect values per subject, each
+        trial's apparatus effects removed with its subject's (default: an
+        ``Uncertainty``'s or ``AdoptedModel``'s own; else the nominal row's).
 
     Returns
     -------
     dict
         The legend entries drawn, {name: handle}.
     """
+    if by_subject is None:
+        by_subject = (getattr(weights, "by_subject", None)
+                      or getattr(getattr(nominal, "adoption", None), "by_subject", None))
+    subject_values = (by_subject or {}).get(axis) or {}
     spectra = _spectra_of(spectra)
     nominal = _params_table(nominal, "nominal")
     weights = _weights_of(weights)
@@ -1395,7 +1404,8 @@ def uncertainty_axes(mag, ph, unc, spectra, nominal, weights=None, *, axis: str
         raise BadInputError(f"no nominal model row for axis {axis}", column="axis")
     model, theta = model_from_row(pairs[0][1])
     if model.apparatus_effects:    # the arm alone, as W_max sees it (arm_trials)
-        curves = [_arm_curve(c, pairs[0][1], spectra, axis) for c in curves]
+        curves = [_arm_curve(c, {**pairs[0][1], **subject_values.get(str(c.key[1]), {})},
+                             spectra, axis) for c in curves]
     fd = _log_grid(f)
     h_nom = model.arm_response(fd, theta)
     ref = _PhaseRef(fd, _phase_deg(h_nom))
@@ -1430,7 +1440,9 @@ def uncertainty_axes(mag, ph, unc, spectra, nominal, weights=None, *, axis: str
 
 
 @_styled
-def uncertainty_figure(spectra, nominal, weights=None, *, axis: str | None = None) -> Figure:
+def uncertainty_figure(spectra, nominal, weights=None, *, axis: str | None = None,
+                       by_subject: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None
+                       ) -> Figure:
     """Derived arm dynamics with the nominal H_ARM, and W_max with |Wu| — paper Fig. 6.
 
     Rows: magnitude and phase of every trial's derived arm dynamics Xa/Fa (kind
@@ -1440,7 +1452,8 @@ def uncertainty_figure(spectra, nominal, weights=None, *, axis: str | None = Non
     dash-dot), then W_max = max over trials |H/H̄ − 1| in dB (eq. 6; dots) with |Wu(jω)|
     in dB (eq. 7, ``weights`` {axis: WuWeight} as :func:`armfit.io.artifacts.read_wu`
     returns, or an ``Uncertainty`` result; line), both ratios, dimensionless. ``nominal``:
-    a params table, ``ModelFit`` or ``AdoptedModel``.
+    a params table, ``ModelFit`` or ``AdoptedModel``; ``by_subject``: effect values per
+    subject (:func:`uncertainty_axes`).
     """
     spectra = _spectra_of(spectra)
     axes = _axes_in(spectra, "derived", axis)
@@ -1448,7 +1461,8 @@ def uncertainty_figure(spectra, nominal, weights=None, *, axis: str | None = Non
     handles: dict[str, Any] = {}
     for j, ax_name in enumerate(axes):
         axs[0, j].set_title(AXIS_TITLES[ax_name])
-        handles.update(uncertainty_axes(*axs[:, j], spectra, nominal, weights, axis=ax_name))
+        handles.update(uncertainty_axes(*axs[:, j], spectra, nominal, weights, axis=ax_name,
+                                        by_subject=by_subject))
     axs[0, 0].set_ylabel(MAG_LABEL)
     axs[1, 0].set_ylabel(PHASE_LABEL)
     axs[2, 0].set_ylabel(UNCERTAINTY_LABEL)

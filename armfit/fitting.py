@@ -83,7 +83,7 @@ from armfit.errors import BadInputError, ConvergenceError, EffectDefinitionError
 from armfit.io.artifacts import params_frame
 from armfit.io.schema import params_columns
 from armfit.models.arm import ClosedLoopModel, at_bound, laplace, union_param_names
-from armfit.models.effects import effects_by_axis
+from armfit.models.effects import effects_by_axis, resolve_effects
 from armfit.spectra import Spectra, aggregate
 from armfit.workers import iter_tasks, map_tasks
 
@@ -1148,7 +1148,9 @@ def fit_trial_models(spectra, *, cost: str = "complex",
                max_nfev: int | None = None, jobs: int = 1, source: str | None = None,
                starts: Mapping[tuple[str, float], Mapping[str, float]] | None = None,
                on_fit: Callable[[TrialFit], None] | None = None,
-               executor=None) -> list[TrialFit]:
+               executor=None,
+               subject_effects: Mapping[str, Mapping[str, Sequence]] | None = None
+               ) -> list[TrialFit]:
     """One fit of H_CL per trial (axis × subject × grip [× run]) of a spectra table, in
     that order (:func:`trial_groups`). Failed fits are kept, with their reason. ``jobs``
     > 1 fits in that many worker processes, a :class:`concurrent.futures.Executor`
@@ -1164,15 +1166,26 @@ def fit_trial_models(spectra, *, cost: str = "complex",
 
     ``spectra`` may be the path of a spectra file: its measured trial rows are read (and
     the grip means, without ``starts``), and only each trial's arrays are kept.
+
+    ``subject_effects``: {axis: {subject: effect items}}, the model of a subject's trials
+    where it differs from ``effects`` (effect values per subject, held:
+    :meth:`armfit.adopt.AxisAdoption.items_for`).
     """
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
     specs = effects_by_axis(effects)
+    per_subject = {(axis, str(subj)): resolve_effects(items)
+                   for axis, by in (subject_effects or {}).items()
+                   for subj, items in by.items()}
     groups = trial_groups(spectra, method=method, source=source)
     if starts is None:
         starts = _grip_starts(spectra, cost, bands, effects, method, source)
     base = {"cost": cost, "max_nfev": max_nfev}
-    tasks = [(key, rows, {**base, "band": bands[key[0]], "effects": specs[key[0]][0],
-                          "held": specs[key[0]][1],
+
+    def spec(key) -> tuple:
+        return per_subject.get((key[0], str(key[1])), specs[key[0]])
+
+    tasks = [(key, rows, {**base, "band": bands[key[0]], "effects": spec(key)[0],
+                          "held": spec(key)[1],
                           "x0": starts.get((key[0], float(key[2])))})
              for key, rows in groups]
     # the parameters each start has at a bound (a bound shared with the start is no

@@ -989,6 +989,24 @@ def axis_summary(table) -> dict[str, dict]:
     return out
 
 
+def subject_summary(table) -> dict[str, dict[str, float]]:
+    """Per axis (x, y, z order) and subject (in order of appearance): the smallest K_max
+    (N/m) over the subject's rows — the stiffest wall the subject renders stably with
+    every grip. The axis's minimum over subjects is :func:`axis_summary`'s: the wall
+    every subject renders stably follows from the subjects' own."""
+    out: dict[str, dict[str, float]] = {}
+    if "subject" not in table.columns:
+        return out
+    for axis in ("x", "y", "z"):
+        g = table[table["axis"] == axis]
+        if g.empty:
+            continue
+        k = g["k_max_N_per_m"].to_numpy(float)
+        subj = g["subject"].astype(str).to_numpy()
+        out[axis] = {str(s_): float(k[subj == s_].min()) for s_ in dict.fromkeys(subj)}
+    return out
+
+
 #: What a row's robust certificate says (:func:`certificate_status`), best first.
 CERTIFICATE_STATUSES: tuple[str, ...] = (
     "holds", "withheld", "fails at K = 0", "unstable at K = 0", "no weight")
@@ -1125,5 +1143,5 @@ __all__ = [
     "closed_loop_stable", "crossing_gains", "describe", "environment_terms", "expm_batch",
     "k_max_sweep", "loop_delay_samples", "loop_model",
     "pade_delay", "plant_from_model", "robust_certificate", "stability_table",
-    "wall_stability",
+    "subject_summary", "wall_stability",
 ]

@@ -100,7 +100,7 @@ from armfit.io.atomic import (
 )
 from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import Warn, ingest, with_map
-from armfit.loop import WallSettings, axis_summary, stability_table
+from armfit.loop import WallSettings, axis_summary, stability_table, subject_summary
 from armfit.memory import release_memory
 from armfit.models.params import read_param_rows
 from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
@@ -662,13 +662,18 @@ def _diagnose(config: RunConfig, grip: GripFits) -> Diagnosed:
     text = adoption.to_frame().to_csv(index=False, float_format="%.10g",
                                       lineterminator="\n")
     write_text_atomic(config.path("adoption.csv"), text)
+    files = ("diagnosis.json", "adoption.csv")
+    if adoption.by_subject:     # effect values per subject: one row per value
+        text = adoption.subjects_frame().to_csv(index=False, float_format="%.10g",
+                                                lineterminator="\n")
+        write_text_atomic(config.path("adoption_subjects.csv"), text)
+        files += ("adoption_subjects.csv",)
     refitted: dict[str, tuple[str, ...]] = {}
     for a in adoption.axes:
         if a.adopted:
             key = "+".join(a.effects)
             refitted[key] = (*refitted.get(key, ()), a.axis)
-    return Diagnosed(diagnosis, adoption, missing, refitted,
-                     files=("diagnosis.json", "adoption.csv"),
+    return Diagnosed(diagnosis, adoption, missing, refitted, files=files,
                      started=grip.diagnosing.started,
                      summary="; ".join(f"{a}: {e or 'no missing effect'}"
                                        for a, e in missing.items()))
@@ -723,14 +728,16 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
     grip = models.grip
     starts = grip_fit_starts(zip(grip.table["axis"], grip.table["grip_N"], strict=True),
                              grip.fits)
+    per_subject = {"subject_effects": adoption.subject_effects} if adoption.by_subject \
+        else {}
     trial_fits = workers.start(fit_trial_models, config.path("spectra.parquet"), cost=o.cost,
                                jobs=o.jobs, source="spectra.parquet", starts=starts,
                                bands=models.bands, effects=_effects_of(adoption),
-                               executor=workers.executor)
+                               executor=workers.executor, **per_subject)
     wu_path = config.path("wu.csv")
     derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived")
     unc = api.fit_uncertainty(derived, models.nominal, cost=o.wu_cost, jobs=o.jobs,
-                              executor=workers.executor)
+                              executor=workers.executor, by_subject=adoption.by_subject)
     unc = replace(unc, spectra=None)   # the derived trial rows are let go
     del derived
     release_memory()
@@ -792,10 +799,13 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
         # listed after the paper's and the residual figures (see _report)
         figure = workers.drawings.draw(config.folder, STABILITY_FIGURE, "stability_figure",
                                        rows.table, settings)
+    per_subject = subject_summary(table)
     wall = Wall(settings=settings, summary=summary, failed=trials.failed, certificate=cert,
                 warnings=tuple(str(w.message) for w in caught), figure=figure,
                 n_models=len(table), base_nominal=base,
-                in_loop=_loop_effects(adoption, loop), outside_loop=tuple(loop))
+                in_loop=_loop_effects(adoption, loop), outside_loop=tuple(loop),
+                by_subject={a: per_subject[a] for a in adoption.by_subject
+                            if a in per_subject})
     return StabilityChecked(wall, files=("stability.csv", "certificate.csv"),
                      summary="; ".join(f"{a}: K_max min {s['k_max_min_N_per_m'] / 1e3:.3g} "
                                        "kN/m" for a, s in summary.items())
@@ -820,7 +830,9 @@ def _figures(config: RunConfig, workers: _Workers, spectra: Spectra, models: Mod
     paper = (draw(folder, FIGURES[0], "bode_figure",
                   _Rows(path, ("trial", "mean"), "measured"), grip),
              draw(folder, FIGURES[1], "uncertainty_figure", _Rows(path, ("trial",), "derived"),
-                  models.nominal.table, uncertainty.weights),
+                  models.nominal.table, uncertainty.weights,
+                  **({"by_subject": uncertainty.by_subject} if uncertainty.by_subject
+                     else {})),
              draw(folder, FIGURES[2], "literature_figure",
                   (rows if len(rows) else grip).iloc[0]))
     return Drawn(figures=paper, summary=f"{len(paper)} figure(s): Figs. 5, 6, 7")

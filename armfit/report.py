@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import shlex
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import pandas as pd
@@ -95,6 +95,9 @@ class Wall:
         {axis: the adopted effects inside the loop}.
     outside_loop : tuple of str
         Effects left out of the loop (``--outside-loop``).
+    by_subject : mapping
+        {axis: {subject: K_max N/m}} (:func:`armfit.loop.subject_summary`), for the axes
+        whose adopted model has effect values per subject (empty otherwise).
     """
 
     settings: WallSettings
@@ -107,6 +110,7 @@ class Wall:
     base_nominal: pd.DataFrame | None
     in_loop: Mapping[str, tuple[str, ...]]
     outside_loop: tuple[str, ...]
+    by_subject: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -524,6 +528,7 @@ def _axis_diagnosis(d: AxisDiagnosis) -> list[str]:
                        "× noise", "ΔBIC"], [_step_row(i, st) for i, st in enumerate(d.steps)])
     L += [f"Adequate (within the noise in every band): {'yes' if d.adequate else 'no'}.",
           ""]
+    L += _subject_lines(d)
     if d.tied_with:
         L += ["About as good as the first effect: "
               + ", ".join(f"`{t}`" for t in d.tied_with) + ".", ""]
@@ -541,11 +546,35 @@ def _axis_diagnosis(d: AxisDiagnosis) -> list[str]:
     return L
 
 
+def _subject_lines(d: AxisDiagnosis) -> list[str]:
+    """The effects tested per subject: the values of those that differ between subjects,
+    and a line for those one shared value suffices."""
+    L: list[str] = []
+    for m in d.missing_effects:
+        for p in m.varying:
+            L += [f"`{m.effect}` differs between subjects: one value of {p} per subject "
+                  f"(95 % interval; spread {m.spread[p]['min']:.4g}–{m.spread[p]['max']:.4g},"
+                  f" sd {m.spread[p]['sd']:.3g}; the tables hold the subjects' mean, each "
+                  "subject's per-trial fits its own):", ""]
+            L += md_table(["subject", p, "95 % interval"], [
+                [subj, f"{v[p]:.4g}",
+                 f"{m.by_subject_lo[subj][p]:.4g} … {m.by_subject_hi[subj][p]:.4g}"]
+                for subj, v in m.by_subject.items()])
+    shared = [t for t in d.subject_tests if not t.by_subject and t.trials]
+    if shared:
+        L += ["Tested for one value per subject, one shared value suffices: " + "; ".join(
+            f"`{t.effect}` ({t.n_subjects} subjects; "
+            + ", ".join(f"{x.param} ΔBIC {x.delta_bic:.1f}" for x in t.trials) + ")"
+            for t in shared) + ".", ""]
+    return L
+
+
 def _step_row(i: int, st: Step) -> list[str]:
     """A row of the stepwise search's table."""
     delta = finite_or_none(st.delta_bic)
     return [str(i), st.effect or "base model",
-            ", ".join(f"{k}={v:.4g}" + (" (at bound)" if k in st.at_bound else "")
+            ", ".join(f"{k}={v:.4g}" + (" (mean of the subjects')" if k in st.varying else "")
+                      + (" (at bound)" if k in st.at_bound else "")
                       for k, v in st.params.items()),
             f"{st.rms_db:.2f}", f"{st.rms_deg:.1f}", f"{st.rms_norm:.2f}",
             "" if delta is None else f"{delta:.1f}"]
@@ -613,6 +642,8 @@ def stability_markdown(wall: Wall) -> list[str]:
                  f"limited by {s['limiting']}); median {s['k_max_median_N_per_m'] / 1e3:.3g}"
                  f" kN/m, 5th percentile {s['k_max_p05_N_per_m'] / 1e3:.3g} kN/m.")
     L.append("")
+    if wall.by_subject:
+        L += _subject_walls(wall)
     for who, why in wall.failed:
         L.append(f"- Trial {who} has no fit ({why}) and is not in the population.")
     for text in wall.warnings:
@@ -622,6 +653,18 @@ def stability_markdown(wall: Wall) -> list[str]:
     if "k_robust_N_per_m" in wall.certificate.columns:
         L += ([""] if L[-1] else []) + _certificate_lines(wall.certificate)
     return L + [""]
+
+
+def _subject_walls(wall: Wall) -> list[str]:
+    """K_max per subject (the smallest over the subject's trials), for the axes whose
+    adopted model has effect values per subject."""
+    axes = list(wall.by_subject)
+    subjects = list(dict.fromkeys(s for a in axes for s in wall.by_subject[a]))
+    rows = [[s] + [_kn(wall.by_subject[a].get(s, math.nan)) for a in axes] for s in subjects]
+    return ["Each subject's per-trial fits hold the subject's own effect values, so the "
+            "wall follows subject by subject; the wall every subject renders stably is "
+            "the smallest (kN/m, the minimum over the subject's grips):", ""] + md_table(
+        ["subject"] + [f"K_max {a.upper()} (kN/m)" for a in axes], rows) + [""]
 
 
 def _loop_effects_text(wall: Wall) -> str:

@@ -697,6 +697,32 @@ def arm_trials(params_row: Mapping, f_hz, H_derived, mp_assumed: float | None = 
         return model.arm_from_derived(f_hz, H_derived, theta, mp_assumed)
 
 
+def label_subject(label: str) -> str:
+    """The subject of a trial label ``sub-<s>_grip-<g>N[_run-<k>]``."""
+    return label.split("_grip-", 1)[0].removeprefix("sub-")
+
+
+def arm_trials_by_subject(params_row: Mapping, f_hz, H_derived, labels: Sequence[str],
+                          by_subject: Mapping[str, Mapping[str, float]] | None,
+                          mp_assumed: float | None = None) -> np.ndarray:
+    """:func:`arm_trials` with each trial's own subject's effect values where the
+    adopted model has them: ``by_subject`` {subject: {``effect.param``: value}} replaces
+    the row's values for the trials of that subject (``labels``, one per row of
+    ``H_derived``, as :func:`derived_trials` gives them). Without ``by_subject``, or for
+    a subject it lacks, the row's own values."""
+    if not by_subject:
+        return arm_trials(params_row, f_hz, H_derived, mp_assumed)
+    H_derived = np.asarray(H_derived)
+    out = np.empty(H_derived.shape, dtype=complex)
+    subjects = np.array([label_subject(lab) for lab in labels])
+    for subj in dict.fromkeys(subjects):
+        idx = np.flatnonzero(subjects == subj)
+        row = dict(params_row)
+        row.update(by_subject.get(str(subj), {}))
+        out[idx] = arm_trials(row, f_hz, H_derived[idx], mp_assumed)
+    return out
+
+
 def derived_trials(spectra, axis: str, *, method: str | None = None
                    ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Per-trial derived arm dynamics of one axis.
@@ -768,7 +794,8 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
                     smooth_oct: float | None = None,
                     method: str | None = None,
                     given: Mapping[str, Mapping[str, WuWeight]] | None = None,
-                    jobs: int = 1, executor=None, source: str | None = None
+                    jobs: int = 1, executor=None, source: str | None = None,
+                    by_subject: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None
                     ) -> list[AxisUncertainty]:
     """W_max (eq. 6) and Wu (eq. 7) for each axis with derived trial spectra and a
     nominal row.
@@ -784,7 +811,9 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
     :class:`concurrent.futures.Executor`, used as is; see :mod:`armfit.workers`) when
     given (the results depend on neither); ``source``: the file ``params`` came from,
     named in messages. An axis without both derived trials and a nominal row is left
-    out (:func:`weight_axis_notes` says which).
+    out (:func:`weight_axis_notes` says which). ``by_subject``: {axis: {subject:
+    {``effect.param``: value}}} effect values per subject (the adopted model's), each
+    trial's apparatus effects removed with its subject's (:func:`arm_trials_by_subject`).
     Returns one :class:`AxisUncertainty` per axis, in x, y, z order.
     """
     if "grip_N" in params.columns:
@@ -808,8 +837,9 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
             raise BadInputError(f"axis {axis} has a second row (rows {first} and {second}); "
                                 "a nominal params file has one row per axis",
                                 file=source, column="axis", row=second)
-        f, H, _ = derived_trials(trial_rows, axis, method=method)
-        H = arm_trials(rows.iloc[0], f, H, derived_mass_kg(spectra, axis))
+        f, H, labels = derived_trials(trial_rows, axis, method=method)
+        H = arm_trials_by_subject(rows.iloc[0], f, H, labels, (by_subject or {}).get(axis),
+                                  derived_mass_kg(spectra, axis))
         Hn = nominal_arm_response(rows.iloc[0], f)
         lo, hi = axis_band(band, axis) or PAPER_BAND_HZ
         finite = f[np.isfinite(H).any(axis=0) & (f > 0)]
@@ -994,7 +1024,8 @@ __all__ = [
     "PAPER_BAND_HZ", "PAPER_WEIGHTS", "MAX_PAIRS", "ZETA_MIN", "WuWeight", "read_wu",
     "wu_response", "smooth_fractional_octave", "relative_error", "w_max",
     "EnvelopeCheck", "check_envelope", "WuResult", "fit_wu", "nominal_arm_response",
-    "arm_trials", "derived_trials", "AxisUncertainty", "fit_weights",
+    "arm_trials", "arm_trials_by_subject", "derived_trials", "label_subject",
+    "AxisUncertainty", "fit_weights",
     "derived_mass_kg", "weight_axis_notes", "summary_table", "points_table",
     "read_weights_and_bands",
 ]

@@ -233,6 +233,7 @@ def _print_steps(results, doc, con) -> None:
             ps = ", ".join(
                 f"{k}={v:.4g}" + (f" ({st.params_lo[k]:.4g}…{st.params_hi[k]:.4g})"
                                   if k in st.params_lo and k in st.params_hi else "")
+                + (" [mean of the subjects']" if k in st.varying else "")
                 + (" [at bound]" if k in st.at_bound else "")
                 for k, v in st.params.items())
             t.add_row(str(i), st.effect or "base model", ps, f"{st.rms_db:.2f}",
@@ -246,6 +247,18 @@ def _print_steps(results, doc, con) -> None:
             con.print("  cross-axis motion (off-axis / on-axis, median): " + ", ".join(
                 f"{k} {v:+.1f} dB" for k, v in d.coupling.items()), highlight=False)
         con.print(f"  verdict: {d.verdict}", highlight=False)
+        for m in d.missing_effects:
+            for p in m.varying:
+                con.print(f"  {m.effect} {p} per subject (95 % interval): " + ", ".join(
+                    f"{subj} {v[p]:.4g} ({m.by_subject_lo[subj][p]:.4g}…"
+                    f"{m.by_subject_hi[subj][p]:.4g})" for subj, v in m.by_subject.items())
+                    + f"; spread sd {m.spread[p]['sd']:.3g}", highlight=False,
+                    soft_wrap=True)
+        for test in d.subject_tests:
+            if not test.by_subject:
+                tried = ", ".join(f"{x.param} ΔBIC {x.delta_bic:.1f}" for x in test.trials)
+                con.print(f"  {test.effect}: one shared value suffices ({test.n_subjects} "
+                          f"subjects; one value per subject: {tried})", highlight=False)
         for c in d.failed_candidates:
             con.print(f"  candidate {c.effect} left out: {c.reason}", highlight=False,
                       markup=False, soft_wrap=True)

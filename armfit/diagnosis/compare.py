@@ -313,7 +313,7 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
                 "delta_bic": finite_or_none(s.delta_bic),
                 "change_db": finite_or_none(s.change_db),
                 "change_deg": finite_or_none(s.change_deg),
-            } for s in d.steps],
+            } | ({"varying": list(s.varying)} if s.varying else {}) for s in d.steps],
             "final_error": None if d.final_error is None else band_to_dict(d.final_error),
             "final_bands": [band_to_dict(b) for b in d.final_bands],
             "final_failing_bands": [asdict(fb) for fb in d.final_failing]}

@@ -246,6 +246,11 @@ class _Search:
                 options.append(self.evaluate(c.effect, r[0], prev, r[1]))
         best = self._best(options) or options[0]
         self.subject_tests.append(best.subject_test)
+        if len(self.added) == 1 and best.effect is not eff:   # the first step's ties anew
+            self.tied = tuple(c.effect.name for c in options
+                              if c.significant and c.effect is not best.effect
+                              and best.score - c.score < max(TIE_BIC,
+                                                             TIE_FRACTION * best.score))
         if best.effect is not eff or best.subject_test.by_subject:
             self.added.pop()
             self.fits.pop()
