@@ -1176,8 +1176,8 @@ def diagnose(spectra, model, *, band: _Band | None = None,
              effects: Iterable[Effect | str] | None = None, jobs: int = 1,
              max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
              min_effect_deg: float = MIN_EFFECT_DEG,
-             share: Sequence[str] | None = None, executor: Executor | None = None
-             ) -> Diagnosis:
+             share: Sequence[str] | None = None, executor: Executor | None = None,
+             by_subject: bool = True) -> Diagnosis:
     """Find the physical effects the 5-parameter model is missing, per axis, step by step
     (``armfit diagnose``): while the model is not within the noise, add the library
     effect with the best significant ΔBIC that changes the response by more than the
@@ -1211,6 +1211,10 @@ def diagnose(spectra, model, *, band: _Band | None = None,
         Runs the screening and joint fits instead of ``jobs`` (used as is, not shut
         down; e.g. ``client.get_executor()`` of dask.distributed); the result does not
         depend on it.
+    by_subject : bool
+        Test each named effect for one value per subject
+        (:mod:`armfit.diagnosis.subjects`; default). False: every effect shared by the
+        trials of an axis.
 
     Returns
     -------
@@ -1227,7 +1231,7 @@ def diagnose(spectra, model, *, band: _Band | None = None,
                             effects=None if effects is None else _effects(effects),
                             jobs=jobs, max_steps=max_steps, min_effect_db=min_effect_db,
                             min_effect_deg=min_effect_deg, share=share,
-                            executor=executor)
+                            executor=executor, by_subject=by_subject)
     if not results:
         raise BadInputError("holds no trial-level measured responses for the axes of the "
                             "model", file=sp.source, column="level")

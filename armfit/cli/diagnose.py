@@ -171,17 +171,22 @@ def _compare_table(title: str, rows, sep: str) -> Table:
               help="Effects whose parameters are compared across axes (repeatable; default: "
                    f"{' and '.join(SHARED_EFFECTS)}, the apparatus effects).")
 @click.option("--no-share", is_flag=True, help="Compare no effect across axes.")
+@click.option("--shared-only", is_flag=True,
+              help="Do not test effects for one value per subject: every effect is shared "
+                   "by the trials of an axis.")
 @overwrite_option
 @json_option
 def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_steps,
-                     min_effect_db, min_effect_deg, share, no_share, overwrite, as_json):
+                     min_effect_db, min_effect_deg, share, no_share, shared_only, overwrite,
+                     as_json):
     """Find the physical effects the 5-parameter model is missing, per axis, step by step.
 
     Fits the base model to every trial (arm parameters per trial); while the model is not
     within the noise, adds the library effect with the best ΔBIC that is significant and
     changes the response by more than the noise and the floors, refitting all added
-    effects jointly (parameters shared by the trials). Prints one row per step and the
-    verdict: adequate, or how much misfit remains and where. Example:
+    effects jointly (parameters shared by the trials, or one value per subject where the
+    data demand it). Prints one row per step and the verdict: adequate, or how much
+    misfit remains and where. Example:
     ``armfit diagnose spectra.parquet --model grip_params.csv``
     """
     if output:
@@ -201,7 +206,8 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_
                               max_steps=max_steps, min_effect_db=min_effect_db,
                               min_effect_deg=min_effect_deg,
                               share=() if no_share else ([get_effect(n).name for n in share]
-                                                         if share else None))
+                                                         if share else None),
+                              by_subject=not shared_only)
     except BadInputError as exc:
         if exc.column != "level":
             raise

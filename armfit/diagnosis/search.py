@@ -95,7 +95,8 @@ class CandidateFit:
 class _Search:
     """The state of the stepwise search on one axis (see :func:`diagnose_axes`)."""
 
-    def __init__(self, data: AxisData, band, effects, max_steps, min_db, min_deg):
+    def __init__(self, data: AxisData, band, effects, max_steps, min_db, min_deg,
+                 by_subject: bool = True):
         self.data, self.band, self.effects = data, band, list(effects)
         self.max_steps, self.min_db, self.min_deg = max_steps, min_db, min_deg
         self.sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
@@ -110,7 +111,7 @@ class _Search:
         self.failed: dict[str, str] = {}
         self.stop = ""
         self.done = False
-        self.allow_subjects = subjects_allow(data)
+        self.allow_subjects = by_subject and subjects_allow(data)
         self.subject_tests: list[SubjectTest] = []
         #: the apparatus effect just added, whose per-subject form is still to be tested,
         #: the step's other candidates fitted on all trials, and the test's outcome
@@ -445,7 +446,8 @@ def diagnose_axes(spectra, params, *,
                   max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
                   min_effect_deg: float = MIN_EFFECT_DEG,
                   share: Sequence[str] | None = None,
-                  executor: Executor | None = None) -> list[AxisDiagnosis]:
+                  executor: Executor | None = None,
+                  by_subject: bool = True) -> list[AxisDiagnosis]:
     """Diagnose every axis present in both ``spectra`` (a Spectra, a spectra DataFrame,
     or the path of a spectra file) and ``params`` (a params DataFrame, grip or nominal
     fits) by a stepwise search. Of a file, the trial rows of one axis are read at a time
@@ -475,6 +477,14 @@ def diagnose_axes(spectra, params, *,
     :class:`concurrent.futures.Executor`, e.g. a dask client's) runs them — the results
     do not depend on ``jobs`` or the executor. Each axis goes on to its next step as soon
     as its own fits are done (:mod:`armfit.diagnosis.schedule`).
+
+    ``by_subject`` (default True): where an axis has trials of two or more subjects,
+    every named effect is also tested with one value per subject
+    (:mod:`armfit.diagnosis.subjects`): an effect of the arm while the step chooses among
+    the candidates (screened and fitted per subject), an apparatus effect once named
+    (and then, if its values differ between subjects, the step's other candidates fitted
+    on all trials too); the per-subject form is kept when it is significant in both
+    senses. False: every effect shared by the trials of an axis.
     """
     effects = list(EFFECTS.values()) if effects is None else list(effects)
     trial_rows = _trial_rows(spectra)
@@ -489,7 +499,7 @@ def diagnose_axes(spectra, params, *,
             b = axis_band(band, axis) or (float(data.f_hz[0]), float(data.f_hz[-1]))
             coupling[axis] = cross_coupling(rows, data, b)
             searches.append(_Search(data, b, effects, max_steps, min_effect_db,
-                                    min_effect_deg))
+                                    min_effect_deg, by_subject))
         del rows
     release_memory()
     if not searches:
