@@ -287,15 +287,13 @@ def _strictly_inside(x, lower, upper) -> np.ndarray:
 
 def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, *,
           n_trials: int, n_block: int, max_nfev: int = 200, ftol: float = 1e-8,
-          xtol: float = 1e-8, gtol: float = 1e-8, cols: np.ndarray | None = None
-          ) -> BlockResult:
+          xtol: float = 1e-8, gtol: float = 1e-8, cols: np.ndarray | None = None) -> BlockResult:
     """Minimise ½‖fun(x)‖² over ``lower < x < upper`` for a block-arrow problem.
 
     The trust-region-reflective method of :func:`scipy.optimize.least_squares`
-    (``method="trf"``, ``x_scale=1``, ``tr_solver="exact"``: Coleman-Li scaling of the
-    variables near their bounds, the same step selection, radius updates and stopping
-    tests), with the trust-region subproblem solved by eliminating the per-trial
-    blocks of the normal equations instead of an SVD of the whole Jacobian.
+    (``method="trf"``, ``x_scale=1``, ``tr_solver="exact"``: Coleman-Li scaling near
+    the bounds, the same step selection, radius updates and stopping tests), the
+    subproblem solved by eliminating the per-trial blocks instead of an SVD.
 
     Parameters
     ----------
@@ -317,9 +315,7 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
         agreement of the model), when it is below ``xtol``·(``xtol`` + ‖x‖), or when the
         scaled gradient's largest component is below ``gtol``.
     cols : ndarray of int, shape (T, kl), optional
-        Grouped shared parameters: the global index (0 … K − 1, K = len(x) − T·nb) of
-        each trial's local shared columns, ``jac`` then returning Js (T, m, kl). None:
-        every trial's shared columns are the K shared parameters.
+        Grouped shared parameters (module docstring; ``jac`` returns Js (T, m, kl)).
 
     Returns
     -------
@@ -329,8 +325,7 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     x = _strictly_inside(np.clip(np.asarray(x0, float), lower, upper), lower, upper)
     groups = None if cols is None else Groups(cols, x.size - T * nb)
-    r = fun(x)
-    nfev = 1
+    r, nfev = fun(x), 1
     cost = 0.5 * float(r @ r)
     jb, js = jac(x)
     normal = _normal(jb, js, r.reshape(T, -1), groups)

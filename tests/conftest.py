@@ -117,6 +117,27 @@ def solver_stops_at_budget(monkeypatch):
 
 
 @pytest.fixture(scope="session")
+def sample_runs(tmp_path_factory) -> Callable[[str], Path]:
+    """``name -> `` the output folder of ``armfit run sample_data/<name> --jobs 2
+    --no-figures``, made once per session (the same bytes as with one job): the tests
+    that read the runs of the sample studies share them and must not write into them."""
+    from armfit.cli.main import cli
+    samples = Path(__file__).resolve().parents[1] / "sample_data"
+    made: dict[str, Path] = {}
+
+    def get(name: str) -> Path:
+        if name not in made:
+            out = tmp_path_factory.mktemp(f"run-{name}") / "out"
+            res = CliRunner().invoke(cli, ["-q", "run", str(samples / name), "-o", str(out),
+                                           "--jobs", "2", "--no-figures"])
+            assert res.exit_code == 0, res.output
+            made[name] = out
+        return made[name]
+
+    return get
+
+
+@pytest.fixture(scope="session")
 def small_study(tmp_path_factory) -> Path:
     """2 subjects, axis x, grips 1 and 2 N, 26 s trials (armfit.simulate, seed 5): a study
     small enough to run on every executor."""

@@ -191,12 +191,8 @@ SAMPLES = Path(__file__).resolve().parents[1] / "sample_data"
 
 
 @pytest.fixture(scope="module", params=["study", "hidden"])
-def sample_run(request, tmp_path_factory) -> tuple[str, Path]:
-    out = tmp_path_factory.mktemp(request.param) / "out"
-    res = CliRunner().invoke(cli, ["-q", "run", str(SAMPLES / request.param), "-o", str(out),
-                                   "--jobs", "2", "--no-figures"])
-    assert res.exit_code == 0, res.output
-    return request.param, out
+def sample_run(request, sample_runs) -> tuple[str, Path]:
+    return request.param, sample_runs(request.param)
 
 
 def test_sample_certificate_never_exceeds_the_trials(sample_run):

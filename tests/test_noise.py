@@ -15,11 +15,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from click.testing import CliRunner
 
 import armfit
 from armfit import figures, noise
-from armfit.cli.main import cli
 from armfit.models.params import read_params
 from armfit.spectra import Spectra
 
@@ -108,12 +106,8 @@ def _report_norms(tables, title: str, grip: bool) -> dict[tuple, str]:
 
 
 @pytest.fixture(scope="module", params=["study", "hidden"])
-def run(request, tmp_path_factory):
-    out = tmp_path_factory.mktemp(request.param) / "out"
-    res = CliRunner().invoke(cli, ["-q", "run", str(REPO / "sample_data" / request.param),
-                                   "-o", str(out), "--no-figures"], catch_exceptions=False)
-    assert res.exit_code == 0, res.output
-    return request.param, out
+def run(request, sample_runs):
+    return request.param, sample_runs(request.param)
 
 
 def _files(out: Path, which: str) -> list[tuple[str, Path]]:

@@ -129,16 +129,17 @@ def test_a_reflex_gain_that_differs_between_subjects(reflex):
 
 
 @pytest.mark.parametrize("name", ["hidden", "study"])
-def test_shared_and_absent_effects_give_the_shared_only_diagnosis(name):
+def test_shared_and_absent_effects_give_the_shared_only_diagnosis(name, sample_runs):
     # sample_data/hidden: one 12 ms latency for every subject; sample_data/study: the
     # paper's model. The search with the per-subject tests gives exactly the diagnosis
     # of the search without them (no by_subject anywhere), only recording its tests;
     # an effect of the arm screened out of the first step differs only in its screening
     # fit's values (screened with one value per subject).
-    spectra = api.estimate(str(REPO / "sample_data" / name))
-    grip = api.fit_grip(spectra)
-    with_tests = diagnose_axes(spectra, grip.table)
-    without = diagnose_axes(spectra, grip.table, by_subject=False)
+    out = sample_runs(name)      # the sample's spectra and base grip fits, run once
+    grip = out / ("grip_params_base.csv" if name == "hidden" else "grip_params.csv")
+    spectra, params = out / "spectra.parquet", api.read_model(grip).table
+    with_tests = diagnose_axes(spectra, params)
+    without = diagnose_axes(spectra, params, by_subject=False)
 
     def same(d):
         return replace(d, subject_tests=(), candidates=tuple(
@@ -164,11 +165,11 @@ def test_one_value_per_subject_is_never_worse_than_one_shared(latency, reflex):
     # the per-subject fit starts every subject at the shared value: nested, its cost is
     # never above the shared fit's, whatever the data (here: a shared value that is
     # wrong for most subjects, and one whose spread is small)
-    for _, spectra, params, _ in (latency, reflex):
+    for (_, spectra, params, _), names in ((latency, ("delay",)), (reflex, ("lowpass",))):
         data = axis_data(Spectra.of(spectra), params, "z")
         band = (float(data.f_hz[0]), float(data.f_hz[-1]))
         base = fit_base(data, band)
-        for name in ("delay", "lowpass"):
+        for name in names:
             shared = fit_extend(data, band, base, EFFECTS[name])
             per = fit_by_subject(data, band, shared, [f"{name}.{EFFECTS[name].params[0].name}"])
             assert per.rss <= shared.rss * (1 + 1e-12)
