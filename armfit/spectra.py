@@ -545,12 +545,111 @@ def _curvature_correction(h: np.ndarray, grid: np.ndarray, var_u: np.ndarray
     return h, gain
 
 
+def _grid_bands(sp: BinSpectra, grid: np.ndarray, min_avg: float, max_avg: float | None,
+                bins: tuple[int, int] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Native-bin ranges [lo, hi) of each grid band, their counts (float) and the end of
+    the usable range (see :func:`to_grid`); ``bins`` overrides :func:`usable_bins`."""
+    min_bins = max(1, math.ceil(min_avg * sp.enbw_bins / sp.n_avg))
+    max_bins = None if max_avg is None else max(min_bins, math.ceil(
+        max_avg * sp.enbw_bins / sp.n_avg))
+    first, last = usable_bins(sp, grid) if bins is None else bins
+    lo, hi = band_bins(sp.freq_hz, grid, min_bins, max_bins, first, last)
+    return lo, hi, (hi - lo).astype(float), last
+
+
+def _band_means(lo: np.ndarray, hi: np.ndarray, count: np.ndarray):
+    """The mean over each band [lo, hi) of a (…, nb) array, by cumulative sums."""
+    def band_mean(a: np.ndarray) -> np.ndarray:
+        c = np.concatenate([np.zeros(a.shape[:-1] + (1,), a.dtype), np.cumsum(a, axis=-1)],
+                           axis=-1)
+        return (c[..., hi] - c[..., lo]) / count
+    return band_mean
+
+
+def _band_block(freq_hz: np.ndarray, lo: np.ndarray, count: np.ndarray, last: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bins of each band gathered into a padded (ng, width) block: their indices,
+    which entries belong to the band, and u = ln f of each."""
+    width = int(count.max())
+    idx = np.minimum(lo[:, None] + np.arange(width)[None, :], last - 1)
+    valid = np.arange(width)[None, :] < count[:, None]
+    return idx, valid, np.log(freq_hz[idx])
+
+
+@dataclass(frozen=True)
+class _BandLines:
+    """The straight lines of ln|H| and of the phase (relative to the band's value) in
+    u = ln f over each band's bins (:func:`_band_lines`)."""
+
+    b_mag: np.ndarray
+    rss_mag: np.ndarray
+    suu: np.ndarray
+    a_mag: np.ndarray
+    u_bar: np.ndarray
+    b_ph: np.ndarray
+    rss_ph: np.ndarray
+    a_ph: np.ndarray
+
+    def trend(self, h: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The fitted response of each bin, (k, ng, width)."""
+        return (h / np.abs(h))[..., None] * np.exp(
+            (self.a_mag + 1j * self.a_ph)[..., None]
+            + (self.b_mag + 1j * self.b_ph)[..., None] * (u - self.u_bar[:, None]))
+
+
+def _band_lines(h: np.ndarray, h_bin: np.ndarray, u: np.ndarray, valid: np.ndarray
+                ) -> _BandLines:
+    """Line fits of the bins' ln|H| and phase (in (−π, π] about the band value ``h``)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ln_mag = np.log(np.abs(h_bin))
+        # phase relative to the band's value, in (−π, π]: no unwrapping needed
+        dev = np.angle(h_bin * np.conj(h)[..., None])
+    finite = valid & np.all(np.isfinite(ln_mag), axis=0)
+    b_mag, rss_mag, suu, a_mag, u_bar = _line_fit(np.nan_to_num(ln_mag), u, finite)
+    b_ph, rss_ph, _, a_ph, _ = _line_fit(np.nan_to_num(dev), u, finite)
+    return _BandLines(b_mag, rss_mag, suu, a_mag, u_bar, b_ph, rss_ph, a_ph)
+
+
+def _grid_finish(h: np.ndarray, grid: np.ndarray, lines: _BandLines, w: np.ndarray,
+                 u: np.ndarray, se_db: np.ndarray, se_deg: np.ndarray, count: np.ndarray,
+                 enbw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The band values moved to the grid frequencies and corrected for curvature, and
+    their standard errors raised to the bins' scatter and for the move (:func:`to_grid`);
+    ``w`` (ng, width): the bins' weights in the band's value. Returns (h, se_db,
+    se_deg)."""
+    centroid = np.sum(w * u, axis=-1) / np.sum(w, axis=-1)
+    shift = np.log(grid) - centroid                             # (ng,)
+    h = h * np.exp((lines.b_mag + 1j * lines.b_ph) * shift)
+    var_u = np.sum(w * (u - centroid[:, None]) ** 2, axis=-1) / np.sum(w, axis=-1)
+    h, curv_gain = _curvature_correction(h, grid, var_u)
+    n_ind = count / enbw
+    ok = n_ind >= 3.0
+    dof = np.maximum(count - 2.0 * enbw, enbw)
+    root = np.sqrt(n_ind)
+    s_db = DB_PER_NEPER * np.sqrt(lines.rss_mag / dof)         # per-bin scatter, dB
+    s_deg = np.degrees(np.sqrt(lines.rss_ph / dof))             # per-bin scatter, deg
+    se_db = np.where(ok, np.maximum(se_db, s_db / root), se_db)
+    se_deg = np.where(ok, np.maximum(se_deg, s_deg / root), se_deg)
+    # the move along the fitted slope: var(b) = s² · ENBW / S_uu (correlated bins)
+    suu = lines.suu
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lever = np.where(suu > 0, shift * shift * enbw / np.where(suu > 0, suu, 1.0), 0.0)
+    bin_db = np.where(ok, s_db, se_db * root)
+    bin_deg = np.where(ok, s_deg, se_deg * root)
+    se_db = np.sqrt(se_db ** 2 + lever * bin_db ** 2) * curv_gain
+    se_deg = np.sqrt(se_deg ** 2 + lever * bin_deg ** 2) * curv_gain
+    return h, se_db, se_deg
+
+
 def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
-            max_avg: float | None = None) -> GridResponse:
+            max_avg: float | None = None, bins: tuple[int, int] | None = None
+            ) -> GridResponse:
     """Bring native-bin spectra to the common grid by band-averaging (module docstring).
 
     Averaged: P_ff, P_fx, P_xx over each grid point's bins (:func:`band_bins`, within
-    :func:`usable_bins`); H = <P_fx>/<P_ff>, γ² = |<P_fx>|² / (<P_ff><P_xx>);
+    :func:`usable_bins`, or the native-bin range ``bins`` = (first, last) when given);
+    H = <P_fx>/<P_ff>, γ² = |<P_fx>|² / (<P_ff><P_xx>);
     n_d = n_avg · max(1, bins / ENBW). Where fewer than ceil(min_avg·ENBW/n_avg) bins fall
     in a band, that many nearest bins are used; no more than ceil(max_avg·ENBW/n_avg)
     bins are averaged (None: the whole band).
@@ -573,18 +672,8 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
     average is corrected for the response's curvature across the band
     (:func:`_curvature_correction`).
     """
-    min_bins = max(1, math.ceil(min_avg * sp.enbw_bins / sp.n_avg))
-    max_bins = None if max_avg is None else max(min_bins, math.ceil(
-        max_avg * sp.enbw_bins / sp.n_avg))
-    first, last = usable_bins(sp, grid)
-    lo, hi = band_bins(sp.freq_hz, grid, min_bins, max_bins, first, last)
-    count = (hi - lo).astype(float)
-
-    def band_mean(a: np.ndarray) -> np.ndarray:
-        c = np.concatenate([np.zeros(a.shape[:-1] + (1,), a.dtype), np.cumsum(a, axis=-1)],
-                           axis=-1)
-        return (c[..., hi] - c[..., lo]) / count
-
+    lo, hi, count, last = _grid_bands(sp, grid, min_avg, max_avg, bins)
+    band_mean = _band_means(lo, hi, count)
     p_ff = band_mean(sp.p_ff)
     p_fx = band_mean(sp.p_fx)
     p_xx = band_mean(sp.p_xx)
@@ -593,28 +682,16 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
         coh = np.abs(p_fx) ** 2 / (p_ff * p_xx)
     coh = np.where(np.isfinite(coh), np.clip(coh, 0.0, 1.0), np.nan)
     n_d = sp.n_avg * np.maximum(1.0, count / sp.enbw_bins)
-    # The bins of each band, gathered into a padded (ng, width) block.
-    width = int(count.max())
-    idx = np.minimum(lo[:, None] + np.arange(width)[None, :], last - 1)
-    valid = np.arange(width)[None, :] < count[:, None]
-    u = np.log(sp.freq_hz[idx])
+    idx, valid, u = _band_block(sp.freq_hz, lo, count, last)
     w = np.where(valid, sp.p_ff[idx], 0.0)
-    centroid = np.sum(w * u, axis=-1) / np.sum(w, axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
         h_bin = sp.p_fx[:, idx] / sp.p_ff[idx]                  # (k, ng, width)
-        ln_mag = np.log(np.abs(h_bin))
-        # phase relative to the band's value, in (−π, π]: no unwrapping needed
-        dev = np.angle(h_bin * np.conj(h)[..., None])
-    finite = valid & np.all(np.isfinite(ln_mag), axis=0)
-    b_mag, rss_mag, suu, a_mag, u_bar = _line_fit(np.nan_to_num(ln_mag), u, finite)
-    b_ph, rss_ph, _, a_ph, _ = _line_fit(np.nan_to_num(dev), u, finite)
+    lines = _band_lines(h, h_bin, u, valid)
     # Coherence about the line: output power left after removing the bins' fitted
     # response ln H_k = (a_mag + j a_ph) + (b_mag + j b_ph)(ln f_k − ū) (phase relative
     # to H), so that the response's own change across the band does not count as noise
     # (Bendat & Piersol's γ² of the band average would).
-    trend = (h / np.abs(h))[..., None] * np.exp(
-        (a_mag + 1j * a_ph)[..., None]
-        + (b_mag + 1j * b_ph)[..., None] * (u - u_bar[:, None]))
+    trend = lines.trend(h, u)
     resid = (sp.p_xx[:, idx] - 2.0 * np.real(np.conj(trend) * sp.p_fx[:, idx])
              + np.abs(trend) ** 2 * sp.p_ff[idx])
     resid = np.sum(np.where(valid, resid, 0.0), axis=-1)
@@ -622,26 +699,120 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
         coh_line = 1.0 - resid / (p_xx * count)
     coh_line = np.where(np.isfinite(coh_line), np.clip(coh_line, 0.0, 1.0), 0.0)
     se_db, se_deg = bendat_piersol_se(debiased_coherence(coh_line, n_d), n_d)
-    shift = np.log(grid) - centroid                             # (ng,)
-    h = h * np.exp((b_mag + 1j * b_ph) * shift)
-    var_u = np.sum(w * (u - centroid[:, None]) ** 2, axis=-1) / np.sum(w, axis=-1)
-    h, curv_gain = _curvature_correction(h, grid, var_u)
-    n_ind = count / sp.enbw_bins
-    ok = n_ind >= 3.0
-    dof = np.maximum(count - 2.0 * sp.enbw_bins, sp.enbw_bins)
-    root = np.sqrt(n_ind)
-    s_db = DB_PER_NEPER * np.sqrt(rss_mag / dof)               # per-bin scatter, dB
-    s_deg = np.degrees(np.sqrt(rss_ph / dof))                   # per-bin scatter, deg
-    se_db = np.where(ok, np.maximum(se_db, s_db / root), se_db)
-    se_deg = np.where(ok, np.maximum(se_deg, s_deg / root), se_deg)
-    # the move along the fitted slope: var(b) = s² · ENBW / S_uu (correlated bins)
+    h, se_db, se_deg = _grid_finish(h, grid, lines, w, u, se_db, se_deg, count,
+                                    sp.enbw_bins)
+    return GridResponse(freq_hz=grid, h=h, coherence=coh, se_db=se_db, se_deg=se_deg,
+                        n_avg=n_d)
+
+
+def h2_to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
+               max_avg: float | None = None, output: int = 0) -> GridResponse:
+    """The H2 estimate X/F = <P_xx>/<P_xf> of one output on the common grid.
+
+    H2 is the reciprocal of the H1 estimate of F/X (the position taken as the input), so
+    it is :func:`to_grid` of the spectra with the roles of force and position exchanged:
+    the same bands (the force's usable bins, :func:`usable_bins`), a value moved from the
+    P_xx-weighted centroid of its bins, Bendat & Piersol's standard errors of F/X (those
+    of ln X/F are the same numbers), the bins' scatter and the curvature correction.
+    H1/H2 = γ² of the band average: H2 is unbiased when the noise is on the force only,
+    H1 when it is on the position only (Bendat & Piersol, *Random Data*, 4th ed., §9.1.4;
+    Pintelon & Schoukens, *System Identification*, 2nd ed., §2.6).
+
+    Parameters
+    ----------
+    sp : BinSpectra
+        The spectra of :func:`welch_spectra` (force → positions).
+    grid : ndarray
+        Grid frequencies, Hz.
+    min_avg, max_avg : float
+        As :func:`to_grid`.
+    output : int
+        Which position of ``sp`` (0: the first).
+
+    Returns
+    -------
+    GridResponse
+        h (1, ng) the H2 values, m/N; coherence, se_db, se_deg, n_avg as :func:`to_grid`.
+    """
+    swapped = BinSpectra(freq_hz=sp.freq_hz, p_ff=sp.p_xx[output],
+                         p_fx=np.conj(sp.p_fx[output:output + 1]), p_xx=sp.p_ff[None, :],
+                         n_avg=sp.n_avg, enbw_bins=sp.enbw_bins, method="h2",
+                         first_bin=sp.first_bin)
+    g = to_grid(swapped, grid, min_avg=min_avg, max_avg=max_avg,
+                bins=usable_bins(sp, grid))
     with np.errstate(divide="ignore", invalid="ignore"):
-        lever = np.where(suu > 0, shift * shift * sp.enbw_bins / np.where(suu > 0, suu, 1.0),
-                         0.0)
-    bin_db = np.where(ok, s_db, se_db * root)
-    bin_deg = np.where(ok, s_deg, se_deg * root)
-    se_db = np.sqrt(se_db ** 2 + lever * bin_db ** 2) * curv_gain
-    se_deg = np.sqrt(se_deg ** 2 + lever * bin_deg ** 2) * curv_gain
+        h = 1.0 / g.h
+    return replace(g, h=h)
+
+
+def reference_to_grid(rsp: BinSpectra, sp: BinSpectra, grid: np.ndarray, *,
+                      min_avg: float = 8.0, max_avg: float | None = None) -> GridResponse:
+    """X/F through the reference: H = <P_ry>/<P_rF> per grid band (docs/methods.md,
+    "The reference estimator").
+
+    With r the rig's excitation (a commanded force or a reference trajectory), F the
+    measured force and y a position, Y = H F + E with E the part of Y that the force does
+    not explain through H (noise anywhere in the loop, the force's own noise included):
+    S_ry = H S_rF + S_rE, and H = S_ry/S_rF wherever E is uncorrelated with r — whatever
+    the noise on F and whether or not F responds to y (the instrumental-variable or
+    errors-in-variables estimator: Pintelon & Schoukens, *System Identification*, 2nd
+    ed., §2.6 and §13.4; Ljung, *System Identification*, 2nd ed., §13.5). Its variance,
+    by the delta method, is Var(Ĥ)/|H|² = S_ee / (n_d γ²_rF S_FF |H|²) with S_ee the
+    spectrum of Y − H F and γ²_rF the coherence of the reference and the force; for
+    r = F it is Bendat & Piersol's (1 − γ²)/(n_d γ²). Half of it goes to ln|H|, half to
+    the phase: ε² = S_ee / (2 n_d γ²_rF S_FF |H|²), se_db = 20/ln 10 · ε, se_deg = ε in
+    degrees, with S_ee taken about the bins' straight line (as :func:`to_grid`) and γ²_rF
+    debiased. The bands, the move to the grid frequency, the bins' scatter and the
+    curvature correction are those of :func:`to_grid`; a bin's weight is |P_rF|.
+
+    Parameters
+    ----------
+    rsp : BinSpectra
+        Spectra of the reference and [force, positions…] (:func:`welch_spectra` of r
+        and the columns F, y₁, …): p_ff = P_rr, p_fx = [P_rF, P_ry₁, …], p_xx = [P_FF,
+        P_y₁y₁, …].
+    sp : BinSpectra
+        Spectra of the force and the same positions on the same bins (P_Fy in p_fx).
+    grid : ndarray
+        Grid frequencies, Hz.
+    min_avg, max_avg : float
+        As :func:`to_grid`.
+
+    Returns
+    -------
+    GridResponse
+        h (k, ng), m/N; ``coherence``: the coherence an H1 estimate of the same standard
+        error would have, 1/(1 + 2 n_d ε²); se_db, se_deg; n_avg.
+    """
+    f1, l1 = usable_bins(sp, grid)
+    f2, l2 = usable_bins(rsp, grid)
+    bins = (max(f1, f2), min(l1, l2)) if min(l1, l2) - max(f1, f2) >= 1 else (f1, l1)
+    lo, hi, count, last = _grid_bands(rsp, grid, min_avg, max_avg, bins)
+    band_mean = _band_means(lo, hi, count)
+    p_rr = band_mean(rsp.p_ff)
+    p_rf = band_mean(rsp.p_fx[0])
+    p_ff = band_mean(rsp.p_xx[0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        h = band_mean(rsp.p_fx[1:]) / p_rf
+        coh_rf = np.abs(p_rf) ** 2 / (p_rr * p_ff)
+    n_d = rsp.n_avg * np.maximum(1.0, count / rsp.enbw_bins)
+    idx, valid, u = _band_block(rsp.freq_hz, lo, count, last)
+    w = np.where(valid, np.abs(rsp.p_fx[0][idx]), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h_bin = rsp.p_fx[1:][:, idx] / rsp.p_fx[0][idx]
+    lines = _band_lines(h, h_bin, u, valid)
+    trend = lines.trend(h, u)
+    resid = (rsp.p_xx[1:][:, idx] - 2.0 * np.real(np.conj(trend) * sp.p_fx[:, idx])
+             + np.abs(trend) ** 2 * rsp.p_xx[0][idx])
+    s_ee = np.maximum(np.sum(np.where(valid, resid, 0.0), axis=-1) / count, 0.0)
+    coh_rf = debiased_coherence(np.where(np.isfinite(coh_rf), coh_rf, 0.0), n_d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        eps2 = s_ee / (2.0 * n_d * coh_rf * p_ff * np.abs(h) ** 2)
+    eps2 = np.where(np.isfinite(eps2), eps2, np.inf)
+    eps = np.sqrt(eps2)
+    coh = 1.0 / (1.0 + 2.0 * n_d * eps2)
+    h, se_db, se_deg = _grid_finish(h, grid, lines, w, u, DB_PER_NEPER * eps,
+                                    np.degrees(eps), count, rsp.enbw_bins)
     return GridResponse(freq_hz=grid, h=h, coherence=coh, se_db=se_db, se_deg=se_deg,
                         n_avg=n_d)
 
