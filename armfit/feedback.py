@@ -95,8 +95,9 @@ def chi2_sf(x: float, k: int) -> float:
     """P(χ²_k ≥ x), the survival function of a χ² variable with k ≥ 1 degrees of freedom.
 
     Closed forms of the regularised upper incomplete gamma function Q(k/2, x/2): for even
-    k, e^(−x/2) Σ_{i<k/2} (x/2)^i / i!; for odd k, erfc(√(x/2)) + e^(−x/2) √(2x/π)
-    Σ_{i<(k−1)/2} x^i / (1·3·…·(2i+1)) (Abramowitz & Stegun 26.4.4, 26.4.5).
+    k, Σ_{i<k/2} e^(−x/2) (x/2)^i / i!; for odd k, erfc(√(x/2)) + Σ_{i<(k−1)/2}
+    e^(−x/2) (x/2)^(i+½) / Γ(i + 3/2) (Abramowitz & Stegun 26.4.4, 26.4.5); each term
+    summed from its logarithm, so that large k and x neither overflow nor underflow early.
 
     Parameters
     ----------
@@ -111,21 +112,16 @@ def chi2_sf(x: float, k: int) -> float:
     """
     if not x > 0:
         return 1.0
+    if not math.isfinite(x):
+        return 0.0
     h = 0.5 * x
+    log_h = math.log(h)
     if k % 2 == 0:
-        term, total = 1.0, 1.0
-        for i in range(1, k // 2):
-            term *= h / i
-            total += term
-        return min(1.0, math.exp(-h) * total) if h < 745 else 0.0
-    total = math.erfc(math.sqrt(h))
-    if k > 1 and h < 745:
-        term = math.sqrt(2.0 * x / math.pi)
-        acc = term
-        for i in range(1, (k - 1) // 2):
-            term *= x / (2 * i + 1)
-            acc += term
-        total += math.exp(-h) * acc
+        total = sum(math.exp(i * log_h - math.lgamma(i + 1.0) - h) for i in range(k // 2))
+    else:
+        total = math.erfc(math.sqrt(h)) + sum(
+            math.exp((i + 0.5) * log_h - math.lgamma(i + 1.5) - h)
+            for i in range((k - 1) // 2))
     return min(1.0, total)
 
 
