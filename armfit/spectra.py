@@ -758,13 +758,16 @@ def reference_to_grid(rsp: BinSpectra, sp: BinSpectra, grid: np.ndarray, *,
     the noise on F and whether or not F responds to y (the instrumental-variable or
     errors-in-variables estimator: Pintelon & Schoukens, *System Identification*, 2nd
     ed., §2.6 and §13.4; Ljung, *System Identification*, 2nd ed., §13.5). Its variance,
-    by the delta method, is Var(Ĥ)/|H|² = S_ee / (n_d γ²_rF S_FF |H|²) with S_ee the
-    spectrum of Y − H F and γ²_rF the coherence of the reference and the force; for
-    r = F it is Bendat & Piersol's (1 − γ²)/(n_d γ²). Half of it goes to ln|H|, half to
-    the phase: ε² = S_ee / (2 n_d γ²_rF S_FF |H|²), se_db = 20/ln 10 · ε, se_deg = ε in
-    degrees, with S_ee taken about the bins' straight line (as :func:`to_grid`) and γ²_rF
-    debiased. The bands, the move to the grid frequency, the bins' scatter and the
-    curvature correction are those of :func:`to_grid`; a bin's weight is |P_rF|.
+    by the delta method, is Var(Ĥ)/|H|² = q / (n_d γ²_rF) with q = S_ee / (S_FF |H|²),
+    S_ee the spectrum of Y − H F and γ²_rF the coherence of the reference and the force;
+    for r = F, q = (1 − γ²)/γ² and it is Bendat & Piersol's (1 − γ²)/(n_d γ²). Half of it
+    goes to ln|H|, half to the phase: ε² = q' / (2 n_d γ²_rF), se_db = 20/ln 10 · ε,
+    se_deg = ε in degrees, with S_ee taken about the bins' straight line (as
+    :func:`to_grid`), γ²_rF debiased (:func:`debiased_coherence`) and q corrected for
+    its small-sample bias in the same way as the coherence of H1, q' = q/(1 − (1 + q)/n_d)
+    (so that for r = F the standard errors are :func:`to_grid`'s). The bands, the move to
+    the grid frequency, the bins' scatter and the curvature correction are those of
+    :func:`to_grid`; a bin's weight is |P_rF|.
 
     Parameters
     ----------
@@ -808,7 +811,9 @@ def reference_to_grid(rsp: BinSpectra, sp: BinSpectra, grid: np.ndarray, *,
     s_ee = np.maximum(np.sum(np.where(valid, resid, 0.0), axis=-1) / count, 0.0)
     coh_rf = debiased_coherence(np.where(np.isfinite(coh_rf), coh_rf, 0.0), n_d)
     with np.errstate(divide="ignore", invalid="ignore"):
-        eps2 = s_ee / (2.0 * n_d * coh_rf * p_ff * np.abs(h) ** 2)
+        q = s_ee / (p_ff * np.abs(h) ** 2)
+        shrink = 1.0 - (1.0 + q) / n_d
+        eps2 = np.where(shrink > 0, q / shrink, np.inf) / (2.0 * n_d * coh_rf)
     eps2 = np.where(np.isfinite(eps2), eps2, np.inf)
     eps = np.sqrt(eps2)
     coh = 1.0 / (1.0 + 2.0 * n_d * eps2)
