@@ -1296,7 +1296,8 @@ def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: 
             dr = _derived_reference(f, pos[:, i], ref, fs, mp, dsp, config, grid)
             rf = to_grid(replace(rsp, p_fx=rsp.p_fx[:1], p_xx=rsp.p_xx[:1]), grid, **opts)
     check = check_estimators(g, g2, gr, feedback_test(f, pos[:, i], fs, grid[-1]),
-                             method=sp.method, reference=reference if use_ref else None,
+                             method="ref" if use_ref else sp.method,
+                             reference=reference if use_ref else None,
                              ref_force_coherence=None if rf is None else rf.coherence[0])
     sat = ["saturation"] if saturated(f, config.force_limit_N) else []
 
