@@ -35,6 +35,7 @@ and frequencies Hz, times s.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -240,6 +241,15 @@ def _window_gram(f: np.ndarray, p: int, rows: int) -> np.ndarray:
     return gram
 
 
+@functools.lru_cache(maxsize=1)
+def _blas():
+    """The process's BLAS thread pools (threadpoolctl), made once: the test's small
+    matrices run on one thread, so its numbers do not depend on how many threads BLAS
+    would use (a multi-threaded product sums in another order)."""
+    from threadpoolctl import ThreadpoolController
+    return ThreadpoolController()
+
+
 def feedback_test(force, pos, fs: float, f_hi: float, *, past_s: float = PAST_S,
                   future_s: float = FUTURE_S, n_future: int = N_FUTURE,
                   hac_s: float = HAC_S) -> FeedbackTest | None:
@@ -268,6 +278,14 @@ def feedback_test(force, pos, fs: float, f_hi: float, *, past_s: float = PAST_S,
         coefficient).
     """
     f, x, rate = band_signals(force, pos, fs, f_hi)
+    with _blas().limit(limits=1, user_api="blas"):
+        return _regression_test(f, x, rate, past_s, future_s, n_future, hac_s)
+
+
+def _regression_test(f: np.ndarray, x: np.ndarray, rate: float, past_s: float,
+                     future_s: float, n_future: int, hac_s: float) -> FeedbackTest | None:
+    """Steps 2 and 3 of :func:`feedback_test` on the band signals ``f``, ``x`` (rate in
+    Hz)."""
     n = f.size
     n_past = max(2, min(MAX_PAST, int(round(past_s * rate))))
     n_fut = max(n_future, int(round(future_s * rate)))

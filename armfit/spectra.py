@@ -716,8 +716,9 @@ def h2_to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
     P_xx-weighted centroid of its bins, Bendat & Piersol's standard errors of F/X (those
     of ln X/F are the same numbers), the bins' scatter and the curvature correction.
     H1/H2 = γ² of the band average: H2 is unbiased when the noise is on the force only,
-    H1 when it is on the position only (Bendat & Piersol, *Random Data*, 4th ed., §9.1.4;
-    Pintelon & Schoukens, *System Identification*, 2nd ed., §2.6).
+    H1 when it is on the position only (Bendat & Piersol, *Random Data*, 4th ed., ch. 6,
+    systems with extraneous noise; Pintelon & Schoukens, *System Identification: A
+    Frequency Domain Approach*, 2nd ed., ch. 2).
 
     Parameters
     ----------
@@ -757,7 +758,7 @@ def reference_to_grid(rsp: BinSpectra, sp: BinSpectra, grid: np.ndarray, *,
     S_ry = H S_rF + S_rE, and H = S_ry/S_rF wherever E is uncorrelated with r — whatever
     the noise on F and whether or not F responds to y (the instrumental-variable or
     errors-in-variables estimator: Pintelon & Schoukens, *System Identification*, 2nd
-    ed., §2.6 and §13.4; Ljung, *System Identification*, 2nd ed., §13.5). Its variance,
+    ed., ch. 2; Ljung, *System Identification*, 2nd ed., ch. 13, closed loop). Its variance,
     by the delta method, is Var(Ĥ)/|H|² = q / (n_d γ²_rF) with q = S_ee / (S_FF |H|²),
     S_ee the spectrum of Y − H F and γ²_rF the coherence of the reference and the force;
     for r = F, q = (1 − γ²)/γ² and it is Bendat & Piersol's (1 − γ²)/(n_d γ²). Half of it
@@ -2880,8 +2881,8 @@ __all__ = [
     "derived_arm_signals", "derived_spectra", "log_grid", "GridResponse", "band_bins",
     "bendat_piersol_se", "debiased_coherence", "NEGLIGIBLE_FORCE_POWER", "usable_bins",
     "to_grid", "h2_to_grid", "reference_to_grid", "NOT_EXCITATION", "BIAS_Z",
-    "REFERENCE_COHERENCE", "EstimatorCheck", "check_estimators", "estimate_trial_checked", "saturated", "moving_mean", "drifting", "EstimateConfig", "Response",
-    "TrialResponses",
+    "REFERENCE_COHERENCE", "EstimatorCheck", "check_estimators", "estimate_trial_checked",
+    "saturated", "moving_mean", "drifting", "EstimateConfig", "Response", "TrialResponses",
     "check_band", "estimate_trial", "NO_SIGNAL", "no_signal_messages", "aggregate",
     "aggregate_spread", "spectra_table", "WRITE_ROWS", "Spectra", "write_parts",
     "row_counts", "StudySpectra", "estimate_study", "estimate_trials", "study_metadata",

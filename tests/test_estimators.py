@@ -1,7 +1,7 @@
 """H1, H2 and the estimate through a reference column; the not_excitation flag.
 
 Expected values come from the estimators' definitions (Bendat & Piersol, Random Data,
-4th ed., §9.1.4; Pintelon & Schoukens, System Identification, 2nd ed., §2.6): with noise
+4th ed., ch. 6; Pintelon & Schoukens, System Identification, 2nd ed., ch. 2): with noise
 on the force only, H1 = G·S_FF/(S_FF + S_mm) and H2 = G; with the reference r = F, the
 reference estimate is H1 itself. The closed-loop cases use tests/tdsim.py's rig, whose
 truth (the open loop's X/F, :func:`tdsim.true_response`) is computed from its own

@@ -13,7 +13,8 @@ after a ``stat``, and a symbolic link found in a folder is not followed.
 Units: time s, force N, position m (``pos_<a>_mm`` columns are divided by 1000),
 sampling rate Hz. A trial may carry the rig's excitation on its stimulated axis, a
 ``ref_<a>_N`` (commanded force, N) or ``ref_<a>_m`` (reference trajectory, m) column:
-:attr:`Trial.ref`, estimated through by :mod:`armfit.spectra`. Rows in messages are 1-based data rows (the header is not counted).
+:attr:`Trial.ref`, estimated through by :mod:`armfit.spectra`. Rows in messages are
+1-based data rows (the header is not counted).
 """
 
 from __future__ import annotations
