@@ -1070,6 +1070,9 @@ class EstimatorCheck:
         points (a force reference only).
     cause : str or None
         ``closed_loop``, ``noisy_force`` or ``biased`` where points are flagged.
+    unused_reference : str or None
+        The trial's reference column when it was not estimated through (``--no-reference``
+        or ``--method chebwin``).
     """
 
     method: str
@@ -1082,6 +1085,7 @@ class EstimatorCheck:
     flagged: np.ndarray
     ref_coherence: float | None
     cause: str | None
+    unused_reference: str | None = None
 
     def bands(self, freq_hz: np.ndarray) -> list[tuple[float, float]]:
         """The runs of flagged grid points as (first, last) frequencies, Hz."""
@@ -1107,6 +1111,7 @@ class EstimatorCheck:
             "gap_deg": (float(np.nanmax(np.abs(self.gap_deg[self.flagged])))
                         if gap.size else None),
             "ref_coherence": self.ref_coherence, "cause": self.cause,
+            "unused_reference": self.unused_reference,
         }
 
     def message(self, label: str, freq_hz: np.ndarray, axis: str = "<a>") -> str | None:
@@ -1142,9 +1147,13 @@ class EstimatorCheck:
                     f"(S_xr/S_Fr); {why}; H1 would be {size} and up to {turn:.0f}° from "
                     f"that at {where}, beyond the noise (its alternative row flagged "
                     f"{NOT_EXCITATION})")
+        hint = (f"its reference column {self.unused_reference} estimates through the rig's "
+                "excitation with method h1 and without --no-reference"
+                if self.unused_reference is not None else
+                f"give the commanded force or trajectory as ref_{axis}_N or ref_{axis}_m to "
+                "estimate through it")
         return (f"{label}: {why}; H1 is {size} H2 at {where}, beyond its noise (flagged "
-                f"{NOT_EXCITATION}); give the commanded force or trajectory as ref_{axis}_N "
-                f"or ref_{axis}_m to estimate through it")
+                f"{NOT_EXCITATION}); {hint}")
 
 
 def _phase_diff_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -1328,6 +1337,8 @@ def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: 
     if use_ref:
         out.append(Response("alternative", axis, sp.method, g.h[0], g.coherence[0],
                             g.se_db[0], g.se_deg[0], flags(g.coherence[0], stim_flags, True)))
+    if reference is not None and not use_ref:
+        check = replace(check, unused_reference=reference)
     return tuple(_mark_no_signal(r) for r in out), check
 
 
