@@ -2861,7 +2861,8 @@ def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,
     armfit version, the estimator and its options, the grid, Mp, the sampling rate ``fs``
     (Hz), the number of trials, what was skipped and, per trial of ``trials``, what the
     estimators say of it (``estimators``: :meth:`EstimatorCheck.record` with the trial's
-    ``source``)."""
+    identity, subject, axis, grip_N and run, as its rows have it: no path, so that the
+    file does not depend on where the trials lie)."""
     grid = config.grid()
     return {
         "armfit_version": __version__,
@@ -2881,8 +2882,9 @@ def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,
         "skipped": [{"file": f, "reason": r} for f, r in skipped],
         "aggregation": "mean and median of 20 log10|H| and of the phase (each trial within "
                        "pi of the trials' circular mean)",
-        "estimators": [{"source": t.source, **t.check.record(grid)} for t in trials
-                       if t.check is not None],
+        "estimators": [{"subject": t.subject, "axis": t.axis, "grip_N": t.grip_N,
+                        "run": t.run, **t.check.record(grid)}
+                       for t in trials if t.check is not None],
     }
 
 

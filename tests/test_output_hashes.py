@@ -98,7 +98,7 @@ EXPECTED: dict[str, str] = {
     "run/report.md":
         "ba46f70481cc8c0ac169eee1fd0b4b3e0c9a05f4e53cd869b226c90f3ac855ad",
     "run/spectra.parquet":
-        "08aef6ac36d67badc391f67e5fb01579309f093f5317210007c95f3082ed906c",
+        "c1adb5c16de4b1a49de5e0792f5febc45904565f5085389b37d3ed5f550be74f",
     "run/stability.csv":
         "f3df1ad3b5c4dedf2c337f30499d2a7d74144b83f83b053e1258d4b9bd6428dc",
     "run/trial_params.csv":

@@ -276,7 +276,7 @@ def test_ankle_through_its_map_is_finite_and_flagged_position_driven(runner, ank
     assert all("position-driven or closed loop" in w for w in said)
     assert sorted(w.split("/sub-")[1][:3] for w in said) == ["df1", "df3", "pf1", "pf2"]
     meta = Spectra.read(ankle / "s.parquet").meta
-    fires = {Path(e["source"]).name[4:7]: e["feedback"]["fires"] for e in meta["estimators"]}
+    fires = {e["subject"]: e["feedback"]["fires"] for e in meta["estimators"]}
     assert fires == {"df1": True, "df2": False, "df3": True, "pf1": True, "pf2": True}
     m = _measured(out)
     assert m["f"].size == 5 * 100                     # 5 trials × 100 grid points
