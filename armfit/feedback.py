@@ -178,18 +178,23 @@ def band_signals(force, pos, fs: float, f_hi: float) -> tuple[np.ndarray, np.nda
 
 def _cic(sig: np.ndarray, q: int, order: int = 4) -> np.ndarray:
     """Every q-th sample of the rows of ``sig`` after ``order`` moving averages of q
-    samples (Hogenauer's cascaded integrator-comb decimator, as plain moving sums: the
-    last average and the decimation are one block sum)."""
+    samples (Hogenauer's cascaded integrator-comb decimator as one FIR h, the boxcars
+    convolved), computed in polyphase form: y[m] = Σ_k h[k] x[qm − k] = Σ_j B[m − j] · w_j
+    with B the record in blocks of q samples and w_j[r] = h[qj − r]. Only the outputs
+    whose window lies inside the record are kept."""
     box = np.ones(q) / q
-    kernel = box
-    for _ in range(order - 2):
-        kernel = np.convolve(kernel, box)
-    rows = []
-    for row in sig:
-        y = np.convolve(row, kernel, mode="valid")
-        m = y.size // q
-        rows.append(y[:m * q].reshape(m, q).mean(axis=1))
-    return np.stack(rows)
+    h = box
+    for _ in range(order - 1):
+        h = np.convolve(h, box)
+    n_sig, m = sig.shape[0], sig.shape[1] // q
+    taps = (h.size + q - 2) // q + 1              # blocks each output reaches back over
+    k = q * np.arange(taps)[None, :] - np.arange(q)[:, None]          # (q, taps)
+    weights = np.where((k >= 0) & (k < h.size), h[np.clip(k, 0, h.size - 1)], 0.0)
+    parts = (sig[:, :m * q].reshape(n_sig * m, q) @ weights).reshape(n_sig, m, taps)
+    out = parts[:, taps - 1:, 0].copy()
+    for j in range(1, taps):
+        out += parts[:, taps - 1 - j:m - j, j]
+    return out
 
 
 def _smooth_below(n: int) -> int:
@@ -219,18 +224,27 @@ def _future_basis(k: int, blocks: int) -> np.ndarray:
     return basis
 
 
-def _correlate(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
-    """c[k] = Σ_t a[t] b[t + k] for k = 0…``lags`` (zero beyond the ends), by FFT."""
-    size = 1 << int(math.ceil(math.log2(a.size + b.size)))
-    c = np.fft.irfft(np.conj(np.fft.rfft(a, size)) * np.fft.rfft(b, size), size)
-    return c[:lags + 1]
+def _smooth_above(n: int) -> int:
+    """The smallest 2^a·3^b·5^c ≥ n: an FFT length without large prime factors."""
+    best = 1 << max(0, (n - 1).bit_length())
+    p3 = 1
+    while p3 < best:
+        p5 = p3
+        while p5 < best:
+            m = p5
+            while m < n:
+                m *= 2
+            best = min(best, m)
+            p5 *= 5
+        p3 *= 3
+    return best
 
 
-def _window_gram(f: np.ndarray, p: int, rows: int) -> np.ndarray:
+def _window_gram(f: np.ndarray, p: int, rows: int, first: np.ndarray) -> np.ndarray:
     """G[i, j] = Σ_{s<rows} f[s + i] f[s + j] for i, j < p (the Gram matrix of the
-    length-p windows of f starting at 0…rows−1), exactly, from one correlation and the
-    shift rule G[i+1, j+1] = G[i, j] − f[i] f[j] + f[rows+i] f[rows+j]."""
-    first = _correlate(f[:rows], f[:rows + p - 1], p - 1)
+    length-p windows of f starting at 0…rows−1), exactly, from its first row ``first``
+    (Σ_{s<rows} f[s] f[s + j]) and the shift rule G[i+1, j+1] = G[i, j] − f[i] f[j] +
+    f[rows+i] f[rows+j]."""
     gram = np.empty((p, p))
     gram[0] = first
     step = np.outer(f[rows:rows + p - 1], f[rows:rows + p - 1]) - np.outer(f[:p - 1],
@@ -277,8 +291,8 @@ def feedback_test(force, pos, fs: float, f_hi: float, *, past_s: float = PAST_S,
         None when the record is too short for the model (fewer than 4 equations per
         coefficient).
     """
-    f, x, rate = band_signals(force, pos, fs, f_hi)
     with _blas().limit(limits=1, user_api="blas"):
+        f, x, rate = band_signals(force, pos, fs, f_hi)
         return _regression_test(f, x, rate, past_s, future_s, n_future, hac_s)
 
 
@@ -298,13 +312,23 @@ def _regression_test(f: np.ndarray, x: np.ndarray, rate: float, past_s: float,
     # Regressors of equation s (time t = s + n_past − 1), window index w = 0…p−1 holding
     # f[s + w]: w < n_past are the past and present (lag n_past − 1 − w), the rest the
     # future (lag w − n_past + 1 ≥ 1). Parameters: the past taps, then the future blocks.
-    win = _window_gram(f, p, rows)
+    # every correlation below from one transform of f, zero-padded past the longest lag
+    lag = max(1, min(rows - 1, int(round(hac_s * rate))))
+    size = _smooth_above(n + lag + p)
+    spec_f = np.fft.rfft(f, size)
+    r_ff = np.fft.irfft(spec_f.real ** 2 + spec_f.imag ** 2, size)[:lag + p + 1]
+    # the Gram matrix's first row, Σ_{s<rows} f[s] f[s+j]: the whole sum less the last
+    # p − 1 samples' share
+    tail = f[rows:]
+    first = r_ff[:p].copy()
+    first[:tail.size] -= np.correlate(tail, tail, "full")[tail.size - 1:]
+    win = _window_gram(f, p, rows, first)
     cross = win[:n_past, n_past:] @ fut
     gram = np.block([[win[:n_past, :n_past], cross],
                      [cross.T, fut.T @ win[n_past:, n_past:] @ fut]])
     gram[np.diag_indices(m)] += 1e-6 * np.trace(gram) / m
     y = x[n_past - 1:n_past - 1 + rows]
-    r = _correlate(y, f[:rows + p - 1], p - 1)
+    r = np.fft.irfft(np.conj(np.fft.rfft(y, size)) * spec_f, size)[:p]   # Σ_s y[s] f[s+w]
     rhs = np.concatenate([r[:n_past], r[n_past:] @ fut])
     # one factorisation: the coefficients and the columns of gram⁻¹ of the future ones
     unit = np.zeros((m, m - n_past))
@@ -312,15 +336,15 @@ def _regression_test(f: np.ndarray, x: np.ndarray, rate: float, past_s: float,
     sol = np.linalg.solve(gram, np.column_stack([rhs, unit]))
     coef, cols = sol[:, 0], sol[:, 1:]
     taps = np.concatenate([coef[:n_past], fut @ coef[n_past:]])
-    size = 1 << int(math.ceil(math.log2(n + p)))
-    fitted = np.fft.irfft(np.fft.rfft(f, size) * np.conj(np.fft.rfft(taps, size)), size)
+    fitted = np.fft.irfft(spec_f * np.conj(np.fft.rfft(taps, size)), size)
     resid = y - fitted[:rows]
     # covariance of the future coefficients: (gram⁻¹ Φ'ΣΦ gram⁻¹)_future with
     # Φ'ΣΦ ≈ rows · Bᵀ T(c) B, c(d) = Σ_m w_m r_ee(m) r_ff(m + d) (r: autocovariances,
     # w: Bartlett weights, T: the symmetric Toeplitz matrix of c)
-    lag = max(1, min(rows - 1, int(round(hac_s * rate))))
-    r_ee = _correlate(resid, resid, lag) / rows
-    r_ff = _correlate(f, f, lag + p) / n
+    size_e = _smooth_above(rows + lag + 1)
+    spec_e = np.fft.rfft(resid, size_e)
+    r_ee = np.fft.irfft(spec_e.real ** 2 + spec_e.imag ** 2, size_e)[:lag + 1] / rows
+    r_ff = r_ff / n
     a = r_ee * (1.0 - np.arange(lag + 1) / (lag + 1.0))
     c = np.correlate(np.concatenate([r_ff[:0:-1], r_ff]), np.concatenate([a[:0:-1], a]),
                      "valid")[p:2 * p]                                  # d = 0…p−1

@@ -1049,7 +1049,10 @@ class EstimatorCheck:
     reference : str or None
         The reference column estimated through (``ref_<a>_N``, ``ref_<a>_m``).
     feedback : armfit.feedback.FeedbackTest or None
-        Whether the force responds to the position (None: the record is too short).
+        Whether the force responds to the position. None where the test was not run —
+        H1 agrees with H2 (or with the reference estimate) within the noise at every point,
+        so no point could be flagged (:attr:`needs_feedback_test`) — or where the record is
+        too short for it.
     agreement_p : float or None
         With a reference: the p-value of "H1 equals the reference estimate" over the grid
         (χ² of the normalised differences of magnitude and phase).
@@ -1086,6 +1089,14 @@ class EstimatorCheck:
     ref_coherence: float | None
     cause: str | None
     unused_reference: str | None = None
+
+    @property
+    def needs_feedback_test(self) -> bool:
+        """Whether the feedback test can change what is flagged: some point where H1 is
+        biased beyond its noise if the force is not the excitation (H2 above H1 by more
+        than :data:`BIAS_Z`, or a disagreement with the reference estimate)."""
+        return bool(np.any(np.isfinite(self.z) & (self.z > BIAS_Z)
+                           & ((self.reference is not None) | (self.gap_db > 0))))
 
     def bands(self, freq_hz: np.ndarray) -> list[tuple[float, float]]:
         """The runs of flagged grid points as (first, last) frequencies, Hz."""
@@ -1305,10 +1316,13 @@ def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: 
             gr = reference_to_grid(rsp, sp, grid, **opts)
             dr = _derived_reference(f, pos[:, i], ref, fs, mp, dsp, config, grid)
             rf = to_grid(replace(rsp, p_fx=rsp.p_fx[:1], p_xx=rsp.p_xx[:1]), grid, **opts)
-    check = check_estimators(g, g2, gr, feedback_test(f, pos[:, i], fs, grid[-1]),
-                             method="ref" if use_ref else sp.method,
+    check = check_estimators(g, g2, gr, None, method="ref" if use_ref else sp.method,
                              reference=reference if use_ref else None,
                              ref_force_coherence=None if rf is None else rf.coherence[0])
+    if check.needs_feedback_test:   # else no point could be flagged whatever it says
+        check = check_estimators(g, g2, gr, feedback_test(f, pos[:, i], fs, grid[-1]),
+                                 method=check.method, reference=check.reference,
+                                 ref_force_coherence=None if rf is None else rf.coherence[0])
     sat = ["saturation"] if saturated(f, config.force_limit_N) else []
 
     def trial_flags(j: int) -> list[str]:

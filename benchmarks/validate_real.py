@@ -100,17 +100,31 @@ def _shows(label: str, m: dict[str, np.ndarray]) -> str:
             f"{stiff:.0f} N·m/rad); phase {np.median(m['deg'][low]):.0f}°")
 
 
-def _estimators(spectra: Path) -> str:
-    """What the estimators say of the force, from the spectra file's metadata."""
+def _feedback_p(inputs: list[str], map_file: Path, est_opts: list[str]) -> list[float]:
+    """The feedback test run on every trial (the estimator runs it only where H1 and H2
+    disagree beyond the noise somewhere), read through the same map."""
+    import armfit
+    from armfit.feedback import feedback_test
+    fmax = float(est_opts[est_opts.index("--fmax") + 1]) if "--fmax" in est_opts else 30.0
+    manifest = inputs[1] if inputs[0] == "--manifest" else None
+    trials = armfit.read_trials([] if manifest else inputs, manifest=manifest,
+                                column_map=map_file, force_limit_N=1e9, f_min_hz=0.0)
+    return [feedback_test(t.f, t.x, t.meta.fs, fmax).p_value for t in trials.trials]
+
+
+def _estimators(spectra: Path, direct: list[float]) -> str:
+    """What the estimators say of the force, from the spectra file's metadata; ``direct``:
+    the feedback test's p-value of every trial."""
     import pyarrow.parquet as pq
     meta = json.loads(pq.read_schema(spectra).metadata[b"armfit"])
     checks = meta["estimators"]
-    ps = [c["feedback"]["p_value"] for c in checks if c["feedback"]]
     fires = sum(c["feedback"]["fires"] for c in checks if c["feedback"])
+    needed = sum(c["feedback"] is not None for c in checks)
     flagged = [c for c in checks if c["not_excitation_hz"]]
     text = [f"method {'/'.join(sorted({c['method'] for c in checks}))}",
-            f"feedback p {min(ps):.1g}" + (f"–{max(ps):.1g}" if len(ps) > 1 else "")
-            + f", fires in {fires} of {len(checks)}"]
+            f"feedback p {min(direct):.1g}" + (f"…{max(direct):.1g}" if len(direct) > 1
+                                               else "")
+            + f" (needed in {needed} of {len(checks)}, fires in {fires})"]
     if flagged:
         lo = min(c["gap_db"][0] for c in flagged)
         hi = max(c["gap_db"][1] for c in flagged)
@@ -161,7 +175,8 @@ def _case(tmp: Path, label, data, map_text, est_opts, fit_opts) -> list[str]:
     res = _armfit("diagnose", str(spectra), "--model", str(folder / "nominal.csv"), "--json",
                   "-j", "2")
     verdict, named, steps = _diagnosis(json.loads(res.stdout))
-    return [f"{grid}; {shows}", _estimators(spectra), _model(fit),
+    direct = _feedback_p(inputs, folder / "map.csv", est_opts)
+    return [f"{grid}; {shows}", _estimators(spectra, direct), _model(fit),
             f"{fit['rms_db']:.2f} dB, {fit['rms_deg']:.1f}°, {fit['rms_norm']:.1f}× noise",
             verdict, f"{named}; error/noise {steps}"]
 

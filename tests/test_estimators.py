@@ -163,15 +163,33 @@ def test_rig_estimate_through_the_reference_is_within_the_noise(rig):
 
 def test_open_loop_studies_are_not_flagged(tmp_path):
     # tdsim's open loop (the force is the excitation; postural drift, quantisation) and
-    # the sample study: no trial fires, no point is flagged, nothing is said
+    # the sample study: no trial fires (where the test is needed at all), no point is
+    # flagged, nothing is said
     folder = tdsim.write_study(tdsim.Study(subjects=2, axes=("x", "z"), grips_N=(1.0,),
                                            seed=31), tmp_path / "null")
+    tested = 0
     for source in (folder, "sample_data/study"):
         res = S.estimate_study([source], S.EstimateConfig())
         assert not res.warnings
         for tr in res.trials:
-            assert not tr.check.feedback.fires and tr.check.cause is None
+            fb = tr.check.feedback
+            assert (fb is None) == (not tr.check.needs_feedback_test)
+            tested += fb is not None
+            assert (fb is None or not fb.fires) and tr.check.cause is None
             assert not any(S.NOT_EXCITATION in f for r in tr.responses for f in r.flags)
+    assert tested > 0          # drift lifts H2 above H1 at low frequency in some trials
+
+
+def test_the_feedback_test_is_quiet_on_every_open_loop_trial(tmp_path):
+    # run on every trial of an open-loop study (where the estimator would skip it too):
+    # the force is the excitation, p far above the threshold
+    from armfit.feedback import FEEDBACK_ALPHA, feedback_test
+    study = tdsim.Study(subjects=2, axes=("x", "z"), grips_N=(1.0, 2.0), seed=32)
+    for s in range(study.subjects):
+        for axis in study.axes:
+            for grip in study.grips_N:
+                f, x, _ = tdsim.simulate_trial(study, s, axis, grip)
+                assert feedback_test(f, x, study.fs, 30.0).p_value > 100 * FEEDBACK_ALPHA
 
 
 def test_estimate_command_on_the_rig(rig, runner, tmp_path):

@@ -204,12 +204,13 @@ def test_silverbox_resonance_lies_above_the_default_grid(runner, silverbox):
                   silverbox.parent / "wide.parquet", "--csv", wide, "--fmax", 150)
     assert res.exit_code == 0, res.stderr
     assert "time_s = sample index / 610.3515625 Hz" in res.stderr
-    # driven by its input voltage in open loop: the force is the excitation (the
-    # feedback test does not fire) and nothing is flagged or said
+    # driven by its input voltage in open loop: H1 and H2 agree within their noise at
+    # every grid point, so the feedback test is not even needed (run alone it does not
+    # fire: p = 0.005), and nothing is flagged or said
     assert not _warnings(res.stderr)
     meta = Spectra.read(silverbox.parent / "wide.parquet").meta
     (check,) = meta["estimators"]
-    assert not check["feedback"]["fires"] and check["cause"] is None
+    assert check["feedback"] is None and check["cause"] is None
     m = _measured(wide)
     peak = int(np.argmax(m["db"]))
     # README: resonance ~70 Hz, peak gain ~10-11 (20-21 dB), ~0.97 (-0.3 dB) at 1 Hz
