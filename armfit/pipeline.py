@@ -104,7 +104,7 @@ from armfit.loop import WallSettings, axis_summary, stability_table
 from armfit.memory import release_memory
 from armfit.models.params import read_param_rows
 from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
-from armfit.spectra import EstimateConfig, Spectra, StudySpectra
+from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimator_summary
 from armfit.workers import cancel_pools, executor_for
 
 #: The levels of spectra.parquet a run keeps (its trial rows are read where they are
@@ -588,6 +588,9 @@ def _estimate(config: RunConfig, ingested: Ingested) -> Estimated:
     as the subcommands do."""
     est = ingested.estimating.result()
     started = ingested.estimating.started
+    if config.warn is not None:     # what the estimators say of the force, per trial
+        for line in estimator_summary(est.trials)["messages"]:
+            config.warn(line)
     seen = {f for f, _ in ingested.skipped}
     skipped = ingested.skipped + tuple((f, r) for f, r in est.skipped if f not in seen)
     est.write(config.path("spectra.parquet"))

@@ -215,3 +215,18 @@ def test_estimate_command_on_the_rig(rig, runner, tmp_path):
     sp = S.Spectra.read(out, level="trial", kind="measured")
     assert sp.values_of("method") == {"h1"}
     assert any(S.NOT_EXCITATION in f for f in sp.flags.ravel())
+
+
+def test_run_on_the_rig_says_it_and_keeps_the_reference(rig, runner, tmp_path):
+    # run ingests the reference into its dataset and estimates through it; the
+    # estimator's lines come out among the run's warnings
+    folder, _ = rig
+    out = tmp_path / "run"
+    res = runner.invoke(cli, ["run", str(folder), "-o", str(out), "--no-figures"])
+    assert res.exit_code == 0, res.output
+    lines = [ln for ln in res.stderr.splitlines() if "estimated through the reference" in ln]
+    assert len(lines) == len(RIG_STUDY.axes) * RIG_STUDY.subjects
+    import pyarrow.parquet as pq
+    assert pq.read_schema(out / "trials.parquet").names[-1] == "ref"
+    sp = S.Spectra.read(out / "spectra.parquet", kind="measured")
+    assert sp.values_of("method") == {"ref"}
