@@ -303,14 +303,16 @@ def estimate_config(*, method: str = EstimateConfig.method,
                     window: str = EstimateConfig.window,
                     mp: Mapping[str, float] | None = None,
                     coherence_min: float = EstimateConfig.coherence_min,
-                    force_limit_N: float = EstimateConfig.force_limit_N
+                    force_limit_N: float = EstimateConfig.force_limit_N,
+                    reference: bool = EstimateConfig.reference
                     ) -> EstimateConfig:
     """The estimator options of :func:`estimate` as an :class:`EstimateConfig`
     (frequencies in Hz, masses in kg, forces in N; see :func:`estimate`)."""
     kw = {} if mp is None else {"mp": dict(mp)}
     return EstimateConfig(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
                           nperseg=nperseg, overlap=overlap, window=window,
-                          coherence_min=coherence_min, force_limit_N=force_limit_N, **kw)
+                          coherence_min=coherence_min, force_limit_N=force_limit_N,
+                          reference=reference, **kw)
 
 
 def estimate_study_result(source, config: EstimateConfig | None = None, *,
@@ -346,6 +348,7 @@ def estimate(source, *, method: str = EstimateConfig.method,
              mp: Mapping[str, float] | None = None,
              coherence_min: float = EstimateConfig.coherence_min,
              force_limit_N: float = EstimateConfig.force_limit_N,
+             reference: bool = EstimateConfig.reference,
              manifest: PathLike | None = None, skip_bad: bool = False, jobs: int = 1,
              warn: Warn | None = None, executor: Executor | None = None,
              column_map: PathLike | None = None, note: Warn | None = None) -> Spectra:
@@ -376,6 +379,14 @@ def estimate(source, *, method: str = EstimateConfig.method,
         Points of lower coherence are flagged ``low_coherence``.
     force_limit_N : float
         Device peak force, N; trials reaching it are flagged ``saturation``.
+    reference : bool
+        With ``method`` 'h1', estimate X/F through a trial's reference column
+        (``ref_<a>_N``, a commanded force, or ``ref_<a>_m``, a reference trajectory) when
+        it has one: S_xr/S_Fr, unbiased where the force is noisy or responds to the
+        position (method ``ref``); False: H1 whatever the trials hold. Either way the
+        spectra hold the alternative estimates (kind ``alternative``: H2, and H1 beside
+        a reference estimate) and flag ``not_excitation`` where H1 is biased
+        (docs/methods.md, "Is the force the excitation?").
     manifest : path, optional
         Trial manifest CSV.
     skip_bad : bool
@@ -403,7 +414,8 @@ def estimate(source, *, method: str = EstimateConfig.method,
     """
     config = estimate_config(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
                              nperseg=nperseg, overlap=overlap, window=window, mp=mp,
-                             coherence_min=coherence_min, force_limit_N=force_limit_N)
+                             coherence_min=coherence_min, force_limit_N=force_limit_N,
+                             reference=reference)
     return estimate_study_result(source, config, manifest=manifest, skip_bad=skip_bad,
                                  jobs=jobs, warn=warn, executor=executor,
                                  column_map=column_map, note=note).spectra

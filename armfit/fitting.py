@@ -844,10 +844,11 @@ class StudyFit:
 def _check_method(rows, method: str | None, source: str | None) -> str | None:
     """The estimator ``method`` to select among ``rows`` (None: the only one they hold).
 
-    Raises UsageError when ``rows`` hold several estimators and none is chosen, or when the
-    chosen one is not among them."""
+    Raises UsageError when ``rows`` hold several estimates of the same responses
+    (:meth:`armfit.spectra.Spectra.repeated`) and none is chosen, or when the chosen one is
+    not among them."""
     methods = sorted(rows.values_of("method"))
-    if method is None and len(methods) > 1:
+    if method is None and len(methods) > 1 and rows.repeated():
         raise UsageError(f"{source or 'spectra'} holds several estimators "
                          f"({', '.join(methods)}); choose one with {{opt}}", option="method=")
     if method is not None and method not in methods:

@@ -104,7 +104,7 @@ from armfit.loop import WallSettings, axis_summary, stability_table, subject_sum
 from armfit.memory import release_memory
 from armfit.models.params import read_param_rows
 from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
-from armfit.spectra import EstimateConfig, Spectra, StudySpectra
+from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimator_summary
 from armfit.workers import cancel_pools, executor_for
 
 #: The levels of spectra.parquet a run keeps (its trial rows are read where they are
@@ -146,7 +146,8 @@ class RunOptions:
     (None: the files have armfit's own columns); force_limit_N: the device's peak force
     (N), reached forces are warned about and flagged as saturation; fmin, fmax: the
     frequency grid (Hz; a trial must last 2/fmin s); bands: fit bands (axis, lo, hi) in
-    Hz that replace the paper's of their axis (:data:`armfit.constants.PAPER_BANDS`).
+    Hz that replace the paper's of their axis (:data:`armfit.constants.PAPER_BANDS`);
+    reference: estimate through a trial's reference column when it has one.
     """
 
     manifest: str | None = None
@@ -164,6 +165,7 @@ class RunOptions:
     fmin: float = GRID_HZ[0]
     fmax: float = GRID_HZ[1]
     bands: tuple[tuple[str, float, float], ...] = ()
+    reference: bool = True
 
     @property
     def fit_bands(self) -> dict[str, tuple[float, float]]:
@@ -586,6 +588,9 @@ def _estimate(config: RunConfig, ingested: Ingested) -> Estimated:
     as the subcommands do."""
     est = ingested.estimating.result()
     started = ingested.estimating.started
+    if config.warn is not None:     # what the estimators say of the force, per trial
+        for line in estimator_summary(est.trials)["messages"]:
+            config.warn(line)
     seen = {f for f, _ in ingested.skipped}
     skipped = ingested.skipped + tuple((f, r) for f, r in est.skipped if f not in seen)
     est.write(config.path("spectra.parquet"))
@@ -947,7 +952,8 @@ def _run_in(inputs: list, folder: Path, options: RunOptions, *,
             outdir: str = "OUTDIR") -> RunResult:
     config = RunConfig(tuple(inputs), folder, options,
                        EstimateConfig(method=options.method, fmin=options.fmin,
-                                      fmax=options.fmax, force_limit_N=options.force_limit_N),
+                                      fmax=options.fmax, force_limit_N=options.force_limit_N,
+                                      reference=options.reference),
                        options.fit_bands, warn, note, outdir)
     # the caller's executor, or one pool of worker processes for every stage of the run
     with executor_for(executor, options.jobs) as pool, contextlib.ExitStack() as stack:
@@ -1003,7 +1009,7 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
         column_map=None, force_limit_N: float = FORCE_LIMIT_N,
         fmin: float = GRID_HZ[0], fmax: float = GRID_HZ[1],
         bands: Mapping[str, tuple[float, float]] | None = None,
-        note: Warn | None = None) -> RunResult:
+        note: Warn | None = None, reference: bool = True) -> RunResult:
     """Run every stage on raw trials and write all tables, figures and report.md into
     ``outdir`` (``armfit run``).
 
@@ -1057,6 +1063,9 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
         Hz, z 0.1–10 Hz) for the axes it names.
     note : callable, optional
         Receives, once per distinct column map, the conversions it makes.
+    reference : bool
+        Estimate X/F through a trial's reference column when it has one (False: H1
+        whatever the trials hold; see :func:`armfit.estimate`).
 
     Returns
     -------
@@ -1069,7 +1078,8 @@ def run(inputs, outdir, *, manifest=None, skip_bad: bool = False, method: str = 
                          column_map=None if column_map is None else str(column_map),
                          force_limit_N=force_limit_N, fmin=fmin, fmax=fmax,
                          bands=tuple((a, float(lo), float(hi))
-                                     for a, (lo, hi) in (bands or {}).items()))
+                                     for a, (lo, hi) in (bands or {}).items()),
+                         reference=reference)
     return run_pipeline(items, outdir, options, on_stage=on_stage, warn=warn,
                         executor=executor, note=note)
 

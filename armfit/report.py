@@ -334,6 +334,8 @@ def _command(inputs: Sequence[str], outdir: str, options: RunSettings) -> str:
         cmd.append("--skip-bad")
     cmd += [f"--method {options.method}", f"--cost {options.cost}",
             f"--wu-cost {options.wu_cost}"]
+    if not getattr(options, "reference", True):
+        cmd.append("--no-reference")
     if not options.figures:
         cmd.append("--no-figures")
     if options.adopt != "auto":

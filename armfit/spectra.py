@@ -56,6 +56,7 @@ from armfit.constants import (
     POINTS_PER_DECADE,
 )
 from armfit.errors import BadInputError, NoInputError, UsageError, cell
+from armfit.feedback import FEEDBACK_ALPHA, FeedbackTest, chi2_sf, feedback_test
 from armfit.io.arrow import arrow_array
 from armfit.io.atomic import atomic_path
 from armfit.io.numbers import parse_numbers
@@ -545,12 +546,111 @@ def _curvature_correction(h: np.ndarray, grid: np.ndarray, var_u: np.ndarray
     return h, gain
 
 
+def _grid_bands(sp: BinSpectra, grid: np.ndarray, min_avg: float, max_avg: float | None,
+                bins: tuple[int, int] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Native-bin ranges [lo, hi) of each grid band, their counts (float) and the end of
+    the usable range (see :func:`to_grid`); ``bins`` overrides :func:`usable_bins`."""
+    min_bins = max(1, math.ceil(min_avg * sp.enbw_bins / sp.n_avg))
+    max_bins = None if max_avg is None else max(min_bins, math.ceil(
+        max_avg * sp.enbw_bins / sp.n_avg))
+    first, last = usable_bins(sp, grid) if bins is None else bins
+    lo, hi = band_bins(sp.freq_hz, grid, min_bins, max_bins, first, last)
+    return lo, hi, (hi - lo).astype(float), last
+
+
+def _band_means(lo: np.ndarray, hi: np.ndarray, count: np.ndarray):
+    """The mean over each band [lo, hi) of a (…, nb) array, by cumulative sums."""
+    def band_mean(a: np.ndarray) -> np.ndarray:
+        c = np.concatenate([np.zeros(a.shape[:-1] + (1,), a.dtype), np.cumsum(a, axis=-1)],
+                           axis=-1)
+        return (c[..., hi] - c[..., lo]) / count
+    return band_mean
+
+
+def _band_block(freq_hz: np.ndarray, lo: np.ndarray, count: np.ndarray, last: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bins of each band gathered into a padded (ng, width) block: their indices,
+    which entries belong to the band, and u = ln f of each."""
+    width = int(count.max())
+    idx = np.minimum(lo[:, None] + np.arange(width)[None, :], last - 1)
+    valid = np.arange(width)[None, :] < count[:, None]
+    return idx, valid, np.log(freq_hz[idx])
+
+
+@dataclass(frozen=True)
+class _BandLines:
+    """The straight lines of ln|H| and of the phase (relative to the band's value) in
+    u = ln f over each band's bins (:func:`_band_lines`)."""
+
+    b_mag: np.ndarray
+    rss_mag: np.ndarray
+    suu: np.ndarray
+    a_mag: np.ndarray
+    u_bar: np.ndarray
+    b_ph: np.ndarray
+    rss_ph: np.ndarray
+    a_ph: np.ndarray
+
+    def trend(self, h: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The fitted response of each bin, (k, ng, width)."""
+        return (h / np.abs(h))[..., None] * np.exp(
+            (self.a_mag + 1j * self.a_ph)[..., None]
+            + (self.b_mag + 1j * self.b_ph)[..., None] * (u - self.u_bar[:, None]))
+
+
+def _band_lines(h: np.ndarray, h_bin: np.ndarray, u: np.ndarray, valid: np.ndarray
+                ) -> _BandLines:
+    """Line fits of the bins' ln|H| and phase (in (−π, π] about the band value ``h``)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ln_mag = np.log(np.abs(h_bin))
+        # phase relative to the band's value, in (−π, π]: no unwrapping needed
+        dev = np.angle(h_bin * np.conj(h)[..., None])
+    finite = valid & np.all(np.isfinite(ln_mag), axis=0)
+    b_mag, rss_mag, suu, a_mag, u_bar = _line_fit(np.nan_to_num(ln_mag), u, finite)
+    b_ph, rss_ph, _, a_ph, _ = _line_fit(np.nan_to_num(dev), u, finite)
+    return _BandLines(b_mag, rss_mag, suu, a_mag, u_bar, b_ph, rss_ph, a_ph)
+
+
+def _grid_finish(h: np.ndarray, grid: np.ndarray, lines: _BandLines, w: np.ndarray,
+                 u: np.ndarray, se_db: np.ndarray, se_deg: np.ndarray, count: np.ndarray,
+                 enbw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The band values moved to the grid frequencies and corrected for curvature, and
+    their standard errors raised to the bins' scatter and for the move (:func:`to_grid`);
+    ``w`` (ng, width): the bins' weights in the band's value. Returns (h, se_db,
+    se_deg)."""
+    centroid = np.sum(w * u, axis=-1) / np.sum(w, axis=-1)
+    shift = np.log(grid) - centroid                             # (ng,)
+    h = h * np.exp((lines.b_mag + 1j * lines.b_ph) * shift)
+    var_u = np.sum(w * (u - centroid[:, None]) ** 2, axis=-1) / np.sum(w, axis=-1)
+    h, curv_gain = _curvature_correction(h, grid, var_u)
+    n_ind = count / enbw
+    ok = n_ind >= 3.0
+    dof = np.maximum(count - 2.0 * enbw, enbw)
+    root = np.sqrt(n_ind)
+    s_db = DB_PER_NEPER * np.sqrt(lines.rss_mag / dof)         # per-bin scatter, dB
+    s_deg = np.degrees(np.sqrt(lines.rss_ph / dof))             # per-bin scatter, deg
+    se_db = np.where(ok, np.maximum(se_db, s_db / root), se_db)
+    se_deg = np.where(ok, np.maximum(se_deg, s_deg / root), se_deg)
+    # the move along the fitted slope: var(b) = s² · ENBW / S_uu (correlated bins)
+    suu = lines.suu
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lever = np.where(suu > 0, shift * shift * enbw / np.where(suu > 0, suu, 1.0), 0.0)
+    bin_db = np.where(ok, s_db, se_db * root)
+    bin_deg = np.where(ok, s_deg, se_deg * root)
+    se_db = np.sqrt(se_db ** 2 + lever * bin_db ** 2) * curv_gain
+    se_deg = np.sqrt(se_deg ** 2 + lever * bin_deg ** 2) * curv_gain
+    return h, se_db, se_deg
+
+
 def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
-            max_avg: float | None = None) -> GridResponse:
+            max_avg: float | None = None, bins: tuple[int, int] | None = None
+            ) -> GridResponse:
     """Bring native-bin spectra to the common grid by band-averaging (module docstring).
 
     Averaged: P_ff, P_fx, P_xx over each grid point's bins (:func:`band_bins`, within
-    :func:`usable_bins`); H = <P_fx>/<P_ff>, γ² = |<P_fx>|² / (<P_ff><P_xx>);
+    :func:`usable_bins`, or the native-bin range ``bins`` = (first, last) when given);
+    H = <P_fx>/<P_ff>, γ² = |<P_fx>|² / (<P_ff><P_xx>);
     n_d = n_avg · max(1, bins / ENBW). Where fewer than ceil(min_avg·ENBW/n_avg) bins fall
     in a band, that many nearest bins are used; no more than ceil(max_avg·ENBW/n_avg)
     bins are averaged (None: the whole band).
@@ -573,18 +673,8 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
     average is corrected for the response's curvature across the band
     (:func:`_curvature_correction`).
     """
-    min_bins = max(1, math.ceil(min_avg * sp.enbw_bins / sp.n_avg))
-    max_bins = None if max_avg is None else max(min_bins, math.ceil(
-        max_avg * sp.enbw_bins / sp.n_avg))
-    first, last = usable_bins(sp, grid)
-    lo, hi = band_bins(sp.freq_hz, grid, min_bins, max_bins, first, last)
-    count = (hi - lo).astype(float)
-
-    def band_mean(a: np.ndarray) -> np.ndarray:
-        c = np.concatenate([np.zeros(a.shape[:-1] + (1,), a.dtype), np.cumsum(a, axis=-1)],
-                           axis=-1)
-        return (c[..., hi] - c[..., lo]) / count
-
+    lo, hi, count, last = _grid_bands(sp, grid, min_avg, max_avg, bins)
+    band_mean = _band_means(lo, hi, count)
     p_ff = band_mean(sp.p_ff)
     p_fx = band_mean(sp.p_fx)
     p_xx = band_mean(sp.p_xx)
@@ -593,28 +683,16 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
         coh = np.abs(p_fx) ** 2 / (p_ff * p_xx)
     coh = np.where(np.isfinite(coh), np.clip(coh, 0.0, 1.0), np.nan)
     n_d = sp.n_avg * np.maximum(1.0, count / sp.enbw_bins)
-    # The bins of each band, gathered into a padded (ng, width) block.
-    width = int(count.max())
-    idx = np.minimum(lo[:, None] + np.arange(width)[None, :], last - 1)
-    valid = np.arange(width)[None, :] < count[:, None]
-    u = np.log(sp.freq_hz[idx])
+    idx, valid, u = _band_block(sp.freq_hz, lo, count, last)
     w = np.where(valid, sp.p_ff[idx], 0.0)
-    centroid = np.sum(w * u, axis=-1) / np.sum(w, axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
         h_bin = sp.p_fx[:, idx] / sp.p_ff[idx]                  # (k, ng, width)
-        ln_mag = np.log(np.abs(h_bin))
-        # phase relative to the band's value, in (−π, π]: no unwrapping needed
-        dev = np.angle(h_bin * np.conj(h)[..., None])
-    finite = valid & np.all(np.isfinite(ln_mag), axis=0)
-    b_mag, rss_mag, suu, a_mag, u_bar = _line_fit(np.nan_to_num(ln_mag), u, finite)
-    b_ph, rss_ph, _, a_ph, _ = _line_fit(np.nan_to_num(dev), u, finite)
+    lines = _band_lines(h, h_bin, u, valid)
     # Coherence about the line: output power left after removing the bins' fitted
     # response ln H_k = (a_mag + j a_ph) + (b_mag + j b_ph)(ln f_k − ū) (phase relative
     # to H), so that the response's own change across the band does not count as noise
     # (Bendat & Piersol's γ² of the band average would).
-    trend = (h / np.abs(h))[..., None] * np.exp(
-        (a_mag + 1j * a_ph)[..., None]
-        + (b_mag + 1j * b_ph)[..., None] * (u - u_bar[:, None]))
+    trend = lines.trend(h, u)
     resid = (sp.p_xx[:, idx] - 2.0 * np.real(np.conj(trend) * sp.p_fx[:, idx])
              + np.abs(trend) ** 2 * sp.p_ff[idx])
     resid = np.sum(np.where(valid, resid, 0.0), axis=-1)
@@ -622,26 +700,126 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
         coh_line = 1.0 - resid / (p_xx * count)
     coh_line = np.where(np.isfinite(coh_line), np.clip(coh_line, 0.0, 1.0), 0.0)
     se_db, se_deg = bendat_piersol_se(debiased_coherence(coh_line, n_d), n_d)
-    shift = np.log(grid) - centroid                             # (ng,)
-    h = h * np.exp((b_mag + 1j * b_ph) * shift)
-    var_u = np.sum(w * (u - centroid[:, None]) ** 2, axis=-1) / np.sum(w, axis=-1)
-    h, curv_gain = _curvature_correction(h, grid, var_u)
-    n_ind = count / sp.enbw_bins
-    ok = n_ind >= 3.0
-    dof = np.maximum(count - 2.0 * sp.enbw_bins, sp.enbw_bins)
-    root = np.sqrt(n_ind)
-    s_db = DB_PER_NEPER * np.sqrt(rss_mag / dof)               # per-bin scatter, dB
-    s_deg = np.degrees(np.sqrt(rss_ph / dof))                   # per-bin scatter, deg
-    se_db = np.where(ok, np.maximum(se_db, s_db / root), se_db)
-    se_deg = np.where(ok, np.maximum(se_deg, s_deg / root), se_deg)
-    # the move along the fitted slope: var(b) = s² · ENBW / S_uu (correlated bins)
+    h, se_db, se_deg = _grid_finish(h, grid, lines, w, u, se_db, se_deg, count,
+                                    sp.enbw_bins)
+    return GridResponse(freq_hz=grid, h=h, coherence=coh, se_db=se_db, se_deg=se_deg,
+                        n_avg=n_d)
+
+
+def h2_to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
+               max_avg: float | None = None, output: int = 0) -> GridResponse:
+    """The H2 estimate X/F = <P_xx>/<P_xf> of one output on the common grid.
+
+    H2 is the reciprocal of the H1 estimate of F/X (the position taken as the input), so
+    it is :func:`to_grid` of the spectra with the roles of force and position exchanged:
+    the same bands (the force's usable bins, :func:`usable_bins`), a value moved from the
+    P_xx-weighted centroid of its bins, Bendat & Piersol's standard errors of F/X (those
+    of ln X/F are the same numbers), the bins' scatter and the curvature correction.
+    H1/H2 = γ² of the band average: H2 is unbiased when the noise is on the force only,
+    H1 when it is on the position only (Bendat & Piersol, *Random Data*, 4th ed., ch. 6,
+    systems with extraneous noise; Pintelon & Schoukens, *System Identification: A
+    Frequency Domain Approach*, 2nd ed., ch. 2).
+
+    Parameters
+    ----------
+    sp : BinSpectra
+        The spectra of :func:`welch_spectra` (force → positions).
+    grid : ndarray
+        Grid frequencies, Hz.
+    min_avg, max_avg : float
+        As :func:`to_grid`.
+    output : int
+        Which position of ``sp`` (0: the first).
+
+    Returns
+    -------
+    GridResponse
+        h (1, ng) the H2 values, m/N; coherence, se_db, se_deg, n_avg as :func:`to_grid`.
+    """
+    swapped = BinSpectra(freq_hz=sp.freq_hz, p_ff=sp.p_xx[output],
+                         p_fx=np.conj(sp.p_fx[output:output + 1]), p_xx=sp.p_ff[None, :],
+                         n_avg=sp.n_avg, enbw_bins=sp.enbw_bins, method="h2",
+                         first_bin=sp.first_bin)
+    g = to_grid(swapped, grid, min_avg=min_avg, max_avg=max_avg,
+                bins=usable_bins(sp, grid))
     with np.errstate(divide="ignore", invalid="ignore"):
-        lever = np.where(suu > 0, shift * shift * sp.enbw_bins / np.where(suu > 0, suu, 1.0),
-                         0.0)
-    bin_db = np.where(ok, s_db, se_db * root)
-    bin_deg = np.where(ok, s_deg, se_deg * root)
-    se_db = np.sqrt(se_db ** 2 + lever * bin_db ** 2) * curv_gain
-    se_deg = np.sqrt(se_deg ** 2 + lever * bin_deg ** 2) * curv_gain
+        h = 1.0 / g.h
+    return replace(g, h=h)
+
+
+def reference_to_grid(rsp: BinSpectra, sp: BinSpectra, grid: np.ndarray, *,
+                      min_avg: float = 8.0, max_avg: float | None = None) -> GridResponse:
+    """X/F through the reference: H = <P_ry>/<P_rF> per grid band (docs/methods.md,
+    "The reference estimator").
+
+    With r the rig's excitation (a commanded force or a reference trajectory), F the
+    measured force and y a position, Y = H F + E with E the part of Y that the force does
+    not explain through H (noise anywhere in the loop, the force's own noise included):
+    S_ry = H S_rF + S_rE, and H = S_ry/S_rF wherever E is uncorrelated with r — whatever
+    the noise on F and whether or not F responds to y (the instrumental-variable or
+    errors-in-variables estimator: Pintelon & Schoukens, *System Identification*, 2nd
+    ed., ch. 2; Ljung, *System Identification*, 2nd ed., ch. 13, closed loop). Its variance,
+    by the delta method, is Var(Ĥ)/|H|² = q / (n_d γ²_rF) with q = S_ee / (S_FF |H|²),
+    S_ee the spectrum of Y − H F and γ²_rF the coherence of the reference and the force;
+    for r = F, q = (1 − γ²)/γ² and it is Bendat & Piersol's (1 − γ²)/(n_d γ²). Half of it
+    goes to ln|H|, half to the phase: ε² = q' / (2 n_d γ²_rF), se_db = 20/ln 10 · ε,
+    se_deg = ε in degrees, with S_ee taken about the bins' straight line (as
+    :func:`to_grid`), γ²_rF debiased (:func:`debiased_coherence`) and q corrected for
+    its small-sample bias in the same way as the coherence of H1, q' = q/(1 − (1 + q)/n_d)
+    (so that for r = F the standard errors are :func:`to_grid`'s). The bands, the move to
+    the grid frequency, the bins' scatter and the curvature correction are those of
+    :func:`to_grid`; a bin's weight is |P_rF|.
+
+    Parameters
+    ----------
+    rsp : BinSpectra
+        Spectra of the reference and [force, positions…] (:func:`welch_spectra` of r
+        and the columns F, y₁, …): p_ff = P_rr, p_fx = [P_rF, P_ry₁, …], p_xx = [P_FF,
+        P_y₁y₁, …].
+    sp : BinSpectra
+        Spectra of the force and the same positions on the same bins (P_Fy in p_fx).
+    grid : ndarray
+        Grid frequencies, Hz.
+    min_avg, max_avg : float
+        As :func:`to_grid`.
+
+    Returns
+    -------
+    GridResponse
+        h (k, ng), m/N; ``coherence``: the coherence an H1 estimate of the same standard
+        error would have, 1/(1 + 2 n_d ε²); se_db, se_deg; n_avg.
+    """
+    f1, l1 = usable_bins(sp, grid)
+    f2, l2 = usable_bins(rsp, grid)
+    bins = (max(f1, f2), min(l1, l2)) if min(l1, l2) - max(f1, f2) >= 1 else (f1, l1)
+    lo, hi, count, last = _grid_bands(rsp, grid, min_avg, max_avg, bins)
+    band_mean = _band_means(lo, hi, count)
+    p_rr = band_mean(rsp.p_ff)
+    p_rf = band_mean(rsp.p_fx[0])
+    p_ff = band_mean(rsp.p_xx[0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        h = band_mean(rsp.p_fx[1:]) / p_rf
+        coh_rf = np.abs(p_rf) ** 2 / (p_rr * p_ff)
+    n_d = rsp.n_avg * np.maximum(1.0, count / rsp.enbw_bins)
+    idx, valid, u = _band_block(rsp.freq_hz, lo, count, last)
+    w = np.where(valid, np.abs(rsp.p_fx[0][idx]), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h_bin = rsp.p_fx[1:][:, idx] / rsp.p_fx[0][idx]
+    lines = _band_lines(h, h_bin, u, valid)
+    trend = lines.trend(h, u)
+    resid = (rsp.p_xx[1:][:, idx] - 2.0 * np.real(np.conj(trend) * sp.p_fx[:, idx])
+             + np.abs(trend) ** 2 * rsp.p_xx[0][idx])
+    s_ee = np.maximum(np.sum(np.where(valid, resid, 0.0), axis=-1) / count, 0.0)
+    coh_rf = debiased_coherence(np.where(np.isfinite(coh_rf), coh_rf, 0.0), n_d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = s_ee / (p_ff * np.abs(h) ** 2)
+        shrink = 1.0 - (1.0 + q) / n_d
+        eps2 = np.where(shrink > 0, q / shrink, np.inf) / (2.0 * n_d * coh_rf)
+    eps2 = np.where(np.isfinite(eps2), eps2, np.inf)
+    eps = np.sqrt(eps2)
+    coh = 1.0 / (1.0 + 2.0 * n_d * eps2)
+    h, se_db, se_deg = _grid_finish(h, grid, lines, w, u, DB_PER_NEPER * eps,
+                                    np.degrees(eps), count, rsp.enbw_bins)
     return GridResponse(freq_hz=grid, h=h, coherence=coh, se_db=se_db, se_deg=se_deg,
                         n_avg=n_d)
 
@@ -709,8 +887,10 @@ def drifting(pos, fs: float, fmin: float, factor: float = 3.0) -> bool:
 class EstimateConfig:
     """Options of ``armfit estimate`` (frequencies in Hz, masses in kg, forces in N).
 
-    method: "h1" or "chebwin" (measured and cross responses). nperseg: H1 segment length
-    in samples (None: see :meth:`h1_nperseg`). overlap: fraction 0…<1.
+    method: "h1" or "chebwin" (measured and cross responses). reference: estimate X/F
+    through a trial's reference column when it has one (method "h1" only; False: H1
+    whatever the trial holds). nperseg: H1 segment length in samples (None: see
+    :meth:`h1_nperseg`). overlap: fraction 0…<1.
     window: H1 window name (scipy.signal.get_window). mp: device mass per axis (kg).
     coherence_min: below it a grid point is flagged low_coherence. drift_factor: see
     :func:`drifting`. force_limit_N: saturation threshold.
@@ -730,6 +910,7 @@ class EstimateConfig:
     coherence_min: float = 0.5
     drift_factor: float = 3.0
     force_limit_N: float = FORCE_LIMIT_N
+    reference: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -793,7 +974,8 @@ class Response:
 
 @dataclass(frozen=True)
 class TrialResponses:
-    """Everything ``estimate`` keeps of one trial: identity, grid and responses."""
+    """Everything ``estimate`` keeps of one trial: identity, grid, responses and what the
+    estimators say of it (``check``, :class:`EstimatorCheck`; None when not made)."""
 
     subject: str
     axis: str
@@ -802,6 +984,7 @@ class TrialResponses:
     source: str
     freq_hz: np.ndarray
     responses: tuple[Response, ...]
+    check: EstimatorCheck | None = None
 
 
 def check_band(fs: float, n_samples: int, config: EstimateConfig, source: str = "") -> None:
@@ -837,31 +1020,309 @@ def _flag_strings(coh: np.ndarray, threshold: float, trial_flags: Sequence[str]
     return tuple(low if c < threshold else base for c in np.nan_to_num(coh, nan=0.0))
 
 
+# ---------------------------------------------------------------------------
+# Estimator checks: is the force the excitation, and does it matter here?
+# ---------------------------------------------------------------------------
+
+#: Flag of a grid point where the force is not a clean excitation (it responds to the
+#: position, or differs from the rig's commanded force) and H1 is biased there beyond
+#: its noise (docs/methods.md, "Is the force the excitation?").
+NOT_EXCITATION = "not_excitation"
+
+#: A disagreement of H1 with H2 (or with the reference estimate) beyond this many
+#: combined standard errors counts as a bias of H1.
+BIAS_Z = 2.0
+
+#: Below this coherence between a commanded force and the measured one (median over the
+#: flagged points) the measured force is not the commanded force: a force-control loop
+#: or a noisy force sensor.
+REFERENCE_COHERENCE = 0.9
+
+@dataclass(frozen=True)
+class EstimatorCheck:
+    """What the estimators say of one trial (:func:`check_estimators`).
+
+    Attributes
+    ----------
+    method : str
+        The estimator of the measured response (``h1``, ``chebwin``, ``ref``).
+    reference : str or None
+        The reference column estimated through (``ref_<a>_N``, ``ref_<a>_m``).
+    feedback : armfit.feedback.FeedbackTest or None
+        Whether the force responds to the position. None where the test was not run —
+        H1 agrees with H2 (or with the reference estimate) within the noise at every point,
+        so no point could be flagged (:attr:`needs_feedback_test`) — or where the record is
+        too short for it.
+    agreement_p : float or None
+        With a reference: the p-value of "H1 equals the reference estimate" over the grid
+        (χ² of the normalised differences of magnitude and phase).
+    gap_db : ndarray, shape (ng,)
+        Magnitude of H2 (or of the reference estimate) over H1, dB.
+    gap_deg : ndarray, shape (ng,)
+        Phase of H1 relative to the reference estimate, deg, in (−180, 180] (zeros
+        against H2, whose phase is H1's).
+    z : ndarray, shape (ng,)
+        The largest of the disagreements in magnitude and phase, in combined standard
+        errors (magnitude only against H2: H1/H2 = γ² is real).
+    flagged : ndarray of bool, shape (ng,)
+        The points flagged ``not_excitation``: evidence for the trial (the feedback test
+        fires, or H1 disagrees with the reference estimate as a whole) and a bias of H1
+        beyond :data:`BIAS_Z` there.
+    ref_coherence : float or None
+        Median coherence of a commanded force with the measured force over the flagged
+        points (a force reference only).
+    cause : str or None
+        ``closed_loop``, ``noisy_force`` or ``biased`` where points are flagged.
+    unused_reference : str or None
+        The trial's reference column when it was not estimated through (``--no-reference``
+        or ``--method chebwin``).
+    """
+
+    method: str
+    reference: str | None
+    feedback: FeedbackTest | None
+    agreement_p: float | None
+    gap_db: np.ndarray
+    gap_deg: np.ndarray
+    z: np.ndarray
+    flagged: np.ndarray
+    ref_coherence: float | None
+    cause: str | None
+    unused_reference: str | None = None
+
+    @property
+    def needs_feedback_test(self) -> bool:
+        """Whether the feedback test can change what is flagged: some point where H1 is
+        biased beyond its noise if the force is not the excitation (H2 above H1 by more
+        than :data:`BIAS_Z`, or a disagreement with the reference estimate)."""
+        return bool(np.any(np.isfinite(self.z) & (self.z > BIAS_Z)
+                           & ((self.reference is not None) | (self.gap_db > 0))))
+
+    def bands(self, freq_hz: np.ndarray) -> list[tuple[float, float]]:
+        """The runs of flagged grid points as (first, last) frequencies, Hz."""
+        out: list[tuple[float, float]] = []
+        idx = np.flatnonzero(self.flagged)
+        if idx.size:
+            for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+                out.append((float(freq_hz[run[0]]), float(freq_hz[run[-1]])))
+        return out
+
+    def record(self, freq_hz: np.ndarray) -> dict[str, object]:
+        """The check as JSON-ready values (the spectra file's metadata)."""
+        fb = self.feedback
+        gap = self.gap_db[self.flagged]
+        return {
+            "method": self.method, "reference": self.reference,
+            "feedback": None if fb is None else {
+                "statistic": fb.statistic, "dof": fb.dof, "p_value": fb.p_value,
+                "fires": fb.fires},
+            "agreement_p": self.agreement_p,
+            "not_excitation_hz": [list(b) for b in self.bands(freq_hz)],
+            "gap_db": [float(gap.min()), float(gap.max())] if gap.size else None,
+            "gap_deg": (float(np.nanmax(np.abs(self.gap_deg[self.flagged])))
+                        if gap.size else None),
+            "ref_coherence": self.ref_coherence, "cause": self.cause,
+            "unused_reference": self.unused_reference,
+        }
+
+    def message(self, label: str, freq_hz: np.ndarray, axis: str = "<a>") -> str | None:
+        """One line for the user where points are flagged, else None: the file
+        (``label``), the cause in words, the bands (Hz) and H1's gap to H2 or to the
+        estimate through the reference (``axis``: the stimulated axis, in the hint)."""
+        if self.cause is None:
+            return None
+        gap = -self.gap_db[self.flagged]             # H1 relative to the other estimate
+        lo, hi = np.abs(gap).min(), np.abs(gap).max()
+        if gap.max() < 0 or gap.min() > 0:
+            size = f"{lo:.1f}–{hi:.1f} dB {'below' if gap.max() < 0 else 'above'}"
+        else:
+            size = f"off by up to {hi:.1f} dB from"
+        where = ", ".join(f"{a:.3g}–{b:.3g} Hz" if a < b else f"{a:.3g} Hz"
+                          for a, b in self.bands(freq_hz))
+        fb, coh = self.feedback, self.ref_coherence
+        low = coh is not None and coh < REFERENCE_COHERENCE
+        if self.cause == "closed_loop":
+            why = (f"the force responds to the position (feedback test p = "
+                   f"{fb.p_value:.1e}): position-driven or closed loop, the force is a "  # type: ignore[union-attr]
+                   "controller's output")
+            if low:
+                why += f", and follows the commanded force with coherence {coh:.2f} there"
+        elif self.cause == "noisy_force":
+            why = (f"the measured force is not the commanded one (coherence {coh:.2f} "
+                   "there): force-control loop or noisy force")
+        else:
+            why = "H1 disagrees with the estimate through the reference"
+        if self.reference is not None:
+            turn = float(np.nanmax(np.abs(self.gap_deg[self.flagged])))
+            return (f"{label}: estimated through the reference {self.reference} "
+                    f"(S_xr/S_Fr); {why}; H1 would be {size} and up to {turn:.0f}° from "
+                    f"that at {where}, beyond the noise (its alternative row flagged "
+                    f"{NOT_EXCITATION})")
+        hint = (f"its reference column {self.unused_reference} estimates through the rig's "
+                "excitation with method h1 and without --no-reference"
+                if self.unused_reference is not None else
+                f"give the commanded force or trajectory as ref_{axis}_N or ref_{axis}_m to "
+                "estimate through it")
+        return (f"{label}: {why}; H1 is {size} H2 at {where}, beyond its noise (flagged "
+                f"{NOT_EXCITATION}); {hint}")
+
+
+def _phase_diff_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.degrees(np.angle(a * np.conj(b)))
+
+
+def check_estimators(h1: GridResponse, h2: GridResponse, href: GridResponse | None,
+                     feedback: FeedbackTest | None, *, method: str = "h1",
+                     reference: str | None = None,
+                     ref_force_coherence: np.ndarray | None = None) -> EstimatorCheck:
+    """Compare H1 with H2 (and with the reference estimate) on the grid and flag where
+    H1 is biased beyond its noise (docs/methods.md, "Is the force the excitation?").
+
+    Without a reference, H1/H2 = γ²: their gap says there is noise, not where it enters,
+    so it is a bias of H1 only where the force is not the excitation: the points flagged
+    are those where the feedback test fires for the trial and H2 exceeds H1 by more than
+    :data:`BIAS_Z` × √(se₁² + se₂²) (dB). With a reference, the estimate through it is
+    unbiased under weaker assumptions, and H1's disagreement with it is a bias: the
+    points flagged are those where the trial has evidence (the feedback test fires, or
+    the χ² of the normalised differences of magnitude and phase over the grid has
+    p < :data:`armfit.feedback.FEEDBACK_ALPHA`) and the magnitude or the phase differs by
+    more than :data:`BIAS_Z` combined standard errors.
+
+    Parameters
+    ----------
+    h1, h2, href : GridResponse
+        The on-axis responses (row 0 is used): H1 (or the chebwin estimate), H2 and the
+        estimate through the reference (None without one).
+    feedback : FeedbackTest or None
+        :func:`armfit.feedback.feedback_test` of the trial.
+    method : str
+        The estimator of ``h1``.
+    reference : str or None
+        The reference column's name, when ``href`` is given.
+    ref_force_coherence : ndarray, optional
+        Coherence of a commanded force with the measured force on the grid.
+
+    Returns
+    -------
+    EstimatorCheck
+    """
+    a = h1.h[0]
+    other = h2 if href is None else href
+    turn = np.zeros(a.shape)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gap = 20.0 * np.log10(np.abs(other.h[0]) / np.abs(a))
+        se = np.hypot(h1.se_db[0], other.se_db[0])
+        z = np.abs(gap) / se
+        agreement = None
+        if href is not None:
+            turn = _phase_diff_deg(a, other.h[0])
+            z_deg = np.abs(turn) / np.hypot(h1.se_deg[0], other.se_deg[0])
+            ok = np.isfinite(z) & np.isfinite(z_deg)
+            agreement = chi2_sf(float(np.sum(z[ok] ** 2 + z_deg[ok] ** 2)),
+                                2 * int(ok.sum())) if ok.any() else None
+            z = np.fmax(z, z_deg)
+    fires = feedback is not None and feedback.fires
+    evidence = fires or (agreement is not None and agreement < FEEDBACK_ALPHA)
+    biased = np.isfinite(z) & (z > BIAS_Z) & (href is not None or gap > 0)
+    flagged = biased & evidence
+    ref_coh = None
+    is_force_ref = reference is not None and reference.endswith("_N")
+    if is_force_ref and ref_force_coherence is not None and flagged.any():
+        ref_coh = float(np.nanmedian(ref_force_coherence[flagged]))
+    cause = None
+    if flagged.any():
+        cause = ("closed_loop" if fires else "noisy_force"
+                 if ref_coh is not None and ref_coh < REFERENCE_COHERENCE else "biased")
+    return EstimatorCheck(method=method, reference=reference, feedback=feedback,
+                          agreement_p=agreement, gap_db=gap, gap_deg=turn, z=z,
+                          flagged=flagged,
+                          ref_coherence=ref_coh, cause=cause)
+
+
 def estimate_trial(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
-                   config: EstimateConfig, *, source: str = "") -> tuple[Response, ...]:
+                   config: EstimateConfig, *, source: str = "", ref: np.ndarray | None = None,
+                   reference: str | None = None) -> tuple[Response, ...]:
     """All responses of one trial on ``config.grid()``.
 
     force, pos: (n, 3) N and m, columns x, y, z, NaN columns for unrecorded axes;
-    ``axis`` the stimulated axis. Returns the measured response (X/F of the stimulated
-    axis, ``config.method``), cross responses (stimulated force → each other recorded
-    position), and the derived arm dynamics Xa/Fa (tfestimate, Mp of the axis).
+    ``axis`` the stimulated axis; ``ref`` (n,) the rig's excitation on that axis (a
+    commanded force in N or a reference position in m) and ``reference`` its column name
+    (``ref_<a>_N``, ``ref_<a>_m``), or None. Returns the measured response (X/F of the
+    stimulated axis: ``config.method``, or through the reference, method ``ref``, when
+    there is one and ``config.reference``), the derived arm dynamics Xa/Fa (tfestimate,
+    Mp of the axis; ``tfestimate-ref`` through the reference), cross responses
+    (stimulated force → each other recorded position, as the measured response), then
+    the alternative estimates of X/F (kind ``alternative``: H2, and H1 when the measured
+    response went through the reference). :func:`estimate_trial_checked` also returns
+    what the estimators say of the trial.
     """
+    return estimate_trial_checked(force, pos, fs, axis, config, source=source, ref=ref,
+                                  reference=reference)[0]
+
+
+def _welch(config: EstimateConfig, x, y, fs: float, n: int, grid: np.ndarray,
+           method: str) -> BinSpectra:
+    """Welch spectra of x → columns of y with the H1 segmentation of ``config``."""
+    nper = config.h1_nperseg(fs, n)
+    return welch_spectra(x, y, fs, nperseg=nper,
+                         noverlap=min(nper - 1, int(round(config.overlap * nper))),
+                         window=config.window, method=method, fmax_hz=grid[-1])
+
+
+def _derived_reference(f: np.ndarray, x: np.ndarray, ref: np.ndarray, fs: float, mp: float,
+                       dsp: BinSpectra, config: EstimateConfig, grid: np.ndarray
+                       ) -> GridResponse:
+    """Xa/Fa through the reference: :func:`reference_to_grid` of r against (Fa, xa) on
+    the derived dynamics' own segments (:func:`derived_spectra`)."""
+    fa, xa = derived_arm_signals(f, x, fs, mp)
+    nperseg, noverlap, nfft = tfestimate_segment(fa.size, config.derived_segments)
+    win = _cached_window("hamming", nperseg, False)
+    rsp = welch_spectra(ref[1:-1], np.column_stack([fa, xa]), fs, nperseg=nperseg,
+                        noverlap=noverlap, window=win, nfft=nfft, method="tfestimate-ref")
+    return reference_to_grid(rsp, dsp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
+
+
+def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
+                           config: EstimateConfig, *, source: str = "",
+                           ref: np.ndarray | None = None, reference: str | None = None
+                           ) -> tuple[tuple[Response, ...], EstimatorCheck]:
+    """:func:`estimate_trial` and what the estimators say of the trial
+    (:class:`EstimatorCheck`: the feedback test, H1 against H2 or the reference
+    estimate, the points flagged ``not_excitation``)."""
     check_band(fs, force.shape[0], config, source)
     i = AXES.index(axis)
     f = force[:, i]
     outs = [i] + [j for j in range(3) if j != i and np.all(np.isfinite(pos[:, j]))]
     y = pos[:, outs]
     grid = config.grid()
-    if config.method == "h1":
-        nper = config.h1_nperseg(fs, force.shape[0])
-        sp = welch_spectra(f, y, fs, nperseg=nper,
-                           noverlap=min(nper - 1, int(round(config.overlap * nper))),
-                           window=config.window, method="h1", fmax_hz=grid[-1])
-    else:
-        sp = chebwin_spectra(f, y, fs)
+    n = force.shape[0]
+    use_ref = ref is not None and config.reference and config.method == "h1"
+    sp = (_welch(config, f, y, fs, n, grid, "h1") if config.method == "h1"
+          else chebwin_spectra(f, y, fs))
     _check_finite_spectra(sp, f, axis, source)
+    opts = dict(min_avg=config.min_avg, max_avg=config.max_avg)
+    mp = config.mp.get(axis, DEVICE_MASS_KG[axis])
+    dsp = derived_spectra(f, pos[:, i], fs, mp, segments=config.derived_segments)
+    _check_finite_spectra(dsp, f, axis, source)
     with np.errstate(all="ignore"):  # cells without signal are marked below (no_signal)
-        g = to_grid(sp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
+        g = to_grid(sp, grid, **opts)
+        g2 = h2_to_grid(sp, grid, **opts)
+        d = to_grid(dsp, grid, **opts)
+        gr = dr = rf = None
+        if use_ref:
+            rsp = _welch(config, ref, np.column_stack([f, y]), fs, n, grid, "ref")
+            _check_finite_spectra(rsp, f, axis, source)
+            gr = reference_to_grid(rsp, sp, grid, **opts)
+            dr = _derived_reference(f, pos[:, i], ref, fs, mp, dsp, config, grid)
+            rf = to_grid(replace(rsp, p_fx=rsp.p_fx[:1], p_xx=rsp.p_xx[:1]), grid, **opts)
+    check = check_estimators(g, g2, gr, None, method="ref" if use_ref else sp.method,
+                             reference=reference if use_ref else None,
+                             ref_force_coherence=None if rf is None else rf.coherence[0])
+    if check.needs_feedback_test:   # else no point could be flagged whatever it says
+        check = check_estimators(g, g2, gr, feedback_test(f, pos[:, i], fs, grid[-1]),
+                                 method=check.method, reference=check.reference,
+                                 ref_force_coherence=None if rf is None else rf.coherence[0])
     sat = ["saturation"] if saturated(f, config.force_limit_N) else []
 
     def trial_flags(j: int) -> list[str]:
@@ -869,22 +1330,36 @@ def estimate_trial(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
         return sat + (["drift"] if drift else [])
 
     stim_flags = trial_flags(i)
-    mp = config.mp.get(axis, DEVICE_MASS_KG[axis])
-    dsp = derived_spectra(f, pos[:, i], fs, mp, segments=config.derived_segments)
-    _check_finite_spectra(dsp, f, axis, source)
-    with np.errstate(all="ignore"):
-        d = to_grid(dsp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
-    out = [Response("measured", axis, sp.method, g.h[0], g.coherence[0], g.se_db[0],
-                    g.se_deg[0], _flag_strings(g.coherence[0], config.coherence_min,
-                                               stim_flags)),
-           Response("derived", axis, "tfestimate", d.h[0], d.coherence[0], d.se_db[0],
-                    d.se_deg[0], _flag_strings(d.coherence[0], config.coherence_min,
-                                               stim_flags))]
+
+    def flags(coh: np.ndarray, trial: list[str], biased: bool) -> tuple[str, ...]:
+        out = _flag_strings(coh, config.coherence_min, trial)
+        return _with_flag(out, check.flagged, NOT_EXCITATION) if biased else out
+
+    meas, der = (gr, dr) if use_ref else (g, d)
+    out = [Response("measured", axis, "ref" if use_ref else sp.method, meas.h[0],
+                    meas.coherence[0], meas.se_db[0], meas.se_deg[0],
+                    flags(meas.coherence[0], stim_flags, not use_ref)),
+           Response("derived", axis, "tfestimate-ref" if use_ref else "tfestimate",
+                    der.h[0], der.coherence[0], der.se_db[0], der.se_deg[0],
+                    flags(der.coherence[0], stim_flags, not use_ref))]
     for k, j in enumerate(outs[1:], start=1):
-        out.append(Response("cross", AXES[j], sp.method, g.h[k], g.coherence[k], g.se_db[k],
-                            g.se_deg[k], _flag_strings(g.coherence[k], config.coherence_min,
-                                                       trial_flags(j))))
-    return tuple(_mark_no_signal(r) for r in out)
+        out.append(Response("cross", AXES[j], "ref" if use_ref else sp.method, meas.h[k],
+                            meas.coherence[k], meas.se_db[k], meas.se_deg[k],
+                            flags(meas.coherence[k], trial_flags(j), not use_ref)))
+    out.append(Response("alternative", axis, "h2", g2.h[0], g2.coherence[0], g2.se_db[0],
+                        g2.se_deg[0], flags(g2.coherence[0], stim_flags, False)))
+    if use_ref:
+        out.append(Response("alternative", axis, sp.method, g.h[0], g.coherence[0],
+                            g.se_db[0], g.se_deg[0], flags(g.coherence[0], stim_flags, True)))
+    if reference is not None and not use_ref:
+        check = replace(check, unused_reference=reference)
+    return tuple(_mark_no_signal(r) for r in out), check
+
+
+def _with_flag(flags: tuple[str, ...], where: np.ndarray, flag: str) -> tuple[str, ...]:
+    """``flags`` with ``flag`` added where ``where`` is True."""
+    return tuple(",".join(filter(None, [fl, flag])) if w else fl
+                 for fl, w in zip(flags, where, strict=True))
 
 
 #: Flag of a grid cell without information (no force or no position power there, e.g.
@@ -1096,7 +1571,8 @@ def _majority_flags(flag_rows: Sequence[Sequence[str]]) -> list[str]:
         for s in per_freq:
             for flag in filter(None, s.split(",")):
                 counts[flag] = counts.get(flag, 0) + 1
-        out.append(",".join(f for f in ("low_coherence", "saturation", "drift", NO_SIGNAL)
+        out.append(",".join(f for f in ("low_coherence", "saturation", "drift", NO_SIGNAL,
+                                        NOT_EXCITATION)
                             if counts.get(f, 0) * 2 > n))
     return out
 
@@ -1136,10 +1612,12 @@ def _aggregate_blocks(trials: Sequence[TrialResponses]) -> list[dict[str, object
     groups: dict[tuple, list[tuple[TrialResponses, Response]]] = {}
     for tr in trials:
         for r in tr.responses:
-            groups.setdefault((tr.axis, r.kind, r.out_axis), []).append((tr, r))
+            if r.kind != "alternative":     # the alternative estimates are not aggregated
+                groups.setdefault((tr.axis, r.kind, r.out_axis), []).append((tr, r))
     for (axis, kind, out_axis), members in sorted(groups.items()):
         freq = members[0][0].freq_hz
-        method = members[0][1].method
+        # trials estimated through their reference and others: both names
+        method = "+".join(sorted({r.method for _, r in members}))
         by_grip: dict[float, dict[str, list[Response]]] = {}
         for tr, r in members:
             by_grip.setdefault(tr.grip_N, {}).setdefault(tr.subject, []).append(r)
@@ -1358,6 +1836,21 @@ class Spectra:
     def values_of(self, name: str) -> set:
         """The distinct values of the identity column ``name``, missing ones left out."""
         return {v for v in self.keys[name] if v is not None and v == v}
+
+    def repeated(self) -> bool:
+        """Whether one response (the same identity but for ``method``) appears in more
+        than one row: several estimates of it, e.g. files of two estimators joined. A
+        study whose trials went through different estimators (some through their
+        reference column) repeats nothing.
+
+        Returns
+        -------
+        bool
+        """
+        names = [k for k in SPECTRA_KEYS if k != "method"]
+        seen = {tuple(str(v) for v in row)
+                for row in zip(*(self.keys[k] for k in names), strict=True)}
+        return len(seen) < len(self)
 
     def common_grid(self, where: str = "") -> np.ndarray:
         """``freq_hz`` after checking that every row has a value at every frequency.
@@ -2201,13 +2694,17 @@ def _estimate_source(source, config: EstimateConfig):
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
                            warn=warnings.append, grip=False)  # estimate needs no grip
         m = trial.meta
-        responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
-                                   source=source.label)
+        responses, check = estimate_trial_checked(trial.force, trial.pos, m.fs, m.axis,
+                                                  config, source=source.label,
+                                                  ref=trial.ref, reference=m.reference)
         warnings += no_signal_messages(source.label, m.axis, responses)
+        said = check.message(source.label, config.grid(), m.axis)
+        if said is not None:
+            warnings.append(said)
     except BadInputError as exc:
         return ("bad", source.label, exc.template, exc.detail)
     tr = TrialResponses(m.subject, m.axis, m.grip_N, m.run, source.label, config.grid(),
-                        responses)
+                        responses, check)
     return ("ok", tr, m.fs, tuple(warnings))
 
 
@@ -2294,7 +2791,8 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
         raise err
     fs = ref[0] if ref else None
     return StudySpectra(tuple(kept), tuple(skipped), tuple(str(p) for p in stream.ignored),
-                        fs, tuple(warnings), study_metadata(config, fs, len(kept), skipped))
+                        fs, tuple(warnings), study_metadata(config, fs, len(kept), skipped,
+                                                            kept))
 
 
 def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpectra:
@@ -2320,6 +2818,7 @@ def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpe
         The trials' sampling rates differ, or a trial is too short for the grid.
     """
     kept: list[TrialResponses] = []
+    messages: list[str] = []
     fs = None
     for trial in trials:
         m = trial.meta
@@ -2329,20 +2828,56 @@ def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpe
             raise BadInputError(f"sampling rate {m.fs:g} Hz differs from {fs:g} Hz of the "
                                 "first trial; estimate trials of one rate at a time",
                                 file=m.source, column="time_s")
-        responses = estimate_trial(trial.force, trial.pos, m.fs, m.axis, config,
-                                   source=m.source)
+        responses, check = estimate_trial_checked(trial.force, trial.pos, m.fs, m.axis,
+                                                  config, source=m.source, ref=trial.ref,
+                                                  reference=m.reference)
         kept.append(TrialResponses(m.subject, m.axis, m.grip_N, m.run, m.source,
-                                   config.grid(), responses))
+                                   config.grid(), responses, check))
+        said = check.message(m.source, config.grid(), m.axis)
+        if said is not None:
+            messages.append(said)
     if not kept:
         raise NoInputError("no trial to estimate")
-    return StudySpectra(tuple(kept), (), (), fs, (), study_metadata(config, fs, len(kept), []))
+    return StudySpectra(tuple(kept), (), (), fs, tuple(messages),
+                        study_metadata(config, fs, len(kept), [], kept))
+
+
+def estimator_summary(trials: Sequence[TrialResponses]) -> dict[str, object]:
+    """What the estimators say of a study's trials (``armfit estimate --json``).
+
+    Parameters
+    ----------
+    trials : sequence of TrialResponses
+
+    Returns
+    -------
+    dict
+        ``reference_trials`` (estimated through their reference column),
+        ``feedback_trials`` (the force responds to the position: the feedback test
+        fires), ``not_excitation_trials`` (with points flagged ``not_excitation``) and
+        ``messages`` (one line per such trial, as on stderr).
+    """
+    checks = [(t, t.check) for t in trials if t.check is not None]
+    return {
+        "reference_trials": sum(c.reference is not None for _, c in checks),
+        "feedback_trials": sum(c.feedback is not None and c.feedback.fires
+                               for _, c in checks),
+        "not_excitation_trials": sum(bool(c.flagged.any()) for _, c in checks),
+        "messages": [m for t, c in checks
+                     if (m := c.message(t.source, t.freq_hz, t.axis)) is not None],
+    }
 
 
 def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,
-                   skipped: Sequence[tuple[str, str]]) -> dict:
+                   skipped: Sequence[tuple[str, str]],
+                   trials: Sequence[TrialResponses] = ()) -> dict:
     """The metadata a spectra file carries (JSON in its Parquet key-value metadata): the
     armfit version, the estimator and its options, the grid, Mp, the sampling rate ``fs``
-    (Hz), the number of trials and what was skipped."""
+    (Hz), the number of trials, what was skipped and, per trial of ``trials``, what the
+    estimators say of it (``estimators``: :meth:`EstimatorCheck.record` with the trial's
+    identity, subject, axis, grip_N and run, as its rows have it: no path, so that the
+    file does not depend on where the trials lie)."""
+    grid = config.grid()
     return {
         "armfit_version": __version__,
         "method": config.method,
@@ -2353,7 +2888,7 @@ def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,
                     "derived_segments": config.derived_segments,
                     "coherence_min": config.coherence_min,
                     "force_limit_N": config.force_limit_N, "min_avg": config.min_avg,
-                    "drift_factor": config.drift_factor},
+                    "drift_factor": config.drift_factor, "reference": config.reference},
         "grid_hz": config.grid().tolist(),
         "mp_kg": dict(config.mp),
         "fs_hz": fs,
@@ -2361,6 +2896,9 @@ def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,
         "skipped": [{"file": f, "reason": r} for f, r in skipped],
         "aggregation": "mean and median of 20 log10|H| and of the phase (each trial within "
                        "pi of the trials' circular mean)",
+        "estimators": [{"subject": t.subject, "axis": t.axis, "grip_N": t.grip_N,
+                        "run": t.run, **t.check.record(grid)}
+                       for t in trials if t.check is not None],
     }
 
 
@@ -2369,9 +2907,11 @@ __all__ = [
     "welch_spectra", "frf_h1", "chebwin_spectra", "frf_chebwin", "tfestimate_segment",
     "derived_arm_signals", "derived_spectra", "log_grid", "GridResponse", "band_bins",
     "bendat_piersol_se", "debiased_coherence", "NEGLIGIBLE_FORCE_POWER", "usable_bins",
-    "to_grid", "saturated", "moving_mean", "drifting", "EstimateConfig", "Response",
-    "TrialResponses",
+    "to_grid", "h2_to_grid", "reference_to_grid", "NOT_EXCITATION", "BIAS_Z",
+    "REFERENCE_COHERENCE", "EstimatorCheck", "check_estimators", "estimate_trial_checked",
+    "saturated", "moving_mean", "drifting", "EstimateConfig", "Response", "TrialResponses",
     "check_band", "estimate_trial", "NO_SIGNAL", "no_signal_messages", "aggregate",
     "aggregate_spread", "spectra_table", "WRITE_ROWS", "Spectra", "write_parts",
     "row_counts", "StudySpectra", "estimate_study", "estimate_trials", "study_metadata",
+    "estimator_summary",
 ]

@@ -757,7 +757,7 @@ def derived_trials(spectra, axis: str, *, method: str | None = None
         raise BadInputError(f"no trial-level 'derived' spectra for axis {axis}"
                             + (f" with method {method!r}" if method else ""), column="kind")
     methods = sorted(sel.values_of("method"))
-    if len(methods) > 1:
+    if len(methods) > 1 and sel.repeated():
         raise UsageError(f"axis {axis}: derived spectra of several estimators "
                          f"({', '.join(methods)}); choose one with {{opt}}", option="method=")
     sel = sel.sorted(("subject", "grip_N", "run"))

@@ -4,11 +4,14 @@ The recordings of ``../shared/realdata`` (or ``$ARMFIT_REALDATA``; see its READM
 each folder's README.txt) are read where they lie: this script writes a manifest and a
 column map per recording into a temporary folder, then runs armfit's own commands,
 ``estimate`` → ``fit-nominal`` → ``diagnose`` (``--json``), and prints one table row per
-recording: the grid, what the estimate shows, the fitted 5-parameter model (``*``: at a
-physical bound), its error in units of the noise, and the diagnosis (verdict, effects
-named, error/noise steps).
+recording: the grid, what the estimate shows, what the estimators say of the force (the
+feedback test per trial, the points flagged ``not_excitation``, H1's gap; through the
+reference where the map gives one), the fitted 5-parameter model (``*``: at a physical
+bound), its error in units of the noise, and the diagnosis (verdict, effects named,
+error/noise steps).
 
-Recordings: EMPS (MATLAB v5; force = 35.15 N/V × vir), the Silverbox (CSV in volts, no
+Recordings: EMPS (MATLAB v5; force = 35.15 N/V × vir; once more with its reference
+trajectory qg as the reference column), the Silverbox (CSV in volts, no
 time column; once with the 1 N/V, 1 m/V analogue and once scaled so that its moving mass
 exceeds the device mass of eq. 4), the reklab ankle (torque in N·m and angle in rad at a
 0.1 m lever) and the reklab parameter-varying ankle (MATLAB class objects: refused).
@@ -41,6 +44,11 @@ CASES = [
      "quantity,source,unit,gain\ntime_s,t,s,\nforce_x_N,vir,V,35.15\npos_x_m,qm,m,\n",
      ["--fmin", "0.5", "--force-limit", "1000"], [],
      "95 kg + viscous 204 N·s/m + Coulomb friction, closed loop, extra lag"),
+    ("emps through qg", "emps/raw/DATA_EMPS.mat",
+     "quantity,source,unit,gain\ntime_s,t,s,\nforce_x_N,vir,V,35.15\npos_x_m,qm,m,\n"
+     "ref_x_m,qg,m,\n",
+     ["--fmin", "0.5", "--force-limit", "1000"], [],
+     "the same, estimated through the position loop's reference trajectory"),
     ("silverbox (1 N/V, 1 m/V)", "silverbox/raw/SNLS80mV.csv",
      "quantity,source,unit,gain,value\nrate_Hz,,Hz,,610.3515625\nforce_x_N,V1,V,1,\n"
      "pos_x_m,V2,V,1,\n", ["--fmax", "150"], ["--band", "0.1:150"],
@@ -75,7 +83,7 @@ def _measured(path: Path) -> dict[str, np.ndarray]:
 def _shows(label: str, m: dict[str, np.ndarray]) -> str:
     """What the measured response shows, in numbers."""
     w = 2 * np.pi * m["f"]
-    if label == "emps":
+    if label.startswith("emps"):
         band = (m["f"] >= 2) & (m["f"] <= 20)
         mass = 1.0 / (10 ** (m["db"][band] / 20) * w[band] ** 2)
         return (f"mass line 1/(ω² abs(X/F)) 2–20 Hz: median {np.median(mass):.1f} kg "
@@ -90,6 +98,43 @@ def _shows(label: str, m: dict[str, np.ndarray]) -> str:
     stiff = 0.1 ** 2 / 10 ** (np.median(m["db"][low]) / 20)
     return (f"X/F {np.median(m['db'][low]):.1f} dB below 2 Hz (K = lever²/abs(X/F) ≈ "
             f"{stiff:.0f} N·m/rad); phase {np.median(m['deg'][low]):.0f}°")
+
+
+def _feedback_p(inputs: list[str], map_file: Path, est_opts: list[str]) -> list[float]:
+    """The feedback test run on every trial (the estimator runs it only where H1 and H2
+    disagree beyond the noise somewhere), read through the same map."""
+    import armfit
+    from armfit.feedback import feedback_test
+    fmax = float(est_opts[est_opts.index("--fmax") + 1]) if "--fmax" in est_opts else 30.0
+    manifest = inputs[1] if inputs[0] == "--manifest" else None
+    trials = armfit.read_trials([] if manifest else inputs, manifest=manifest,
+                                column_map=map_file, force_limit_N=1e9, f_min_hz=0.0)
+    return [feedback_test(t.f, t.x, t.meta.fs, fmax).p_value for t in trials.trials]
+
+
+def _estimators(spectra: Path, direct: list[float]) -> str:
+    """What the estimators say of the force, from the spectra file's metadata; ``direct``:
+    the feedback test's p-value of every trial."""
+    import pyarrow.parquet as pq
+    meta = json.loads(pq.read_schema(spectra).metadata[b"armfit"])
+    checks = meta["estimators"]
+    fires = sum(c["feedback"]["fires"] for c in checks if c["feedback"])
+    needed = sum(c["feedback"] is not None for c in checks)
+    flagged = [c for c in checks if c["not_excitation_hz"]]
+    text = [f"method {'/'.join(sorted({c['method'] for c in checks}))}",
+            f"feedback p {min(direct):.1g}" + (f"…{max(direct):.1g}" if len(direct) > 1
+                                               else "")
+            + f" (needed in {needed} of {len(checks)}, fires in {fires})"]
+    if flagged:
+        lo = min(c["gap_db"][0] for c in flagged)
+        hi = max(c["gap_db"][1] for c in flagged)
+        bands = sorted({(b[0], b[1]) for c in flagged for b in c["not_excitation_hz"]})
+        what = "reference estimate − H1" if flagged[0]["reference"] else "H2 − H1"
+        text.append(f"not_excitation in {len(flagged)}: {what} {lo:.1f}…{hi:.1f} dB at "
+                    + ", ".join(f"{a:.2g}–{b:.2g}" if a < b else f"{a:.2g}"
+                                for a, b in bands[:6]) + (" …" if len(bands) > 6 else "")
+                    + " Hz; cause " + "/".join(sorted({c["cause"] for c in flagged})))
+    return "; ".join(text)
 
 
 def _model(fit: dict) -> str:
@@ -108,7 +153,7 @@ def _diagnosis(doc: dict) -> tuple[str, str, str]:
 
 
 def _case(tmp: Path, label, data, map_text, est_opts, fit_opts) -> list[str]:
-    folder = tmp / label.split()[0]
+    folder = tmp / label.split(" (")[0].replace(" ", "_")
     folder.mkdir(exist_ok=True)
     (folder / "map.csv").write_text(map_text)
     source = REAL / data
@@ -120,7 +165,7 @@ def _case(tmp: Path, label, data, map_text, est_opts, fit_opts) -> list[str]:
                   "--csv", str(folder / "spectra.csv"), "-j", "2", "--overwrite", *est_opts)
     if res.returncode:
         return [f"exit {res.returncode}: " + res.stderr.strip().splitlines()[-1]
-                .removeprefix("armfit: error: ").replace(str(REAL) + "/", "")] + [""] * 4
+                .removeprefix("armfit: error: ").replace(str(REAL) + "/", "")] + [""] * 5
     grid = " ".join(est_opts[i] + " " + est_opts[i + 1] for i in range(0, len(est_opts), 2)
                     if est_opts[i] in ("--fmin", "--fmax")) or "default"
     shows = _shows(label, _measured(folder / "spectra.csv"))
@@ -130,7 +175,8 @@ def _case(tmp: Path, label, data, map_text, est_opts, fit_opts) -> list[str]:
     res = _armfit("diagnose", str(spectra), "--model", str(folder / "nominal.csv"), "--json",
                   "-j", "2")
     verdict, named, steps = _diagnosis(json.loads(res.stdout))
-    return [f"{grid}; {shows}", _model(fit),
+    direct = _feedback_p(inputs, folder / "map.csv", est_opts)
+    return [f"{grid}; {shows}", _estimators(spectra, direct), _model(fit),
             f"{fit['rms_db']:.2f} dB, {fit['rms_deg']:.1f}°, {fit['rms_norm']:.1f}× noise",
             verdict, f"{named}; error/noise {steps}"]
 
@@ -138,7 +184,7 @@ def _case(tmp: Path, label, data, map_text, est_opts, fit_opts) -> list[str]:
 def main() -> None:
     if not REAL.is_dir():
         sys.exit(f"no real recordings at {REAL} (set ARMFIT_REALDATA)")
-    head = ["recording", "README", "estimate (grid; what it shows)",
+    head = ["recording", "README", "estimate (grid; what it shows)", "the force",
             "fit-nominal (SI; * at bound)", "fit error", "diagnose", "effects named"]
     rows = []
     t0 = time.perf_counter()

@@ -318,3 +318,119 @@ def estimate_and_fit(folder: str | Path, which: str = "grip",
     spectra = estimate_study([Path(folder)], EstimateConfig()).table
     params = fit_study(spectra, which=which).table()
     return spectra, params
+
+
+# ---------------------------------------------------------------------------
+# A closed-loop rig: the device's force responds to the measured position
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Rig:
+    """A device that renders a virtual spring and damper on the measured position:
+    F = r − C(z)·(x + d), C(z) = z⁻¹ (k + b·fs·(1 − z⁻¹)) (a PD controller one servo
+    sample late), with r the commanded force (the study's force signal), x the true
+    position and d what the position sensor adds (postural drift and sensor noise). The
+    force applied to the stylus then depends on the sensor's noise through the loop, as
+    on a position-controlled or impedance-rendering haptic device (the README's EMPS
+    axis is the extreme case). ``k_N_per_m``, ``b_Ns_per_m``: the controller's stiffness
+    and damping; ``reference``: log r as the trial's ``ref_<a>_N`` column;
+    ``force_noise_N``: white noise (rms, N) on the recorded force only (a noisy force
+    sensor)."""
+
+    k_N_per_m: float = 300.0
+    b_Ns_per_m: float = 1.0
+    reference: bool = True
+    force_noise_N: float = 0.0
+
+
+def _z_polys(num, den, fs: float) -> tuple[np.ndarray, np.ndarray]:
+    """(b, a) in powers of z⁻¹ of the bilinear discretisation of num/den (s), a[0] = 1."""
+    z, p, k = signal.tf2zpk(num, den)
+    w0 = 2 * np.pi * 10.0   # as discrete_sos: time in units of 1/w0
+    k = k * w0 ** (z.size - p.size)
+    zd, pd, kd, _ = signal.cont2discrete((z / w0, p / w0, k), w0 / fs, method="bilinear")
+    b = float(np.squeeze(kd)) * np.poly(np.atleast_1d(np.squeeze(zd)))
+    a = np.poly(pd)
+    b = np.concatenate([np.zeros(a.size - b.size), b])
+    return np.real(b), np.real(a)
+
+
+def simulate_rig_trial(study: Study, rig: Rig, subject: int, axis: str, grip: float
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """(force (n,) N, position (n,) m, commanded force r (n,) N, truth) of one trial on
+    the closed-loop rig. The loop is solved exactly in z: with G = B/A (X/F, bilinear)
+    and C = c₁z⁻¹ + c₂z⁻², F = A (r − C d)/(A + C B) and x = B (r − C d)/(A + C B).
+    The recorded position is x + d, quantised; the recorded force is F (plus the rig's
+    force-sensor noise). The truth's X/F is the open loop's (:func:`closed_loop_tf`):
+    what an unbiased estimator of the measured dynamics must find. Only the bilinear
+    method and effects without the output ``delay`` are simulated."""
+    if study.method != "bilinear" or "delay" in study.effects:
+        raise ValueError("the rig simulates the bilinear method without a delay effect")
+    rng = np.random.default_rng([study.seed, 3, subject, "xyz".index(axis),
+                                 int(round(grip * 1000))])
+    fs = study.fs
+    n = int(round(rng.uniform(*study.duration_s) * fs))
+    lead = int(round(LEAD_S * fs))
+    arm = arm_params(study, subject, axis, grip)
+    effects = {k: dict(v) for k, v in study.effects.items()} if axis in study.effect_axes \
+        else {}
+    b, a = _z_polys(*closed_loop_tf(arm, MP_KG[axis], effects), fs)
+    r = force_signal(rng, n + lead, study)
+    d = np.zeros(n + lead)
+    if study.drift_m > 0:
+        dsos = signal.butter(2, 0.05, fs=fs, output="sos")
+        drift = signal.sosfilt(dsos, rng.standard_normal(n + lead))
+        d += study.drift_m * drift / max(np.std(drift[lead:]), 1e-30)
+    d += study.noise_m * rng.standard_normal(n + lead)
+    c = np.array([0.0, rig.k_N_per_m + rig.b_Ns_per_m * fs, -rig.b_Ns_per_m * fs])
+    den = np.polyadd(a[::-1], np.convolve(c, b)[:a.size + 2][::-1])[::-1]  # A + C B
+    if np.any(np.abs(np.roots(den)) >= 1.0):
+        raise ValueError("the rig's loop is unstable")
+    u = r - signal.lfilter(c, [1.0], d)
+    force = signal.sosfilt(signal.tf2sos(np.concatenate([a, [0.0, 0.0]]), den), u)
+    x = signal.sosfilt(signal.tf2sos(np.concatenate([b, [0.0, 0.0]]), den), u) + d
+    x, force, r = x[lead:], force[lead:], r[lead:]
+    if study.quantum_m > 0:
+        x = np.round(x / study.quantum_m) * study.quantum_m
+    if rig.force_noise_N > 0:
+        force = force + rig.force_noise_N * rng.standard_normal(n)
+    truth = {"subject": subject, "axis": axis, "grip_N": grip, "arm": arm,
+             "mp_kg": MP_KG[axis], "effects": effects, "n_samples": n,
+             "rig": asdict(rig)}
+    return force, x, r, truth
+
+
+def write_rig_study(study: Study, rig: Rig, out: str | Path) -> Path:
+    """Simulate every trial of ``study`` on the closed-loop ``rig`` and write raw trial
+    files (Parquet: time_s, force_<a>_N, pos_<a>_m and, with ``rig.reference``, the
+    commanded force as ref_<a>_N) and ``truth.json`` into ``out``. Returns the folder."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    truths = []
+    for s in range(study.subjects):
+        for axis in study.axes:
+            for grip in study.grips_N:
+                force, x, r, truth = simulate_rig_trial(study, rig, s, axis, grip)
+                cols = {"time_s": np.arange(x.size) / study.fs, f"force_{axis}_N": force,
+                        f"pos_{axis}_m": x}
+                if rig.reference:
+                    cols[f"ref_{axis}_N"] = r
+                pq.write_table(pa.table(cols),
+                               out / f"sub-{s + 1:02d}_axis-{axis}_grip-{grip:g}N.parquet")
+                truths.append(truth)
+    settings = asdict(study)
+    settings["effects"] = {k: dict(v) for k, v in study.effects.items()}
+    (out / "truth.json").write_text(json.dumps({"generator": "tests/tdsim.py (rig)",
+                                                "settings": settings, "rig": asdict(rig),
+                                                "trials": truths}, indent=1))
+    return out
+
+
+def true_response(truth: Mapping, freq_hz: np.ndarray) -> np.ndarray:
+    """The true X/F (m/N) of a trial's ``truth`` at ``freq_hz``: :func:`closed_loop_tf`
+    evaluated at s = j2πf (without an output delay)."""
+    num, den = closed_loop_tf(truth["arm"], truth["mp_kg"], truth["effects"])
+    s = 2j * np.pi * np.asarray(freq_hz, dtype=float)
+    return np.polyval(num, s) / np.polyval(den, s)

@@ -47,7 +47,13 @@ def test_output_schema_metadata_and_summary(study):
     # 8 trials (2 subjects x 2 axes x 2 grips); each has measured, derived and 2 cross
     trials = df[df["level"] == "trial"]
     assert trials.groupby(["subject", "axis", "grip_N"]).ngroups == 8
-    assert sorted(trials["kind"].unique()) == ["cross", "derived", "measured"]
+    # the alternative rows: H2 of each trial's X/F, beside the measured H1
+    assert sorted(trials["kind"].unique()) == ["alternative", "cross", "derived", "measured"]
+    alt = trials[trials["kind"] == "alternative"]
+    assert set(alt["method"]) == {"h2"} and len(alt) == len(trials[
+        (trials["kind"] == "measured")])
+    # the aggregates are of measured, derived and cross responses only
+    assert "alternative" not in set(df[df["level"] != "trial"]["kind"])
     # mean: per axis x grip, n = 2 subjects; median: per axis, grip NaN, n = 4 trials
     mean = df[(df["level"] == "mean") & (df["kind"] == "measured")]
     assert mean.groupby(["axis", "grip_N"]).ngroups == 4 and set(mean["n"]) == {2}

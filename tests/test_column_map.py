@@ -145,7 +145,8 @@ HEAD = "quantity,source,unit,gain,lever_m,sign,value"
 BAD_MAPS = [
     ("unknown quantity", [HEAD, GOOD["time"], GOOD["force"], GOOD["pos"], "velocity_x,v,m"],
      "map.csv, column 'quantity', row 4: unknown quantity 'velocity_x'; expected one of "
-     "rate_Hz, time_s, force_x_N, force_y_N, force_z_N, pos_x_m, pos_y_m, pos_z_m, grip_N"),
+     "rate_Hz, time_s, force_x_N, force_y_N, force_z_N, pos_x_m, pos_y_m, pos_z_m, grip_N, "
+     "ref_x_N, ref_x_m, ref_y_N, ref_y_m, ref_z_N, ref_z_m"),
     ("twice", [HEAD, GOOD["time"], GOOD["force"], GOOD["pos"], "force_x_N,g,N"],
      "map.csv, column 'quantity', row 4: force_x_N is given twice (also row 2); which one "
      "is meant cannot be known"),

@@ -444,13 +444,17 @@ def test_illustrations_use_real_options(doc: Path) -> None:
     bad = []
     for where, argv in _illustrations(doc):
         cmd: click.Command = cli
-        known = {o for p in cli.params for o in getattr(p, "opts", [])}
+        def flags(command: click.Command) -> set[str]:   # --x and the --no-x of a switch
+            return {o for p in command.params for o in (*getattr(p, "opts", ()),
+                                                        *getattr(p, "secondary_opts", ()))}
+
+        known = flags(cli)
         args = [a for a in argv if not a.startswith("-") or a in ("-v", "-q")]
         for a in args:
             subs = _subcommands(cmd) if isinstance(cmd, click.Group) else {}
             if a in subs:
                 cmd = subs[a]
-                known |= {o for p in cmd.params for o in getattr(p, "opts", [])}
+                known |= flags(cmd)
         if isinstance(cmd, click.Group):
             bad.append(f"{where}: no subcommand")
             continue

@@ -23,7 +23,7 @@ LAYERS: dict[str, float] = {
     "_version": 0, "_lazy": 0, "constants": 0, "errors": 0, "data": 0, "workers": 0, "noise": 0,
     "memory": 0,
     "io": 1,
-    "spectra": 2,
+    "spectra": 2, "feedback": 2,
     "models": 3,
     "fitting": 4, "uncertainty": 4, "diagnosis": 4, "simulation": 4, "tables": 4,
     "loop": 4, "blocklsq": 4,

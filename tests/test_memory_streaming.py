@@ -72,8 +72,10 @@ def assert_same(a: S.Spectra, b: S.Spectra) -> None:
 @pytest.mark.parametrize("layout", ["one group", "7 a group", "50 a group"])
 def test_reading_by_row_group_gives_the_whole_table(sample, layout):
     path = sample[layout]
-    assert pq.ParquetFile(path).num_row_groups == {"one group": 1, "7 a group": 28,
-                                                   "50 a group": 4}[layout]
+    # 228 responses: 36 trials × 5 (measured, derived, 2 cross, the alternative H2) and
+    # 48 aggregates (12 kinds and axes × 3 grip means and a median)
+    assert pq.ParquetFile(path).num_row_groups == {"one group": 1, "7 a group": 33,
+                                                   "50 a group": 5}[layout]
     assert_same(S.Spectra.read(path), whole(path))
 
 
@@ -116,7 +118,7 @@ def test_a_spectra_file_is_never_read_whole(sample, monkeypatch):
     monkeypatch.setattr(pq, "read_table", no_whole_read)
     monkeypatch.setattr(S.Spectra, "from_frame", classmethod(counted))
     assert_same(S.Spectra.read(path), ref)
-    assert len(sizes) == 28 and max(sizes) == 7 * ref.freq_hz.size
+    assert len(sizes) == 33 and max(sizes) == 7 * ref.freq_hz.size
     sizes.clear()
     assert len(S.Spectra.read(path, level="mean")) == int(np.sum(ref.keys["level"] == "mean"))
     assert max(sizes) == 7 * ref.freq_hz.size
@@ -142,7 +144,8 @@ def test_the_run_reads_its_spectra_by_row_group(tmp_path, monkeypatch):
     result = armfit.run(STUDY, tmp_path / "out", figures=False)
     nf = len(S.EstimateConfig().grid())
     assert result.trials == 36
-    assert pq.ParquetFile(tmp_path / "out" / "spectra.parquet").num_row_groups == 12
+    # 228 responses (see above) in groups of 16
+    assert pq.ParquetFile(tmp_path / "out" / "spectra.parquet").num_row_groups == 15
     assert sizes and max(sizes) <= 16 * nf
 
 

@@ -98,7 +98,7 @@ EXPECTED: dict[str, str] = {
     "run/report.md":
         "ba46f70481cc8c0ac169eee1fd0b4b3e0c9a05f4e53cd869b226c90f3ac855ad",
     "run/spectra.parquet":
-        "44f3cd21c9fba026654eedf0669a6445d75d8b517036d9a247a1c33d0bd7fd5f",
+        "7f7910c503a4059c4f6ea3bdc8c362fb29624ee31197ec605d4c4b9f3f33f8d9",
     "run/stability.csv":
         "f3df1ad3b5c4dedf2c337f30499d2a7d74144b83f83b053e1258d4b9bd6428dc",
     "run/trial_params.csv":

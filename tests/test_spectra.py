@@ -253,8 +253,9 @@ def test_cross_response_when_other_positions_present(x1_trial):
     p3[:, 1] = 0.5 * pos[:, 0]  # y moves with half of x: cross response = H_x / 2
     p3[:, 2] = np.nan          # z not recorded -> no z response
     resp = S.estimate_trial(force, p3, FS, "x", S.EstimateConfig())
+    # the alternative estimate of X/F (H2) closes the trial's responses
     assert [(r.kind, r.out_axis) for r in resp] == [("measured", "x"), ("derived", "x"),
-                                                    ("cross", "y")]
+                                                    ("cross", "y"), ("alternative", "x")]
     np.testing.assert_allclose(resp[2].h, 0.5 * resp[0].h, rtol=1e-9)
 
 
@@ -521,4 +522,4 @@ def test_spectra_file_written_in_row_groups_reads_back_the_same(tmp_path, monkey
     trial_flags = one.loc[one["level"] == "trial", "flags"]
     assert counts["flagged_trial_rows"] == {
         f: int(trial_flags.str.contains(f).sum()) for f in ("low_coherence", "saturation",
-                                                            "drift")}
+                                                            "drift", "not_excitation")}

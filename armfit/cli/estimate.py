@@ -29,7 +29,7 @@ from armfit.errors import UsageError
 from armfit.io.atomic import atomic_outputs, check_output
 from armfit.io.numbers import parse_number
 from armfit.io.trials import with_map
-from armfit.spectra import EstimateConfig
+from armfit.spectra import EstimateConfig, estimator_summary
 
 WINDOWS = ("hann", "hamming", "blackman", "blackmanharris", "boxcar")
 
@@ -73,6 +73,10 @@ _FORMATS = {".parquet": "the spectra file the later commands read",
               show_default=True,
               help="Measured-dynamics estimator: Welch H1 (best on simulated truth) or the "
                    "paper's whole-record FFT ratio with 100 dB Chebyshev windows.")
+@click.option("--reference/--no-reference", default=_DEFAULTS.reference, show_default=True,
+              help="With h1: estimate X/F through a trial's reference column (ref_<a>_N, "
+                   "the commanded force, or ref_<a>_m, the reference trajectory) when it "
+                   "has one, S_xr/S_Fr; --no-reference: H1 whatever the trials hold.")
 @click.option("--fmin", type=Number(min=0, min_open=True), default=_DEFAULTS.fmin,
               show_default=True, metavar="HZ", help="Lowest grid frequency, Hz.")
 @click.option("--fmax", type=Number(min=0, min_open=True), default=_DEFAULTS.fmax,
@@ -105,9 +109,9 @@ _FORMATS = {".parquet": "the spectra file the later commands read",
 @scheduler_option
 @overwrite_option
 @json_option
-def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, per_decade,
-            nperseg, overlap, window, mp, min_coherence, force_limit, csv_path, jobs, scheduler,
-            overwrite, as_json):
+def command(paths, output, manifest, column_map, skip_bad, method, reference, fmin, fmax,
+            per_decade, nperseg, overlap, window, mp, min_coherence, force_limit, csv_path,
+            jobs, scheduler, overwrite, as_json):
     """Estimate frequency responses of every trial and their mean and median, e.g.
     ``armfit estimate trials.parquet -o spectra.parquet``.
 
@@ -129,7 +133,8 @@ def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, p
                      manifest=manifest)
     config = estimate_config(method=method, fmin=fmin, fmax=fmax, per_decade=per_decade,
                              nperseg=nperseg, overlap=overlap, window=window, mp=mp,
-                             coherence_min=min_coherence, force_limit_N=force_limit)
+                             coherence_min=min_coherence, force_limit_N=force_limit,
+                             reference=reference)
     with contextlib.ExitStack() as stack:
         executor = stack.enter_context(cluster_executor(scheduler))
         bar = {}
@@ -153,7 +158,10 @@ def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, p
             result.spectra.write_csv(csv_path, overwrite=overwrite)
     for f, r in result.skipped:
         message(f"skipped {f}: {r}")
+    through = sum(t.check is not None and t.check.reference is not None
+                  for t in result.trials)
     message(f"estimated {len(result.trials)} trial(s) into {output}"
+            + (f" ({through} through their reference column)" if through else "")
             + (f"; skipped {len(result.skipped)}" if result.skipped else ""))
     if as_json:
         counts = result.counts()
@@ -167,6 +175,7 @@ def command(paths, output, manifest, column_map, skip_bad, method, fmin, fmax, p
             "fs_hz": result.fs,
             "grid": {"fmin_hz": fmin, "fmax_hz": fmax, "points": len(meta["grid_hz"])},
             **counts,
+            "estimators": estimator_summary(result.trials),
         })
 
 

@@ -39,6 +39,10 @@ from armfit.spectra import METHODS
 @skip_bad_option
 @click.option("--method", type=click.Choice(METHODS), default="h1", show_default=True,
               help="Measured-dynamics estimator (see `armfit estimate`).")
+@click.option("--reference/--no-reference", default=True, show_default=True,
+              help="Estimate X/F through a trial's reference column (ref_<a>_N or "
+                   "ref_<a>_m) when it has one; --no-reference: H1 whatever the trials "
+                   "hold (see `armfit estimate`).")
 @click.option("--cost", type=click.Choice(COSTS), default="complex", show_default=True,
               help="Arm-fit cost: complex (dB and phase over their standard errors) or "
                    "paper (eq. 5, dB only).")
@@ -67,7 +71,8 @@ from armfit.spectra import METHODS
 @click.option("--no-figures", is_flag=True, help="Skip the figures (faster).")
 @overwrite_option
 @json_option
-def command(inputs, outdir, manifest, column_map, skip_bad, method, cost, wu_cost, adopt,
+def command(inputs, outdir, manifest, column_map, skip_bad, method, reference, cost, wu_cost,
+            adopt,
             outside_loop, fmin, fmax, band, force_limit, jobs, scheduler, no_figures,
             overwrite, as_json):
     """Run every stage on raw trials and write all tables, figures and report.md into
@@ -94,7 +99,8 @@ def command(inputs, outdir, manifest, column_map, skip_bad, method, cost, wu_cos
             on_stage=lambda s: message(s.line()),
             warn=lambda text: message(f"warning: {text}"), executor=executor,
             column_map=column_map, force_limit_N=force_limit, fmin=fmin, fmax=fmax,
-            bands={a: b for a, b in bands.items() if b != PAPER_BANDS[a]}, note=map_note)
+            bands={a: b for a, b in bands.items() if b != PAPER_BANDS[a]}, note=map_note,
+            reference=reference)
     for f, reason in result.skipped:
         message(f"skipped {f}: {reason}")
     for axis, verdict in result.verdicts.items():

@@ -7,8 +7,9 @@ A column map is a small CSV file, one row per armfit quantity::
     force_x_N,vir,V,35.15
     pos_x_m,qm,m
 
-``quantity`` is an armfit column (``time_s``, ``force_<a>_N``, ``pos_<a>_m``, ``grip_N``)
-or ``rate_Hz`` (the sampling rate of a file without a time column, in the ``value``
+``quantity`` is an armfit column (``time_s``, ``force_<a>_N``, ``pos_<a>_m``, ``grip_N``,
+and the rig's excitation ``ref_<a>_N``, a commanded force, or ``ref_<a>_m``, a reference
+trajectory) or ``rate_Hz`` (the sampling rate of a file without a time column, in the ``value``
 column); ``source`` is the file's column, or a MATLAB variable, ``name:k`` for the
 k-th column (1-based) of a matrix variable (MATLAB's ``name(:,k)``); ``unit`` is the
 source's unit. The value in SI units is ``sign × gain × unit factor × source``
@@ -45,7 +46,8 @@ _REQUIRED = MAP_COLUMNS[:3]
 
 #: The quantities a map may give, besides ``rate_Hz``: armfit's raw-trial columns.
 MAP_QUANTITIES: tuple[str, ...] = (
-    "time_s", *(f"force_{a}_N" for a in AXES), *(f"pos_{a}_m" for a in AXES), "grip_N")
+    "time_s", *(f"force_{a}_N" for a in AXES), *(f"pos_{a}_m" for a in AXES), "grip_N",
+    *(f"ref_{a}_{u}" for a in AXES for u in ("N", "m")))
 
 #: Units understood, by kind: the factor that turns one unit into the SI unit (s, m,
 #: rad, N, N·m). 1 lbf = 4.4482216152605 N (exact, from 1 lb = 0.45359237 kg and
@@ -70,7 +72,9 @@ def _kind(quantity: str) -> str:
         return "time"
     if quantity == "rate_Hz":
         return "rate"
-    return "length" if quantity.startswith("pos_") else "force"
+    length = quantity.startswith("pos_") or (quantity.startswith("ref_")
+                                              and quantity.endswith("_m"))
+    return "length" if length else "force"
 
 
 #: What each kind of quantity accepts, as the message lists it.
@@ -348,6 +352,13 @@ def _parse(rows: Sequence[Sequence[str]], header: list[str], file: str) -> Colum
         else:
             convs.append(_conversion(cells, row_no, file))
         cells_kept.append(tuple(cells[k] for k in MAP_COLUMNS))
+    for a in AXES:
+        if f"ref_{a}_N" in seen and f"ref_{a}_m" in seen:
+            raise BadInputError(f"both ref_{a}_N (row {seen[f'ref_{a}_N']}) and ref_{a}_m "
+                                f"(row {seen[f'ref_{a}_m']}) are given: a trial's reference "
+                                "is a commanded force or a reference position, not both",
+                                file=file, column="quantity",
+                                row=max(seen[f"ref_{a}_N"], seen[f"ref_{a}_m"]))
     if "time_s" in seen and "rate_Hz" in seen:
         raise BadInputError(f"both time_s (row {seen['time_s']}) and rate_Hz (row "
                             f"{seen['rate_Hz']}) are given; give one: the time column, or "

@@ -24,9 +24,11 @@ SPECTRA_COLUMNS: tuple[str, ...] = (
     "axis",       # stimulated axis "x" | "y" | "z"
     "grip_N",     # target grip force, N (NaN at level "median": all grips pooled)
     "run",        # repeat index (nullable Int64)
-    "kind",       # "measured" (X/F), "derived" (Xa/Fa, device removed), "cross"
+    "kind",       # "measured" (X/F), "derived" (Xa/Fa, device removed), "cross", and at
+                  # level "trial" "alternative" (X/F by the other estimators: H2, H1)
     "out_axis",   # position axis of the response (== axis except for kind "cross")
-    "method",     # estimator name, e.g. "h1", "chebwin", "tfestimate"
+    "method",     # estimator name: "h1", "chebwin", "ref" (through the reference column),
+                  # "tfestimate", "tfestimate-ref", "h2"; "h1+ref" for an aggregate of both
     "freq_hz",    # frequency, Hz
     "re", "im",   # complex response, m/N
     "mag_db",     # 20 log10 |H| with H in m/N
@@ -36,8 +38,10 @@ SPECTRA_COLUMNS: tuple[str, ...] = (
     "se_deg",     # standard error of phase_deg, deg
     "n",          # number of trials behind the value (1 at level "trial")
     "q25_db", "q75_db", "q25_deg", "q75_deg",  # quartiles across trials (aggregates)
-    "flags",      # comma-separated: low_coherence, saturation, drift, no_signal (empty if
-                  # none); no_signal: the cell carries no information (no force or no
+    "flags",      # comma-separated: low_coherence, saturation, drift, no_signal,
+                  # not_excitation (empty if none); not_excitation: the force is not a
+                  # clean excitation there and H1 is biased beyond its noise (see
+                  # docs/methods.md); no_signal: the cell carries no information (no force or no
                   # position power there, e.g. an unstimulated axis recorded as constant
                   # zero): re, im, mag_db, phase_deg, coherence, se_* are NaN, never ±inf,
                   # and aggregates leave the cell out (NaN and no_signal if no trial has it)
@@ -56,10 +60,11 @@ SPECTRA_TEXT: tuple[str, ...] = ("level", "subject", "axis", "kind", "out_axis",
                                  "flags")
 
 #: Flags a grid point can carry, in the order they are written.
-FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift", "no_signal")
+FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift", "no_signal",
+                          "not_excitation")
 
 #: The flags ``armfit estimate --json`` counts over the trial rows.
-COUNTED_FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift")
+COUNTED_FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift", "not_excitation")
 
 #: Key of armfit's metadata (JSON) in the Parquet file's key-value metadata.
 SPECTRA_META_KEY = b"armfit"

@@ -11,7 +11,10 @@ Every number (cells, name parts, manifest and metadata fields) is read by
 after a ``stat``, and a symbolic link found in a folder is not followed.
 
 Units: time s, force N, position m (``pos_<a>_mm`` columns are divided by 1000),
-sampling rate Hz. Rows in messages are 1-based data rows (the header is not counted).
+sampling rate Hz. A trial may carry the rig's excitation on its stimulated axis, a
+``ref_<a>_N`` (commanded force, N) or ``ref_<a>_m`` (reference trajectory, m) column:
+:attr:`Trial.ref`, estimated through by :mod:`armfit.spectra`. Rows in messages are
+1-based data rows (the header is not counted).
 """
 
 from __future__ import annotations
@@ -48,6 +51,14 @@ TRIAL_EXTENSIONS: tuple[str, ...] = (".csv.gz", ".csv", ".parquet", ".mat")
 #: Sample columns of the canonical dataset besides ``trial`` (float64, SI units).
 DATASET_COLUMNS: tuple[str, ...] = (
     "force_x_N", "force_y_N", "force_z_N", "pos_x_m", "pos_y_m", "pos_z_m", "grip_N")
+
+#: The reference (excitation) column of the canonical dataset, written only when a trial
+#: of the dataset has one; each trial's metadata names what it holds (``reference``).
+DATASET_REFERENCE = "ref"
+
+#: Units of a reference column: ``ref_<a>_N`` a commanded force, ``ref_<a>_m`` a reference
+#: position (what the rig's controller was asked to do, not what it measured).
+REFERENCE_UNITS: tuple[str, ...] = ("N", "m")
 
 #: Parquet key-value metadata keys of the canonical dataset.
 DATASET_FORMAT_KEY = "armfit.format"
@@ -97,7 +108,9 @@ class TrialMeta:
     subject: alphanumeric label; axis: stimulated axis 'x'|'y'|'z'; grip_N: target grip
     force (N); run: repeat index or None; fs: sampling rate (Hz); n_samples; t0_s: time of
     the first sample (s); source: the file it was read from; column_map: the map its SI
-    columns were made with (None: the file has armfit's own columns).
+    columns were made with (None: the file has armfit's own columns); reference: the
+    name of the trial's reference column on the stimulated axis (``ref_<a>_N`` or
+    ``ref_<a>_m``), None without one.
     """
 
     subject: str
@@ -109,6 +122,7 @@ class TrialMeta:
     t0_s: float
     source: str
     column_map: ColumnMap | None = None
+    reference: str | None = None
 
     @property
     def duration_s(self) -> float:
@@ -129,13 +143,16 @@ class Trial:
 
     force: (n, 3) commanded force in N, columns x, y, z (NaN where not recorded);
     pos: (n, 3) stylus-tip position in m (NaN where not recorded);
-    grip: (n,) grip force in N (NaN between sensor samples or where absent), or None.
+    grip: (n,) grip force in N (NaN between sensor samples or where absent), or None;
+    ref: (n,) the rig's excitation on the stimulated axis — a commanded force in N or a
+    reference position in m, as ``meta.reference`` names — or None.
     """
 
     meta: TrialMeta
     force: np.ndarray
     pos: np.ndarray
     grip: np.ndarray | None = None
+    ref: np.ndarray | None = None
 
     @property
     def f(self) -> np.ndarray:
@@ -729,7 +746,8 @@ def _select_columns(names: list[str], axis: str, file: str) -> dict[str, str]:
     """
     have = set(names)
     known = {"time_s", "grip_N"} | {f"{q}_{a}_{u}" for a in AXES
-                                    for q, u in (("force", "N"), ("pos", "m"), ("pos", "mm"))}
+                                    for q, u in (("force", "N"), ("pos", "m"), ("pos", "mm"),
+                                                 ("ref", "N"), ("ref", "m"))}
     counts = Counter(names)
     for name in names:
         if name in known and counts[name] > 1:
@@ -761,7 +779,26 @@ def _select_columns(names: list[str], axis: str, file: str) -> dict[str, str]:
             pick[f"pos_{a}_m"] = f"pos_{a}_mm"
     if "grip_N" in have:
         pick["grip_N"] = "grip_N"
+    refs = [f"ref_{axis}_{u}" for u in REFERENCE_UNITS if f"ref_{axis}_{u}" in have]
+    if len(refs) > 1:
+        raise BadInputError(f"both {refs[0]} and {refs[1]} are present: a trial's reference "
+                            "is a commanded force or a reference position, not both; keep "
+                            "one", file=file, column=refs[1])
+    if refs:
+        pick["ref"] = refs[0]
     return pick
+
+
+def check_reference(v: np.ndarray, name: str, file: str) -> np.ndarray:
+    """Refuse a reference column ``name`` (``ref_<a>_N`` or ``ref_<a>_m``) whose samples
+    are not finite or absurd (as :func:`check_values`) or constant throughout (it would
+    excite nothing): BadInputError naming the file, column and row."""
+    v = check_values(v, name, file)
+    if v.size and v.max() == v.min():
+        raise BadInputError(f"the reference is constant ({cell(float(v[0]))}) throughout: it "
+                            "excites nothing; drop the column, or give the commanded force "
+                            "or the reference trajectory", file=file, column=name)
+    return v
 
 
 def _nice_rate(fs: float) -> float:
@@ -864,10 +901,13 @@ def read_trial(source: TrialSource, *, f_min_hz: float = GRID_HZ[0],
                 v = check_values(cols[name], name, file)
                 arr[:, j] = v / scale if name.endswith("_mm") else v
         grip = check_grip(cols["grip_N"], file) if "grip_N" in pick else None
+        ref = check_reference(cols[pick["ref"]], pick["ref"], file).copy() \
+            if "ref" in pick else None
         fs = sampling_rate(t, file=file)
         meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
-                         fs, int(n), float(t[0]), _provenance(path))
-        trial = Trial(meta, force, pos, None if grip is None else np.array(grip))
+                         fs, int(n), float(t[0]), _provenance(path),
+                         reference=pick.get("ref"))
+        trial = Trial(meta, force, pos, None if grip is None else np.array(grip), ref)
         del cols, t, grip
         _release_arrow_memory()
     if source.column_map is not None:
@@ -966,7 +1006,8 @@ def _read_mapped_trial(source: TrialSource, *, grip: bool) -> Trial:
     assert cmap is not None
     file = source.path
     path = Path(file)
-    convs = [c for c in cmap.conversions if grip or c.quantity != "grip_N"]
+    convs = [c for c in cmap.conversions if (grip or c.quantity != "grip_N") and not (
+        c.quantity.startswith("ref_") and c.quantity.split("_")[1] != source.axis)]
     raw = _source_columns(path, convs, file)
     sizes = {c.source: raw[c.source].size for c in convs}
     first = convs[0].source
@@ -977,12 +1018,14 @@ def _read_mapped_trial(source: TrialSource, *, grip: bool) -> Trial:
     n = sizes[first]
     force = np.full((n, 3), np.nan)
     pos = np.full((n, 3), np.nan)
-    grip_N = None
+    grip_N = ref = None
     for c in convs:
         with _named_by_source(c, cmap):
             v = c.apply(raw[c.source])
             if c.quantity == "grip_N":
                 grip_N = check_grip(v, file).copy()
+            elif c.quantity.startswith("ref_"):
+                ref = check_reference(v, c.quantity, file).copy()
             elif c.quantity != "time_s":
                 check_values(v, c.quantity, file, unit_hint="; check the unit in the map")
                 (force if c.quantity.startswith("force_") else pos)[
@@ -1004,8 +1047,9 @@ def _read_mapped_trial(source: TrialSource, *, grip: bool) -> Trial:
     del raw
     _release_arrow_memory()
     meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run, fs,
-                     int(n), t0, _provenance(path), cmap)
-    return Trial(meta, force, pos, grip_N)
+                     int(n), t0, _provenance(path), cmap,
+                     next((c.quantity for c in convs if c.quantity.startswith("ref_")), None))
+    return Trial(meta, force, pos, grip_N, ref)
 
 
 #: Largest |value| of a force (N) or any sample: squares and sums of the samples in the
@@ -1144,10 +1188,11 @@ def saturated_samples(force, limit_N: float) -> np.ndarray:
 # The canonical dataset
 # ---------------------------------------------------------------------------
 
-def _dataset_schema():
+def _dataset_schema(reference: bool = False):
     import pyarrow as pa
     return pa.schema([("trial", pa.int32())]
-                     + [(c, pa.float64()) for c in DATASET_COLUMNS])
+                     + [(c, pa.float64()) for c in DATASET_COLUMNS]
+                     + ([(DATASET_REFERENCE, pa.float64())] if reference else []))
 
 
 def is_dataset(path: str | os.PathLike) -> bool:
@@ -1220,6 +1265,10 @@ def _checked_record(index: int, rec: object, file: str) -> dict:
     if not (isinstance(cols, list) and all(c in DATASET_COLUMNS for c in cols)):
         raise bad(f"columns {cell(cols)} are not among {', '.join(DATASET_COLUMNS)}")
     out["columns"] = cols
+    ref = rec.get("reference")
+    if ref is not None and ref not in tuple(f"ref_{rec['axis']}_{u}" for u in REFERENCE_UNITS):
+        raise bad(f"reference {cell(ref)} is not ref_{rec['axis']}_N or ref_{rec['axis']}_m "
+                  "(the stimulated axis's commanded force or reference position)")
     if rec.get("column_map") is not None:
         out["column_map"] = ColumnMap.from_dict(rec["column_map"], where=f"{file}: {where}")
     return out
@@ -1330,10 +1379,24 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
     grip_N = parse_numbers(table.column("grip_N"), file=source.label, column="grip_N"
                            ).copy() if "grip_N" in names else None
     del table
+    ref = None
+    if rec.get("reference") is not None:
+        if DATASET_REFERENCE not in pf.schema_arrow.names:
+            raise BadInputError(f"trial {idx} names a reference ({rec['reference']}) but the "
+                                f"dataset has no '{DATASET_REFERENCE}' column; the dataset is "
+                                "damaged (write it again with armfit ingest)", file=source.path)
+        try:
+            column = pf.read_row_group(idx, columns=[DATASET_REFERENCE]).column(0)
+        except (pa.ArrowException, OSError) as exc:
+            raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
+                                file=source.label) from None
+        ref = check_reference(parse_numbers(column, file=source.label,
+                                            column=DATASET_REFERENCE).copy(),
+                              rec["reference"], source.label)
     _release_arrow_memory()
     meta = TrialMeta(source.subject, source.axis, float(source.grip_N), source.run,
                      rec["fs"], rec["n_samples"], rec["t0_s"], rec["source"],
-                     rec.get("column_map"))
+                     rec.get("column_map"), rec.get("reference"))
     for j, a in enumerate(AXES):  # a dataset may have been written by other software
         for arr, name in ((force, f"force_{a}_N"), (pos, f"pos_{a}_m")):
             if not np.isnan(arr[:, j]).all():
@@ -1343,7 +1406,7 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
     if n != meta.n_samples:
         raise BadInputError(f"row group has {n} rows, metadata says "
                             f"{meta.n_samples}", file=source.label)
-    return Trial(meta, force, pos, grip_N)
+    return Trial(meta, force, pos, grip_N, ref)
 
 
 def _record(index: int, trial: Trial) -> dict:
@@ -1359,24 +1422,30 @@ def _record(index: int, trial: Trial) -> dict:
            "t0_s": m.t0_s, "source": m.source, "columns": present}
     if m.column_map is not None:
         rec["column_map"] = m.column_map.to_dict()
+    if trial.ref is not None:
+        rec["reference"] = m.reference
     return rec
 
 
 def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
-                  overwrite: bool = False) -> list[TrialMeta]:
+                  overwrite: bool = False, reference: bool = False) -> list[TrialMeta]:
     """Write trials to one canonical Parquet dataset, streaming and atomically.
 
     One row group per trial: ``trial`` (int32) and the float64 columns of
-    DATASET_COLUMNS (SI units, NaN where absent). Per-trial metadata (identity, fs,
-    n_samples, duration_s, t0_s, source, columns present) is JSON under the key-value
-    metadata key ``armfit.trials``; ``armfit.format`` holds the format version. Only one
-    trial is held in memory at a time. Raises NoInputError if ``trials`` is empty (no
-    file is left). Returns the metadata of the trials written.
+    DATASET_COLUMNS (SI units, NaN where absent), and with ``reference`` the column
+    :data:`DATASET_REFERENCE` (each trial's reference, NaN for a trial without one).
+    Per-trial metadata (identity, fs, n_samples, duration_s, t0_s, source, columns
+    present, the reference's name) is JSON under the key-value metadata key
+    ``armfit.trials``; ``armfit.format`` holds the format version. Only one trial is held
+    in memory at a time. Raises NoInputError if ``trials`` is empty (no file is left),
+    UsageError for a trial with a reference when ``reference`` is False (the schema is
+    fixed before the first trial is written: :func:`has_reference` of the sources tells).
+    Returns the metadata of the trials written.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    schema = _dataset_schema()
+    schema = _dataset_schema(reference)
     metas: list[TrialMeta] = []
     records: list[dict] = []
     with atomic_path(path, overwrite=overwrite) as tmp:
@@ -1389,6 +1458,13 @@ def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
                 arrays += [pa.array(np.ascontiguousarray(trial.force[:, j])) for j in range(3)]
                 arrays += [pa.array(np.ascontiguousarray(trial.pos[:, j])) for j in range(3)]
                 arrays.append(pa.array(np.asarray(grip, dtype=np.float64)))
+                if reference:
+                    arrays.append(pa.array(np.full(n, np.nan) if trial.ref is None
+                                           else np.asarray(trial.ref, dtype=np.float64)))
+                elif trial.ref is not None:
+                    raise UsageError(f"{trial.meta.source}: the trial has a reference "
+                                     f"({trial.meta.reference}) but the dataset is written "
+                                     "without a reference column (reference=False)")
                 writer.write_table(pa.Table.from_arrays(arrays, schema=schema),
                                    row_group_size=max(n, 1))
                 metas.append(trial.meta)
@@ -1513,10 +1589,11 @@ def resample_trial(trial: Trial, fs: float) -> Trial:
     if trial.grip is not None:
         idx = np.minimum((np.arange(n) * down) // up, trial.meta.n_samples - 1)
         grip = trial.grip[idx]
+    ref = None if trial.ref is None else resample_poly(trial.ref, up, down)
     m = trial.meta
     meta = TrialMeta(m.subject, m.axis, m.grip_N, m.run, float(fs), int(n), m.t0_s, m.source,
-                     m.column_map)
-    return Trial(meta, force, pos, grip)
+                     m.column_map, m.reference)
+    return Trial(meta, force, pos, grip, ref)
 
 
 def map_notes(sources: Iterable[TrialSource]) -> list[str]:
@@ -1583,12 +1660,29 @@ class IngestResult:
     ignored: tuple[str, ...]
 
 
+def has_reference(source: TrialSource) -> bool:
+    """Whether the trial of ``source`` has a reference column on its stimulated axis (its
+    header, column map or dataset metadata says; the samples are not read). A source
+    that cannot be read says no (reading it reports the fault)."""
+    axis = source.axis
+    names = {f"ref_{axis}_{u}" for u in REFERENCE_UNITS}
+    try:
+        if source.index is not None:
+            return dataset_metadata(source.path)[source.index].get("reference") is not None
+        if source.column_map is not None:
+            return any(source.column_map.get(q) is not None for q in names)
+        return bool(names & set(_column_names(Path(source.path))))
+    except (ArmfitError, IndexError, OSError):
+        return False
+
+
 def _write_streamed(stream: TrialStream, trials: Iterator[Trial], out: Path,
                     overwrite: bool) -> list:
     """:func:`write_dataset` of ``trials`` (read from ``stream``); "every trial was bad"
     when the stream skipped every one."""
     try:
-        return write_dataset(trials, out, overwrite=overwrite)
+        return write_dataset(trials, out, overwrite=overwrite,
+                             reference=any(has_reference(s) for s in stream.sources))
     except NoInputError:
         if not stream.skipped:
             raise
@@ -1653,5 +1747,5 @@ __all__ = [
     "check_grip", "GRIP_TOLERANCE_N", "GRIP_TOLERANCE_FRACTION", "is_dataset",
     "dataset_metadata", "dataset_sources", "write_dataset", "TrialStream",
     "resample_trial", "open_trials", "IngestResult", "ingest", "manifest_maps", "map_notes",
-    "with_map",
+    "with_map", "DATASET_REFERENCE", "REFERENCE_UNITS", "check_reference", "has_reference",
 ]
