@@ -230,3 +230,30 @@ def test_run_on_the_rig_says_it_and_keeps_the_reference(rig, runner, tmp_path):
     assert pq.read_schema(out / "trials.parquet").names[-1] == "ref"
     sp = S.Spectra.read(out / "spectra.parquet", kind="measured")
     assert sp.values_of("method") == {"ref"}
+
+
+def test_the_diagnosis_does_not_blame_an_effect_for_the_estimators_bias(rig, monkeypatch):
+    # The rig's H1 is biased below 0.3 Hz (the force reacts to the position's drift) and
+    # flagged not_excitation there. The diagnosis leaves those points out of its
+    # evidence: the arm model is then adequate with nothing named (the simulator's truth:
+    # the rig's arm is the 5-parameter model), and it says what it left out.
+    from armfit import api
+    from armfit.diagnosis import diagnose_axes, diagnosis_to_dict
+    from armfit.diagnosis import responses as R
+    folder, _ = rig
+    spectra = api.estimate(str(folder), reference=False)
+    grip = api.fit_grip(spectra).table
+    result = diagnose_axes(spectra, grip)
+    for d in result:
+        assert d.missing_effects == () and d.adequate, d.verdict
+        assert d.excluded_trials == 2 and all(hi < 1.0 for _, hi in d.excluded_hz)
+        assert "left out of the evidence" in d.verdict and "not_excitation" in d.verdict
+        doc = diagnosis_to_dict([d])["axes"][d.axis]
+        assert doc["excluded"]["trials"] == 2
+    # the same search with the flagged points kept (an independent run of the search on
+    # the same responses): the estimator's bias then reads as a misfit of the model
+    monkeypatch.setattr(R, "not_excitation", lambda rows: None)
+    kept = diagnose_axes(spectra, grip)
+    assert any(not d.adequate or d.missing_effects for d in kept)
+    assert all(k.base_error.rms_norm > d.base_error.rms_norm
+               for k, d in zip(kept, result, strict=True))

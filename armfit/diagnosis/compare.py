@@ -320,6 +320,10 @@ def diagnosis_to_dict(results: Sequence[AxisDiagnosis]) -> dict:
         if d.failed_candidates:     # (only when one failed: other documents are unchanged)
             axes[d.axis]["failed_candidates"] = [
                 {"effect": c.effect, "reason": c.reason} for c in d.failed_candidates]
+        if d.excluded_trials:       # (only when points were left out of the evidence)
+            axes[d.axis]["excluded"] = {"trials": d.excluded_trials,
+                                        "bands_hz": [list(b) for b in d.excluded_hz],
+                                        "flag": "not_excitation"}
         if d.subject_tests:         # (only when an effect was tested per subject)
             axes[d.axis]["subject_tests"] = [_subject_test_to_dict(t)
                                              for t in d.subject_tests]

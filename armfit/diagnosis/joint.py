@@ -122,6 +122,10 @@ class JointProblem:
         self.h = data.h[:, sel]
         sdb, sdeg = data.noise_se(sel)
         self.w_db, self.w_deg = 1.0 / sdb, 1.0 / sdeg
+        # the points left out of the evidence (AxisData.excluded: NaN standard errors)
+        # weigh nothing in the fit; elsewhere a non-finite residual is a model's blow-up
+        used = np.concatenate([np.isfinite(self.w_db), np.isfinite(self.w_deg)], axis=1)
+        self.unused = None if used.all() else np.where(used, 1e6, 0.0)
         self.T = self.h.shape[0]
         self.nb = len(PARAM_NAMES)
         self.k = len(self.space.names) - self.nb
@@ -186,7 +190,7 @@ class JointProblem:
     def fun(self, x: np.ndarray) -> np.ndarray:
         r_db, r_deg = self.split_res(x)
         r = np.concatenate([r_db * self.w_db, r_deg * self.w_deg], axis=1)
-        return np.where(np.isfinite(r), r, 1e6).ravel()
+        return np.where(np.isfinite(r), r, 1e6 if self.unused is None else self.unused).ravel()
 
     def jac(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Forward-difference Jacobian of :meth:`fun` as its blocks (per-trial
@@ -218,7 +222,7 @@ class JointProblem:
         with np.errstate(all="ignore"):
             r_db, r_deg = residuals(self.h[None, rows], self.model.response(self.f, values))
             R = np.concatenate([r_db * self.w_db[rows], r_deg * self.w_deg[rows]], axis=-1)
-        R = np.where(np.isfinite(R), R, 1e6)
+        R = np.where(np.isfinite(R), R, 1e6 if self.unused is None else self.unused[rows])
         D = (R[1:] - R[:1]) / h.T[:, :, None]                  # (P, t, m)
         return np.moveaxis(D, 0, -1)                           # (t, m, P)
 
@@ -317,10 +321,14 @@ def _result(prob: JointProblem, res: blocklsq.BlockResult) -> JointFit:
         shared[n], s_lo[n], s_hi[n] = _population(prob.space, n, by_subject)
     shared = {n: shared[n] for n in prob.effect_names}
     zres = np.concatenate([r_db * prob.w_db, r_deg * prob.w_deg], axis=1)
-    rho = (_lag1(r_db * prob.w_db) + _lag1(r_deg * prob.w_deg)) / 2
+    zdb, zdeg = r_db * prob.w_db, r_deg * prob.w_deg
+    if prob.unused is not None:     # the points left out count as nothing
+        zdb, zdeg = np.nan_to_num(zdb), np.nan_to_num(zdeg)
+    rho = (_lag1(zdb) + _lag1(zdeg)) / 2
+    n_res = int(zres.size if prob.unused is None else np.isfinite(zres).sum())
     return JointFit(prob.model, theta[:, : prob.nb], shared,
                     {n: s_lo[n] for n in shared}, {n: s_hi[n] for n in shared}, r_db, r_deg,
-                    float(np.sum(zres[np.isfinite(zres)] ** 2)), int(zres.size), rho,
+                    float(np.sum(zres[np.isfinite(zres)] ** 2)), n_res, rho,
                     bool(res.status > 0), prob.varying,
                     prob.trial_subjects if prob.varying else (), by_subject, b_lo, b_hi)
 

@@ -12,7 +12,8 @@ from armfit import noise
 from armfit.constants import AXES, PARAM_NAMES
 from armfit.spectra import Spectra
 
-__all__ = ["AxisData", "axis_data", "cross_coupling", "param_row", "select_rows", "trial_responses"]
+__all__ = ["AxisData", "axis_data", "cross_coupling", "not_excitation", "param_row",
+           "select_rows", "trial_responses"]
 
 
 @dataclass(frozen=True)
@@ -23,7 +24,10 @@ class AxisData:
     errors as the spectra file holds them (:meth:`noise_se`: the noise model's); starts:
     per trial the base parameters to start from (e.g. the grip fit of its grip); labels:
     per trial ``sub-<s>_grip-<g>N[_run-<k>]``; subjects: per trial its subject (empty:
-    unknown, every trial its own).
+    unknown, every trial its own); excluded: (T, n) bool, the points left out of the
+    evidence because the estimator, not the model, is off there (flagged
+    ``not_excitation``: the force is not a clean excitation and H1 is biased beyond its
+    noise); None when there are none.
     """
 
     axis: str
@@ -34,13 +38,15 @@ class AxisData:
     starts: tuple[Mapping[str, float], ...]
     labels: tuple[str, ...] = ()
     subjects: tuple[str, ...] = ()
+    excluded: np.ndarray | None = None
 
     def subset(self, idx: np.ndarray) -> AxisData:
         """The trials ``idx`` (an index array) of this axis."""
         return AxisData(self.axis, self.f_hz, self.h[idx], self.se_db[idx],
                         self.se_deg[idx], tuple(self.starts[i] for i in idx),
                         tuple(self.labels[i] for i in idx) if self.labels else (),
-                        tuple(self.subjects[i] for i in idx) if self.subjects else ())
+                        tuple(self.subjects[i] for i in idx) if self.subjects else (),
+                        None if self.excluded is None else self.excluded[idx])
 
     def subject_of_trials(self) -> tuple[str, ...]:
         """Each trial's subject; a trial of unknown subject is its own (its label)."""
@@ -51,8 +57,13 @@ class AxisData:
     def noise_se(self, sel: np.ndarray | slice = slice(None)
                  ) -> tuple[np.ndarray, np.ndarray]:
         """The noise model's standard errors (dB, deg) of every trial, (T, n) on the
-        grid points ``sel`` (computed on the whole grid, then restricted)."""
+        grid points ``sel`` (computed on the whole grid, then restricted); NaN at the
+        points :attr:`excluded` (no evidence: a NaN normalised residual is left out of
+        every statistic, and a joint fit gives such a point no weight)."""
         sdb, sdeg = noise.standard_errors(self.se_db, self.se_deg)
+        if self.excluded is not None:
+            sdb = np.where(self.excluded, np.nan, sdb)
+            sdeg = np.where(self.excluded, np.nan, sdeg)
         return sdb[:, sel], sdeg[:, sel]
 
 
@@ -70,6 +81,33 @@ def trial_responses(rows: Spectra) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     f = rows.common_grid("trials")
     labels = list(zip(rows.key("subject"), rows.key("grip_N"), rows.key("run"), strict=True))
     return f, rows.h, rows.se_db, rows.se_deg, labels
+
+
+#: Unflagged grid points between two flagged ones of a trial that are left out with them
+#: (at most; an eighth of a decade on the default grid): an estimator's bias is smooth in
+#: frequency, while the flag, a test per point, can miss a point or a few inside the band.
+EXCLUDED_GAP = 5
+
+
+def not_excitation(rows: Spectra) -> np.ndarray | None:
+    """(T, n) bool, in :func:`trial_responses`'s order: the points flagged
+    ``not_excitation`` (:data:`armfit.spectra.NOT_EXCITATION`), with the gaps of at most
+    :data:`EXCLUDED_GAP` points between two flagged ones of a trial; None when no point
+    is flagged."""
+    from armfit.spectra import NOT_EXCITATION
+    flags = rows.sorted(("subject", "grip_N", "run")).flags
+    if flags is None:
+        return None
+    out = np.array([[NOT_EXCITATION in str(c).split(",") for c in row] for row in flags],
+                   dtype=bool).reshape(np.shape(flags))
+    if not out.any():
+        return None
+    for row in out:
+        idx = np.flatnonzero(row)
+        for a, b in zip(idx[:-1], idx[1:], strict=True):
+            if 1 < b - a <= EXCLUDED_GAP + 1:
+                row[a:b] = True
+    return out
 
 
 def param_row(params, axis: str, grip: float | None):
@@ -98,7 +136,7 @@ def axis_data(spectra, params, axis: str) -> AxisData | None:
     names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if run is None else f"_run-{run}")
                   for s, g, run in labels)
     return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names,
-                    tuple(str(s) for s, _, _ in labels))
+                    tuple(str(s) for s, _, _ in labels), not_excitation(rows))
 
 
 def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[str, float]:

@@ -49,7 +49,10 @@ class FailedCandidate:
 @dataclass(frozen=True)
 class AxisDiagnosis:
     """Verdict for one axis: the missing effect (or None), candidates best first, and
-    the candidates left out because their code failed (``failed_candidates``)."""
+    the candidates left out because their code failed (``failed_candidates``);
+    ``excluded_trials`` trials had points left out of the evidence (flagged
+    ``not_excitation``: the estimator, not the model, is off there), within the bands
+    ``excluded_hz`` (Hz; the union over the trials)."""
 
     axis: str
     band: tuple[float, float]
@@ -72,6 +75,8 @@ class AxisDiagnosis:
     shared: dict = field(default_factory=dict)
     failed_candidates: tuple[FailedCandidate, ...] = ()
     subject_tests: tuple = ()
+    excluded_trials: int = 0
+    excluded_hz: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)

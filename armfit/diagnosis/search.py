@@ -13,7 +13,7 @@ import numpy as np
 from scipy import special
 
 from armfit.constants import AXES, axis_band
-from armfit.diagnosis.bands import BandError, band_error
+from armfit.diagnosis.bands import BandError, _runs, band_error
 from armfit.diagnosis.evidence import (
     Adequacy,
     adequacy,
@@ -376,19 +376,32 @@ class _Search:
         errors = [s.rms_norm for s in self.steps]
         for i in range(1, len(errors)):      # nested fits: never rises (guard rounding)
             errors[i] = min(errors[i], errors[i - 1])
+        ex = self.data.excluded
+        n_ex, ex_hz = 0, ()
+        if ex is not None and ex[:, self.sel].any():
+            n_ex = int(ex[:, self.sel].any(axis=1).sum())
+            ex_hz = tuple((float(self.f[a]), float(self.f[b - 1]))
+                          for a, b in _runs(ex[:, self.sel].any(axis=0), 1))
+        verdict = verdict_text(self.adequacies[0], ad, missing, errors, self.stop)
+        if n_ex:
+            verdict += (f"; {n_ex} of {self.data.h.shape[0]} trial(s) left out of the "
+                        "evidence at " + ", ".join(f"{lo:.3g}–{hi:.3g} Hz" for lo, hi in ex_hz)
+                        + ", where the force is not a clean excitation and H1 is biased "
+                        "(flagged not_excitation): the estimator, not the model, misses there")
         return AxisDiagnosis(
             axis=self.data.axis, band=(float(self.f[0]), float(self.f[-1])),
             n_trials=int(self.data.h.shape[0]),
             missing_effect=missing[0].effect if missing else None, tied_with=self.tied,
             candidates=self.first_candidates, failing=self.adequacies[0].failing,
             base_error=self.adequacies[0].overall,
-            verdict=verdict_text(self.adequacies[0], ad, missing, errors, self.stop),
+            verdict=verdict,
             missing_effects=tuple(missing), error_steps=tuple(errors),
             adequate=bool(ad.adequate), steps=tuple(self.steps),
             final_error=ad.overall, final_bands=ad.bands, final_failing=ad.failing,
             stop=self.stop, failed_candidates=tuple(FailedCandidate(n, r)
                                                     for n, r in self.failed.items()),
-            subject_tests=tuple(self.subject_tests))
+            subject_tests=tuple(self.subject_tests), excluded_trials=n_ex,
+            excluded_hz=ex_hz)
 
 
 # Each task gives back the memory its fit freed (:func:`armfit.memory.release_memory`): a
