@@ -114,19 +114,25 @@ def _step_by_step(spectra, params) -> list:
     return [replace(d, shared=agreement) for d in out] if agreement else out
 
 
-def test_pipelined_search_is_the_step_by_step_search(study):
+@pytest.fixture(scope="module")
+def pipelined(study):
+    """The pipelined search of the study in this process (made once, compared twice)."""
     spectra, params = study
-    here = search.diagnose_axes(spectra, params)
+    return search.diagnose_axes(spectra, params)
+
+
+def test_pipelined_search_is_the_step_by_step_search(study, pipelined):
+    spectra, params = study
+    here = pipelined
     assert repr(here) == repr(_step_by_step(spectra, params))
     # the study exercises several steps, the step limit and the axes' common values
     assert [len(d.steps) for d in here] == [3, 4]
     assert [d.stop for d in here] == ["adequate", "max-steps"]
 
 
-def test_pipelined_search_in_worker_processes_is_the_same(study):
+def test_pipelined_search_in_worker_processes_is_the_same(study, pipelined):
     spectra, params = study
-    assert repr(search.diagnose_axes(spectra, params, jobs=2)) == \
-        repr(search.diagnose_axes(spectra, params))
+    assert repr(search.diagnose_axes(spectra, params, jobs=2)) == repr(pipelined)
 
 
 def test_task_queue_runs_by_priority_and_continuations_add_tasks():
