@@ -217,7 +217,9 @@ def _kn(v) -> str:
 _MARK_NOTES = {"†": "† at a physical bound of the fit (within 1 % of its range): a limit, "
                     "not an estimate.",
                "‡": "‡ held at the value estimated jointly from every trial of the axis (an "
-                    "effect of the apparatus, shared by the trials), not fitted here."}
+                    "effect of the apparatus, shared by the trials; for one whose values "
+                    "differ between subjects, the subjects' mean, each subject's own being "
+                    "held in its per-trial fits), not fitted here."}
 
 
 def _params_rows(df: pd.DataFrame) -> tuple[list[str], list[list[str]], set[str]]:

@@ -167,7 +167,8 @@ def latex_table(df: pd.DataFrame, *, ci: bool = False, caption: str | None = Non
     if any_held:
         lines += [r"\par\smallskip{\footnotesize $^\ddagger$ held at the value estimated "
                   r"jointly from every trial of the axis (an effect of the apparatus, "
-                  r"shared by the trials), not fitted here.}"]
+                  r"shared by the trials; for one whose values differ between subjects, "
+                  r"the subjects' mean), not fitted here.}"]
     lines += [r"\end{table}"]
     return "\n".join(lines) + "\n"
 

@@ -236,23 +236,28 @@ class _Search:
 
     def settle(self, rivals: Sequence[CandidateFit],
                results: Sequence[tuple[JointFit, SubjectTest] | None]) -> None:
-        """End the step: among the effect added (in the form its test chose) and the
-        ``rivals`` per subject (their tests' ``results``, those the data demanded), the
-        best significant one against the fit before the step is the step's effect."""
+        """End the step: among the effect added and the ``rivals``, each in the form its
+        own test chose (``results``: one value per subject where the data demanded it,
+        else shared), the best significant one against the fit before the step is the
+        step's effect; the first step's ties are judged among the same forms."""
         eff, fit, test = self.winner
         prev = self.fits[-2]
         options = [self.evaluate(eff, fit, prev, test)]
         for c, r in zip(rivals, results, strict=True):
             if r is not None and r[1].by_subject:
                 options.append(self.evaluate(c.effect, r[0], prev, r[1]))
+            else:           # shared is its data's form (or its per-subject fit failed)
+                options.append(replace(c, subject_test=r[1] if r is not None else None))
         best = self._best(options) or options[0]
-        self.subject_tests.append(best.subject_test)
-        if len(self.added) == 1 and best.effect is not eff:   # the first step's ties anew
+        if best.subject_test is not None:
+            self.subject_tests.append(best.subject_test)
+        if len(self.added) == 1 and rivals:     # the first step's ties, in these forms
             self.tied = tuple(c.effect.name for c in options
                               if c.significant and c.effect is not best.effect
                               and best.score - c.score < max(TIE_BIC,
                                                              TIE_FRACTION * best.score))
-        if best.effect is not eff or best.subject_test.by_subject:
+        if best.effect is not eff or (best.subject_test is not None
+                                      and best.subject_test.by_subject):
             self.added.pop()
             self.fits.pop()
             self.adequacies.pop()
