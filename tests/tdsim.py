@@ -238,20 +238,26 @@ def force_signal(rng: np.random.Generator, n: int, study: Study) -> np.ndarray:
     return f
 
 
-def simulate_trial(study: Study, subject: int, axis: str, grip: float
-                   ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(force (n,) N, position (n,) m, truth dict) of one trial."""
-    rng = np.random.default_rng([study.seed, 2, subject, "xyz".index(axis),
+def _trial_setup(study: Study, subject: int, axis: str, grip: float, stream: int):
+    """(random generator, samples n, lead-in samples, arm parameters, effects) of one
+    trial; ``stream`` keeps the open-loop and the rig's draws apart."""
+    rng = np.random.default_rng([study.seed, stream, subject, "xyz".index(axis),
                                  int(round(grip * 1000))])
-    fs = study.fs
-    n = int(round(rng.uniform(*study.duration_s) * fs))
-    lead = int(round(LEAD_S * fs))
-    arm = arm_params(study, subject, axis, grip)
+    n = int(round(rng.uniform(*study.duration_s) * study.fs))
+    lead = int(round(LEAD_S * study.fs))
     effects = {k: dict(v) for k, v in study.effects.items()} if axis in study.effect_axes \
         else {}
     if axis in study.effect_axes:
         for name, values in subject_effect_values(study, subject).items():
             effects.setdefault(name, {}).update(values)
+    return rng, n, lead, arm_params(study, subject, axis, grip), effects
+
+
+def simulate_trial(study: Study, subject: int, axis: str, grip: float
+                   ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(force (n,) N, position (n,) m, truth dict) of one trial."""
+    rng, n, lead, arm, effects = _trial_setup(study, subject, axis, grip, 2)
+    fs = study.fs
     num, den = closed_loop_tf(arm, MP_KG[axis], effects)
     force = force_signal(rng, n + lead, study)
     if study.method == "zoh":
@@ -364,16 +370,11 @@ def simulate_rig_trial(study: Study, rig: Rig, subject: int, axis: str, grip: fl
     force-sensor noise). The truth's X/F is the open loop's (:func:`closed_loop_tf`):
     what an unbiased estimator of the measured dynamics must find. Only the bilinear
     method and effects without the output ``delay`` are simulated."""
-    if study.method != "bilinear" or "delay" in study.effects:
+    if study.method != "bilinear" or "delay" in study.effects \
+            or "delay" in study.subject_effects:
         raise ValueError("the rig simulates the bilinear method without a delay effect")
-    rng = np.random.default_rng([study.seed, 3, subject, "xyz".index(axis),
-                                 int(round(grip * 1000))])
+    rng, n, lead, arm, effects = _trial_setup(study, subject, axis, grip, 3)
     fs = study.fs
-    n = int(round(rng.uniform(*study.duration_s) * fs))
-    lead = int(round(LEAD_S * fs))
-    arm = arm_params(study, subject, axis, grip)
-    effects = {k: dict(v) for k, v in study.effects.items()} if axis in study.effect_axes \
-        else {}
     b, a = _z_polys(*closed_loop_tf(arm, MP_KG[axis], effects), fs)
     r = force_signal(rng, n + lead, study)
     d = np.zeros(n + lead)
