@@ -1417,7 +1417,7 @@ def _adopted_tables(sp: Spectra, ad: _adopt.Adoption, cost: str, jobs: int,
     from armfit.workers import executor_for
 
     kw = dict(cost=cost, bands=ad.bands, effects=ad.effects)
-    with executor_for(executor, jobs) as pool:
+    with executor_for(executor, jobs, preload=("armfit.fitting", "scipy.optimize")) as pool:
         if pool is None:
             return fit_grip(sp, **kw), fit_nominal(sp, **kw)
         with ThreadPoolExecutor(max_workers=1) as side:

@@ -29,6 +29,10 @@ UNIT_SE_DEG: float = math.degrees(1.0) / DB_PER_NEPER
 #: warned about as saturation. The default of every reader and estimator.
 FORCE_LIMIT_N: float = 8.5
 
+#: The standard normal distribution's 97.5 % quantile (the half-width of a 95 % interval in
+#: standard errors): ``scipy.special.ndtri(0.975)``, the same float.
+Z_975: float = 1.959963984540054
+
 #: The default frequency grid: from 0.1 Hz (the paper's lowest frequency; a trial must
 #: last 2/f_min) to 30 Hz, 40 log-spaced points per decade.
 GRID_HZ: tuple[float, float] = (0.1, 30.0)
@@ -52,5 +56,5 @@ def axis_band(band, axis: str):
 __all__ = [
     "FORCE_LIMIT_N", "GRID_HZ", "POINTS_PER_DECADE",
     "AXES", "PARAM_NAMES", "DEVICE_MASS_KG", "DB_PER_NEPER", "UNIT_SE_DEG",
-    "PAPER_BANDS", "axis_band",
+    "PAPER_BANDS", "Z_975", "axis_band",
 ]

@@ -74,9 +74,8 @@ from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
-from scipy import optimize, special
 
-from armfit import noise
+from armfit import _scipy, noise
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.data import sobol_points
 from armfit.errors import BadInputError, ConvergenceError, EffectDefinitionError, UsageError
@@ -431,10 +430,10 @@ def _global_starts(prob: _Problem, starts: np.ndarray, n_fixed: int,
         picks += [n_fixed + n_sobol + int(i)
                   for i in np.argsort(ss[n_sobol:])[:_N_ANCHORS]]
         for i in picks:
-            r = optimize.least_squares(p.residuals, pool[i], jac=p.jacobian, args=(sub,),
-                                       bounds=bounds, method="trf", x_scale=1.0,
-                                       max_nfev=30 * starts.shape[1], ftol=1e-6,
-                                       xtol=1e-6)
+            r = _scipy.least_squares(p.residuals, pool[i], jac=p.jacobian, args=(sub,),
+                                     bounds=bounds, method="trf", x_scale=1.0,
+                                     max_nfev=30 * starts.shape[1], ftol=1e-6,
+                                     xtol=1e-6)
             nfev += r.nfev
             ends.append(r.x)
     ends_arr = np.array(ends)
@@ -580,9 +579,9 @@ def _search(prob: _Problem, x0: Mapping[str, float] | None, global_search: bool,
         z_starts = starts[:1]
 
     def polish(z0):
-        return optimize.least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=bounds,
-                                      method="trf", x_scale=1.0, max_nfev=budget,
-                                      ftol=_TOL, xtol=_TOL, gtol=_TOL)
+        return _scipy.least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=bounds,
+                                    method="trf", x_scale=1.0, max_nfev=budget,
+                                    ftol=_TOL, xtol=_TOL, gtol=_TOL)
 
     res = None
     others = [ends]          # every point the search reached (the polish's ends too)
@@ -655,10 +654,10 @@ def _second_opinion(prob: _Problem, z: np.ndarray, anchors: np.ndarray):
     ss = np.sum(prob.residuals_batch(cand) ** 2, axis=1)
     best, nfev = None, 0
     for i in np.argsort(ss)[:_N_CHECK]:
-        r = optimize.least_squares(prob.residuals, cand[i], jac=prob.jacobian,
-                                   bounds=(prob.space.zlo, prob.space.zhi), method="trf",
-                                   x_scale=1.0, max_nfev=50 * cand.shape[1], ftol=1e-8,
-                                   xtol=1e-8)
+        r = _scipy.least_squares(prob.residuals, cand[i], jac=prob.jacobian,
+                                 bounds=(prob.space.zlo, prob.space.zhi), method="trf",
+                                 x_scale=1.0, max_nfev=50 * cand.shape[1], ftol=1e-8,
+                                 xtol=1e-8)
         nfev += r.nfev
         if best is None or r.cost < best.cost:
             best = r
@@ -692,10 +691,10 @@ def band_jackknife(prob: _Problem, z: np.ndarray, groups: int | None = None
     ends = []
     for part in np.array_split(np.arange(m), g):
         keep = np.setdiff1d(np.arange(m), part)
-        r = optimize.least_squares(prob.residuals, z0, jac=prob.jacobian, args=(keep,),
-                                   bounds=bounds, method="trf", x_scale=1.0,
-                                   max_nfev=50 * z.size, ftol=1e-10, xtol=1e-10,
-                                   gtol=1e-10)
+        r = _scipy.least_squares(prob.residuals, z0, jac=prob.jacobian, args=(keep,),
+                                 bounds=bounds, method="trf", x_scale=1.0,
+                                 max_nfev=50 * z.size, ftol=1e-10, xtol=1e-10,
+                                 gtol=1e-10)
         ends.append(r.x)
     ends = np.array(ends)
     return np.sqrt((g - 1) / g * np.sum((ends - ends.mean(axis=0)) ** 2, axis=0)), g
@@ -731,10 +730,10 @@ def _jacobian_ci(space: ParamSpace, z: np.ndarray, jac: np.ndarray, blocks: np.n
     inv = np.where(ok, 1.0 / np.where(ok, sv, 1.0) ** 2, 0.0)
     var = s2 * np.einsum("ki,k,ki->i", vt, inv, vt)
     undetermined = np.any(np.abs(vt[~ok]) > 1e-8, axis=0)
-    half = special.stdtrit(dof, 0.5 + level / 2) * np.sqrt(var)
+    half = _scipy.stdtrit(dof, 0.5 + level / 2) * np.sqrt(var)
     if jackknife is not None and jackknife[1] >= 3:
         sd_j, g = jackknife
-        half_j = special.stdtrit(g - 1, 0.5 + level / 2) * sd_j
+        half_j = _scipy.stdtrit(g - 1, 0.5 + level / 2) * sd_j
         half = np.where(np.isfinite(half_j), np.maximum(half, half_j), half)
     lo = space.to_theta(np.clip(z - half, space.zlo, space.zhi))
     hi = space.to_theta(np.clip(z + half, space.zlo, space.zhi))
@@ -923,8 +922,8 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
                                bootstrap=(bootstrap, seed),
                                options={"cost": cost, "max_nfev": max_nfev})
     fits = []
-    for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs,
-                                                  preload=("armfit.fitting",),
+    preload = ("armfit.fitting", "scipy.optimize")
+    for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs, preload=preload,
                                                   executor=executor), strict=True):
         fits.append(fit)
         if on_fit is not None:
@@ -1195,8 +1194,9 @@ def fit_trial_models(spectra, *, cost: str = "complex",
                                                          held=specs[k[0]][1]).params, v)
                     for k, v in starts.items()}
     def run(items: list) -> list:
-        return map_tasks(_fit_trial_task, items, jobs, preload=("armfit.fitting",),
-                         chunksize=4, executor=executor)
+        return map_tasks(_fit_trial_task, items, jobs,
+                         preload=("armfit.fitting", "scipy.optimize"), chunksize=4,
+                         executor=executor)
 
     out = run(tasks)
     medians = {}

@@ -956,6 +956,7 @@ def _run_in(inputs: list, folder: Path, options: RunOptions, *,
                                       reference=options.reference),
                        options.fit_bands, warn, note, outdir)
     # the caller's executor, or one pool of worker processes for every stage of the run
+    # (its workers start with every engine module imported: workers.PRELOAD)
     with executor_for(executor, options.jobs) as pool, contextlib.ExitStack() as stack:
         own = pool is not None and pool is not executor
         workers = _Workers(pool, _Drawings(pool if own else None), stack)

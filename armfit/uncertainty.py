@@ -37,9 +37,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy import optimize
 from threadpoolctl import threadpool_limits
 
+from armfit import _scipy
 from armfit.constants import AXES, axis_band
 from armfit.errors import BadInputError, ConvergenceError, UsageError, cell
 from armfit.io.artifacts import read_wu_rows
@@ -497,9 +497,9 @@ def _envelope_opt(sec: _Sections, tgt: _Target, theta0: np.ndarray, lo, hi
     for _ in range(3):  # restart from the last iterate when SLSQP stops early
         g0, _ = sec.value_jac(theta, jac=False)
         x0 = np.concatenate([[float(np.max(W - g0))], theta])
-        res = optimize.minimize(fun, x0, jac=True, method="SLSQP", bounds=bounds,
-                                constraints=[{"type": "ineq", "fun": cons, "jac": cons_jac}],
-                                options={"maxiter": 150, "ftol": 1e-5})
+        res = _scipy.minimize(fun, x0, jac=True, method="SLSQP", bounds=bounds,
+                              constraints=[{"type": "ineq", "fun": cons, "jac": cons_jac}],
+                              options={"maxiter": 150, "ftol": 1e-5})
         if not np.all(np.isfinite(res.x)):
             break
         theta = np.clip(res.x[1:], lo, hi)
@@ -529,9 +529,9 @@ def _ls_fit(sec: _Sections, W: np.ndarray, wts: np.ndarray, theta0: np.ndarray, 
     x0 = np.concatenate([[dc0], theta0])
     lo_x = np.concatenate([[-np.inf], lo])
     hi_x = np.concatenate([[np.inf], hi])
-    res = optimize.least_squares(resid, np.clip(x0, lo_x, hi_x), jac=jac, bounds=(lo_x, hi_x),
-                                 method="trf", x_scale="jac", max_nfev=max_nfev,
-                                 ftol=1e-10, xtol=1e-10)
+    res = _scipy.least_squares(resid, np.clip(x0, lo_x, hi_x), jac=jac, bounds=(lo_x, hi_x),
+                               method="trf", x_scale="jac", max_nfev=max_nfev,
+                               ftol=1e-10, xtol=1e-10)
     rms = float(np.sqrt(np.sum(res.fun ** 2) / np.sum(wts)))
     return res.x[1:], float(res.x[0]), bool(res.status > 0), rms
 
@@ -855,8 +855,8 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
         prepared.append((axis, f, H.shape[0], raw, target, b))
     tasks = [(f, target, {"n_pairs": n_pairs, "cost": cost, "band": b})
              for _, f, _, _, target, b in prepared]
-    fits = map_tasks(_fit_wu_task, tasks, jobs, preload=("armfit.uncertainty",),
-                     executor=executor)
+    fits = map_tasks(_fit_wu_task, tasks, jobs,
+                     preload=("armfit.uncertainty", "scipy.optimize"), executor=executor)
     out = []
     for (axis, f, n_trials, raw, target, b), res in zip(prepared, fits, strict=True):
         targets = {"wmax": raw} if smooth_oct is None else {"wmax": raw, "wmax_smoothed": target}

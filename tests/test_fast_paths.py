@@ -24,6 +24,7 @@ from scipy.stats import qmc
 from armfit.data import sobol_points
 from armfit.io.arrow import arrow_array
 from armfit.io.numbers import parse_numbers
+from armfit.noise import _moving_mean as _moving_mean_exact
 from armfit.spectra import (
     Spectra,
     _cached_window,
@@ -59,6 +60,20 @@ def test_moving_mean_is_uniform_filter1d(width):
     x = 0.1 + np.cumsum(rng.normal(0, 1e-4, 5000)) + rng.normal(0, 1e-3, 5000)
     ref = ndimage.uniform_filter1d(x, width, mode="nearest")
     np.testing.assert_allclose(moving_mean(x, width), ref, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 8, 9, 31])
+def test_pooled_noise_mean_is_uniform_filter1d_to_the_bit(size):
+    # the standard errors are pooled over neighbouring bins (armfit.noise) by a running
+    # sum in numpy; the reference is scipy.ndimage.uniform_filter1d(mode="nearest"), the
+    # filter it replaces, which it must equal exactly (the outputs' bits depend on it).
+    # Rows of squared standard errors spanning decades, a row of NaN, short rows.
+    rng = np.random.default_rng(11)
+    for n in (1, 2, 5, 40, 397):
+        x = rng.lognormal(sigma=3.0, size=(4, n)) * 1e-3
+        x[1] = np.nan
+        ref = ndimage.uniform_filter1d(x, size, axis=-1, mode="nearest")
+        assert np.array_equal(_moving_mean_exact(x, size), ref, equal_nan=True)
 
 
 def test_welch_up_to_fmax_keeps_the_full_spectra_bins():
@@ -170,6 +185,22 @@ def test_fit_nominal_loads_no_figures_and_no_scipy_stats(spectra, tmp_path):
     assert "armfit.fitting" in loaded
     assert not loaded & {"matplotlib", "scipy.stats", "scipy.signal", "armfit.figures",
                          "armfit.diagnosis.search", "armfit.loop"}
+
+
+def test_diagnose_imports_no_optimiser_until_it_refits_a_trial_alone():
+    # `armfit diagnose --help` and the diagnosis's modules (its joint fits are
+    # armfit.blocklsq's) need neither scipy.optimize, scipy.special nor scipy.ndimage:
+    # importing them took about 1 s of the command's start-up. scipy.optimize is
+    # imported when a trial is refitted alone (armfit._scipy).
+    heavy = {"scipy.optimize", "scipy.ndimage", "scipy.special", "matplotlib"}
+    loaded = _modules_after(["diagnose", "--help"])
+    assert "armfit.cli.diagnose" in loaded and not loaded & heavy
+    code = ("import sys, json\nimport armfit.diagnosis.search, armfit.fitting, "
+            "armfit.uncertainty\nprint(json.dumps(sorted(sys.modules)))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    loaded = set(json.loads(res.stdout))
+    assert "armfit.diagnosis.joint" in loaded and not loaded & heavy
 
 
 _PAGE_FAULTS = """

@@ -11,6 +11,7 @@ import multiprocessing as mp
 import sys
 import threading
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -130,11 +131,26 @@ def test_scheduler_without_dask_is_one_line_and_exit_2(small_study, tmp_path, mo
 
 
 def test_every_preloaded_module_exists():
-    """The fork server imports workers.PRELOAD and silently skips a name it cannot import
-    (multiprocessing.forkserver), so a stale name would only cost each pool's workers an
-    import: every name must be a module of the package."""
+    """The fork server imports its preload list and silently skips a name it cannot
+    import (multiprocessing.forkserver), so a stale name would only cost each pool's
+    workers an import: every name of workers.PRELOAD, and of every ``preload=`` tuple
+    the package passes to a pool, must be an importable module."""
+    import ast
     import importlib.util
-    assert [m for m in workers.PRELOAD if importlib.util.find_spec(m) is None] == []
+    names = set(workers.PRELOAD)
+    for path in Path(workers.__file__).parent.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.keyword) and node.arg == "preload":
+                value = node.value
+                if isinstance(value, ast.Name):          # preload = (...) just above
+                    continue
+                names |= set(ast.literal_eval(value))
+            if (isinstance(node, ast.Assign) and len(node.targets) == 1
+                    and isinstance(node.targets[0], ast.Name)
+                    and node.targets[0].id == "preload"):
+                names |= set(ast.literal_eval(node.value))
+    assert {"armfit.spectra", "armfit.fitting", "scipy.optimize"} <= names
+    assert sorted(m for m in names if importlib.util.find_spec(m) is None) == []
 
 
 def test_two_threads_shutting_a_pool_down_together_take_turns(monkeypatch):

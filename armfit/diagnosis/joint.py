@@ -14,10 +14,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import special
 
-from armfit import blocklsq
-from armfit.constants import PARAM_NAMES
+from armfit import _scipy, blocklsq
+from armfit.constants import PARAM_NAMES, Z_975
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.tuning import (
@@ -345,7 +344,7 @@ def _population(space: ParamSpace, name: str, by_subject: Mapping[str, Mapping[s
     z = space.to_z(full)[:, j]
     m = float(np.mean(z))
     n = z.size
-    half = (float(special.stdtrit(n - 1, 0.975) * np.std(z, ddof=1) / np.sqrt(n))
+    half = (float(_scipy.stdtrit(n - 1, 0.975) * np.std(z, ddof=1) / np.sqrt(n))
             if n > 1 else float("nan"))
     pts = np.tile(space.to_theta(space.zlo), (3, 1))
     zz = space.to_z(pts)
@@ -483,7 +482,7 @@ def _effect_ci(prob: JointProblem, res) -> tuple[dict, dict]:
     K = prob.K
     jb, js = (res.jb, res.js) if res.jb is not None else prob.jac(res.x)
     var = s2 * np.diag(blocklsq.shared_covariance(jb, js, prob.cols, K))
-    half = special.ndtri(0.975) * np.sqrt(np.maximum(var, 0))
+    half = Z_975 * np.sqrt(np.maximum(var, 0))
     z = res.x[-K:]
     sp = prob.space
     zlo, zhi = sp.zlo[prob.nb:][prob.local], sp.zhi[prob.nb:][prob.local]

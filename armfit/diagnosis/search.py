@@ -10,9 +10,9 @@ from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import special
 
-from armfit.constants import AXES, axis_band
+from armfit import _scipy
+from armfit.constants import AXES, Z_975, axis_band
 from armfit.diagnosis.bands import BandError, _runs, band_error
 from armfit.diagnosis.evidence import (
     Adequacy,
@@ -703,7 +703,7 @@ def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]
                 half = (tr(hi) - tr(lo)) / 2.0
                 if not (np.isfinite(half) and half > 0):
                     continue
-                sd = half / special.ndtri(0.975)
+                sd = half / Z_975
                 vals.append(tr(v))
                 ws.append(1.0 / sd ** 2)
             if len(vals) < 2:
@@ -711,7 +711,7 @@ def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]
             vals, ws = np.array(vals), np.array(ws)
             common = float(np.sum(ws * vals) / np.sum(ws))
             chi2 = float(np.sum(ws * (vals - common) ** 2))
-            pval = float(special.chdtrc(len(vals) - 1, chi2))
+            pval = float(_scipy.chdtrc(len(vals) - 1, chi2))
             value = float(np.exp(common)) if p.log else common
             # practically different: the values spread by more than 10 % of the value
             # (log parameters) or than 10 % of the common value (linear ones)

@@ -1,0 +1,37 @@
+"""The scipy functions of the fits and the statistics, imported at their first call.
+
+Importing :mod:`scipy.optimize` takes about half a second and :mod:`scipy.special` a
+quarter (they import :mod:`scipy.linalg`, :mod:`scipy.sparse` and the array-API layer);
+the modules that use these functions are imported by commands that may never call them
+(``diagnose`` refits a trial on its own only when a joint fit cannot, ``--help`` none),
+so each is imported here when first called. The functions are scipy's, unchanged.
+"""
+
+from __future__ import annotations
+
+__all__ = ["chdtrc", "least_squares", "minimize", "stdtrit"]
+
+
+def least_squares(*args, **kwargs):
+    """:func:`scipy.optimize.least_squares`."""
+    from scipy.optimize import least_squares as fn
+    return fn(*args, **kwargs)
+
+
+def minimize(*args, **kwargs):
+    """:func:`scipy.optimize.minimize`."""
+    from scipy.optimize import minimize as fn
+    return fn(*args, **kwargs)
+
+
+def stdtrit(df, p):
+    """:func:`scipy.special.stdtrit`: Student's t quantile ``p`` with ``df`` degrees of
+    freedom."""
+    from scipy.special import stdtrit as fn
+    return fn(df, p)
+
+
+def chdtrc(df, x):
+    """:func:`scipy.special.chdtrc`: P(χ²_df ≥ x)."""
+    from scipy.special import chdtrc as fn
+    return fn(df, x)
