@@ -103,9 +103,9 @@ def solver_stops_at_budget(monkeypatch):
     """Every least-squares solve reports that it ran out of evaluations (status 0), as
     scipy.optimize.least_squares does when max_nfev is reached: an injected solver result,
     so the test does not depend on how many evaluations a scipy release needs."""
-    from armfit import fitting
+    from armfit import _scipy
 
-    real = fitting.optimize.least_squares
+    real = _scipy.least_squares
 
     def stopped(*args, **kwargs):
         res = real(*args, **kwargs)
@@ -113,7 +113,7 @@ def solver_stops_at_budget(monkeypatch):
         res.message = "The maximum number of function evaluations is exceeded."
         return res
 
-    monkeypatch.setattr(fitting.optimize, "least_squares", stopped)
+    monkeypatch.setattr(_scipy, "least_squares", stopped)
 
 
 @pytest.fixture(scope="session")

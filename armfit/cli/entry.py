@@ -117,8 +117,22 @@ def _end_at_once() -> None:
     os._exit(_stop_code)
 
 
+def _on_unraisable(unraisable) -> None:
+    """``sys.unraisablehook``: a signal's exception raised where Python cannot raise it
+    (the handler ran inside a finaliser, ``__del__`` or a weakref callback, which the
+    garbage collector may call in the middle of any import or computation) would be
+    printed and dropped, and the command would go on as if no signal had come. The stop
+    is carried out at once instead (:func:`_end_at_once`); anything else is printed as
+    Python prints it."""
+    if _stopping and isinstance(unraisable.exc_value, (KeyboardInterrupt, Terminated)):
+        _end_at_once()
+    sys.__unraisablehook__(unraisable)
+
+
 def install_signal_handlers() -> None:
-    """Route SIGINT and SIGTERM through :func:`_on_signal` (main thread only)."""
+    """Route SIGINT and SIGTERM through :func:`_on_signal` (main thread only), and a
+    signal's exception that Python could not raise through :func:`_on_unraisable`."""
+    sys.unraisablehook = _on_unraisable
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
 
@@ -231,6 +245,8 @@ def _exit_now(exc: SystemExit) -> None:
     removes the semaphores of the pools' queues then)."""
     import os
     global _finishing
+    if _stopping and not exc.code:
+        _end_at_once()   # a signal's exception caught and dropped on the way: still a stop
     _finishing = True
     code = exc.code
     if code is None:
