@@ -153,6 +153,46 @@ def test_every_preloaded_module_exists():
     assert sorted(m for m in names if importlib.util.find_spec(m) is None) == []
 
 
+_FIRST_TASK = """
+import json, sys
+from armfit import workers
+
+def loaded(names):
+    return [n for n in names if n in sys.modules]
+
+if __name__ == "__main__":
+    if sys.argv[1] == "own":
+        workers.preload_own_only()
+    names = ["armfit.spectra", "armfit.fitting", "armfit.diagnosis", "scipy.optimize"]
+    pool = workers.process_pool(2, ("armfit.spectra",))
+    try:
+        print(json.dumps(pool.submit(loaded, names).result()))
+    finally:
+        pool.shutdown()
+"""
+
+
+@pytest.mark.skipif(workers.start_method() != "forkserver", reason="the fork server's")
+def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
+    # the modules a worker holds at its first task, in a fresh process whose first pool
+    # preloads armfit.spectra: by default every engine module too (any later pool of a
+    # script starts loaded); after preload_own_only(), as the command line sets it, only
+    # what that pool named (estimate's workers then start about 1 s sooner)
+    import json
+    import subprocess
+    script = tmp_path / "first_task.py"
+    script.write_text(_FIRST_TASK)
+
+    def worker_modules(mode: str) -> list[str]:
+        res = subprocess.run([sys.executable, str(script), mode], capture_output=True,
+                             text=True, check=True, timeout=120)
+        return json.loads(res.stdout)
+
+    assert worker_modules("all") == ["armfit.spectra", "armfit.fitting", "armfit.diagnosis",
+                                     "scipy.optimize"]
+    assert worker_modules("own") == ["armfit.spectra"]
+
+
 def test_two_threads_shutting_a_pool_down_together_take_turns(monkeypatch):
     """The thread that made a pool and cancel_pools (a failing run stopping a background
     stage) may shut the pool down at once; ProcessPoolExecutor.shutdown run twice at the

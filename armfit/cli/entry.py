@@ -201,9 +201,10 @@ def main() -> None:
     install_signal_handlers()
     try:
         from armfit.cli import streams
-        from armfit.workers import tune_allocator
+        from armfit.workers import preload_own_only, tune_allocator
         streams.install()
         tune_allocator()
+        preload_own_only()   # a command starts one pool: its workers load what it runs
         from armfit.cli.main import cli  # numpy, pandas, pyarrow, click, ...
     except KeyboardInterrupt as exc:  # signal while importing: one line, no traceback
         _exit_now(SystemExit(stop_line(exc)))
