@@ -32,7 +32,7 @@ from armfit.models.effects import Effect
 
 __all__ = [
     "Adequacy", "adequacy", "band_errors", "effect_size", "practical", "response_change",
-    "robust_lr", "union_bias",
+    "delta_bic", "robust_lr", "union_bias",
 ]
 
 
@@ -57,6 +57,16 @@ def robust_lr(base: JointFit, fit: JointFit, se_db, se_deg) -> tuple[float, floa
     rss0, rss1 = float(ss0[keep].sum()), float(ss1[keep].sum())
     lr = n_eff * np.log(rss0 / rss1) if rss1 > 0 and rss0 > rss1 else 0.0
     return float(lr), float(n_eff), float(max(1.0 - rss1 / rss0, 0.0)) if rss0 > 0 else 0.0
+
+
+def delta_bic(base: JointFit, fit: JointFit, se_db, se_deg, k: int | None = None
+              ) -> tuple[float, float, float]:
+    """ΔBIC of ``fit`` against the nested ``base``: D − k ln N_eff, with D and N_eff of
+    :func:`robust_lr` and ``k`` the free parameters ``fit`` adds (default
+    ``fit.n_free − base.n_free``). Returns (ΔBIC, D, the fraction of the cost removed)."""
+    lr, n_eff, reduction = robust_lr(base, fit, se_db, se_deg)
+    k = fit.n_free - base.n_free if k is None else k
+    return float(lr - k * np.log(max(n_eff, 2.0))), lr, reduction
 
 
 def union_bias(f, fit: JointFit, se_db, se_deg, ranges) -> float:

@@ -18,9 +18,9 @@ from armfit.diagnosis.evidence import (
     Adequacy,
     adequacy,
     band_errors,
+    delta_bic,
     effect_size,
     practical,
-    robust_lr,
     union_bias,
 )
 from armfit.diagnosis.fit import fit_base, fit_borrowed, fit_extend
@@ -161,8 +161,7 @@ class _Search:
     def evaluate(self, eff: Effect, fit: JointFit, cur: JointFit,
                  test: SubjectTest | None = None) -> CandidateFit:
         """The evidence for ``fit`` (``cur``'s model plus ``eff``) against ``cur``."""
-        lr, n_eff, reduction = robust_lr(cur, fit, self.se_db, self.se_deg)
-        score = float(lr - (fit.n_free - cur.n_free) * np.log(max(n_eff, 2.0)))
+        score, lr, reduction = delta_bic(cur, fit, self.se_db, self.se_deg)
         err = band_error(self.f, fit.r_db, fit.r_deg, self.se_db, self.se_deg, *self.band)
         size_db, size_deg = effect_size(fit, eff, self.f)
         prac, _ = practical(self.f, size_db, size_deg, self.se_db, self.se_deg,
@@ -330,9 +329,8 @@ class _Search:
         if fit.rss >= cur.rss:
             return
         if new:
-            lr, n_eff, reduction = robust_lr(cur, fit, self.se_db, self.se_deg)
-            k = sum(len(e.params) for e in new)
-            score = float(lr - k * np.log(max(n_eff, 2.0)))
+            score, _, reduction = delta_bic(cur, fit, self.se_db, self.se_deg,
+                                            k=sum(len(e.params) for e in new))
             prac = all(practical(self.f, *effect_size(fit, e, self.f), self.se_db,
                                  self.se_deg, self.min_db, self.min_deg)[0] for e in new)
             if not (score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION and prac):

@@ -33,13 +33,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from armfit.diagnosis.evidence import practical, response_change, robust_lr
+from armfit.diagnosis.evidence import delta_bic, practical, response_change
 from armfit.diagnosis.fit import fit_by_subject
 from armfit.diagnosis.joint import JointFit
 from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.tuning import MIN_EFFECT_DB, MIN_EFFECT_DEG, MIN_REDUCTION, SIGNIFICANT_BIC
 from armfit.models.arm import APPARATUS_STAGES
 from armfit.models.effects import Effect
+from armfit.noise import rms_norm
 
 __all__ = ["SubjectTest", "SubjectTrial", "by_subject_search", "per_subject_default",
            "spread", "subjects_allow"]
@@ -93,12 +94,6 @@ def per_subject_default(effect: Effect) -> bool:
     return effect.stage not in APPARATUS_STAGES
 
 
-def _rms_norm(fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray) -> float:
-    z = np.concatenate([(fit.r_db / se_db).ravel(), (fit.r_deg / se_deg).ravel()])
-    z = z[np.isfinite(z)]
-    return float(np.sqrt(np.mean(z * z))) if z.size else math.nan
-
-
 def by_subject_search(data: AxisData, band: tuple[float, float], fit: JointFit,
                       effect: Effect, min_db: float = MIN_EFFECT_DB,
                       min_deg: float = MIN_EFFECT_DEG) -> tuple[JointFit, SubjectTest]:
@@ -126,7 +121,7 @@ def by_subject_search(data: AxisData, band: tuple[float, float], fit: JointFit,
     f = data.f_hz[sel]
     se_db, se_deg = data.noise_se(sel)
     n_subj = len(set(data.subject_of_trials()))
-    shared_err = _rms_norm(fit, se_db, se_deg)
+    shared_err = rms_norm(fit.r_db, fit.r_deg, se_db, se_deg)
     if n_subj < 2:
         return fit, SubjectTest(effect.name, n_subj, (), (), shared_err, shared_err)
     current = fit
@@ -149,7 +144,7 @@ def by_subject_search(data: AxisData, band: tuple[float, float], fit: JointFit,
     varying = tuple(p.name for p in effect.params
                     if f"{effect.name}.{p.name}" in current.varying)
     return current, SubjectTest(effect.name, n_subj, tuple(trials), varying, shared_err,
-                                _rms_norm(current, se_db, se_deg))
+                                rms_norm(current.r_db, current.r_deg, se_db, se_deg))
 
 
 def _evidence(before: JointFit, after: JointFit, f, se_db, se_deg, min_db, min_deg):
@@ -158,9 +153,7 @@ def _evidence(before: JointFit, after: JointFit, f, se_db, se_deg, min_db, min_d
     parameters ``after`` adds), and the change the subjects' own values make to
     ``after``'s responses against ``before``'s shared values
     (:func:`~armfit.diagnosis.evidence.response_change`)."""
-    lr, n_eff, reduction = robust_lr(before, after, se_db, se_deg)
-    k = after.n_free - before.n_free
-    score = float(lr - k * np.log(max(n_eff, 2.0)))
+    score, _, reduction = delta_bic(before, after, se_db, se_deg)
     new = [n for n in after.varying if n not in before.varying]
     size_db, size_deg = response_change(after, {n: before.shared[n] for n in new}, f)
     prac, _ = practical(f, size_db, size_deg, se_db, se_deg, min_db, min_deg)
