@@ -88,7 +88,7 @@ __all__ = ["CHILD_ENVIRONMENT", "PRELOAD", "cancel_pools", "child_environment",
 #: every later pool of the process start with them loaded (see
 #: :func:`preload_own_only` for a process that starts one pool).
 PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fitting",
-                            "armfit.uncertainty", "armfit.diagnosis", "scipy.optimize")
+                            "armfit.uncertainty", "armfit.diagnosis.search", "scipy.optimize")
 #: Set by :func:`preload_own_only`.
 _OWN_ONLY = False
 

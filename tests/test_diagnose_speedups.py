@@ -191,6 +191,42 @@ def test_task_queue_runs_tasks_here_while_the_pool_starts():
     assert where[1] is not threading.current_thread()
 
 
+def test_task_queue_hands_ready_tasks_to_the_pool_while_a_task_runs_here():
+    # the task running here (started while the pool starts) waits for the next task to
+    # have started in the pool: it can only if the starting thread hands the ready tasks
+    # over as soon as the pool is up, not once the task here has ended
+    up, other_started = threading.Event(), threading.Event()
+    where = {}
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        tasks = TaskQueue(pool, capacity=1)
+
+        def start():
+            up.wait(10.0)
+            tasks.hand_over()
+
+        tasks.starting = threading.Thread(target=start)
+        tasks.starting.start()
+
+        def here(_):
+            where["here"] = threading.current_thread()
+            up.set()
+            return other_started.wait(10.0)
+
+        def other(_):
+            where["other"] = threading.current_thread()
+            other_started.set()
+            return "other"
+
+        results = []
+        tasks.add(0, here, None, results.append)
+        tasks.add(1, other, None, results.append)
+        tasks.run()
+        tasks.starting.join()
+    assert where["here"] is threading.current_thread()
+    assert where["other"] is not threading.current_thread()
+    assert sorted(map(str, results)) == ["True", "other"]
+
+
 def test_task_queue_context_uses_a_given_executor_as_is():
     with ThreadPoolExecutor(max_workers=1) as given:
         with schedule.task_queue(jobs=4, executor=given) as tasks:

@@ -153,6 +153,26 @@ def test_every_preloaded_module_exists():
     assert sorted(m for m in names if importlib.util.find_spec(m) is None) == []
 
 
+def test_each_pool_preloads_the_module_of_its_tasks():
+    """A worker unpickles its task's function by importing the function's module; the
+    pool's preload must name that module, not a package whose ``__init__`` imports none
+    of it (``armfit.diagnosis`` loads its modules on first use): else each worker of the
+    diagnosis imported its search, about half a second, at its first task. The modules
+    of the engine's task functions are in :data:`workers.PRELOAD` (``run``'s pool, and
+    the fork server of an API script), and each pool's own preload names its own."""
+    import inspect
+
+    from armfit import fitting, spectra, uncertainty
+    from armfit.diagnosis import schedule, search
+    diagnosis = inspect.signature(schedule.task_queue).parameters["preload"].default
+    for fn in (search._base_task, search._screen_task, search._extend_task,
+               search._subject_task):
+        assert fn.__module__ in diagnosis and fn.__module__ in workers.PRELOAD
+    for fn in (spectra._estimate_source, fitting._fit_group, fitting._fit_trial_task,
+               uncertainty._fit_wu_task):
+        assert fn.__module__ in workers.PRELOAD
+
+
 _FIRST_TASK = """
 import json, sys
 from armfit import workers
@@ -163,7 +183,7 @@ def loaded(names):
 if __name__ == "__main__":
     if sys.argv[1] == "own":
         workers.preload_own_only()
-    names = ["armfit.spectra", "armfit.fitting", "armfit.diagnosis", "scipy.optimize"]
+    names = ["armfit.spectra", "armfit.fitting", "armfit.diagnosis.search", "scipy.optimize"]
     pool = workers.process_pool(2, ("armfit.spectra",))
     try:
         print(json.dumps(pool.submit(loaded, names).result()))
@@ -188,7 +208,8 @@ def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
                              text=True, check=True, timeout=120)
         return json.loads(res.stdout)
 
-    assert worker_modules("all") == ["armfit.spectra", "armfit.fitting", "armfit.diagnosis",
+    assert worker_modules("all") == ["armfit.spectra", "armfit.fitting",
+                                     "armfit.diagnosis.search",
                                      "scipy.optimize"]
     assert worker_modules("own") == ["armfit.spectra"]
 

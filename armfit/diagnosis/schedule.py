@@ -33,8 +33,10 @@ class TaskQueue:
     a higher priority goes first; None: every task as soon as it is ready, for an
     executor that queues tasks itself). While the thread ``starting`` runs (it starts
     the pool's workers), the ready tasks run here instead, one at a time, so that this
-    process works while the workers start. The first error of a task (or continuation)
-    is raised after the tasks not yet started are cancelled.
+    process works while the workers start; once they are up, that thread hands the
+    ready tasks to the pool (:meth:`hand_over`) without waiting for the task running
+    here to end. The first error of a task (or continuation) is raised after the tasks
+    not yet started are cancelled.
     """
 
     def __init__(self, pool: Executor | None = None, capacity: int | None = None,
@@ -45,33 +47,63 @@ class TaskQueue:
         self._ready: list = []
         self._running: dict[Future, tuple[int, Callable]] = {}
         self._order = itertools.count()
+        # the queue is changed by this thread and, once, by the thread ``starting``
+        self._lock = threading.Lock()
 
     def add(self, priority: tuple | int, fn: Callable, args, then: Callable) -> None:
         """Queue ``fn(args)``; ``then(result)`` is called with its result."""
-        heapq.heappush(self._ready, (priority, next(self._order), fn, args, then))
+        with self._lock:
+            heapq.heappush(self._ready, (priority, next(self._order), fn, args, then))
+
+    def hand_over(self) -> None:
+        """Hand the ready tasks to the pool, up to ``capacity`` running: called by the
+        thread ``starting`` once the workers are up, while a task may still be running
+        here (its continuation, and those of the tasks handed over, are called by
+        :meth:`run` in its own thread, as always). A task the pool refuses stays ready:
+        :meth:`run` submits it again and raises the pool's error."""
+        with self._lock:
+            self._submit()
+
+    def _submit(self) -> None:
+        """Submit ready tasks, up to ``capacity`` running (the lock held)."""
+        while self._ready and (self.capacity is None or len(self._running) < self.capacity):
+            item = heapq.heappop(self._ready)
+            try:
+                fut = self.pool.submit(item[2], item[3])
+            except BaseException:
+                heapq.heappush(self._ready, item)
+                raise
+            self._running[fut] = (item[1], item[4])
 
     def run(self) -> None:
         """Run every queued task and those their continuations add."""
         try:
-            while self._ready or self._running:
-                if self.pool is None or (self._ready and self.starting is not None
-                                         and self.starting.is_alive()):
-                    _, _, fn, args, then = heapq.heappop(self._ready)
+            while True:
+                with self._lock:
+                    if not (self._ready or self._running):
+                        return
+                    here = self.pool is None or (self._ready and self.starting is not None
+                                                 and self.starting.is_alive())
+                    if here:
+                        _, _, fn, args, then = heapq.heappop(self._ready)
+                    else:
+                        self._submit()
+                        running = list(self._running)
+                if here:
                     then(fn(args))
                     continue
-                while self._ready and (self.capacity is None
-                                       or len(self._running) < self.capacity):
-                    _, order, fn, args, then = heapq.heappop(self._ready)
-                    self._running[self.pool.submit(fn, args)] = (order, then)
-                done, _ = wait(list(self._running), return_when=FIRST_COMPLETED)
-                for fut in sorted(done, key=lambda f: self._running[f][0]):
-                    _, then = self._running.pop(fut)
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                with self._lock:
+                    ended = [(self._running.pop(f)[1], f) for f in
+                             sorted(done, key=lambda f: self._running[f][0])]
+                for then, fut in ended:
                     then(fut.result())
         except BaseException:
-            for fut in self._running:
-                fut.cancel()
-            self._running.clear()
-            self._ready.clear()
+            with self._lock:
+                for fut in self._running:
+                    fut.cancel()
+                self._running.clear()
+                self._ready.clear()
             raise
 
     def map(self, fn: Callable, items: Iterable, priority: tuple | int = 0) -> list:
@@ -85,16 +117,19 @@ class TaskQueue:
         return out
 
 
-def _start(pool: Executor) -> None:
+def _start(pool: Executor, queue: TaskQueue) -> None:
     """Start the workers of a pool of :func:`armfit.workers.process_pool` (they start at
-    its first task); a failure shows again at the pool's next task."""
+    its first task) and hand them the queue's ready tasks; a failure shows again at the
+    pool's next task, in the queue's own thread."""
     with contextlib.suppress(BaseException):
         pool.submit(int)
+        queue.hand_over()
 
 
 @contextlib.contextmanager
 def task_queue(jobs: int, executor: Executor | None = None,
-               preload: tuple[str, ...] = ("armfit.diagnosis",)) -> Iterator[TaskQueue]:
+               preload: tuple[str, ...] = ("armfit.diagnosis.search",)
+               ) -> Iterator[TaskQueue]:
     """A :class:`TaskQueue` for the ``with`` block: on ``executor`` when one is given
     (used as is, not shut down; every ready task handed to it at once), else on ``jobs``
     worker processes when ``jobs`` > 1 (one pool for the block, ``jobs`` tasks at a
@@ -102,7 +137,8 @@ def task_queue(jobs: int, executor: Executor | None = None,
 
     Called in the main thread (the command line's ``diagnose``), a pool of its own starts
     its workers in a thread at once (a new fork server imports armfit's modules first:
-    about half a second) while the first tasks run here. Not in another thread: there
+    about half a second) while the first tasks run here; that thread hands the ready
+    tasks to the workers as soon as they are up. Not in another thread: there
     the diagnosis may be stopped by shutting its pool down
     (:func:`armfit.workers.cancel_pools`, as ``armfit run`` does after a failure), which
     it notices at its next task in the pool, not while it runs one here."""
@@ -113,10 +149,12 @@ def task_queue(jobs: int, executor: Executor | None = None,
         if threading.current_thread() is not threading.main_thread():
             yield TaskQueue(pool, int(jobs))
             return
-        starting = threading.Thread(target=_start, args=(pool,), daemon=True,
+        queue = TaskQueue(pool, int(jobs))
+        starting = threading.Thread(target=_start, args=(pool, queue), daemon=True,
                                     name="armfit-diagnosis-start")
+        queue.starting = starting
         starting.start()
         try:
-            yield TaskQueue(pool, int(jobs), starting)
+            yield queue
         finally:
             starting.join()
