@@ -1414,10 +1414,10 @@ def _adopted_tables(sp: Spectra, ad: _adopt.Adoption, cost: str, jobs: int,
     other's last one (the same fits, in any order: the same results)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from armfit.workers import executor_for
+    from armfit.workers import POOL_PRELOAD, executor_for
 
     kw = dict(cost=cost, bands=ad.bands, effects=ad.effects)
-    with executor_for(executor, jobs, preload=("armfit.fitting", "scipy.optimize")) as pool:
+    with executor_for(executor, jobs, preload=POOL_PRELOAD["fit"]) as pool:
         if pool is None:
             return fit_grip(sp, **kw), fit_nominal(sp, **kw)
         with ThreadPoolExecutor(max_workers=1) as side:

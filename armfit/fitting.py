@@ -84,7 +84,7 @@ from armfit.io.schema import params_columns
 from armfit.models.arm import ClosedLoopModel, at_bound, laplace, union_param_names
 from armfit.models.effects import effects_by_axis, resolve_effects
 from armfit.spectra import Spectra, aggregate
-from armfit.workers import iter_tasks, map_tasks
+from armfit.workers import POOL_PRELOAD, iter_tasks, map_tasks
 
 COSTS: tuple[str, ...] = ("complex", "paper")
 
@@ -922,8 +922,8 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
                                bootstrap=(bootstrap, seed),
                                options={"cost": cost, "max_nfev": max_nfev})
     fits = []
-    preload = ("armfit.fitting", "scipy.optimize")
-    for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs, preload=preload,
+    for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs,
+                                                  preload=POOL_PRELOAD["fit"],
                                                   executor=executor), strict=True):
         fits.append(fit)
         if on_fit is not None:
@@ -1195,7 +1195,7 @@ def fit_trial_models(spectra, *, cost: str = "complex",
                     for k, v in starts.items()}
     def run(items: list) -> list:
         return map_tasks(_fit_trial_task, items, jobs,
-                         preload=("armfit.fitting", "scipy.optimize"), chunksize=4,
+                         preload=POOL_PRELOAD["fit"], chunksize=4,
                          executor=executor)
 
     out = run(tasks)

@@ -72,7 +72,7 @@ from armfit.io.schema import (
     json_default,
 )
 from armfit.io.trials import Trial, open_trials, read_trial, saturated_samples
-from armfit.workers import iter_tasks
+from armfit.workers import POOL_PRELOAD, iter_tasks
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -2777,8 +2777,7 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
         on_open(len(sources))
     # closed on a bad trial: the pending work is cancelled at once
     with contextlib.closing(iter_tasks(functools.partial(_estimate_source, config=config),
-                                       sources, jobs, preload=("armfit.spectra",
-                                                               "armfit.io.trials"),
+                                       sources, jobs, preload=POOL_PRELOAD["estimate"],
                                        chunksize=2, executor=executor)) as results:
         for res in results:
             handle(res)

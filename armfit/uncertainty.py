@@ -48,7 +48,7 @@ from armfit.io.ranges import FREQUENCY_RANGE, check_in_range
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS, wu_sidecar_paths
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
-from armfit.workers import map_tasks
+from armfit.workers import POOL_PRELOAD, map_tasks
 
 #: The paper's band for Wu: 0.01–30 Hz (Sec. II-F).
 PAPER_BAND_HZ: tuple[float, float] = (0.01, 30.0)
@@ -856,7 +856,7 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
     tasks = [(f, target, {"n_pairs": n_pairs, "cost": cost, "band": b})
              for _, f, _, _, target, b in prepared]
     fits = map_tasks(_fit_wu_task, tasks, jobs,
-                     preload=("armfit.uncertainty", "scipy.optimize"), executor=executor)
+                     preload=POOL_PRELOAD["uncertainty"], executor=executor)
     out = []
     for (axis, f, n_trials, raw, target, b), res in zip(prepared, fits, strict=True):
         targets = {"wmax": raw} if smooth_oct is None else {"wmax": raw, "wmax_smoothed": target}

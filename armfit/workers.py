@@ -77,9 +77,9 @@ from concurrent.futures import Executor, ProcessPoolExecutor
 from concurrent.futures import wait as _wait_futures
 from concurrent.futures.process import BrokenProcessPool
 
-__all__ = ["CHILD_ENVIRONMENT", "PRELOAD", "cancel_pools", "child_environment",
-           "executor_for", "ignore_sigint", "iter_tasks", "map_tasks", "preload_own_only",
-           "process_pool",
+__all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "cancel_pools",
+           "child_environment", "executor_for", "ignore_sigint", "iter_tasks", "map_tasks",
+           "preload_own_only", "process_pool", "start_fork_server",
            "start_method", "stop_workers", "worker_start", "tune_allocator",
            "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
 
@@ -89,6 +89,15 @@ __all__ = ["CHILD_ENVIRONMENT", "PRELOAD", "cancel_pools", "child_environment",
 #: :func:`preload_own_only` for a process that starts one pool).
 PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fitting",
                             "armfit.uncertainty", "armfit.diagnosis.search", "scipy.optimize")
+#: The modules the tasks of each kind of pool run, the ``preload`` of its pools: what
+#: the fork server imports first for a command line's one pool (:func:`preload_own_only`,
+#: :func:`start_fork_server`). Each is in :data:`PRELOAD`.
+POOL_PRELOAD: dict[str, tuple[str, ...]] = {
+    "estimate": ("armfit.spectra", "armfit.io.trials"),
+    "fit": ("armfit.fitting", "scipy.optimize"),
+    "uncertainty": ("armfit.uncertainty", "scipy.optimize"),
+    "diagnosis": ("armfit.diagnosis.search",),
+}
 #: Set by :func:`preload_own_only`.
 _OWN_ONLY = False
 
@@ -374,6 +383,52 @@ class _Pool(ProcessPoolExecutor):
                              cancel_futures=cancel_futures)
 
 
+def _set_preload(ctx, preload: Sequence[str]) -> None:
+    """What the fork server imports when it starts: ``preload`` after
+    :func:`preload_own_only`, else :data:`PRELOAD` and ``preload``."""
+    modules = tuple(preload) if _OWN_ONLY and preload else (*PRELOAD, *preload)
+    ctx.set_forkserver_preload(list(dict.fromkeys(modules)))
+
+
+def start_fork_server(preload: Sequence[str] = ()) -> None:
+    """Start this process's fork server now, importing what :func:`process_pool` would
+    have it import for a pool with ``preload``, and return at once.
+
+    The server imports its modules alongside whatever this process does meanwhile (the
+    command line imports the command's own modules and reads its inputs), so the first
+    pool's workers are ready sooner: they are forked from the server once it has its
+    modules. Started as :func:`process_pool` starts it (from a thread with SIGINT
+    blocked, in :func:`child_environment`). Does nothing where pools start their workers
+    otherwise (``spawn``), once the server runs, or after ``stop_workers(final=True)``;
+    a server that fails to start is started again by the first pool, which reports it.
+
+    Parameters
+    ----------
+    preload : sequence of str
+        As :func:`process_pool`'s.
+    """
+    if start_method() != "forkserver" or _FINAL:
+        return
+    _set_preload(multiprocessing.get_context("forkserver"), preload)
+    starter = threading.Thread(target=_start_server, name="armfit-fork-server", daemon=True)
+    starter.start()
+    starter.join()
+
+
+def _start_server() -> None:
+    from multiprocessing import forkserver, resource_tracker
+    with contextlib.suppress(Exception), _STARTING, child_environment():
+        if _FINAL:
+            return
+        # the resource tracker first: starting it unblocks SIGINT in the calling thread
+        # (it blocks the signal only while it spawns its own process), and the server
+        # must start with SIGINT blocked
+        resource_tracker.ensure_running()
+        if hasattr(signal, "pthread_sigmask"):
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        forkserver.ensure_running()
+
+
 def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
     """A new pool of ``jobs`` worker processes that ignore SIGINT, started by
     :func:`start_method` (all at its first task); the caller shuts it down.
@@ -393,8 +448,7 @@ def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
     """
     ctx = multiprocessing.get_context(start_method())
     if ctx.get_start_method() == "forkserver":
-        modules = tuple(preload) if _OWN_ONLY and preload else (*PRELOAD, *preload)
-        ctx.set_forkserver_preload(list(dict.fromkeys(modules)))
+        _set_preload(ctx, preload)
     with child_environment():   # its queues start the resource tracker
         pool = _Pool(max(1, int(jobs)), ctx)
     with _OPEN_LOCK:

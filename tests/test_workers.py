@@ -13,9 +13,11 @@ import threading
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 
+import click
 import numpy as np
 import pandas as pd
 import pytest
+from click.testing import CliRunner
 
 import armfit
 from armfit import workers
@@ -137,12 +139,12 @@ def test_every_preloaded_module_exists():
     the package passes to a pool, must be an importable module."""
     import ast
     import importlib.util
-    names = set(workers.PRELOAD)
+    names = set(workers.PRELOAD).union(*workers.POOL_PRELOAD.values())
     for path in Path(workers.__file__).parent.rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.keyword) and node.arg == "preload":
                 value = node.value
-                if isinstance(value, ast.Name):          # preload = (...) just above
+                if isinstance(value, ast.Name | ast.Subscript):  # a name, POOL_PRELOAD[k]
                     continue
                 names |= set(ast.literal_eval(value))
             if (isinstance(node, ast.Assign) and len(node.targets) == 1
@@ -164,13 +166,18 @@ def test_each_pool_preloads_the_module_of_its_tasks():
 
     from armfit import fitting, spectra, uncertainty
     from armfit.diagnosis import schedule, search
-    diagnosis = inspect.signature(schedule.task_queue).parameters["preload"].default
-    for fn in (search._base_task, search._screen_task, search._extend_task,
-               search._subject_task):
-        assert fn.__module__ in diagnosis and fn.__module__ in workers.PRELOAD
-    for fn in (spectra._estimate_source, fitting._fit_group, fitting._fit_trial_task,
-               uncertainty._fit_wu_task):
-        assert fn.__module__ in workers.PRELOAD
+    assert inspect.signature(schedule.task_queue).parameters["preload"].default == \
+        workers.POOL_PRELOAD["diagnosis"]
+    tasks = {"diagnosis": (search._base_task, search._screen_task, search._extend_task,
+                           search._subject_task),
+             "estimate": (spectra._estimate_source,),
+             "fit": (fitting._fit_group, fitting._fit_trial_task),
+             "uncertainty": (uncertainty._fit_wu_task,)}
+    assert set(tasks) == set(workers.POOL_PRELOAD)
+    for kind, fns in tasks.items():
+        for fn in fns:
+            assert fn.__module__ in workers.POOL_PRELOAD[kind], (kind, fn)
+            assert fn.__module__ in workers.PRELOAD, fn
 
 
 _FIRST_TASK = """
@@ -212,6 +219,102 @@ def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
                                      "armfit.diagnosis.search",
                                      "scipy.optimize"]
     assert worker_modules("own") == ["armfit.spectra"]
+
+
+@pytest.mark.parametrize("args, jobs", [
+    # click's spellings of a valued option (its own parsing is the reference)
+    (["in.parquet", "-o", "out.parquet", "-j", "2"], 2),
+    (["in.parquet", "-j2"], 2),
+    (["--jobs", "3", "in.parquet"], 3),
+    (["--jobs=4", "in.parquet"], 4),
+    (["-j", "2", "in.parquet", "--jobs", "1"], 1),      # the last one wins, as in click
+    (["in.parquet"], None),
+    (["in.parquet", "-j"], None),                       # the command reports the error
+    (["in.parquet", "-j", "two"], None),
+    (["--", "-j", "2"], None),                          # after "--": an argument
+])
+def test_requested_jobs_reads_the_option_as_click_does(args, jobs):
+    from armfit.cli.main import requested_jobs
+    assert requested_jobs(args) == jobs
+
+
+def test_the_commands_with_jobs_start_their_fork_server_first(monkeypatch, tmp_path):
+    # every command with --jobs is listed with its pool's preload, and none other; asked
+    # for two workers it starts the fork server before its own modules are loaded (here
+    # on a missing input: the command then fails, the server just ends with it)
+    from armfit.cli import main
+    for name in main.COMMANDS:
+        cmd = main.cli.get_command(click.Context(main.cli), name)
+        has_jobs = any(p.name == "jobs" for p in getattr(cmd, "params", ()))
+        assert has_jobs == (name in main.POOLS), name
+    started = []
+    monkeypatch.setattr(main, "start_fork_server", started.append)
+    missing = str(tmp_path / "missing.parquet")
+    cases = [(["diagnose", missing, "--model", missing, "-j", "2"],
+              [workers.POOL_PRELOAD["diagnosis"]]),
+             (["estimate", missing, "-o", str(tmp_path / "s.parquet"), "--jobs=2"],
+              [workers.POOL_PRELOAD["estimate"]]),
+             (["run", missing, "-o", str(tmp_path / "out"), "-j", "2"], [()]),
+             (["estimate", missing, "-o", str(tmp_path / "s.parquet")], []),
+             (["estimate", missing, "-o", str(tmp_path / "s.parquet"), "-j", "1"], []),
+             (["estimate", "-j", "2", "--help"], []),
+             (["estimate", missing, "-o", str(tmp_path / "s.parquet"), "-j", "2",
+               "--scheduler", "tcp://127.0.0.1:8786"], []),
+             (["compare", missing, "--model", missing, "-j", "2"], [])]
+    for args, expected in cases:
+        started.clear()
+        CliRunner().invoke(main.cli, ["-q", *args])
+        assert started == expected, args
+
+
+_EARLY_SERVER = """
+import json, sys
+from armfit import workers
+
+def loaded(names):
+    return [n for n in names if n in sys.modules]
+
+def server_blocks_sigint():
+    # the fork server: this process's child running multiprocessing.forkserver's main
+    import os
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            status = open(f"/proc/{pid}/status").read()
+            cmdline = open(f"/proc/{pid}/cmdline").read()
+        except OSError:
+            continue
+        if f"PPid:\\t{os.getpid()}\\n" in status and "forkserver" in cmdline:
+            blocked = [ln for ln in status.splitlines() if ln.startswith("SigBlk:")][0]
+            return bool(int(blocked.split()[1], 16) & (1 << 1))   # SIGINT is signal 2
+
+if __name__ == "__main__":
+    workers.preload_own_only()
+    workers.start_fork_server(("armfit.spectra",))
+    blocked = server_blocks_sigint()
+    pool = workers.process_pool(2, ("armfit.fitting",))
+    try:
+        print(json.dumps([blocked,
+                          pool.submit(loaded, ["armfit.spectra", "armfit.fitting"]).result()]))
+    finally:
+        pool.shutdown()
+"""
+
+
+@pytest.mark.skipif(workers.start_method() != "forkserver" or not Path("/proc/self").exists(),
+                    reason="the fork server's, seen in /proc")
+def test_a_fork_server_started_early_serves_the_first_pool(tmp_path):
+    # the server starts with SIGINT blocked, as a pool starts it (Ctrl-C reaches the
+    # whole process group; a server stopped in its imports would print a traceback), and
+    # the workers of the pool made afterwards are forked from it: they hold what it
+    # imported, not what the pool itself would have preloaded
+    import json
+    import subprocess
+    script = tmp_path / "early.py"
+    script.write_text(_EARLY_SERVER)
+    res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         check=True, timeout=120)
+    assert json.loads(res.stdout) == [True, ["armfit.spectra"]]
+    assert res.stderr == ""
 
 
 def test_two_threads_shutting_a_pool_down_together_take_turns(monkeypatch):

@@ -24,7 +24,7 @@ from armfit.cli.grammar import (
 )
 from armfit.cli.messages import cli_message
 from armfit.errors import EXIT_INTERNAL, ArmfitError
-from armfit.workers import stop_workers
+from armfit.workers import POOL_PRELOAD, start_fork_server, stop_workers
 
 log = logging.getLogger("armfit")
 
@@ -40,6 +40,10 @@ class ArmfitGroup(click.Group):
     lazy: dict[str, str] = {}
     #: One-line summaries of the subcommands, listed by ``--help`` without importing them.
     summaries: dict[str, str] = {}
+    #: Subcommands that run their tasks on ``--jobs`` worker processes: name -> what
+    #: their pool preloads (:data:`armfit.workers.POOL_PRELOAD`; ``()``: every engine
+    #: module, ``run``'s one pool serving every stage).
+    pools: dict[str, tuple[str, ...]] = {}
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted({*super().list_commands(ctx), *self.lazy})
@@ -53,6 +57,17 @@ class ArmfitGroup(click.Group):
                 cmd.short_help = self.summaries[cmd_name]
             self.add_command(add_verbosity_options(cmd), cmd_name)
         return cmd
+
+    def resolve_command(self, ctx: click.Context, args: list[str]):
+        # a command asked for worker processes: their fork server starts now, and imports
+        # what they run while this process imports the command's modules
+        if args and args[0] in self.pools and not ctx.resilient_parsing:
+            rest = args[1:]
+            jobs = requested_jobs(rest)
+            if jobs is not None and jobs > 1 and not any(
+                    a in ("-h", "--help") or a.startswith("--scheduler") for a in rest):
+                start_fork_server(self.pools[args[0]])
+        return super().resolve_command(ctx, args)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         """The command list of ``--help``, from :attr:`summaries`: no command module is
@@ -97,6 +112,31 @@ class ArmfitGroup(click.Group):
                 ctx.exit(stop_line(stop))
             _report(ctx, exc, internal=True)
             ctx.exit(EXIT_INTERNAL)
+
+
+def requested_jobs(args: list[str]) -> int | None:
+    """The value of the last ``-j``/``--jobs`` option of a subcommand's raw arguments
+    (``-j N``, ``-jN``, ``--jobs N``, ``--jobs=N``; up to ``--``), read before the command
+    is loaded; None when absent or not a whole number (the command's own parsing then
+    reports it)."""
+    jobs = None
+    it = iter(args)
+    for a in it:
+        if a == "--":
+            break
+        if a in ("-j", "--jobs"):
+            value = next(it, None)
+        elif a.startswith("--jobs="):
+            value = a[len("--jobs="):]
+        elif a.startswith("-j") and not a.startswith("--"):
+            value = a[2:]
+        else:
+            continue
+        try:
+            jobs = int(value)
+        except (TypeError, ValueError):
+            return None
+    return jobs
 
 
 def _report(ctx: click.Context, exc: BaseException, internal: bool = False) -> None:
@@ -195,14 +235,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: The subcommands with ``--jobs``: name -> the kind of their pool (None: ``run``'s).
+POOLS: dict[str, str | None] = {
+    "estimate": "estimate", "fit-trials": "fit", "fit-uncertainty": "uncertainty",
+    "diagnose": "diagnosis", "run": None,
+}
+
+
 def _register() -> None:
     ArmfitGroup.lazy.update({name: target for name, (target, _) in COMMANDS.items()})
     ArmfitGroup.summaries.update({name: text for name, (_, text) in COMMANDS.items()})
+    ArmfitGroup.pools.update({name: POOL_PRELOAD[kind] if kind else ()
+                              for name, kind in POOLS.items()})
 
 
 _register()
 
 
 __all__ = [
-    "log", "ArmfitGroup", "COMMANDS", "cli",
+    "log", "ArmfitGroup", "COMMANDS", "POOLS", "cli", "requested_jobs",
 ]

@@ -17,7 +17,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
 
-from armfit.workers import executor_for
+from armfit.workers import POOL_PRELOAD, executor_for
 
 __all__ = ["TaskQueue", "task_queue"]
 
@@ -128,7 +128,7 @@ def _start(pool: Executor, queue: TaskQueue) -> None:
 
 @contextlib.contextmanager
 def task_queue(jobs: int, executor: Executor | None = None,
-               preload: tuple[str, ...] = ("armfit.diagnosis.search",)
+               preload: tuple[str, ...] = POOL_PRELOAD["diagnosis"]
                ) -> Iterator[TaskQueue]:
     """A :class:`TaskQueue` for the ``with`` block: on ``executor`` when one is given
     (used as is, not shut down; every ready task handed to it at once), else on ``jobs``
