@@ -28,8 +28,10 @@ interpreter, started with the first pool of a process, that imports armfit's eng
 modules once (:data:`PRELOAD`); each worker is then forked from it in milliseconds, with
 those modules loaded, whichever pool of the process it serves. A command-line process
 starts one pool: there the fork server imports only what that pool's tasks run
-(:func:`preload_own_only`; ``estimate``'s workers are then ready in about 0.35 s rather
-than 1.3 s). Forking the caller itself would be faster still at the first pool,
+(:func:`preload_own_only`, :data:`POOL_PRELOAD`; ``estimate``'s workers are then ready
+in about 0.35 s rather than 1.3 s), and a command given ``--jobs`` N > 1 starts the
+server before it loads its own modules (:func:`start_fork_server`), so that the two
+import at once. Forking the caller itself would be faster still at the first pool,
 but it copies one thread of a process that may have others (``armfit run``'s background
 stages, a dask client, a notebook) and can leave a lock of another thread held in the
 child; Python 3.12 warns about it, and 3.14 made the fork server the default on Linux.
