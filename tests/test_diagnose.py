@@ -9,6 +9,8 @@ simulated with ``armfit simulate`` with or without one hidden effect, estimated,
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import pytest
 
@@ -16,6 +18,7 @@ from armfit.diagnosis import (
     AxisData,
     band_error,
     describe_residual,
+    diagnose_axes,
     diagnosis_to_dict,
     failing_bands,
     joint_fit,
@@ -23,12 +26,15 @@ from armfit.diagnosis import (
     trial_statistics,
 )
 from armfit.diagnosis import compare_models as compare
-from armfit.diagnosis import diagnose_axes as diagnose
 from armfit.fitting import fit_study
 from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, h_cl
 from armfit.models.effects import EFFECTS
 from armfit.models.params import read_params
 from armfit.spectra import EstimateConfig, estimate_study
+
+# on two worker processes unless told (the results do not depend on the number:
+# test_diagnose_speedups)
+diagnose = partial(diagnose_axes, jobs=2)
 
 X1 = dict(Ma=0.1925, k1=85.48, k2=704.2, b1=7.410, b2=2.477)  # Table I, X, 1 N
 

@@ -9,6 +9,7 @@ Studies are small (two subjects, one axis, 30–35 s trials) to keep each test s
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +18,16 @@ import tdsim
 
 from armfit.diagnosis import (
     NOISE_TOL,
+    diagnose_axes,
     diagnosis_to_dict,
     practical,
 )
 from armfit.diagnosis import compare_models as compare
-from armfit.diagnosis import diagnose_axes as diagnose
 from armfit.models.effects import EFFECTS
+
+# on two worker processes unless told (the results do not depend on the number:
+# test_diagnose_speedups)
+diagnose = partial(diagnose_axes, jobs=2)
 
 SMALL = dict(subjects=2, axes=("x",), duration_s=(30.0, 35.0))
 

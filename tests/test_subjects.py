@@ -224,7 +224,8 @@ def run_folder(tmp_path_factory):
         subject_effects={"delay": {"delay_s": (0.004, 0.010)}}),
         tmp_path_factory.mktemp("run_study"))
     out = tmp_path_factory.mktemp("run") / "out"
-    res = CliRunner().invoke(cli, ["-q", "run", str(folder), "-o", str(out), "--no-figures"])
+    res = CliRunner().invoke(cli, ["-q", "run", str(folder), "-o", str(out), "--no-figures",
+                                   "--jobs", "2"])
     assert res.exit_code == 0, res.output
     return folder, out
 
