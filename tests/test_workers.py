@@ -234,8 +234,13 @@ def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
     (["--", "-j", "2"], None),                          # after "--": an argument
 ])
 def test_requested_jobs_reads_the_option_as_click_does(args, jobs):
-    from armfit.cli.main import requested_jobs
+    from armfit.cli.main import requested_jobs, wants_workers
     assert requested_jobs(args) == jobs
+    assert wants_workers(args) == (jobs is not None and jobs > 1)
+    # a dask cluster's workers, or only the help: no worker process here
+    assert not wants_workers([*args, "--scheduler", "tcp://127.0.0.1:8786"])
+    assert not wants_workers([*args, "--scheduler=tcp://127.0.0.1:8786"])
+    assert not wants_workers(["--help", *args])
 
 
 def test_the_commands_with_jobs_start_their_fork_server_first(monkeypatch, tmp_path):
@@ -258,8 +263,6 @@ def test_the_commands_with_jobs_start_their_fork_server_first(monkeypatch, tmp_p
              (["estimate", missing, "-o", str(tmp_path / "s.parquet")], []),
              (["estimate", missing, "-o", str(tmp_path / "s.parquet"), "-j", "1"], []),
              (["estimate", "-j", "2", "--help"], []),
-             (["estimate", missing, "-o", str(tmp_path / "s.parquet"), "-j", "2",
-               "--scheduler", "tcp://127.0.0.1:8786"], []),
              (["compare", missing, "--model", missing, "-j", "2"], [])]
     for args, expected in cases:
         started.clear()

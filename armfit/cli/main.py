@@ -61,12 +61,9 @@ class ArmfitGroup(click.Group):
     def resolve_command(self, ctx: click.Context, args: list[str]):
         # a command asked for worker processes: their fork server starts now, and imports
         # what they run while this process imports the command's modules
-        if args and args[0] in self.pools and not ctx.resilient_parsing:
-            rest = args[1:]
-            jobs = requested_jobs(rest)
-            if jobs is not None and jobs > 1 and not any(
-                    a in ("-h", "--help") or a.startswith("--scheduler") for a in rest):
-                start_fork_server(self.pools[args[0]])
+        if args and args[0] in self.pools and not ctx.resilient_parsing \
+                and wants_workers(args[1:]):
+            start_fork_server(self.pools[args[0]])
         return super().resolve_command(ctx, args)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
@@ -137,6 +134,15 @@ def requested_jobs(args: list[str]) -> int | None:
         except (TypeError, ValueError):
             return None
     return jobs
+
+
+def wants_workers(args: list[str]) -> bool:
+    """Whether a subcommand's raw arguments ask for worker processes on this machine:
+    ``--jobs`` N > 1 (:func:`requested_jobs`), neither ``--help`` nor ``--scheduler``
+    (a dask cluster's workers instead)."""
+    jobs = requested_jobs(args)
+    return jobs is not None and jobs > 1 and not any(
+        a in ("-h", "--help") or a.startswith("--scheduler") for a in args)
 
 
 def _report(ctx: click.Context, exc: BaseException, internal: bool = False) -> None:
@@ -253,5 +259,5 @@ _register()
 
 
 __all__ = [
-    "log", "ArmfitGroup", "COMMANDS", "POOLS", "cli", "requested_jobs",
+    "log", "ArmfitGroup", "COMMANDS", "POOLS", "cli", "requested_jobs", "wants_workers",
 ]
