@@ -180,13 +180,31 @@ def test_each_pool_preloads_the_module_of_its_tasks():
             assert fn.__module__ in workers.PRELOAD, fn
 
 
-_FIRST_TASK = """
+#: The start of the scripts below, each run in a fresh process (:func:`_script_json`):
+#: ``loaded(names)`` is run in a worker, to see what it holds at its first task.
+_SCRIPT_HEAD = """
 import json, sys
 from armfit import workers
 
 def loaded(names):
     return [n for n in names if n in sys.modules]
+"""
 
+
+def _script_json(tmp_path: Path, text: str, *args: str):
+    """Run the script ``text`` in a fresh Python process: what it printed, as JSON (its
+    stderr must be empty)."""
+    import json
+    import subprocess
+    script = tmp_path / "script.py"
+    script.write_text(_SCRIPT_HEAD + text)
+    res = subprocess.run([sys.executable, str(script), *args], capture_output=True,
+                         text=True, check=True, timeout=120)
+    assert res.stderr == ""
+    return json.loads(res.stdout)
+
+
+_FIRST_TASK = """
 if __name__ == "__main__":
     if sys.argv[1] == "own":
         workers.preload_own_only()
@@ -205,15 +223,8 @@ def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
     # preloads armfit.spectra: by default every engine module too (any later pool of a
     # script starts loaded); after preload_own_only(), as the command line sets it, only
     # what that pool named (estimate's workers then start about 1 s sooner)
-    import json
-    import subprocess
-    script = tmp_path / "first_task.py"
-    script.write_text(_FIRST_TASK)
-
     def worker_modules(mode: str) -> list[str]:
-        res = subprocess.run([sys.executable, str(script), mode], capture_output=True,
-                             text=True, check=True, timeout=120)
-        return json.loads(res.stdout)
+        return _script_json(tmp_path, _FIRST_TASK, mode)
 
     assert worker_modules("all") == ["armfit.spectra", "armfit.fitting",
                                      "armfit.diagnosis.search",
@@ -271,12 +282,6 @@ def test_the_commands_with_jobs_start_their_fork_server_first(monkeypatch, tmp_p
 
 
 _EARLY_SERVER = """
-import json, sys
-from armfit import workers
-
-def loaded(names):
-    return [n for n in names if n in sys.modules]
-
 def server_blocks_sigint():
     # the fork server: this process's child running multiprocessing.forkserver's main
     import os
@@ -310,14 +315,7 @@ def test_a_fork_server_started_early_serves_the_first_pool(tmp_path):
     # whole process group; a server stopped in its imports would print a traceback), and
     # the workers of the pool made afterwards are forked from it: they hold what it
     # imported, not what the pool itself would have preloaded
-    import json
-    import subprocess
-    script = tmp_path / "early.py"
-    script.write_text(_EARLY_SERVER)
-    res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
-                         check=True, timeout=120)
-    assert json.loads(res.stdout) == [True, ["armfit.spectra"]]
-    assert res.stderr == ""
+    assert _script_json(tmp_path, _EARLY_SERVER) == [True, ["armfit.spectra"]]
 
 
 def test_two_threads_shutting_a_pool_down_together_take_turns(monkeypatch):
