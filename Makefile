@@ -28,11 +28,16 @@ demo: $(STAMP) compile
 	$(BIN)/armfit run sample_data/study -o out/study --overwrite --jobs 2
 	$(BIN)/armfit run sample_data/hidden -o out/hidden --overwrite --jobs 2
 
+# the suite's test files are shared out between TEST_JOBS processes (pytest-xdist), whole
+# files at a time, so that a module's fixtures are made once
+TEST_JOBS ?= 2
+XDIST     := -n $(TEST_JOBS) --dist loadfile
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $(XDIST)
 
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -m slow $(XDIST)
 
 lint: $(STAMP)
 	$(BIN)/ruff check armfit tests benchmarks
@@ -54,7 +59,7 @@ test-latest:
 	rm -rf .venv-latest && $(PYTHON) -m venv .venv-latest
 	.venv-latest/bin/$(PIP) --upgrade -e '.[dev,dask,control,hdf5]'
 	.venv-latest/bin/python -m pip freeze --exclude armfit
-	.venv-latest/bin/python -m pytest -q -p no:cacheprovider
+	.venv-latest/bin/python -m pytest -q -p no:cacheprovider $(XDIST)
 
 # The lower bounds of pyproject.toml (every `name>=X` installed as `name==X`).
 test-oldest:
@@ -62,7 +67,7 @@ test-oldest:
 	$(PYTHON) .ci/lower-bounds.py pyproject.toml > .venv-oldest/constraints.txt
 	.venv-oldest/bin/$(PIP) -c .venv-oldest/constraints.txt -e '.[dev]'
 	.venv-oldest/bin/python -m pip freeze --exclude armfit
-	.venv-oldest/bin/python -m pytest -q -p no:cacheprovider
+	.venv-oldest/bin/python -m pytest -q -p no:cacheprovider $(XDIST)
 
 clean:
 	rm -rf out build *.egg-info .pytest_cache .venv-lock .venv-latest .venv-oldest

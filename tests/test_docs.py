@@ -232,7 +232,9 @@ class Runner:
         old = Path.cwd()
         os.chdir(cwd)
         try:
-            res = self.cli.invoke(cli, argv, env={"NO_COLOR": "1", "TERM": "dumb"})
+            # tables as in a pipe (PIPE_WIDTH): COLUMNS, which a test runner may set, unset
+            res = self.cli.invoke(cli, argv, env={"NO_COLOR": "1", "TERM": "dumb",
+                                                  "COLUMNS": None})
         finally:
             os.chdir(old)
         after = _snapshot(cwd)
