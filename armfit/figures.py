@@ -1608,14 +1608,48 @@ def _kmax_panel(top, t: pd.DataFrame, axis: str, colour: Mapping, marker: Mappin
     return handles
 
 
+def stability_sweep(rows: pd.DataFrame, settings: WallSettings | None = None, *,
+                    rates_hz: Sequence[float] = SWEEP_RATES_HZ,
+                    delays: Sequence[int] = SWEEP_DELAYS) -> np.ndarray:
+    """K_max (N/m) of each model row at each servo rate and delay: what the bottom panel
+    of :func:`stability_figure` draws for one axis.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        Parameter rows of one axis (a params table's rows, as :func:`model_from_row`
+        reads them).
+    settings : armfit.loop.WallSettings, optional
+        Its damping B is kept (default 0); T and d are swept.
+    rates_hz, delays
+        As :func:`stability_figure`.
+
+    Returns
+    -------
+    numpy.ndarray
+        (len(delays), len(rates_hz), len(rows)), N/m; NaN where the loop holds more than
+        :data:`SWEEP_MAX_LATENCY_SAMPLES` samples of latency
+        (:func:`armfit.loop.k_max_sweep`).
+    """
+    st = WallSettings() if settings is None else settings
+    plants = [plant_from_model(*model_from_row(r)) for _, r in rows.iterrows()]
+    return k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m,
+                       max_delay_samples=SWEEP_MAX_LATENCY_SAMPLES)
+
+
 def _sweep_panel(bot, rows: pd.DataFrame, axis: str, st: WallSettings,
-                 rates_hz: Sequence[float], delays: Sequence[int]) -> dict[tuple, Any]:
+                 rates_hz: Sequence[float], delays: Sequence[int],
+                 sweep: np.ndarray | None = None) -> dict[tuple, Any]:
     """The bottom panel of one axis: K_max (kN/m, from 0) against the servo rate 1/T
     (Hz, log) for each delay — the lowest over the models (line) and their range (band)
-    — and the top row's 1/T (dotted)."""
-    plants = [plant_from_model(*model_from_row(r)) for _, r in rows.iterrows()]
-    sweep = k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m,
-                        max_delay_samples=SWEEP_MAX_LATENCY_SAMPLES)
+    — and the top row's 1/T (dotted). ``sweep``: :func:`stability_sweep` of ``rows``,
+    computed here when not given."""
+    shape = (len(delays), len(rates_hz), len(rows))
+    if sweep is None:
+        sweep = stability_sweep(rows, st, rates_hz=rates_hz, delays=delays)
+    elif np.shape(sweep) != shape:
+        raise UsageError(f"stability figure: the sweep of axis {axis} has the shape "
+                         f"{np.shape(sweep)}, not {shape} (delays, rates, rows)")
     handles: dict[tuple, Any] = {}
     for i, d in enumerate(delays):
         col = _DELAY_COLOURS[i % len(_DELAY_COLOURS)]
@@ -1706,10 +1740,11 @@ def stability_axes(top, bot, params, settings=None, *, axis: str,
 
 
 def _stability_column(top, bot, rows, table, st, *, axis: str, rates_hz, delays,
-                      scale: bool) -> dict[tuple, Any]:
+                      scale: bool, sweep: np.ndarray | None = None) -> dict[tuple, Any]:
     """One axis of the stability figure from its inputs already computed
     (:func:`_stability_inputs`); ``scale``: set the sweep's K_max scale from this panel
-    alone (the whole figure sets one scale for its row instead)."""
+    alone (the whole figure sets one scale for its row instead); ``sweep``: the bottom
+    panel's :func:`stability_sweep`, if computed already."""
     sel = (table["axis"] == axis).to_numpy()
     if not sel.any():
         raise BadInputError(f"no model row for axis {axis}", column="axis")
@@ -1720,7 +1755,7 @@ def _stability_column(top, bot, rows, table, st, *, axis: str, rates_hz, delays,
                                    _grip_markers(grips)))
         top.set_ylabel("K_max (kN/m)")
     if bot is not None:
-        handles.update(_sweep_panel(bot, rows[sel], axis, st, rates_hz, delays))
+        handles.update(_sweep_panel(bot, rows[sel], axis, st, rates_hz, delays, sweep))
         if scale:
             _sweep_scale(bot, _sweep_log(bot))
     return handles
@@ -1729,7 +1764,8 @@ def _stability_column(top, bot, rows, table, st, *, axis: str, rates_hz, delays,
 @_styled
 def stability_figure(params, settings=None, *,
                      rates_hz: Sequence[float] = SWEEP_RATES_HZ,
-                     delays: Sequence[int] = SWEEP_DELAYS) -> Figure:
+                     delays: Sequence[int] = SWEEP_DELAYS,
+                     sweeps: Mapping[str, np.ndarray] | None = None) -> Figure:
     """The stiffest stable virtual wall per arm model, and its sensitivity to T and d.
 
     Top row, per axis: K_max (kN/m, from 0; :func:`armfit.loop.stability_table` at
@@ -1741,9 +1777,12 @@ def stability_figure(params, settings=None, *,
     rate 1/T (``rates_hz``, log) for each delay d in ``delays`` — the lowest over the
     rows (line) and their range (band), the top row's 1/T dotted; a rate at which a
     model's latency exceeds :data:`SWEEP_MAX_LATENCY_SAMPLES` samples is left out (a
-    gap).
+    gap). ``sweeps``: {axis: :func:`stability_sweep` of that axis's rows, in order},
+    computed elsewhere (e.g. in worker processes, an axis each); an axis not in it is
+    computed here.
     """
     rows, table, st = _stability_inputs(params, settings)
+    sweeps = {} if sweeps is None else sweeps
     axes = [a for a in AXES if (table["axis"] == a).any()]
     if not axes:
         raise BadInputError("no model rows", column="axis")
@@ -1755,7 +1794,8 @@ def stability_figure(params, settings=None, *,
             f"B = {st.damping_Ns_per_m:g} N·s/m")
     for j, axis in enumerate(axes):
         handles.update(_stability_column(axs[0, j], axs[1, j], rows, table, st, axis=axis,
-                                         rates_hz=rates_hz, delays=delays, scale=False))
+                                         rates_hz=rates_hz, delays=delays, scale=False,
+                                         sweep=sweeps.get(axis)))
         axs[0, j].set_title(f"{AXIS_TITLES[axis]}\nwall at {wall}")
         axs[1, j].set_title(f"against servo rate, B = {st.damping_Ns_per_m:g} N·s/m")
     # one K_max scale for the whole bottom row: log if any axis's sweep needs it
@@ -1782,5 +1822,5 @@ __all__ = [
     "FORMATS", "Residuals", "bode_figure", "figure_format",
     "literature_figure", "model_from_row", "normalised_residuals", "residual_figure",
     "residual_labels",
-    "save_figure", "stability_figure", "uncertainty_figure",
+    "save_figure", "stability_figure", "stability_sweep", "uncertainty_figure",
 ]

@@ -75,7 +75,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import Executor, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Generic, TypeVar
@@ -518,24 +518,30 @@ class Models(StageResult):
 @dataclass(frozen=True)
 class UncertaintyFit(StageResult):
     """fit-uncertainty: W_max and Wu (Table III), and the per-trial fits started
-    alongside (a future)."""
+    alongside (a future of :class:`_TrialFits`)."""
 
     uncertainty: api.Uncertainty
-    trial_fits: Background[list[TrialFit]]
+    trial_fits: Background[_TrialFits]
 
 
 @dataclass(frozen=True)
 class TrialsFitted(StageResult):
-    """fit-trials: trial_params.csv written; the trials without a fit (who, reason)."""
+    """fit-trials: trial_params.csv written; the trials without a fit (who, reason), and
+    the stability figure's sweeps being computed in the worker pool ({axis: future};
+    empty when the figure computes them itself)."""
 
     failed: tuple[tuple[str, str], ...]
+    sweeps: Mapping[str, Future] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class StabilityChecked(StageResult):
-    """stability: the stiffest stable wall of every trial's fit and the certificate."""
+    """stability: the stiffest stable wall of every trial's fit and the certificate;
+    ``figure_task``: the stability figure's drawing, left to the drawing stage (it waits
+    for the sweeps the worker pool computes), or None."""
 
     wall: Wall
+    figure_task: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -735,7 +741,8 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                              grip.fits)
     per_subject = {"subject_effects": adoption.subject_effects} if adoption.by_subject \
         else {}
-    trial_fits = workers.start(fit_trial_models, config.path("spectra.parquet"), cost=o.cost,
+    trial_fits = workers.start(_trial_fits, config, workers.drawings.pool,
+                               config.path("spectra.parquet"), cost=o.cost,
                                jobs=o.jobs, source="spectra.parquet", starts=starts,
                                bands=models.bands, effects=_effects_of(adoption),
                                executor=workers.executor, **per_subject)
@@ -754,15 +761,51 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                                             for r in unc.axes) + f", cost {o.wu_cost}")
 
 
+@dataclass(frozen=True)
+class _TrialFits:
+    """The per-trial fits (trial_params.csv written) and the stability figure's sweeps
+    started on the worker pool ({axis: future}, see :class:`TrialsFitted`)."""
+
+    fits: list[TrialFit]
+    sweeps: Mapping[str, Future]
+
+
+def _trial_fits(config: RunConfig, pool: Executor | None, spectra: Path,
+                **kwargs) -> _TrialFits:
+    """:func:`armfit.fitting.fit_trial_models` of ``spectra``, written to
+    trial_params.csv; with figures and a worker pool of the run's own, the stability
+    figure's sweep of each axis (:func:`_sweep_task`, the figure's costliest part: a K_max
+    per model, servo rate and delay) starts on it at once, from the rows read back as the
+    stability stage reads them."""
+    fits = fit_trial_models(spectra, **kwargs)
+    release_memory()
+    path = config.path("trial_params.csv")
+    write_params(trial_fits_table(fits), path)
+    sweeps: dict[str, Future] = {}
+    if config.options.figures and pool is not None:
+        rows = read_param_rows(str(path)).table
+        for axis in AXES:
+            sel = rows[rows["axis"] == axis]
+            if len(sel):
+                sweeps[axis] = pool.submit(_sweep_task, (sel, WallSettings()))
+    return _TrialFits(fits, sweeps)
+
+
+def _sweep_task(args) -> np.ndarray:
+    """Worker: :func:`armfit.figures.stability_sweep` of one axis's rows (imported here,
+    as :func:`_draw_task` imports the figures)."""
+    rows, settings = args
+    return importlib.import_module("armfit.figures").stability_sweep(rows, settings)
+
+
 def _fit_trials(config: RunConfig, uncertainty: UncertaintyFit) -> TrialsFitted:
     """Wait for the per-trial fits fit-uncertainty started (trial_params.csv): the
     population the stability stage uses."""
-    fits = uncertainty.trial_fits.result()
-    release_memory()
-    write_params(trial_fits_table(fits), config.path("trial_params.csv"))
+    done = uncertainty.trial_fits.result()
+    fits = done.fits
     failed = tuple((f"{t.axis} {t.subject} {t.grip_N:g} N", t.reason) for t in fits
                    if t.fit is None)
-    return TrialsFitted(failed, files=("trial_params.csv",),
+    return TrialsFitted(failed, files=("trial_params.csv",), sweeps=done.sweeps,
                      started=uncertainty.trial_fits.started,
                      summary=f"{len(fits) - len(failed)} trial fit(s)"
                      + (f", {len(failed)} failed" if failed else ""))
@@ -799,8 +842,12 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
             base = stability_table(models.base_nominal.table, settings)
     text = cert.to_csv(index=False, float_format="%.10g", lineterminator="\n")
     write_text_atomic(config.path("certificate.csv"), text)
-    figure = None
-    if config.options.figures:
+    figure = task = None
+    if config.options.figures and trials.sweeps:
+        # drawn by the drawing stage, once the worker pool has the sweeps
+        figure = STABILITY_FIGURE
+        task = ("stability_figure", (rows.table, settings), {}, config.folder / figure)
+    elif config.options.figures:
         # listed after the paper's and the residual figures (see _report)
         figure = workers.drawings.draw(config.folder, STABILITY_FIGURE, "stability_figure",
                                        rows.table, settings)
@@ -812,6 +859,7 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
                 by_subject={a: per_subject[a] for a in adoption.by_subject
                             if a in per_subject})
     return StabilityChecked(wall, files=("stability.csv", "certificate.csv"),
+                            figure_task=task,
                      summary="; ".join(f"{a}: K_max min {s['k_max_min_N_per_m'] / 1e3:.3g} "
                                        "kN/m" for a, s in summary.items())
                      + (f"; {figure}" if figure else ""))
@@ -876,10 +924,16 @@ def _residuals(config: RunConfig, workers: _Workers, spectra: Spectra, models: M
     return Drawn(figures=tuple(out), summary=f"{len(out)} figure(s)")
 
 
-def _drawing(workers: _Workers, paper: Drawn, residuals: Drawn,
+def _drawing(workers: _Workers, trials: TrialsFitted, paper: Drawn, residuals: Drawn,
              stability: StabilityChecked) -> Drawn:
     """Wait for the figures the worker pool draws alongside the stages (Figs. 5-7, the
-    residual figures and the stability figure)."""
+    residual figures and the stability figure). The stability figure whose sweeps the
+    pool computed is drawn here meanwhile, once they are done: this process is idle by
+    then, and the pool's queue holds the other figures."""
+    if stability.figure_task is not None:
+        fn, args, kwargs, path = stability.figure_task
+        sweeps = {axis: fut.result() for axis, fut in trials.sweeps.items()}
+        _draw_task((fn, args, {**kwargs, "sweeps": sweeps}, path))
     workers.drawings.wait()
     n = len(paper.figures) + len(residuals.figures) + bool(stability.wall.figure)
     return Drawn(summary=f"{n} figure(s) drawn")
@@ -991,7 +1045,7 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
     residuals = (clock.done("residuals", _residuals(config, workers, spectra, models,
                                                     diagnosed)) if figures else Drawn())
     if figures:
-        clock.done("drawing", _drawing(workers, paper, residuals, stability))
+        clock.done("drawing", _drawing(workers, trials, paper, residuals, stability))
     clock.done("report", _report(config, tuple(clock.files), estimated, diagnosed,
                                  models, unc.uncertainty, stability, compared,
                                  (*paper.figures, *residuals.figures)))

@@ -188,3 +188,33 @@ def test_plot_stability_is_deterministic_and_marks_the_minimum(tmp_path, runner)
     i = int(np.argmin(np.abs(np.asarray(x) - 1000.0)))
     assert x[i] == pytest.approx(1000.0) and y[i] * 1e3 == pytest.approx(
         doc["axes"]["x"]["k_max_min_N_per_m"], rel=1e-9)
+
+
+def test_stability_figure_from_sweeps_computed_elsewhere(tmp_path):
+    """The stability figure drawn from sweeps computed beforehand (one axis at a time, as
+    a run's worker processes compute them) is byte-identical to the figure that computes
+    them itself; each sweep's 1 kHz, d = 1 column is K_max of `armfit.loop.stability_table`
+    at its defaults (T = 1 ms, d = 1) for the same rows, and a sweep of other rows is
+    refused."""
+    from armfit import figures
+    from armfit.errors import UsageError
+    from armfit.loop import WallSettings, stability_table
+    from armfit.models.params import paper_params
+
+    rows = paper_params("grip")
+    sweeps = {a: figures.stability_sweep(rows[rows["axis"] == a], WallSettings())
+              for a in ("x", "y", "z")}
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    figures.save_figure(figures.stability_figure(rows), a)
+    figures.save_figure(figures.stability_figure(rows, sweeps=sweeps), b)
+    assert a.read_bytes() == b.read_bytes()
+    table = stability_table(rows, WallSettings())
+    k = list(figures.SWEEP_RATES_HZ).index(1000.0)
+    d = list(figures.SWEEP_DELAYS).index(1)
+    for axis, sweep in sweeps.items():
+        assert sweep.shape == (len(figures.SWEEP_DELAYS), len(figures.SWEEP_RATES_HZ),
+                               int((rows["axis"] == axis).sum()))
+        want = table.loc[table["axis"] == axis, "k_max_N_per_m"].to_numpy(float)
+        np.testing.assert_allclose(sweep[d, k], want, rtol=1e-9)
+    with pytest.raises(UsageError, match="sweep of axis x has the shape"):
+        figures.stability_figure(rows, sweeps={"x": sweeps["x"][:, :, :1]})

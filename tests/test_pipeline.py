@@ -111,14 +111,22 @@ def test_failing_stage_keeps_the_old_outdir_and_leaves_no_temporary(tiny_study, 
     assert mp.active_children() == []  # ... and was stopped
 
 
-def test_run_gives_the_same_bytes_with_one_or_two_jobs(tiny_study, tmp_path):
+def test_run_gives_the_same_bytes_with_one_or_two_jobs(tiny_study, tmp_path, monkeypatch):
     """With --jobs 2 one worker pool serves every stage (the estimate alongside the
     ingest, the diagnosis and per-trial fits in the background, figures drawn in the
-    workers); every file, figures and report included, is the same as with --jobs 1 (the
-    report's command line names the output folder as given: the same name in another
-    parent folder)."""
+    workers, the stability figure's sweeps computed there: this process's
+    stability_sweep fails in that run); every file, figures and report included, is the
+    same as with --jobs 1 (the report's command line names the output folder as given:
+    the same name in another parent folder)."""
+    import armfit.figures
+
+    def not_here(*args, **kwargs):
+        raise AssertionError("the stability sweep was computed in the main process")
+
     outs = {}
     for jobs in (1, 2):
+        if jobs == 2:
+            monkeypatch.setattr(armfit.figures, "stability_sweep", not_here)
         (tmp_path / f"j{jobs}").mkdir()
         out = tmp_path / f"j{jobs}" / "out"
         result = run_pipeline([tiny_study], out, RunOptions(jobs=jobs))
