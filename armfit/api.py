@@ -1440,11 +1440,15 @@ class Stability(_HtmlTable):
         Servo period (s), virtual damping (N·s/m), computation delay (samples).
     models : pandas.DataFrame
         The parameter rows analysed (for :meth:`plot`).
+    outside_loop : tuple of str
+        The apparatus effects left out of the loop (:func:`armfit.loop.loop_model`); the
+        plot leaves them out too.
     """
 
     table: pd.DataFrame
     settings: object
     models: pd.DataFrame
+    outside_loop: tuple[str, ...] = ()
 
     def summary(self) -> dict[str, dict]:
         """Per axis: minimum, median and 5th percentile of K_max (N/m), and what limits it."""
@@ -1485,7 +1489,8 @@ class Stability(_HtmlTable):
         if ax is None and panel in (None, "both"):
             rows = self.models if one is None else \
                 self.models[(self.models["axis"] == one).to_numpy()]
-            return figures.stability_figure(rows, self.settings)
+            return figures.stability_figure(rows, self.settings,
+                                            outside_loop=self.outside_loop)
         if one is None:
             raise UsageError(f"this result holds axes {', '.join(have)}: choose one "
                              "with axis=")
@@ -1581,7 +1586,7 @@ def stability(model, *, weights=None, sample_time_s: float | None = None,
     table = _loop.stability_table(rows, settings, weights=w, weights_band_hz=bands,
                             source=label, members=member_rows,
                             outside_loop=tuple(outside_loop))
-    return Stability(table, settings, rows)
+    return Stability(table, settings, rows, tuple(outside_loop))
 
 
 # ---------------------------------------------------------------------------

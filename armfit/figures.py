@@ -65,6 +65,7 @@ from armfit.io.atomic import atomic_path, check_output
 from armfit.loop import (
     WallSettings,
     k_max_sweep,
+    loop_model,
     plant_from_model,
     stability_table,
 )
@@ -1549,15 +1550,21 @@ _DELAY_COLOURS = ("black", "#CC79A7", "#56B4E9")  # apart from the grip colours
 SWEEP_LOG_RATIO = 10.0
 
 
-def _stability_inputs(params, settings) -> tuple[pd.DataFrame, pd.DataFrame, WallSettings]:
-    """(model rows with a ``row`` column, their stability table, the settings) of what
-    the stability figure takes: a params table (or fit) and settings, or a ``Stability``
-    result (its models, table and settings unless others are given)."""
+def _stability_inputs(params, settings, outside_loop: Sequence[str] | None
+                      ) -> tuple[pd.DataFrame, pd.DataFrame, WallSettings, tuple[str, ...]]:
+    """(model rows with a ``row`` column, their stability table, the settings, the
+    effects outside the loop) of what the stability figure takes: a params table (or
+    fit), settings and the effects outside the loop (default none), or a ``Stability``
+    result (its models, table, settings and effects outside the loop unless others are
+    given)."""
     if hasattr(params, "settings") and hasattr(params, "models"):      # Stability
+        own = tuple(getattr(params, "outside_loop", ()))
+        loop = own if outside_loop is None else tuple(outside_loop)
         st = params.settings if settings is None else settings
         rows = params.models
-        table = params.table if settings is None else None
+        table = params.table if settings is None and loop == own else None
     else:
+        loop = () if outside_loop is None else tuple(outside_loop)
         st = WallSettings() if settings is None else settings
         rows, table = _params_table(params, "grip"), None
     if "row" not in rows.columns:
@@ -1565,8 +1572,8 @@ def _stability_inputs(params, settings) -> tuple[pd.DataFrame, pd.DataFrame, Wal
     if table is None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # unstable at K = 0: K_max 0
-            table = stability_table(rows, st)
-    return rows, table, st
+            table = stability_table(rows, st, outside_loop=loop)
+    return rows, table, st, loop
 
 
 def _kmax_panel(top, t: pd.DataFrame, axis: str, colour: Mapping, marker: Mapping
@@ -1610,7 +1617,8 @@ def _kmax_panel(top, t: pd.DataFrame, axis: str, colour: Mapping, marker: Mappin
 
 def stability_sweep(rows: pd.DataFrame, settings: WallSettings | None = None, *,
                     rates_hz: Sequence[float] = SWEEP_RATES_HZ,
-                    delays: Sequence[int] = SWEEP_DELAYS) -> np.ndarray:
+                    delays: Sequence[int] = SWEEP_DELAYS,
+                    outside_loop: Sequence[str] = ()) -> np.ndarray:
     """K_max (N/m) of each model row at each servo rate and delay: what the bottom panel
     of :func:`stability_figure` draws for one axis.
 
@@ -1621,7 +1629,7 @@ def stability_sweep(rows: pd.DataFrame, settings: WallSettings | None = None, *,
         reads them).
     settings : armfit.loop.WallSettings, optional
         Its damping B is kept (default 0); T and d are swept.
-    rates_hz, delays
+    rates_hz, delays, outside_loop
         As :func:`stability_figure`.
 
     Returns
@@ -1632,21 +1640,24 @@ def stability_sweep(rows: pd.DataFrame, settings: WallSettings | None = None, *,
         (:func:`armfit.loop.k_max_sweep`).
     """
     st = WallSettings() if settings is None else settings
-    plants = [plant_from_model(*model_from_row(r)) for _, r in rows.iterrows()]
+    plants = [plant_from_model(*loop_model(*model_from_row(r), outside_loop))
+              for _, r in rows.iterrows()]
     return k_max_sweep(plants, rates_hz, delays, damping_Ns_per_m=st.damping_Ns_per_m,
                        max_delay_samples=SWEEP_MAX_LATENCY_SAMPLES)
 
 
 def _sweep_panel(bot, rows: pd.DataFrame, axis: str, st: WallSettings,
                  rates_hz: Sequence[float], delays: Sequence[int],
-                 sweep: np.ndarray | None = None) -> dict[tuple, Any]:
+                 sweep: np.ndarray | None = None, outside_loop: Sequence[str] = ()
+                 ) -> dict[tuple, Any]:
     """The bottom panel of one axis: K_max (kN/m, from 0) against the servo rate 1/T
     (Hz, log) for each delay — the lowest over the models (line) and their range (band)
     — and the top row's 1/T (dotted). ``sweep``: :func:`stability_sweep` of ``rows``,
     computed here when not given."""
     shape = (len(delays), len(rates_hz), len(rows))
     if sweep is None:
-        sweep = stability_sweep(rows, st, rates_hz=rates_hz, delays=delays)
+        sweep = stability_sweep(rows, st, rates_hz=rates_hz, delays=delays,
+                                outside_loop=outside_loop)
     elif np.shape(sweep) != shape:
         raise UsageError(f"stability figure: the sweep of axis {axis} has the shape "
                          f"{np.shape(sweep)}, not {shape} (delays, rates, rows)")
@@ -1713,7 +1724,8 @@ def _sweep_scale(bot, log: bool) -> None:
 
 def stability_axes(top, bot, params, settings=None, *, axis: str,
                    rates_hz: Sequence[float] = SWEEP_RATES_HZ,
-                   delays: Sequence[int] = SWEEP_DELAYS) -> dict[tuple, Any]:
+                   delays: Sequence[int] = SWEEP_DELAYS,
+                   outside_loop: Sequence[str] | None = None) -> dict[tuple, Any]:
     """Draw one axis of :func:`stability_figure` on Axes of your own.
 
     Parameters
@@ -1726,7 +1738,7 @@ def stability_axes(top, bot, params, settings=None, *, axis: str,
     settings : armfit.loop.WallSettings, optional
         The top panel's wall (default T = 1 ms, B = 0, d = 1).
     axis : {'x', 'y', 'z'}
-    rates_hz, delays
+    rates_hz, delays, outside_loop
         As :func:`stability_figure`.
 
     Returns
@@ -1734,13 +1746,14 @@ def stability_axes(top, bot, params, settings=None, *, axis: str,
     dict
         The legend entries drawn.
     """
-    rows, table, st = _stability_inputs(params, settings)
+    rows, table, st, loop = _stability_inputs(params, settings, outside_loop)
     return _stability_column(top, bot, rows, table, st, axis=axis, rates_hz=rates_hz,
-                             delays=delays, scale=True)
+                             delays=delays, scale=True, outside_loop=loop)
 
 
 def _stability_column(top, bot, rows, table, st, *, axis: str, rates_hz, delays,
-                      scale: bool, sweep: np.ndarray | None = None) -> dict[tuple, Any]:
+                      scale: bool, sweep: np.ndarray | None = None,
+                      outside_loop: Sequence[str] = ()) -> dict[tuple, Any]:
     """One axis of the stability figure from its inputs already computed
     (:func:`_stability_inputs`); ``scale``: set the sweep's K_max scale from this panel
     alone (the whole figure sets one scale for its row instead); ``sweep``: the bottom
@@ -1755,7 +1768,8 @@ def _stability_column(top, bot, rows, table, st, *, axis: str, rates_hz, delays,
                                    _grip_markers(grips)))
         top.set_ylabel("K_max (kN/m)")
     if bot is not None:
-        handles.update(_sweep_panel(bot, rows[sel], axis, st, rates_hz, delays, sweep))
+        handles.update(_sweep_panel(bot, rows[sel], axis, st, rates_hz, delays, sweep,
+                                    outside_loop))
         if scale:
             _sweep_scale(bot, _sweep_log(bot))
     return handles
@@ -1765,7 +1779,8 @@ def _stability_column(top, bot, rows, table, st, *, axis: str, rates_hz, delays,
 def stability_figure(params, settings=None, *,
                      rates_hz: Sequence[float] = SWEEP_RATES_HZ,
                      delays: Sequence[int] = SWEEP_DELAYS,
-                     sweeps: Mapping[str, np.ndarray] | None = None) -> Figure:
+                     sweeps: Mapping[str, np.ndarray] | None = None,
+                     outside_loop: Sequence[str] | None = None) -> Figure:
     """The stiffest stable virtual wall per arm model, and its sensitivity to T and d.
 
     Top row, per axis: K_max (kN/m, from 0; :func:`armfit.loop.stability_table` at
@@ -1779,9 +1794,12 @@ def stability_figure(params, settings=None, *,
     model's latency exceeds :data:`SWEEP_MAX_LATENCY_SAMPLES` samples is left out (a
     gap). ``sweeps``: {axis: :func:`stability_sweep` of that axis's rows, in order},
     computed elsewhere (e.g. in worker processes, an axis each); an axis not in it is
-    computed here.
+    computed here. ``outside_loop``: the apparatus effects the rendering loop does not
+    see (:func:`armfit.loop.loop_model`), left out of both rows as
+    :func:`armfit.loop.stability_table` leaves them out (default none, or a
+    ``Stability`` result's own).
     """
-    rows, table, st = _stability_inputs(params, settings)
+    rows, table, st, loop = _stability_inputs(params, settings, outside_loop)
     sweeps = {} if sweeps is None else sweeps
     axes = [a for a in AXES if (table["axis"] == a).any()]
     if not axes:
@@ -1795,7 +1813,7 @@ def stability_figure(params, settings=None, *,
     for j, axis in enumerate(axes):
         handles.update(_stability_column(axs[0, j], axs[1, j], rows, table, st, axis=axis,
                                          rates_hz=rates_hz, delays=delays, scale=False,
-                                         sweep=sweeps.get(axis)))
+                                         sweep=sweeps.get(axis), outside_loop=loop))
         axs[0, j].set_title(f"{AXIS_TITLES[axis]}\nwall at {wall}")
         axs[1, j].set_title(f"against servo rate, B = {st.damping_Ns_per_m:g} N·s/m")
     # one K_max scale for the whole bottom row: log if any axis's sweep needs it

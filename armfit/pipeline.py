@@ -787,15 +787,17 @@ def _trial_fits(config: RunConfig, pool: Executor | None, spectra: Path,
         for axis in AXES:
             sel = rows[rows["axis"] == axis]
             if len(sel):
-                sweeps[axis] = pool.submit(_sweep_task, (sel, WallSettings()))
+                sweeps[axis] = pool.submit(_sweep_task, (sel, WallSettings(),
+                                                         tuple(config.options.outside_loop)))
     return _TrialFits(fits, sweeps)
 
 
 def _sweep_task(args) -> np.ndarray:
     """Worker: :func:`armfit.figures.stability_sweep` of one axis's rows (imported here,
     as :func:`_draw_task` imports the figures)."""
-    rows, settings = args
-    return importlib.import_module("armfit.figures").stability_sweep(rows, settings)
+    rows, settings, outside_loop = args
+    return importlib.import_module("armfit.figures").stability_sweep(
+        rows, settings, outside_loop=outside_loop)
 
 
 def _fit_trials(config: RunConfig, uncertainty: UncertaintyFit) -> TrialsFitted:
@@ -846,11 +848,12 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
     if config.options.figures and trials.sweeps:
         # drawn by the drawing stage, once the worker pool has the sweeps
         figure = STABILITY_FIGURE
-        task = ("stability_figure", (rows.table, settings), {}, config.folder / figure)
+        task = ("stability_figure", (rows.table, settings), {"outside_loop": tuple(loop)},
+                config.folder / figure)
     elif config.options.figures:
         # listed after the paper's and the residual figures (see _report)
         figure = workers.drawings.draw(config.folder, STABILITY_FIGURE, "stability_figure",
-                                       rows.table, settings)
+                                       rows.table, settings, outside_loop=tuple(loop))
     per_subject = subject_summary(table)
     wall = Wall(settings=settings, summary=summary, failed=trials.failed, certificate=cert,
                 warnings=tuple(str(w.message) for w in caught), figure=figure,

@@ -218,3 +218,48 @@ def test_stability_figure_from_sweeps_computed_elsewhere(tmp_path):
         np.testing.assert_allclose(sweep[d, k], want, rtol=1e-9)
     with pytest.raises(UsageError, match="sweep of axis x has the shape"):
         figures.stability_figure(rows, sweeps={"x": sweeps["x"][:, :, :1]})
+
+
+def test_stability_figure_leaves_out_the_effects_outside_the_loop(tmp_path, runner):
+    """Table II with a 12 ms delay on every axis: the figure drawn with the delay outside
+    the loop marks, on each axis, the lowest K_max `armfit stability --outside-loop
+    delay` gives, which is that of Table II without the delay (an independent
+    computation), not that of the delayed loop; its sweep's 1 kHz, d = 1 point is the
+    same number. `armfit plot stability --outside-loop` and the plot of the
+    ``armfit.stability(..., outside_loop=)`` result draw the same bytes as the library."""
+    from armfit import figures
+    from armfit.loop import WallSettings, stability_table
+    from armfit.models.params import paper_params
+
+    plain = paper_params("nominal")
+    delayed = plain.assign(effects="delay", **{"delay.delay_s": 0.012})
+    params = tmp_path / "delayed.csv"
+    delayed.to_csv(params, index=False)
+    fig = figures.stability_figure(delayed, outside_loop=("delay",))
+    without = stability_table(plain, WallSettings())
+    inside = stability_table(delayed, WallSettings())
+    doc = json.loads(runner.invoke(cli, ["stability", str(params), "--outside-loop", "delay",
+                                         "--json"]).stdout)
+    k = list(figures.SWEEP_RATES_HZ).index(1000.0)
+    for axis in ("x", "y", "z"):
+        want = float(without.loc[without["axis"] == axis, "k_max_N_per_m"].min())
+        assert doc["axes"][axis]["k_max_min_N_per_m"] == pytest.approx(want, rel=1e-9)
+        assert want > 2 * float(inside.loc[inside["axis"] == axis, "k_max_N_per_m"].min())
+        kmin = [ln for ax in fig.axes for ln in ax.get_lines() if ln.get_gid() == f"kmin:{axis}"]
+        assert kmin[0].get_ydata()[0] * 1e3 == pytest.approx(want, rel=1e-9)
+        line = [ln for ax in fig.axes for ln in ax.get_lines()
+                if ln.get_gid() == f"sweep-min:{axis}:d1"]
+        assert line[0].get_ydata()[k] * 1e3 == pytest.approx(want, rel=1e-9)
+    # a Stability result plots with the effects it left out of the loop
+    import armfit
+    result = armfit.stability(delayed, outside_loop=["delay"])
+    assert result.outside_loop == ("delay",)
+    again = tmp_path / "again.png"
+    figures.save_figure(result.plot(), again)
+    out = tmp_path / "cli.png"
+    res = runner.invoke(cli, ["plot", "stability", str(params), "--outside-loop", "delay",
+                              "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    lib = tmp_path / "lib.png"
+    figures.save_figure(fig, lib)
+    assert out.read_bytes() == lib.read_bytes() == again.read_bytes()

@@ -25,6 +25,7 @@ from .options import (
     axis_bands_option,
     effects_file_option,
     message,
+    outside_loop_option,
     overwrite_option,
 )
 
@@ -198,9 +199,11 @@ def literature_command(model_path, axis, grip, output, overwrite):
               help="Virtual damping B, N*s/m.")
 @click.option("--delay-samples", "delay", type=Whole(), default=1, show_default=True,
               metavar="D", help="Computation delay d of the top row, whole samples.")
+@outside_loop_option
 @_figure_output
 @overwrite_option
-def plot_stability_command(params, sample_time, damping, delay, output, overwrite):
+def plot_stability_command(params, sample_time, damping, delay, outside_loop, output,
+                           overwrite):
     """K_max per subject and grip, and against servo rate for d = 0, 1, 2.
 
     PARAMS: any parameters file armfit writes (fit-trials for the population), or a
@@ -211,7 +214,7 @@ def plot_stability_command(params, sample_time, damping, delay, output, overwrit
     rows = read_param_rows(params)
     for r, who, why in rows.skipped:
         message(f"warning: {rows.label}: row {r} ({who}) has no fit and is left out: {why}")
-    fig = figures.stability_figure(rows.table, settings)
+    fig = figures.stability_figure(rows.table, settings, outside_loop=outside_loop)
     _save(fig, output, overwrite)
 
 
