@@ -537,11 +537,11 @@ class TrialsFitted(StageResult):
 @dataclass(frozen=True)
 class StabilityChecked(StageResult):
     """stability: the stiffest stable wall of every trial's fit and the certificate;
-    ``figure_task``: the stability figure's drawing, left to the drawing stage (it waits
-    for the sweeps the worker pool computes), or None."""
+    ``figure_task``: the stability figure being drawn once the worker pool has its
+    sweeps (:func:`_draw_when_swept`), or None."""
 
     wall: Wall
-    figure_task: tuple | None = None
+    figure_task: Background[None] | None = None
 
 
 @dataclass(frozen=True)
@@ -846,10 +846,11 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
     write_text_atomic(config.path("certificate.csv"), text)
     figure = task = None
     if config.options.figures and trials.sweeps:
-        # drawn by the drawing stage, once the worker pool has the sweeps
+        # drawn in the worker pool as soon as it has the sweeps
         figure = STABILITY_FIGURE
-        task = ("stability_figure", (rows.table, settings), {"outside_loop": tuple(loop)},
-                config.folder / figure)
+        task = workers.start(_draw_when_swept, workers.drawings.pool, trials.sweeps,
+                             ("stability_figure", (rows.table, settings),
+                              {"outside_loop": tuple(loop)}, config.folder / figure))
     elif config.options.figures:
         # listed after the paper's and the residual figures (see _report)
         figure = workers.drawings.draw(config.folder, STABILITY_FIGURE, "stability_figure",
@@ -927,16 +928,22 @@ def _residuals(config: RunConfig, workers: _Workers, spectra: Spectra, models: M
     return Drawn(figures=tuple(out), summary=f"{len(out)} figure(s)")
 
 
-def _drawing(workers: _Workers, trials: TrialsFitted, paper: Drawn, residuals: Drawn,
+def _draw_when_swept(pool: Executor, sweeps: Mapping[str, Future], task: tuple) -> None:
+    """In a thread of the run: wait for the stability figure's sweeps, then have the
+    worker pool draw the figure ``task`` (:func:`_draw_task`) from them, and wait for it.
+    Sent as soon as the sweeps are done, the drawing queues ahead of the figures sent
+    after that."""
+    fn, args, kwargs, path = task
+    done = {axis: fut.result() for axis, fut in sweeps.items()}
+    pool.submit(_draw_task, (fn, args, {**kwargs, "sweeps": done}, path)).result()
+
+
+def _drawing(workers: _Workers, paper: Drawn, residuals: Drawn,
              stability: StabilityChecked) -> Drawn:
     """Wait for the figures the worker pool draws alongside the stages (Figs. 5-7, the
-    residual figures and the stability figure). The stability figure whose sweeps the
-    pool computed is drawn here meanwhile, once they are done: this process is idle by
-    then, and the pool's queue holds the other figures."""
+    residual figures and the stability figure)."""
     if stability.figure_task is not None:
-        fn, args, kwargs, path = stability.figure_task
-        sweeps = {axis: fut.result() for axis, fut in trials.sweeps.items()}
-        _draw_task((fn, args, {**kwargs, "sweeps": sweeps}, path))
+        stability.figure_task.result()
     workers.drawings.wait()
     n = len(paper.figures) + len(residuals.figures) + bool(stability.wall.figure)
     return Drawn(summary=f"{n} figure(s) drawn")
@@ -1048,7 +1055,7 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
     residuals = (clock.done("residuals", _residuals(config, workers, spectra, models,
                                                     diagnosed)) if figures else Drawn())
     if figures:
-        clock.done("drawing", _drawing(workers, trials, paper, residuals, stability))
+        clock.done("drawing", _drawing(workers, paper, residuals, stability))
     clock.done("report", _report(config, tuple(clock.files), estimated, diagnosed,
                                  models, unc.uncertainty, stability, compared,
                                  (*paper.figures, *residuals.figures)))
