@@ -102,7 +102,7 @@ from armfit.io.schema import COMPARE_COLUMNS, wu_sidecar_paths
 from armfit.io.trials import Warn, ingest, with_map
 from armfit.loop import WallSettings, axis_summary, stability_table, subject_summary
 from armfit.memory import release_memory
-from armfit.models.params import read_param_rows
+from armfit.models.params import ParamRows, read_param_rows
 from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimator_summary
 from armfit.workers import cancel_pools, executor_for
@@ -526,11 +526,13 @@ class UncertaintyFit(StageResult):
 
 @dataclass(frozen=True)
 class TrialsFitted(StageResult):
-    """fit-trials: trial_params.csv written; the trials without a fit (who, reason), and
-    the stability figure's sweeps being computed in the worker pool ({axis: future};
-    empty when the figure computes them itself)."""
+    """fit-trials: trial_params.csv written, and read back (``rows``: the population of
+    the stability stage); the trials without a fit (who, reason), and the stability
+    figure's sweeps being computed in the worker pool ({axis: future}; empty when the
+    figure computes them itself)."""
 
     failed: tuple[tuple[str, str], ...]
+    rows: ParamRows
     sweeps: Mapping[str, Future] = field(default_factory=dict)
 
 
@@ -763,33 +765,35 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
 
 @dataclass(frozen=True)
 class _TrialFits:
-    """The per-trial fits (trial_params.csv written) and the stability figure's sweeps
-    started on the worker pool ({axis: future}, see :class:`TrialsFitted`)."""
+    """The per-trial fits, trial_params.csv written and read back, and the stability
+    figure's sweeps started on the worker pool (see :class:`TrialsFitted`)."""
 
     fits: list[TrialFit]
+    rows: ParamRows
     sweeps: Mapping[str, Future]
 
 
 def _trial_fits(config: RunConfig, pool: Executor | None, spectra: Path,
                 **kwargs) -> _TrialFits:
     """:func:`armfit.fitting.fit_trial_models` of ``spectra``, written to
-    trial_params.csv; with figures and a worker pool of the run's own, the stability
-    figure's sweep of each axis (:func:`_sweep_task`, the figure's costliest part: a K_max
-    per model, servo rate and delay) starts on it at once, from the rows read back as the
-    stability stage reads them."""
+    trial_params.csv and read back (the rows the stability stage analyses, as
+    ``armfit stability`` reads the file); with figures and a worker pool of the run's
+    own, the stability figure's sweep of each axis (:func:`_sweep_task`, the figure's
+    costliest part: a K_max per model, servo rate and delay) starts on it at once."""
     fits = fit_trial_models(spectra, **kwargs)
     release_memory()
     path = config.path("trial_params.csv")
     write_params(trial_fits_table(fits), path)
+    read = read_param_rows(str(path))
     sweeps: dict[str, Future] = {}
     if config.options.figures and pool is not None:
-        rows = read_param_rows(str(path)).table
+        rows = read.table
         for axis in AXES:
             sel = rows[rows["axis"] == axis]
             if len(sel):
                 sweeps[axis] = pool.submit(_sweep_task, (sel, WallSettings(),
                                                          tuple(config.options.outside_loop)))
-    return _TrialFits(fits, sweeps)
+    return _TrialFits(fits, read, sweeps)
 
 
 def _sweep_task(args) -> np.ndarray:
@@ -807,7 +811,7 @@ def _fit_trials(config: RunConfig, uncertainty: UncertaintyFit) -> TrialsFitted:
     fits = done.fits
     failed = tuple((f"{t.axis} {t.subject} {t.grip_N:g} N", t.reason) for t in fits
                    if t.fit is None)
-    return TrialsFitted(failed, files=("trial_params.csv",), sweeps=done.sweeps,
+    return TrialsFitted(failed, done.rows, files=("trial_params.csv",), sweeps=done.sweeps,
                      started=uncertainty.trial_fits.started,
                      summary=f"{len(fits) - len(failed)} trial fit(s)"
                      + (f", {len(failed)} failed" if failed else ""))
@@ -821,7 +825,7 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
     models, and the stability figure."""
     settings = WallSettings()
     loop = config.options.outside_loop
-    rows = read_param_rows(str(config.path("trial_params.csv")))
+    rows = trials.rows
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
         table = stability_table(rows.table, settings, source="trial_params.csv",
