@@ -5,14 +5,22 @@ one spectra file, whole processes, paired run by run with `python -c "import num
 Targets (on an idle machine): each command <= 0.4 s. The ratio to `import numpy`
 (about 0.1 s idle) is printed too: 0.4 s is about 3.5 x that.
 
+Each command is also paired with its libraries' floor: a fresh process that imports
+every module outside armfit and the standard library that the command imports (found
+by running it once with `python -X importtime`), and nothing else. What the command
+takes beyond that floor is armfit's own share: its imports, reading, computing and
+writing.
+
     .venv/bin/python benchmarks/bench_latency.py [--runs 10]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import statistics
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -22,6 +30,42 @@ from bench_startup import wall  # noqa: E402  (seconds from a command's start to
 
 ARMFIT = str(Path(sys.executable).with_name("armfit"))
 TRIAL = Path(__file__).resolve().parents[1] / "sample_data/study/sub-01_axis-x_grip-1N.parquet"
+ENTRY = "from armfit.cli.entry import main; main()"
+#: The libraries' floor: import the modules named on the command line, in order (an
+#: import that fails, as it failed in the command, is passed over).
+FLOOR = """
+import importlib, sys
+for name in sys.argv[1:]:
+    try:
+        importlib.import_module(name)
+    except Exception:
+        pass
+"""
+
+
+def library_imports(args: list[str]) -> list[str]:
+    """The modules outside armfit and the standard library that ``armfit ARGS`` imports,
+    in the order their imports end (``python -X importtime``; a module only looked for,
+    such as ``sitecustomize``, is left out; one whose import failed is kept: the floor
+    tries it too)."""
+    res = subprocess.run([sys.executable, "-X", "importtime", "-c", ENTRY, *args],
+                         capture_output=True, text=True, check=True)
+    names = []
+    for line in res.stderr.splitlines():
+        if not line.startswith("import time:") or line.count("|") != 2:
+            continue
+        name = line.rsplit("|", 1)[1].strip()
+        root = name.split(".")[0]
+        if (name == "imported package" or root == "armfit" or root.startswith("_")
+                or root in sys.stdlib_module_names or name in names):
+            continue
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):
+            found = False
+        if found:
+            names.append(name)
+    return names
 
 
 def main() -> None:
@@ -31,14 +75,21 @@ def main() -> None:
     print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory(prefix="armfit-bench-latency-") as tmp:
         spectra = Path(tmp) / "one.parquet"
-        commands = {
-            "import numpy": [sys.executable, "-c", "import numpy"],
-            "estimate one trial": [ARMFIT, "-q", "estimate", str(TRIAL), "-o", str(spectra),
+        runs = {
+            "estimate one trial": ["-q", "estimate", str(TRIAL), "-o", str(spectra),
                                    "--overwrite"],
-            "fit-nominal one spectra": [ARMFIT, "-q", "fit-nominal", str(spectra), "-o",
+            "fit-nominal one spectra": ["-q", "fit-nominal", str(spectra), "-o",
                                         str(Path(tmp) / "nominal.csv"), "--overwrite"],
         }
-        for cmd in commands.values():   # warm the file cache (and make the spectra)
+        commands = {"import numpy": [sys.executable, "-c", "import numpy"]}
+        floors = {}
+        for name, cmd in runs.items():
+            commands[name] = [ARMFIT, *cmd]
+            wall(commands[name])          # warm the file cache (and make the spectra)
+            modules = library_imports(cmd)
+            floors[name] = sorted({m.split(".")[0] for m in modules})
+            commands[f"{name}: floor"] = [sys.executable, "-c", FLOOR, *modules]
+        for cmd in commands.values():
             wall(cmd)
         times: dict[str, list[float]] = {name: [] for name in commands}
         for _ in range(args.runs):
@@ -46,10 +97,15 @@ def main() -> None:
                 times[name].append(wall(cmd))
     base = times.pop("import numpy")
     print(f"{'import numpy':>24}: median {statistics.median(base):.3f} s")
-    for name, t in times.items():
+    for name in runs:
+        t, floor = times[name], times[f"{name}: floor"]
         ratios = [a / b for a, b in zip(t, base, strict=True)]
+        share = [a - b for a, b in zip(t, floor, strict=True)]
         print(f"{name:>24}: median {statistics.median(t):.3f} s (min {min(t):.3f}), "
               f"{statistics.median(ratios):.1f} x import numpy; target <= 0.4 s")
+        print(f"{'its libraries alone':>24}: median {statistics.median(floor):.3f} s "
+              f"(importing {', '.join(floors[name])}); armfit's own share "
+              f"{statistics.median(share):.3f} s (median of the pairs)")
     print(f"load average {os.getloadavg()[0]:.2f} (1 min)")
 
 
