@@ -849,16 +849,18 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
     text = cert.to_csv(index=False, float_format="%.10g", lineterminator="\n")
     write_text_atomic(config.path("certificate.csv"), text)
     figure = task = None
+    # the figure is drawn from this stage's own table (stability.csv), not a recomputed one
+    drawn = api.Stability(table=table, settings=settings, models=rows.table,
+                          outside_loop=tuple(loop))
     if config.options.figures and trials.sweeps:
         # drawn in the worker pool as soon as it has the sweeps
         figure = STABILITY_FIGURE
         task = workers.start(_draw_when_swept, workers.drawings.pool, trials.sweeps,
-                             ("stability_figure", (rows.table, settings),
-                              {"outside_loop": tuple(loop)}, config.folder / figure))
+                             ("stability_figure", (drawn,), {}, config.folder / figure))
     elif config.options.figures:
         # listed after the paper's and the residual figures (see _report)
         figure = workers.drawings.draw(config.folder, STABILITY_FIGURE, "stability_figure",
-                                       rows.table, settings, outside_loop=tuple(loop))
+                                       drawn)
     per_subject = subject_summary(table)
     wall = Wall(settings=settings, summary=summary, failed=trials.failed, certificate=cert,
                 warnings=tuple(str(w.message) for w in caught), figure=figure,

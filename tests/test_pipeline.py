@@ -117,12 +117,18 @@ def test_run_gives_the_same_bytes_with_one_or_two_jobs(tiny_study, tmp_path, mon
     workers, the stability figure's sweeps computed there: this process's
     stability_sweep fails in that run); every file, figures and report included, is the
     same as with --jobs 1 (the report's command line names the output folder as given:
-    the same name in another parent folder)."""
+    the same name in another parent folder). The stability figure is drawn from the
+    stability stage's own table (with --jobs 1, in this process, where the figures'
+    stability_table fails)."""
     import armfit.figures
 
     def not_here(*args, **kwargs):
         raise AssertionError("the stability sweep was computed in the main process")
 
+    def recomputed(*args, **kwargs):
+        raise AssertionError("the stability figure recomputed the stability table")
+
+    monkeypatch.setattr(armfit.figures, "stability_table", recomputed)
     outs = {}
     for jobs in (1, 2):
         if jobs == 2:
