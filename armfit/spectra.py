@@ -2531,13 +2531,14 @@ def _arrow_table(part: Spectra, schema):
     sizes = present.sum(axis=1)
     arrays = []
     for c in SPECTRA_COLUMNS:
-        if c in part.keys:
-            col = np.repeat(np.array(list(part.keys[c]), dtype=object), sizes)
-            if c == "grip_N":
-                col = col.astype(float)
-            elif c == "run":
-                col = [None if v is None or v != v else int(v) for v in col]
-        elif c == "freq_hz":
+        kind = _ARROW_TYPES.get(c, "float64")
+        if c in part.keys:      # one value per response, repeated over its rows
+            keys = list(part.keys[c])
+            if c == "run":
+                keys = [None if v is None or v != v else int(v) for v in keys]
+            arrays.append(arrow_array(keys, kind, repeats=sizes))
+            continue
+        if c == "freq_hz":
             col = np.broadcast_to(part.freq_hz, present.shape)[present]
         elif c in ("re", "im"):
             col = getattr(part.h, "real" if c == "re" else "imag")[present]
@@ -2545,7 +2546,7 @@ def _arrow_table(part: Spectra, schema):
             col = part.flags[present]
         else:
             col = part.values[c][present]
-        arrays.append(arrow_array(col, _ARROW_TYPES.get(c, "float64")))
+        arrays.append(arrow_array(col, kind))
     return pa.Table.from_arrays(arrays, schema=schema)
 
 

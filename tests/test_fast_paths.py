@@ -111,6 +111,30 @@ def test_arrow_arrays_equal_pyarrows(kind, values):
     assert got.equals(ref)
 
 
+@pytest.mark.parametrize("kind, values, repeats", [
+    ("large_string", ["x", None, "", "µ,ß", "trial"], [3, 2, 4, 0, 1]),
+    ("large_string", ["ab", "c"], [0, 0]),
+    ("large_string", [], []),
+    ("large_string", [None, None], [2, 1]),
+    ("int64", [3, None, 0], [2, 3, 1]),
+    ("float64", [1.5, None, np.nan, -0.0], [1, 2, 3, 4]),
+])
+def test_arrow_arrays_of_repeated_values_equal_pyarrows(kind, values, repeats):
+    # the reference: pyarrow.array of the cells repeated one by one (from_pandas=True)
+    cells = [v for v, r in zip(values, repeats, strict=True) for _ in range(r)]
+    if kind == "float64":
+        cells = [np.nan if v is None else v for v in cells]
+    ref = pa.array(cells, type=getattr(pa, kind)(), from_pandas=True)
+    got = arrow_array(values, kind, repeats=repeats)
+    assert len(got) == sum(repeats)
+    assert got.type == ref.type and got.null_count == ref.null_count
+    assert got.equals(ref)
+    if kind == "large_string":   # the same buffers as the cells made one by one
+        flat = arrow_array(cells, kind)
+        assert [b and b.to_pybytes() for b in got.buffers()] == \
+            [b and b.to_pybytes() for b in flat.buffers()]
+
+
 @pytest.mark.parametrize("typ", [pa.float64(), pa.float32(), pa.int8(), pa.int32(),
                                  pa.int64(), pa.uint16(), pa.uint64()])
 def test_numeric_columns_read_as_to_numpy_reads_them(typ):

@@ -26,7 +26,8 @@ def _validity(valid: np.ndarray):
     return pa.py_buffer(np.packbits(valid, bitorder="little")), nulls
 
 
-def arrow_array(values: np.ndarray | Sequence, kind: str):
+def arrow_array(values: np.ndarray | Sequence, kind: str,
+                repeats: np.ndarray | Sequence[int] | None = None):
     """An Arrow array of ``kind`` holding ``values``.
 
     Parameters
@@ -36,13 +37,27 @@ def arrow_array(values: np.ndarray | Sequence, kind: str):
         large_string: str or None (null).
     kind : {"float64", "int64", "large_string"}
         The Arrow type.
+    repeats : array_like of int, shape (n,), optional
+        Each value ``repeats[i]`` times in a row (as :func:`numpy.repeat`): a column
+        holding one value per block of rows. Text is then encoded once per value, not
+        once per row.
 
     Returns
     -------
     pyarrow.Array
-        Equal to ``pyarrow.array(values, type=kind, from_pandas=True)``.
+        Equal to ``pyarrow.array(values, type=kind, from_pandas=True)`` (of the values
+        repeated).
     """
     import pyarrow as pa
+    if repeats is not None:
+        counts = np.asarray(repeats, dtype=np.int64)
+        if kind == "large_string":
+            return _repeated_text(list(values), counts)
+        cells = np.empty(len(values), dtype=object)
+        cells[:] = list(values)
+        values = np.repeat(cells, counts)
+        if kind == "float64":
+            values = values.astype(np.float64)
     if kind == "float64":
         data = np.ascontiguousarray(values, dtype=np.float64)
         validity, nulls = _validity(~np.isnan(data))
@@ -63,6 +78,27 @@ def arrow_array(values: np.ndarray | Sequence, kind: str):
                                      [validity, pa.py_buffer(offsets),
                                       pa.py_buffer(b"".join(encoded))], null_count=nulls)
     raise ValueError(f"kind must be one of {', '.join(ARROW_KINDS)}, got {kind!r}")
+
+
+def _repeated_text(values: list, counts: np.ndarray):
+    """The large_string array of ``values`` (str or None) each ``counts[i]`` times: the
+    buffers of :func:`arrow_array` of the repeated cells, each value encoded once and its
+    bytes copied to every row by one gather."""
+    import pyarrow as pa
+    encoded = [b"" if v is None else str(v).encode("utf-8") for v in values]
+    validity, nulls = _validity(np.repeat(np.array([v is not None for v in values],
+                                                   dtype=bool), counts))
+    lengths = np.array([len(b) for b in encoded], dtype=np.int64)
+    cell_lengths = np.repeat(lengths, counts)
+    offsets = np.zeros(cell_lengths.size + 1, dtype=np.int64)
+    np.cumsum(cell_lengths, out=offsets[1:])
+    starts = np.cumsum(lengths) - lengths          # where each value's bytes begin
+    # byte k of the data is byte (k - the row's offset) of the row's value
+    shift = np.repeat(np.repeat(starts, counts) - offsets[:-1], cell_lengths)
+    data = np.frombuffer(b"".join(encoded), dtype=np.uint8)[shift + np.arange(offsets[-1])]
+    return pa.Array.from_buffers(pa.large_string(), cell_lengths.size,
+                                 [validity, pa.py_buffer(offsets),
+                                  pa.py_buffer(data.tobytes())], null_count=nulls)
 
 
 __all__ = ["ARROW_KINDS", "arrow_array"]
