@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from armfit.errors import BadInputError, NoInputError
+from armfit.errors import BadInputError, NoInputError, OutputError, UsageError
 from armfit.io.trials import (
     dataset_metadata,
     dataset_sources,
@@ -251,6 +251,46 @@ def test_dataset_round_trip_bit_for_bit(tmp_path, raw_study):
     # A dataset is accepted as input and yields the same trials again.
     again = list(open_trials([out]))
     assert [t.meta for t in again] == metas
+
+
+def test_write_dataset_stops_at_a_bad_trial_behind_a_row_group_being_written(tmp_path,
+                                                                            raw_study):
+    # the row groups are written by a thread while the next trial is read: a trial that
+    # fails after others (here one with a reference, refused without the column) leaves
+    # no file and no thread behind
+    import dataclasses
+    import threading
+    good = list(open_trials([raw_study]))
+    bad = dataclasses.replace(good[0], ref=np.zeros(good[0].meta.n_samples))
+    before = threading.active_count()
+    with pytest.raises(UsageError, match="has a reference"):
+        write_dataset([*good, bad], tmp_path / "t.parquet")
+    assert list(tmp_path.iterdir()) == []
+    assert threading.active_count() == before
+
+
+def test_write_dataset_raises_the_writers_error_and_leaves_nothing(tmp_path, raw_study,
+                                                                  monkeypatch):
+    # an error of the thread that writes the row groups (a full disk: OSError at the
+    # second row group) is raised by write_dataset itself, as the error naming the file
+    # that it is when the caller's own thread writes, and no file is left
+    import threading
+
+    import pyarrow.parquet as pq
+    real = pq.ParquetWriter.write_table
+    calls = []
+
+    def full_disk(self, table, *args, **kwargs):
+        calls.append(threading.current_thread().name)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        return real(self, table, *args, **kwargs)
+
+    monkeypatch.setattr(pq.ParquetWriter, "write_table", full_disk)
+    with pytest.raises(OutputError, match="t.parquet: cannot write: No space left"):
+        write_dataset(list(open_trials([raw_study])), tmp_path / "t.parquet")
+    assert list(tmp_path.iterdir()) == []
+    assert len(calls) == 2 and all(n.startswith("armfit-write") for n in calls)
 
 
 def test_write_dataset_empty_leaves_nothing(tmp_path):

@@ -1437,10 +1437,13 @@ def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
     Per-trial metadata (identity, fs, n_samples, duration_s, t0_s, source, columns
     present, the reference's name) is JSON under the key-value metadata key
     ``armfit.trials``; ``armfit.format`` holds the format version. Only one trial is held
-    in memory at a time. Raises NoInputError if ``trials`` is empty (no file is left),
-    UsageError for a trial with a reference when ``reference`` is False (the schema is
-    fixed before the first trial is written: :func:`has_reference` of the sources tells).
-    Returns the metadata of the trials written.
+    in memory at a time, and one more while it is written: a thread encodes and writes
+    each trial's row group (pyarrow does it without the interpreter's lock) while the
+    next trial is read and checked, in the order of ``trials``. Raises NoInputError if
+    ``trials`` is empty (no file is left), UsageError for a trial with a reference when
+    ``reference`` is False (the schema is fixed before the first trial is written:
+    :func:`has_reference` of the sources tells). Returns the metadata of the trials
+    written.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -1448,7 +1451,7 @@ def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
     schema = _dataset_schema(reference)
     metas: list[TrialMeta] = []
     records: list[dict] = []
-    with atomic_path(path, overwrite=overwrite) as tmp:
+    with atomic_path(path, overwrite=overwrite) as tmp, _RowGroupWriter() as background:
         writer = pq.ParquetWriter(tmp, schema, **_PARQUET_WRITE)
         try:
             for i, trial in enumerate(trials):
@@ -1465,17 +1468,55 @@ def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
                     raise UsageError(f"{trial.meta.source}: the trial has a reference "
                                      f"({trial.meta.reference}) but the dataset is written "
                                      "without a reference column (reference=False)")
-                writer.write_table(pa.Table.from_arrays(arrays, schema=schema),
-                                   row_group_size=max(n, 1))
+                background.write(writer, pa.Table.from_arrays(arrays, schema=schema),
+                                 row_group_size=max(n, 1))
                 metas.append(trial.meta)
                 records.append(_record(i, trial))
+            background.wait()
             if not metas:
                 raise NoInputError(f"{path}: no trials to write")
             writer.add_key_value_metadata({DATASET_FORMAT_KEY: DATASET_FORMAT_VERSION,
                                            DATASET_TRIALS_KEY: json.dumps(records)})
         finally:
+            background.stop()
             writer.close()
     return metas
+
+
+class _RowGroupWriter:
+    """One thread that writes :func:`write_dataset`'s row groups, one at a time and in
+    the order given, while the caller reads the next trial. :meth:`write` first waits
+    for the row group before (so that at most one trial waits in memory) and raises its
+    error; :meth:`wait` waits for the last; :meth:`stop` (on leaving, or on an error of
+    the caller) waits for the one being written, its outcome no longer wanted."""
+
+    def __init__(self):
+        self._pool = None
+        self._pending = None
+
+    def __enter__(self) -> _RowGroupWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def write(self, writer, table, **kwargs) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+        self.wait()
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="armfit-write")
+        self._pending = self._pool.submit(writer.write_table, table, **kwargs)
+
+    def wait(self) -> None:
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
+
+    def stop(self) -> None:
+        self._pending = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
 
 
 # ---------------------------------------------------------------------------
