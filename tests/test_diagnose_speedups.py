@@ -23,9 +23,10 @@ from scipy import linalg
 
 from armfit import api
 from armfit.adopt import adopt
+from armfit.constants import PARAM_NAMES
 from armfit.diagnosis import joint, schedule, search
 from armfit.diagnosis.fit import start_array
-from armfit.diagnosis.responses import axis_data
+from armfit.diagnosis.responses import axis_data, param_row
 from armfit.diagnosis.schedule import TaskQueue
 from armfit.diagnosis.screen import keep_screened, rank_screened
 from armfit.diagnosis.tuning import SHARED_EFFECTS
@@ -264,6 +265,22 @@ def _z_data(study):
     spectra, params = study
     data = axis_data(spectra, params, "z")
     return data, (float(data.f_hz[0]), float(data.f_hz[-1]))
+
+
+def test_axis_data_starts_are_the_param_row_of_each_trials_grip(study):
+    # the reference: param_row of each trial, one by one (axis_data finds each grip's row
+    # once); a grip without a row of its own takes the nearest grip's row, as param_row
+    spectra, params = study
+    shifted = params.assign(grip_N=params["grip_N"] + np.where(params["grip_N"] > 1.5,
+                                                               0.25, 0.0))
+    for table in (params, shifted):
+        for axis in ("x", "z"):
+            data = axis_data(spectra, table, axis)
+            grips = [float(n.split("_grip-")[1].split("N")[0]) for n in data.labels]
+            assert sorted(set(grips)) == [1.0, 2.0]
+            for grip, start in zip(grips, data.starts, strict=True):
+                ref = param_row(table, axis, grip)
+                assert start == {n: float(ref[n]) for n in PARAM_NAMES}
 
 
 def test_screen_starts_with_repeated_combinations_is_each_tried(study):

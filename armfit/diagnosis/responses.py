@@ -129,10 +129,15 @@ def axis_data(spectra, params, axis: str) -> AxisData | None:
     if len(rows) == 0 or not (params["axis"] == axis).any():
         return None
     f, H, sdb, sdeg, labels = trial_responses(rows)
+    # the row of each grip found once (as param_row finds it), not once per trial
+    by_grip: dict[float, dict[str, float]] = {}
     starts = []
     for _subject, grip, _run in labels:
-        r = param_row(params, axis, float(grip))
-        starts.append({n: float(r[n]) for n in PARAM_NAMES})
+        g = float(grip)
+        if g not in by_grip:
+            r = param_row(params, axis, g)
+            by_grip[g] = {n: float(r[n]) for n in PARAM_NAMES}
+        starts.append(dict(by_grip[g]))
     names = tuple(f"sub-{s}_grip-{float(g):g}N" + ("" if run is None else f"_run-{run}")
                   for s, g, run in labels)
     return AxisData(axis, f, H, sdb, sdeg, tuple(starts), names,
