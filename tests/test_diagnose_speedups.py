@@ -171,6 +171,69 @@ def test_task_queue_on_a_pool_returns_every_result_and_raises_the_first_error():
     assert not tasks._ready and not tasks._running
 
 
+def test_task_queue_start_ready_starts_tasks_before_run():
+    # start_ready hands the ready tasks to the pool at once (up to its capacity): the
+    # first is running before run() is called; without a pool, or while the thread that
+    # starts the pool runs, it hands nothing over (run() or that thread does)
+    began, release = threading.Event(), threading.Event()
+    out = []
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        tasks = TaskQueue(pool, capacity=1)
+        tasks.add(0, lambda x: (began.set(), release.wait(5), x)[2], "a", out.append)
+        tasks.add(1, lambda x: x, "b", out.append)
+        tasks.start_ready()
+        assert began.wait(5)                     # running in the pool, run() not called
+        release.set()
+        tasks.run()
+    assert out == ["a", "b"]
+    ran = []
+    here = TaskQueue(None)
+    here.add(0, ran.append, "c", lambda r: None)
+    here.start_ready()
+    assert ran == []
+    here.run()
+    assert ran == ["c"]
+    go = threading.Event()
+    starting = threading.Thread(target=go.wait)
+    starting.start()
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        waiting = TaskQueue(pool, capacity=1, starting=starting)
+        waiting.add(0, ran.append, "d", lambda r: None)
+        waiting.start_ready()
+        assert ran == ["c"] and len(waiting._ready) == 1
+        go.set()
+        starting.join()
+        waiting.run()
+    assert ran == ["c", "d"]
+
+
+def test_diagnosis_starts_an_axis_while_the_next_is_read(study, pipelined, monkeypatch):
+    # with an executor, the first axis's base fit is handed over before the next axis's
+    # trial rows are read (the result is the same)
+    spectra, params = study
+    events = []
+    reader = search._trial_rows
+
+    def recorded(sp):
+        read = reader(sp)
+
+        def rows(axis):
+            events.append(("read", axis))
+            return read(axis)
+        return rows
+
+    class Recording(ThreadPoolExecutor):
+        def submit(self, fn, *args, **kwargs):
+            events.append(("submit", fn.__name__))
+            return super().submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(search, "_trial_rows", recorded)
+    with Recording(max_workers=2) as ex:
+        got = search.diagnose_axes(spectra, params, executor=ex)
+    assert repr(got) == repr(pipelined)
+    assert events[:3] == [("read", "x"), ("submit", "_base_task"), ("read", "z")]
+
+
 def test_task_queue_runs_tasks_here_while_the_pool_starts():
     # while the thread starting the pool runs, ready tasks run in this thread; once it
     # has ended, on the pool

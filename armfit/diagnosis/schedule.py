@@ -64,6 +64,16 @@ class TaskQueue:
         with self._lock:
             self._submit()
 
+    def start_ready(self) -> None:
+        """Hand the ready tasks to the pool now, up to ``capacity`` running, so that they
+        run while the caller prepares more (tasks added before :meth:`run`). Nothing
+        without a pool, or while the thread ``starting`` starts it (it hands them over
+        itself once the workers are up)."""
+        if self.pool is None or (self.starting is not None and self.starting.is_alive()):
+            return
+        with self._lock:
+            self._submit()
+
     def _submit(self) -> None:
         """Submit ready tasks, up to ``capacity`` running (the lock held)."""
         while self._ready and (self.capacity is None or len(self._running) < self.capacity):

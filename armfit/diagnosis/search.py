@@ -468,8 +468,10 @@ def diagnose_axes(spectra, params, *,
     or the path of a spectra file) and ``params`` (a params DataFrame, grip or nominal
     fits) by a stepwise search. Of a file, the trial rows of one axis are read at a time
     (:meth:`armfit.spectra.Spectra.read`), and only the arrays the search uses and the
-    axis's cross-axis coupling are kept (the memory of the rest is given back before the
-    search starts); the result is that of the file read whole.
+    axis's cross-axis coupling are kept (the memory of the rest is given back once every
+    axis is read); the result is that of the file read whole. An axis's base fit is
+    handed to the workers (or the executor) as soon as its arrays are made, and runs
+    while the next axis is read.
 
     Per axis: fit the base model to every trial (arm parameters per trial); while the
     model is not adequate (:func:`adequacy`), fit the current model plus each remaining
@@ -506,25 +508,28 @@ def diagnose_axes(spectra, params, *,
     trial_rows = _trial_rows(spectra)
     searches: list[_Search] = []
     coupling: dict[str, dict[str, float]] = {}
-    for axis in axes:
-        if not (params["axis"] == axis).any():
-            continue
-        rows = trial_rows(axis)
-        data = axis_data(rows, params, axis)
-        if data is not None:
-            b = axis_band(band, axis) or (float(data.f_hz[0]), float(data.f_hz[-1]))
-            coupling[axis] = cross_coupling(rows, data, b)
-            searches.append(_Search(data, b, effects, max_steps, min_effect_db,
-                                    min_effect_deg, by_subject))
-        del rows
-    release_memory()
-    if not searches:
+    axes = [axis for axis in axes if (params["axis"] == axis).any()]
+    if not axes:
         return []
     share = SHARED_EFFECTS if share is None else tuple(share)
+    # the workers start while the axes are read; an axis's base fit starts as soon as
+    # its data are ready, while the next axis is read
     with task_queue(jobs, executor) as tasks:
         steps = itertools.count()
-        for s in searches:
-            _AxisSteps(s, tasks, steps).begin()
+        for axis in axes:
+            rows = trial_rows(axis)
+            data = axis_data(rows, params, axis)
+            if data is not None:
+                b = axis_band(band, axis) or (float(data.f_hz[0]), float(data.f_hz[-1]))
+                coupling[axis] = cross_coupling(rows, data, b)
+                searches.append(_Search(data, b, effects, max_steps, min_effect_db,
+                                        min_effect_deg, by_subject))
+                _AxisSteps(searches[-1], tasks, steps).begin()
+                tasks.start_ready()
+            del rows
+        release_memory()
+        if not searches:
+            return []
         tasks.run()
         _borrow_step(searches, tasks.map, share)
     out = []
