@@ -478,17 +478,26 @@ def _envelope_opt(sec: _Sections, tgt: _Target, theta0: np.ndarray, lo, hi
     W = tgt.wr
     w = tgt.wr_w
     ones = np.ones(W.size)
+    # SLSQP asks for the objective, the constraints and their Jacobian at the same point:
+    # the sections' values and Jacobian there are computed once (the same numbers)
+    last: list = [None, None, None]
+
+    def value_jac(x):
+        key = x.tobytes()
+        if last[0] != key:
+            last[:] = [key, *sec.value_jac(x[1:])]
+        return last[1], last[2]
 
     def fun(x):
-        g, J = sec.value_jac(x[1:])
+        g, J = value_jac(x)
         return float(w @ (x[0] + g - W)), np.concatenate([[1.0], w @ J])
 
     def cons(x):
-        g, _ = sec.value_jac(x[1:], jac=False)
+        g, _ = value_jac(x)
         return x[0] + g - W
 
     def cons_jac(x):
-        _, J = sec.value_jac(x[1:])
+        _, J = value_jac(x)
         return np.column_stack([ones, J])
 
     bounds = [(None, None)] + list(zip(lo, hi, strict=True))
