@@ -114,6 +114,10 @@ AGGREGATES: tuple[str, ...] = ("mean", "median")
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
 
+#: The virtual wall of the stability stage (the defaults: T = 1 ms, B = 0, d = 1), whose
+#: damping the stability figure's sweeps keep.
+_WALL = WallSettings()
+
 #: Stage names, in the order they are reported (``adopt`` only when an effect is adopted,
 #: ``figures`` and ``residuals`` only with figures on). With jobs > 1 the diagnosis runs
 #: in worker processes from the end of fit-grip on, alongside fit-nominal.
@@ -791,7 +795,7 @@ def _trial_fits(config: RunConfig, pool: Executor | None, spectra: Path,
         for axis in AXES:
             sel = rows[rows["axis"] == axis]
             if len(sel):
-                sweeps[axis] = pool.submit(_sweep_task, (sel, WallSettings(),
+                sweeps[axis] = pool.submit(_sweep_task, (sel, _WALL,
                                                          tuple(config.options.outside_loop)))
     return _TrialFits(fits, read, sweeps)
 
@@ -823,7 +827,7 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
     (stability.csv), the certificate of the nominal models against the fitted Wu, capped
     by the trials it covers (certificate.csv), K_max of the base and adopted nominal
     models, and the stability figure."""
-    settings = WallSettings()
+    settings = _WALL
     loop = config.options.outside_loop
     rows = trials.rows
     with warnings.catch_warnings(record=True) as caught:

@@ -1451,8 +1451,9 @@ def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
     schema = _dataset_schema(reference)
     metas: list[TrialMeta] = []
     records: list[dict] = []
-    with atomic_path(path, overwrite=overwrite) as tmp, _RowGroupWriter() as background:
+    with atomic_path(path, overwrite=overwrite) as tmp:
         writer = pq.ParquetWriter(tmp, schema, **_PARQUET_WRITE)
+        background = _RowGroupWriter()
         try:
             for i, trial in enumerate(trials):
                 n = trial.meta.n_samples
@@ -1487,18 +1488,12 @@ class _RowGroupWriter:
     """One thread that writes :func:`write_dataset`'s row groups, one at a time and in
     the order given, while the caller reads the next trial. :meth:`write` first waits
     for the row group before (so that at most one trial waits in memory) and raises its
-    error; :meth:`wait` waits for the last; :meth:`stop` (on leaving, or on an error of
-    the caller) waits for the one being written, its outcome no longer wanted."""
+    error; :meth:`wait` waits for the last; :meth:`stop` (before the file is closed,
+    whatever happened) waits for the one being written, its outcome no longer wanted."""
 
     def __init__(self):
         self._pool = None
         self._pending = None
-
-    def __enter__(self) -> _RowGroupWriter:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def write(self, writer, table, **kwargs) -> None:
         from concurrent.futures import ThreadPoolExecutor
