@@ -39,7 +39,7 @@ import contextlib
 import functools
 import itertools
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -72,7 +72,7 @@ from armfit.io.schema import (
     json_default,
 )
 from armfit.io.trials import Trial, open_trials, read_trial, saturated_samples
-from armfit.workers import POOL_PRELOAD, iter_tasks
+from armfit.workers import POOL_PRELOAD, iter_tasks, read_ahead
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -2690,10 +2690,28 @@ class StudySpectra:
 def _estimate_source(source, config: EstimateConfig):
     """Worker: read one trial and estimate it. Returns ("ok", TrialResponses, fs, warnings)
     or ("bad", label, message, reason) for a BadInputError."""
+    return _estimate_read(source, _read_source(source, config), config)
+
+
+def _read_source(source, config: EstimateConfig):
+    """The reading half of :func:`_estimate_source`: ("read", Trial, warnings) or its
+    ("bad", ...) result."""
     warnings: list[str] = []
     try:
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
                            warn=warnings.append, grip=False)  # estimate needs no grip
+    except BadInputError as exc:
+        return ("bad", source.label, exc.template, exc.detail)
+    return ("read", trial, warnings)
+
+
+def _estimate_read(source, read, config: EstimateConfig):
+    """The estimating half of :func:`_estimate_source`, from :func:`_read_source`'s
+    ``read``."""
+    if read[0] == "bad":
+        return read
+    _, trial, warnings = read
+    try:
         m = trial.meta
         responses, check = estimate_trial_checked(trial.force, trial.pos, m.fs, m.axis,
                                                   config, source=source.label,
@@ -2707,6 +2725,17 @@ def _estimate_source(source, config: EstimateConfig):
     tr = TrialResponses(m.subject, m.axis, m.grip_N, m.run, source.label, config.grid(),
                         responses, check)
     return ("ok", tr, m.fs, tuple(warnings))
+
+
+def _estimate_serially(sources, config: EstimateConfig) -> Iterator:
+    """:func:`_estimate_source` of each source in this process, in order, each trial read
+    (:func:`armfit.workers.read_ahead`) while the one before is estimated."""
+    reads = read_ahead(functools.partial(_read_source, config=config), sources)
+    try:
+        for source, read in zip(sources, reads, strict=True):
+            yield _estimate_read(source, read, config)
+    finally:
+        reads.close()
 
 
 def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: bool = False,
@@ -2776,10 +2805,13 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     sources = list(stream.sources)
     if on_open is not None:
         on_open(len(sources))
+    if executor is None and jobs <= 1:   # here: the next trial is read meanwhile
+        tasks = _estimate_serially(sources, config)
+    else:
+        tasks = iter_tasks(functools.partial(_estimate_source, config=config), sources, jobs,
+                           preload=POOL_PRELOAD["estimate"], chunksize=2, executor=executor)
     # closed on a bad trial: the pending work is cancelled at once
-    with contextlib.closing(iter_tasks(functools.partial(_estimate_source, config=config),
-                                       sources, jobs, preload=POOL_PRELOAD["estimate"],
-                                       chunksize=2, executor=executor)) as results:
+    with contextlib.closing(tasks) as results:
         for res in results:
             handle(res)
             if advance is not None:

@@ -12,7 +12,8 @@ Every parallel function of armfit (:func:`armfit.estimate`, :func:`armfit.fit_gr
 - ``jobs=``: a number of worker processes. With ``jobs`` > 1 armfit starts a pool of
   its own for the call (:func:`process_pool`) and shuts it down when the call ends,
   cancelling what is pending if the call fails; with ``jobs`` 1 the tasks run one after
-  the other in the calling process.
+  the other in the calling process (the estimate reads the next trial meanwhile in a
+  thread: :func:`read_ahead`).
 
 An executor given wins over ``jobs``. The tasks are module-level functions of picklable
 arguments, and each task's result depends only on its arguments, so the results are the
@@ -81,7 +82,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 __all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "cancel_pools",
            "child_environment", "executor_for", "ignore_sigint", "iter_tasks", "map_tasks",
-           "preload_own_only", "process_pool", "start_fork_server",
+           "preload_own_only", "read_ahead", "process_pool", "start_fork_server",
            "start_method", "stop_workers", "worker_start", "tune_allocator",
            "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
 
@@ -544,6 +545,48 @@ def map_tasks(fn: Callable, tasks: Iterable, jobs: int = 1, preload: Sequence[st
         ``[fn(t) for t in tasks]``.
     """
     return list(iter_tasks(fn, tasks, jobs, preload, chunksize, executor=executor))
+
+
+def read_ahead(fn: Callable, items: Iterable, *, name: str = "armfit-read") -> Iterator:
+    """``fn(item)`` for each of ``items``, yielded in order, each computed in one thread
+    of its own while the caller works on the one before: reading the next trial file
+    (pyarrow decodes and numpy checks without Python's lock) overlaps computing on this
+    one, in the one process of ``--jobs 1``.
+
+    Parameters
+    ----------
+    fn : callable
+        Of one argument; its work should release the interpreter's lock for long
+        stretches (file reading, decoding, numpy on whole arrays), or nothing is gained.
+    items : iterable
+        Its arguments.
+    name : str
+        The thread's name prefix.
+
+    Yields
+    ------
+    object
+        ``fn(item)``, in the order of ``items``; the error ``fn`` raised for an item is
+        raised in its turn. At most two results exist at a time: the one yielded and the
+        next, computed meanwhile. Closing the generator (or an error) waits for the call
+        under way and drops its outcome. With one item or none, ``fn`` runs here.
+    """
+    items = list(items)
+    if len(items) <= 1:
+        yield from map(fn, items)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+    pool = ThreadPoolExecutor(1, thread_name_prefix=name)
+    try:
+        pending = pool.submit(fn, items[0])
+        for item in items[1:]:
+            value = pending.result()
+            pending = pool.submit(fn, item)
+            yield value
+            del value        # the caller is done with it: one result waits, not two
+        yield pending.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def cancel_pools(thread: int) -> None:

@@ -3,8 +3,9 @@ commands import only what they use.
 
 Each replacement is checked against the computation it stands for: scipy's windows,
 ``scipy.ndimage.uniform_filter1d``, ``scipy.stats.qmc.Sobol``, ``pyarrow.array`` and
-``Array.to_numpy``, the pandas writer of the spectra file. The import checks run a fresh
-interpreter and read its ``sys.modules`` after the command.
+``Array.to_numpy``, the pandas writer of the spectra file; the serial estimate, which
+reads the next trial in a thread, against the task the worker processes run. The import
+checks run a fresh interpreter and read its ``sys.modules`` after the command.
 """
 
 from __future__ import annotations
@@ -253,3 +254,79 @@ def test_tuned_allocator_reuses_the_pages_of_freed_arrays():
         return int(res.stdout.strip())
     plain, tuned = faults("plain"), faults("tuned")
     assert plain > 20 * 1250 and tuned < plain / 5, (plain, tuned)
+
+
+# ---------------------------------------------------------------------------
+# The serial estimate reads the next trial while it estimates this one
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def csv_study(tmp_path_factory):
+    """4 trials (2 subjects, axis x, grips 1 and 2 N, 26 s; armfit.simulate, seed 5), as
+    CSV files: a cell of one can be spoilt."""
+    import armfit
+    root = tmp_path_factory.mktemp("ahead") / "study"
+    armfit.simulate(subjects=2, axes=("x",), grips_N=(1.0, 2.0), duration_s=(26.0, 26.0),
+                    seed=5).write(root, fmt="csv")
+    return root
+
+
+def test_serial_estimate_reads_ahead_and_gives_each_trials_own_estimate(csv_study,
+                                                                     monkeypatch):
+    # the reference: each trial read and estimated by the task the worker processes run
+    # (_estimate_source), one after the other
+    import threading
+
+    from armfit import spectra as sp
+    from armfit.io import trials as io_trials
+    config = sp.EstimateConfig()
+    sources = list(io_trials.open_trials([csv_study]).sources)
+    expected = [sp._estimate_source(s, config)[1] for s in sources]
+    readers = []
+    real = sp.read_trial
+
+    def spy(*args, **kwargs):
+        readers.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sp, "read_trial", spy)
+    got = sp.estimate_study([csv_study], config, jobs=1)
+    assert len(readers) == len(sources) == 4
+    assert all(n.startswith("armfit-read") for n in readers)
+    for a, b in zip(got.trials, expected, strict=True):
+        assert a.source == b.source
+        for ra, rb in zip(a.responses, b.responses, strict=True):
+            assert ra.kind == rb.kind and ra.flags == rb.flags
+            assert np.array_equal(ra.h, rb.h, equal_nan=True)
+            assert np.array_equal(ra.se_db, rb.se_db, equal_nan=True)
+
+
+def test_serial_estimate_stops_at_a_bad_trial_or_skips_it(csv_study, tmp_path):
+    # the third trial (in file order) has a word in a force cell: without skip_bad its
+    # error is raised, naming the file, column and row, and no reading thread is left;
+    # with skip_bad it is listed and the other three are estimated
+    import shutil
+    import threading
+
+    from armfit.errors import BadInputError
+    from armfit.spectra import EstimateConfig, estimate_study
+    study = tmp_path / "study"
+    shutil.copytree(csv_study, study)
+    bad = sorted(study.glob("*.csv"))[2]
+    lines = bad.read_text().splitlines()
+    header = lines[0].split(",")
+    col = next(i for i, name in enumerate(header) if name.startswith("force_x"))
+    cells = lines[11].split(",")
+    cells[col] = "oops"
+    lines[11] = ",".join(cells)
+    bad.write_text("\n".join(lines) + "\n")
+    why = f"column '{header[col]}', row 11: non-numeric value 'oops'; expected a number"
+    with pytest.raises(BadInputError) as err:
+        estimate_study([study], EstimateConfig(), jobs=1)
+    assert str(err.value) == f"{bad}, {why}"
+    assert not [t for t in threading.enumerate() if t.name.startswith("armfit-read")]
+    got = estimate_study([study], EstimateConfig(), jobs=1, skip_bad=True)
+    assert got.skipped == ((str(bad), why),)
+    assert [t.source for t in got.trials] == [str(p) for p in sorted(study.glob("*.csv"))
+                                              if p != bad]

@@ -354,3 +354,70 @@ def test_two_threads_shutting_a_pool_down_together_take_turns(monkeypatch):
     for t in threads:
         t.join(60)
     assert errors == [] and most[0] == 1
+
+
+# ---------------------------------------------------------------------------
+# read_ahead: the next item computed in a thread while the caller works on this one
+# ---------------------------------------------------------------------------
+
+
+def _read_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith("armfit-read")]
+
+
+def test_read_ahead_computes_the_next_item_while_the_caller_holds_this_one():
+    started = {i: threading.Event() for i in range(3)}
+    names = {}
+
+    def fn(i):
+        names[i] = threading.current_thread().name
+        started[i].set()
+        return i * 10
+
+    it = workers.read_ahead(fn, [0, 1, 2])
+    assert next(it) == 0
+    # item 1 is computed without the caller asking for it: a plain map would wait
+    assert started[1].wait(10.0)
+    assert not started[2].is_set()          # never more than one item ahead
+    assert list(it) == [10, 20]
+    assert all(n.startswith("armfit-read") for n in names.values())
+    assert _read_threads() == []
+
+
+def test_read_ahead_raises_an_items_error_in_its_turn_and_leaves_no_thread():
+    def fn(i):
+        if i == 2:
+            raise ValueError(f"item {i} is bad")
+        return i
+
+    got = []
+    with pytest.raises(ValueError, match="item 2 is bad"):
+        for v in workers.read_ahead(fn, [0, 1, 2, 3]):
+            got.append(v)
+    assert got == [0, 1]                    # the items before the bad one, in order
+    assert _read_threads() == []
+
+
+def test_read_ahead_closed_early_waits_for_the_call_under_way():
+    release = threading.Event()
+    finished = []
+
+    def fn(i):
+        if i == 1:
+            release.wait(10.0)
+        finished.append(i)
+        return i
+
+    it = workers.read_ahead(fn, [0, 1, 2])
+    assert next(it) == 0
+    threading.Timer(0.2, release.set).start()
+    it.close()                              # returns once the call for item 1 has ended
+    assert finished == [0, 1]               # item 2 was never started
+    assert _read_threads() == []
+
+
+def test_read_ahead_of_one_item_runs_here():
+    here = threading.current_thread().name
+    assert list(workers.read_ahead(lambda i: (i, threading.current_thread().name), [7])) == [
+        (7, here)]
+    assert list(workers.read_ahead(_square, [])) == []
