@@ -105,7 +105,7 @@ from armfit.memory import release_memory
 from armfit.models.params import ParamRows, read_param_rows
 from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimator_summary
-from armfit.workers import cancel_pools, executor_for
+from armfit.workers import RUN_FIGURES_PRELOAD, cancel_pools, executor_for
 
 #: The levels of spectra.parquet a run keeps (its trial rows are read where they are
 #: used).
@@ -393,8 +393,9 @@ class _Rows:
 def _draw_task(args) -> None:
     """Worker: draw the figure ``figures.<fn>(*args, **kwargs)`` and write it to ``path``
     (an argument that is a :class:`_Rows` is read first). :mod:`armfit.figures` (and
-    matplotlib) is imported here, on first use: with worker processes only they load it,
-    off the run's critical path."""
+    matplotlib) is imported here, on first use, unless the worker has it already (the
+    run's own pool preloads it: :data:`armfit.workers.RUN_FIGURES_PRELOAD`); the run's
+    own process never imports it."""
     fn, fargs, kwargs, path = args
     fargs = tuple(a.read() if isinstance(a, _Rows) else a for a in fargs)
     figures = importlib.import_module("armfit.figures")
@@ -1030,8 +1031,11 @@ def _run_in(inputs: list, folder: Path, options: RunOptions, *,
                                       reference=options.reference),
                        options.fit_bands, warn, note, outdir)
     # the caller's executor, or one pool of worker processes for every stage of the run
-    # (its workers start with every engine module imported: workers.PRELOAD)
-    with executor_for(executor, options.jobs) as pool, contextlib.ExitStack() as stack:
+    # (its workers start with every engine module imported: workers.PRELOAD, and with
+    # figures the figures' module too, imported once by the fork server)
+    preload = RUN_FIGURES_PRELOAD if options.figures else ()
+    with executor_for(executor, options.jobs, preload=preload) as pool, \
+            contextlib.ExitStack() as stack:
         own = pool is not None and pool is not executor
         workers = _Workers(pool, _Drawings(pool if own else None), stack)
         try:

@@ -80,7 +80,7 @@ from concurrent.futures import Executor, ProcessPoolExecutor
 from concurrent.futures import wait as _wait_futures
 from concurrent.futures.process import BrokenProcessPool
 
-__all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "cancel_pools",
+__all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "RUN_FIGURES_PRELOAD", "cancel_pools",
            "child_environment", "executor_for", "ignore_sigint", "iter_tasks", "map_tasks",
            "preload_own_only", "read_ahead", "process_pool", "start_fork_server",
            "start_method", "stop_workers", "worker_start", "tune_allocator",
@@ -101,6 +101,10 @@ POOL_PRELOAD: dict[str, tuple[str, ...]] = {
     "uncertainty": ("armfit.uncertainty", "scipy.optimize"),
     "diagnosis": ("armfit.diagnosis.search",),
 }
+#: What ``run``'s one pool preloads when the run draws figures: every engine module and
+#: :mod:`armfit.figures` (matplotlib), imported once by the fork server rather than by
+#: each worker at its first drawing.
+RUN_FIGURES_PRELOAD: tuple[str, ...] = (*PRELOAD, "armfit.figures")
 #: Set by :func:`preload_own_only`.
 _OWN_ONLY = False
 

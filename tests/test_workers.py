@@ -139,18 +139,24 @@ def test_every_preloaded_module_exists():
     the package passes to a pool, must be an importable module."""
     import ast
     import importlib.util
-    names = set(workers.PRELOAD).union(*workers.POOL_PRELOAD.values())
+    names = set(workers.PRELOAD).union(workers.RUN_FIGURES_PRELOAD,
+                                        *workers.POOL_PRELOAD.values())
+
+    def literal(value) -> set[str]:
+        if isinstance(value, ast.Name | ast.Subscript):  # a name, POOL_PRELOAD[k]
+            return set()
+        if isinstance(value, ast.IfExp):                 # A if figures else B
+            return literal(value.body) | literal(value.orelse)
+        return set(ast.literal_eval(value))
+
     for path in Path(workers.__file__).parent.rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.keyword) and node.arg == "preload":
-                value = node.value
-                if isinstance(value, ast.Name | ast.Subscript):  # a name, POOL_PRELOAD[k]
-                    continue
-                names |= set(ast.literal_eval(value))
+                names |= literal(node.value)
             if (isinstance(node, ast.Assign) and len(node.targets) == 1
                     and isinstance(node.targets[0], ast.Name)
                     and node.targets[0].id == "preload"):
-                names |= set(ast.literal_eval(node.value))
+                names |= literal(node.value)
     assert {"armfit.spectra", "armfit.fitting", "scipy.optimize"} <= names
     assert sorted(m for m in names if importlib.util.find_spec(m) is None) == []
 
@@ -270,7 +276,10 @@ def test_the_commands_with_jobs_start_their_fork_server_first(monkeypatch, tmp_p
               [workers.POOL_PRELOAD["diagnosis"]]),
              (["estimate", missing, "-o", str(tmp_path / "s.parquet"), "--jobs=2"],
               [workers.POOL_PRELOAD["estimate"]]),
-             (["run", missing, "-o", str(tmp_path / "out"), "-j", "2"], [()]),
+             (["run", missing, "-o", str(tmp_path / "out"), "-j", "2"],
+              [workers.RUN_FIGURES_PRELOAD]),
+             (["run", missing, "-o", str(tmp_path / "out"), "-j", "2", "--no-figures"],
+              [()]),
              (["estimate", missing, "-o", str(tmp_path / "s.parquet")], []),
              (["estimate", missing, "-o", str(tmp_path / "s.parquet"), "-j", "1"], []),
              (["estimate", "-j", "2", "--help"], []),
@@ -279,6 +288,44 @@ def test_the_commands_with_jobs_start_their_fork_server_first(monkeypatch, tmp_p
         started.clear()
         CliRunner().invoke(main.cli, ["-q", *args])
         assert started == expected, args
+
+
+@pytest.mark.parametrize("name, args, figures", [
+    ("run", ["study", "-o", "out", "-j", "2"], True),
+    ("run", ["study", "--no-figures", "-o", "out", "-j", "2"], False),
+    ("run", ["study", "-o", "out", "--", "--no-figures"], True),  # an argument after "--"
+    ("estimate", ["study", "-o", "s.parquet", "-j", "2", "--no-figures"], False),
+])
+def test_a_run_that_draws_figures_preloads_the_figures_module(name, args, figures):
+    # run's workers draw the figures: its fork server imports armfit.figures (matplotlib)
+    # once, beside every engine module; any other pool keeps its own preload
+    from armfit.cli.main import pool_preload
+    own = ("armfit.spectra",)
+    assert pool_preload(name, args, own) == (workers.RUN_FIGURES_PRELOAD if figures
+                                             else own)
+    assert workers.RUN_FIGURES_PRELOAD == (*workers.PRELOAD, "armfit.figures")
+
+
+@pytest.mark.parametrize("figures", [True, False])
+def test_the_runs_own_pool_preloads_the_figures_module_when_it_draws(figures, tmp_path,
+                                                                    monkeypatch):
+    # armfit.run's pool (an API call: no command line started a fork server first) names
+    # the figures' module in its preload exactly when the run draws figures
+    import contextlib
+
+    from armfit import pipeline
+    from armfit.errors import ArmfitError
+    asked = []
+
+    @contextlib.contextmanager
+    def recorder(executor=None, jobs=1, *, tasks=None, preload=()):
+        asked.append((jobs, tuple(preload)))
+        yield None                                   # the stages then run here, in turn
+
+    monkeypatch.setattr(pipeline, "executor_for", recorder)
+    with pytest.raises(ArmfitError):                 # no such input: the ingest stops it
+        armfit.run(tmp_path / "missing", tmp_path / "out", jobs=2, figures=figures)
+    assert asked == [(2, workers.RUN_FIGURES_PRELOAD if figures else ())]
 
 
 _EARLY_SERVER = """

@@ -24,7 +24,7 @@ from armfit.cli.grammar import (
 )
 from armfit.cli.messages import cli_message
 from armfit.errors import EXIT_INTERNAL, ArmfitError
-from armfit.workers import POOL_PRELOAD, start_fork_server, stop_workers
+from armfit.workers import POOL_PRELOAD, RUN_FIGURES_PRELOAD, start_fork_server, stop_workers
 
 log = logging.getLogger("armfit")
 
@@ -63,7 +63,7 @@ class ArmfitGroup(click.Group):
         # what they run while this process imports the command's modules
         if args and args[0] in self.pools and not ctx.resilient_parsing \
                 and wants_workers(args[1:]):
-            start_fork_server(self.pools[args[0]])
+            start_fork_server(pool_preload(args[0], args[1:], self.pools[args[0]]))
         return super().resolve_command(ctx, args)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
@@ -143,6 +143,18 @@ def wants_workers(args: list[str]) -> bool:
     jobs = requested_jobs(args)
     return jobs is not None and jobs > 1 and not any(
         a in ("-h", "--help") or a.startswith("--scheduler") for a in args)
+
+
+def pool_preload(name: str, args: list[str], preload: tuple[str, ...]) -> tuple[str, ...]:
+    """What the fork server of subcommand ``name`` imports, given its raw arguments:
+    ``preload`` (its pool's), except for a ``run`` that draws figures (no
+    ``--no-figures`` before ``--``), whose workers draw them:
+    :data:`armfit.workers.RUN_FIGURES_PRELOAD`."""
+    if name == "run":
+        own = args[:args.index("--")] if "--" in args else args
+        if "--no-figures" not in own:
+            return RUN_FIGURES_PRELOAD
+    return preload
 
 
 def _report(ctx: click.Context, exc: BaseException, internal: bool = False) -> None:
@@ -259,5 +271,6 @@ _register()
 
 
 __all__ = [
-    "log", "ArmfitGroup", "COMMANDS", "POOLS", "cli", "requested_jobs", "wants_workers",
+    "log", "ArmfitGroup", "COMMANDS", "POOLS", "cli", "pool_preload", "requested_jobs",
+    "wants_workers",
 ]
