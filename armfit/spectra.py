@@ -148,8 +148,9 @@ def _cosine_window(coefficients: Sequence[float], n: int, periodic: bool) -> np.
         return np.ones(n)
     m = n + 1 if periodic else n
     phi = np.linspace(-np.pi, np.pi, m)
-    w = np.zeros(m)
-    for k, a in enumerate(coefficients):
+    # the k = 0 term: 0 + a_0·cos(0·φ) is a_0 exactly, without m cosines of zero
+    w = np.full(m, float(coefficients[0]))
+    for k, a in enumerate(coefficients[1:], start=1):
         w += a * np.cos(k * phi)
     return w[:n] if periodic else w
 
