@@ -39,7 +39,7 @@ import contextlib
 import functools
 import itertools
 import math
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -1906,51 +1906,29 @@ class Spectra:
         # a negative, zero or non-finite frequency is bad data, not a usage error later
         check_in_range(df["freq_hz"].to_numpy(float), FREQUENCY_RANGE,
                        file=source, column="freq_hz", shown=list(df["freq_hz"]))
-        n_rows = len(df)
         keys_df = df[list(SPECTRA_KEYS)]
-        if n_rows:
+        if len(df):
             codes = keys_df.groupby(list(SPECTRA_KEYS), sort=False, dropna=False
                                     ).ngroup().to_numpy()
         else:
             codes = np.zeros(0, int)
-        grid, fcode = np.unique(df["freq_hz"].to_numpy(float), return_inverse=True)
-        nr, nf = (int(codes.max()) + 1 if n_rows else 0), grid.size
-        flat = codes * nf + fcode
-        if np.unique(flat).size != flat.size:
-            dup = int(np.flatnonzero(np.bincount(flat, minlength=nr * nf)[flat] > 1)[0])
-            raise BadInputError("a frequency appears twice in one response", file=source,
-                                column="freq_hz", row=dup + 1)
-        present = np.zeros((nr, nf), bool)
-        present[codes, fcode] = True
-        h = np.full((nr, nf), np.nan, complex)
-        h.real[codes, fcode] = df["re"].to_numpy(float)
-        h.imag[codes, fcode] = df["im"].to_numpy(float)
-        values = {}
-        for c in SPECTRA_VALUES:
-            a = np.full((nr, nf), np.nan)
-            a[codes, fcode] = df[c].to_numpy(float)
-            values[c] = a
-        flags = np.full((nr, nf), "", dtype=object)
         # one object per distinct flag text (a study has few), shared by its cells
         flag_codes, flag_texts = pd.factorize(df["flags"], use_na_sentinel=True)
-        flags[codes, fcode] = np.array([*flag_texts, ""], dtype=object)[flag_codes]
         first = np.unique(codes, return_index=True)[1]
         keys = {}
         for c in SPECTRA_KEYS:
             col = keys_df[c].iloc[first].to_numpy(object)
             if c == "grip_N":
-                keys[c] = np.array([float(v) if v is not None and not pd.isna(v) else np.nan
-                                    for v in col], dtype=object)
+                keys[c] = [float(v) if v is not None and not pd.isna(v) else np.nan
+                           for v in col]
             elif c == "run":
-                keys[c] = np.array([None if v is None or pd.isna(v) else int(v) for v in col],
-                                   dtype=object)
+                keys[c] = [None if v is None or pd.isna(v) else int(v) for v in col]
             else:
-                keys[c] = np.array([None if v is None or pd.isna(v) else str(v) for v in col],
-                                   dtype=object)
-        missing_out = np.array([v is None for v in keys["out_axis"]], bool)
-        keys["out_axis"][missing_out] = keys["axis"][missing_out]
-        keys["n"] = np.array([int(v) for v in df["n"].iloc[first].to_numpy()], dtype=object)
-        return cls(grid, keys, h, values, flags, present, dict(meta or {}), source)
+                keys[c] = [None if v is None or pd.isna(v) else str(v) for v in col]
+        keys["n"] = [int(v) for v in df["n"].iloc[first].to_numpy()]
+        return _assemble(codes, df["freq_hz"].to_numpy(float),
+                         lambda c: df[c].to_numpy(float), flag_codes, list(flag_texts),
+                         keys, meta, source)
 
     def to_frame(self):
         """The long table of the spectra file: one row per response and frequency, columns
@@ -2322,11 +2300,10 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple]) -> Spectra:
     first_row = 0
     empty = None
     for g in range(pf.num_row_groups):
-        df = pf.read_row_group(g, columns=list(SPECTRA_COLUMNS)).to_pandas()
-        _check_axes(df, p, first_row)
-        part = Spectra.from_frame(df, meta=meta, source=str(p))
-        first_row += len(df)
-        del df
+        table = pf.read_row_group(g, columns=list(SPECTRA_COLUMNS))
+        part = _group_spectra(table, meta, str(p), first_row)
+        first_row += table.num_rows
+        del table
         keys = _response_keys(part)
         if not seen.isdisjoint(keys):   # a response split over groups: read it whole
             raise _NotByGroup
@@ -2338,6 +2315,120 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple]) -> Spectra:
             parts.append(part if rows.size == len(part) else part.take(rows))
         del part
     return _concat(parts, meta, str(p)) if parts else empty
+
+
+def _group_spectra(table, meta: Mapping, source: str, first_row: int) -> Spectra:
+    """The responses of one row group (an Arrow table of every spectra column):
+    :func:`_arrow_spectra` where the group is laid out as armfit writes it, else
+    :meth:`Spectra.from_frame` of its long table (after :func:`_check_axes`), which
+    then decides, or names what is wrong; the same responses either way."""
+    part = _arrow_spectra(table, meta, source)
+    if part is None:
+        df = table.to_pandas()
+        _check_axes(df, Path(source), first_row)
+        part = Spectra.from_frame(df, meta=meta, source=source)
+    return part
+
+
+def _arrow_spectra(table, meta: Mapping, source: str | None) -> Spectra | None:
+    """:meth:`Spectra.from_frame` of ``table.to_pandas()``, made from the Arrow columns
+    without the long table, for a table laid out as armfit writes it: the text columns
+    as text, the numeric ones as numbers (``run`` and ``n`` whole, ``n`` never missing,
+    ``run`` never negative), every axis and output axis x, y or z, every frequency in
+    range, and each response's rows together, each frequency once. None otherwise (or
+    without rows): :meth:`Spectra.from_frame` then gives the responses, or its error.
+    Both end in :func:`_assemble`."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    n_rows = table.num_rows
+    if n_rows == 0 or table.column_names != list(SPECTRA_COLUMNS):
+        return None
+    cols = {c: table.column(c).combine_chunks() for c in SPECTRA_COLUMNS}
+    for c, col in cols.items():
+        t = col.type
+        ok = (pa.types.is_string(t) or pa.types.is_large_string(t) if c in SPECTRA_TEXT
+              else pa.types.is_integer(t) if c in ("run", "n") else pa.types.is_floating(t))
+        if not ok:
+            return None
+    if cols["n"].null_count or (pc.min(cols["run"]).as_py() or 0) < 0:
+        return None
+    axes = pa.array(list(AXES))
+    for c in ("axis", "out_axis"):
+        if cols[c].null_count or not pc.all(pc.is_in(cols[c], value_set=axes)).as_py():
+            return None
+    freq = cols["freq_hz"].to_numpy(zero_copy_only=False)
+    try:   # from_frame's check: it names the first bad cell
+        check_in_range(freq, FREQUENCY_RANGE, file=source, column="freq_hz")
+    except BadInputError:
+        return None
+    # a response starts where any key differs from the row before (missing = missing)
+    change = np.zeros(n_rows, bool)
+    change[0] = True
+    for c in SPECTRA_KEYS:
+        if c == "grip_N":
+            v = cols[c].to_numpy(zero_copy_only=False)
+            change[1:] |= (v[1:] != v[:-1]) & ~(np.isnan(v[1:]) & np.isnan(v[:-1]))
+        else:
+            v = (cols[c] if c == "run" else cols[c].dictionary_encode().indices)
+            v = v.fill_null(-1).to_numpy(zero_copy_only=False)
+            change[1:] |= v[1:] != v[:-1]
+    starts = pa.array(np.flatnonzero(change))
+    keys = {c: cols[c].take(starts).to_pylist() for c in (*SPECTRA_KEYS, "n")}
+    keys["grip_N"] = [np.nan if v is None or v != v else float(v) for v in keys["grip_N"]]
+    ident = {tuple(None if c == "grip_N" and v != v else v for c, v in zip(SPECTRA_KEYS, k,
+                                                                          strict=True))
+             for k in zip(*(keys[c] for c in SPECTRA_KEYS), strict=True)}
+    if len(ident) != len(starts):    # a response in two places: from_frame groups them
+        return None
+    enc = cols["flags"].dictionary_encode()
+    try:
+        return _assemble(np.cumsum(change) - 1, freq,
+                         lambda c: cols[c].to_numpy(zero_copy_only=False),
+                         enc.indices.fill_null(-1).to_numpy(zero_copy_only=False),
+                         enc.dictionary.to_pylist(), keys, meta, source)
+    except BadInputError:            # a frequency twice in a response: from_frame says so
+        return None
+
+
+def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.ndarray],
+              flag_codes: np.ndarray, flag_texts: Sequence[str],
+              keys: Mapping[str, Sequence], meta: Mapping | None,
+              source: str | None) -> Spectra:
+    """The :class:`Spectra` of a long table's rows: ``codes`` the response of each row
+    (0, 1, … in the order the responses first appear), ``freq`` its frequency (Hz),
+    ``column(name)`` the row values of ``re``, ``im`` and each of
+    :data:`armfit.io.schema.SPECTRA_VALUES` (NaN where missing), ``flag_codes`` each
+    row's index into ``flag_texts`` (−1: none), ``keys`` per response its key values
+    (text or None, ``grip_N`` a float or NaN, ``run`` an int or None) and ``n``.
+
+    Raises
+    ------
+    BadInputError
+        A response holds a frequency twice (naming the row).
+    """
+    grid, fcode = np.unique(freq, return_inverse=True)
+    nr, nf = (int(codes.max()) + 1 if codes.size else 0), grid.size
+    flat = codes * nf + fcode
+    if np.unique(flat).size != flat.size:
+        dup = int(np.flatnonzero(np.bincount(flat, minlength=nr * nf)[flat] > 1)[0])
+        raise BadInputError("a frequency appears twice in one response", file=source,
+                            column="freq_hz", row=dup + 1)
+    present = np.zeros((nr, nf), bool)
+    present[codes, fcode] = True
+    h = np.full((nr, nf), np.nan, complex)
+    h.real[codes, fcode] = column("re")
+    h.imag[codes, fcode] = column("im")
+    values = {}
+    for c in SPECTRA_VALUES:
+        a = np.full((nr, nf), np.nan)
+        a[codes, fcode] = column(c)
+        values[c] = a
+    flags = np.full((nr, nf), "", dtype=object)
+    flags[codes, fcode] = np.array([*flag_texts, ""], dtype=object)[flag_codes]
+    out = {c: np.array(keys[c], dtype=object) for c in (*SPECTRA_KEYS, "n")}
+    missing_out = np.array([v is None for v in out["out_axis"]], bool)
+    out["out_axis"][missing_out] = out["axis"][missing_out]
+    return Spectra(grid, out, h, values, flags, present, dict(meta or {}), source)
 
 
 def _concat(parts: list[Spectra], meta: Mapping, source: str) -> Spectra:

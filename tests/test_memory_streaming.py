@@ -1,5 +1,6 @@
-"""Reading by row group gives what a whole read gives, and the canonical dataset's
-encoding keeps every value.
+"""Reading by row group gives what a whole read gives (a group laid out as armfit writes
+it made straight from Arrow, any other by ``Spectra.from_frame``), and the canonical
+dataset's encoding keeps every value.
 
 The references are computed independently of the code under test: a spectra file read
 whole by pyarrow and turned into a Spectra by ``Spectra.from_frame`` (the reader's former
@@ -109,14 +110,14 @@ def test_a_spectra_file_is_never_read_whole(sample, monkeypatch):
         raise AssertionError("the whole spectra file was read")
 
     sizes = []
-    real = S.Spectra.from_frame.__func__
+    real = S._group_spectra
 
-    def counted(cls, df, **kwargs):
-        sizes.append(len(df))
-        return real(cls, df, **kwargs)
+    def counted(table, *args):
+        sizes.append(table.num_rows)
+        return real(table, *args)
 
     monkeypatch.setattr(pq, "read_table", no_whole_read)
-    monkeypatch.setattr(S.Spectra, "from_frame", classmethod(counted))
+    monkeypatch.setattr(S, "_group_spectra", counted)
     assert_same(S.Spectra.read(path), ref)
     assert len(sizes) == 33 and max(sizes) == 7 * ref.freq_hz.size
     sizes.clear()
@@ -129,6 +130,7 @@ def test_the_run_reads_its_spectra_by_row_group(tmp_path, monkeypatch):
     the file comes from at most one row group's rows (groups of 16 responses here)."""
     monkeypatch.setattr(S, "WRITE_ROWS", 16)
     real_read, real_from = pq.read_table, S.Spectra.from_frame.__func__
+    real_group = S._group_spectra
     sizes = []
 
     def read_table(source, *args, **kwargs):
@@ -139,8 +141,13 @@ def test_the_run_reads_its_spectra_by_row_group(tmp_path, monkeypatch):
         sizes.append(len(df))
         return real_from(cls, df, **kwargs)
 
+    def counted_group(table, *args):
+        sizes.append(table.num_rows)
+        return real_group(table, *args)
+
     monkeypatch.setattr(pq, "read_table", read_table)
     monkeypatch.setattr(S.Spectra, "from_frame", classmethod(counted))
+    monkeypatch.setattr(S, "_group_spectra", counted_group)
     result = armfit.run(STUDY, tmp_path / "out", figures=False)
     nf = len(S.EstimateConfig().grid())
     assert result.trials == 36
@@ -265,3 +272,91 @@ def test_the_dataset_is_plain_parquet_no_larger_than_the_raw_files(sample_trials
     # dataset, without time, measured 0.96 x their size
     raw = sum(p.stat().st_size for p in STUDY.iterdir())
     assert path.stat().st_size <= raw
+
+
+# ---------------------------------------------------------------------------
+# A row group laid out as armfit writes it becomes responses straight from Arrow
+# ---------------------------------------------------------------------------
+
+
+def _edited(sample, tmp_path, edit) -> Path:
+    """The sample's one-group file with its long table changed by ``edit(df)``."""
+    table = pq.read_table(sample["one group"])
+    df = edit(table.to_pandas())
+    path = tmp_path / "edited.parquet"
+    pq.write_table(pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(
+        table.schema.metadata), path)
+    return path
+
+
+def test_arrow_responses_are_from_frames(sample):
+    # the reference: Spectra.from_frame of the group's long table (the pandas route);
+    # the sample holds trial rows, grip means and medians (grip NaN), flags of several
+    # kinds and the alternative estimate
+    table = pq.read_table(sample["one group"])
+    meta = json.loads(table.schema.metadata[SPECTRA_META_KEY])
+    got = S._arrow_spectra(table.select(list(S.SPECTRA_COLUMNS)), meta, "f")
+    assert got is not None
+    assert_same(got, S.Spectra.from_frame(table.to_pandas(), meta=meta, source="f"))
+    assert len({f for f in got.flags.ravel()}) > 2
+
+
+def test_runs_and_missing_keys_read_as_from_frame_reads_them(sample, tmp_path):
+    # repeated trials (run 1, 2) beside trials without a run, and a response without a
+    # subject or method: the keys are None, ints and NaN as from_frame gives them
+    def edit(df):
+        trial = df["level"] == "trial"
+        first = df.loc[trial, "subject"].iloc[0]
+        mine = trial & (df["subject"] == first)
+        df["run"] = pd.array([None] * len(df), dtype="Int64")
+        df.loc[mine & (df["grip_N"] == 1.0), "run"] = 1
+        df.loc[mine & (df["grip_N"] == 2.0), "run"] = 2
+        df.loc[mine & (df["grip_N"] == 3.0), "method"] = None
+        return df
+
+    path = _edited(sample, tmp_path, edit)
+    got = S.Spectra.read(path)
+    assert_same(got, whole(path))
+    assert {1, 2, None} <= set(got.keys["run"]) and None in set(got.keys["method"])
+
+
+@pytest.mark.parametrize("what", ["split", "twice", "text", "negative run", "zero freq"])
+def test_a_group_not_laid_out_as_armfit_writes_it_is_read_by_from_frame(sample, tmp_path,
+                                                                        what):
+    # each is left to from_frame (the Arrow route gives None), which reads it as it
+    # always did, or refuses it naming the column and row
+    def edit(df):
+        if what == "split":      # the first response's last 10 rows after the second's
+            n = int(df["freq_hz"].iloc[1:].eq(df["freq_hz"].iloc[0]).idxmax())  # rows
+            assert n == 100          # of the first response: its 100 frequencies
+            order = [*range(n - 10), *range(n, 2 * n), *range(n - 10, n),
+                     *range(2 * n, len(df))]
+            return df.iloc[order].reset_index(drop=True)
+        if what == "twice":      # row 5 repeats row 4's frequency
+            df.loc[4, "freq_hz"] = df.loc[3, "freq_hz"]    # rows 4 and 5 of the file
+        if what == "text":       # numbers written as text (another program's file)
+            df["re"] = df["re"].map(repr)
+        if what == "negative run":   # from_frame takes a whole-number column as it is
+            df["run"] = pd.array([None] * len(df), dtype="Int64")
+            df.loc[7, "run"] = -1
+        if what == "zero freq":
+            df.loc[9, "freq_hz"] = 0.0
+        return df
+
+    path = _edited(sample, tmp_path, edit)
+    table = pq.read_table(path)
+    meta = json.loads(table.schema.metadata[SPECTRA_META_KEY])
+    assert S._arrow_spectra(table.select(list(S.SPECTRA_COLUMNS)), meta, str(path)) is None
+    try:
+        expected = whole(path)
+    except BadInputError as exc:
+        with pytest.raises(BadInputError) as got:
+            S.Spectra.read(path)
+        assert (str(got.value), got.value.row, got.value.column) == (
+            str(exc), exc.row, exc.column)
+        # the first of the two rows of one frequency; the zero frequency's own row
+        assert (exc.column, exc.row) == {"twice": ("freq_hz", 4),
+                                         "zero freq": ("freq_hz", 10)}[what]
+    else:
+        assert what in ("split", "text", "negative run")
+        assert_same(S.Spectra.read(path), expected)
