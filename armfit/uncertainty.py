@@ -50,7 +50,7 @@ from armfit.io.ranges import FREQUENCY_RANGE, check_in_range
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS, wu_sidecar_paths
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
-from armfit.workers import POOL_PRELOAD, TaskQueue, executor_for
+from armfit.workers import POOL_PRELOAD, map_tasks
 
 #: The paper's band for Wu: 0.01–30 Hz (Sec. II-F).
 PAPER_BAND_HZ: tuple[float, float] = (0.01, 30.0)
@@ -622,9 +622,9 @@ def _one_blas_thread():
     """BLAS on one thread while any Wu fit of this process runs. The limit
     (``threadpoolctl``) is the process's, not the thread's: a fit that ended in one
     thread must not give BLAS its threads back while another thread's fit goes on, whose
-    numbers would then change (a thread pool running the axes' orders). OpenBLAS takes
-    the limit only when the thread that started it sets it, so :func:`_fit_wu_axes`
-    sets it in the calling thread too, for the fits it hands to a pool of threads."""
+    numbers would then change (the axes' fits on a pool of threads). OpenBLAS takes the
+    limit only when the thread that started it sets it, so :func:`_fit_wu_axes` sets it
+    in the calling thread too, for the fits it hands to a pool of threads."""
     global _blas_users, _blas_limits
     with _BLAS_LOCK:
         if _blas_users == 0:
@@ -640,15 +640,9 @@ def _one_blas_thread():
                 _blas_limits = None
 
 
-#: :func:`fit_wu`'s defaults of its order tolerance (dB), constraint bins and dense points
-#: per grid interval (also those of the fits of :func:`fit_weights`).
-_ORDER_TOL_DB, _N_BINS, _N_SUB = 0.1, 160, 8
-
-
 def fit_wu(f_hz, wmax, *, n_pairs: int | None = None, cost: str = "envelope",
            band: tuple[float, float] | None = None, max_pairs: int = MAX_PAIRS,
-           order_tol_db: float = _ORDER_TOL_DB, n_bins: int = _N_BINS,
-           n_sub: int = _N_SUB) -> WuResult:
+           order_tol_db: float = 0.1, n_bins: int = 160, n_sub: int = 8) -> WuResult:
     """Fit Wu(s) = K Π(s − z_i)/Π(s − p_i) (eq. 7, s in rad/s) to W_max over ``band`` (Hz).
 
     ``wmax`` is dimensionless (not dB) on the grid ``f_hz`` (Hz); NaN points are skipped.
@@ -669,66 +663,41 @@ def fit_wu(f_hz, wmax, *, n_pairs: int | None = None, cost: str = "envelope",
     the grid points with unit weights (eq. 7 fit with Wt = 1); no envelope guarantee.
     Order: the smallest whose RMS error is within ``order_tol_db`` of the best.
     """
-    _check_wu_options(n_pairs, cost, max_pairs)
-    # thousands of tiny dense problems (SLSQP, trust-region SVDs of ~160 x 21 matrices):
-    # BLAS worker threads cost far more than they save there (a fit runs tens of times
-    # slower on a busy 2-core machine), whichever BLAS numpy and scipy load
-    with _one_blas_thread():
-        tgt = _prepare(f_hz, wmax, band, n_bins, n_sub)
-        orders = _orders(n_pairs, max_pairs)
-        fits: dict[int, _OrderFit] = {}
-        prev = None
-        for n in range(max(orders) + 1):   # each order starts from the one below
-            fits[n] = _fit_order(n, tgt, prev, cost)
-            prev = fits[n][0]
-        return _wu_result(tgt, fits, orders, cost, order_tol_db, n_sub)
-
-
-#: One order of a Wu fit: (θ, DC gain in dB, converged, score: the mean gap in dB of the
-#: envelope cost, the RMS error in dB of the paper's).
-_OrderFit = tuple[np.ndarray, float, bool, float]
-
-
-def _check_wu_options(n_pairs: int | None, cost: str, max_pairs: int) -> None:
     if cost not in ("envelope", "paper"):
         raise UsageError(f"cost must be 'envelope' or 'paper', got {cost!r}")
     if n_pairs is not None and not (0 <= n_pairs <= max_pairs):
         raise UsageError(f"order must be 0..{max_pairs} pairs, got {n_pairs}")
     if not 0 <= max_pairs <= MAX_PAIRS:
         raise UsageError(f"max_pairs must be 0..{MAX_PAIRS}, got {max_pairs}")
-
-
-def _orders(n_pairs: int | None, max_pairs: int) -> list[int]:
-    """The orders the choice is among (all are fitted up to the highest)."""
-    return [n_pairs] if n_pairs is not None else list(range(max_pairs + 1))
-
-
-def _fit_order(n: int, tgt: _Target, prev: np.ndarray | None, cost: str) -> _OrderFit:
-    """Order ``n`` of :func:`fit_wu`, started (also) from ``prev``, the order below's θ."""
-    if cost == "envelope":
-        th, dc, ok = _fit_order_envelope(n, tgt, prev)
-        g, _ = _Sections(2 * np.pi * tgt.f, n).value_jac(th, jac=False)
-        return th, dc, ok, float(tgt.w_log @ (dc + g - tgt.wdb))
-    th, dc, ok, rms = _fit_order_paper(n, tgt, prev)
-    return th, dc, ok, rms
-
-
-def _order_task(args) -> _OrderFit:
-    """Worker: one order of an axis's Wu fit (:func:`_fit_order`), with BLAS on one
-    thread as :func:`fit_wu` has it."""
-    n, tgt, prev, cost = args
+    # thousands of tiny dense problems (SLSQP, trust-region SVDs of ~160 x 21 matrices):
+    # BLAS worker threads cost far more than they save there (a fit runs tens of times
+    # slower on a busy 2-core machine), whichever BLAS numpy and scipy load
     with _one_blas_thread():
-        return _fit_order(n, tgt, prev, cost)
+        return _fit_wu(f_hz, wmax, n_pairs, cost, band, max_pairs, order_tol_db, n_bins, n_sub)
 
 
-def _wu_result(tgt: _Target, fits: Mapping[int, _OrderFit], orders: Sequence[int],
-               cost: str, order_tol_db: float, n_sub: int) -> WuResult:
-    """The :class:`WuResult` of the orders fitted: the smallest of ``orders`` whose score
-    is within ``order_tol_db`` of the best, checked on the dense grid."""
-    scored = {n: fits[n][3] for n in orders}
+def _fit_wu(f_hz, wmax, n_pairs, cost, band, max_pairs, order_tol_db, n_bins, n_sub
+            ) -> WuResult:
+    tgt = _prepare(f_hz, wmax, band, n_bins, n_sub)
+    orders = [n_pairs] if n_pairs is not None else list(range(max_pairs + 1))
+    fits: dict[int, tuple[np.ndarray, float, bool]] = {}
+    score: dict[int, float] = {}
+    prev = None
+    for n in range(max(orders) + 1):
+        if cost == "envelope":
+            th, dc, ok = _fit_order_envelope(n, tgt, prev)
+            prev = th
+            g, _ = _Sections(2 * np.pi * tgt.f, n).value_jac(th, jac=False)
+            score[n] = float(tgt.w_log @ (dc + g - tgt.wdb))
+        else:
+            th, dc, ok, rms = _fit_order_paper(n, tgt, prev)
+            prev = th
+            score[n] = rms
+        fits[n] = (th, dc, ok)
+    scored = {n: score[n] for n in orders}
     best = min(scored.values())
     chosen = min(n for n, v in scored.items() if v <= best + order_tol_db)
-    th, dc, ok, _ = fits[chosen]
+    th, dc, ok = fits[chosen]
     weight = _theta_to_weight(th, chosen, dc)
     if not (weight.is_stable and weight.is_minimum_phase):  # guaranteed by the bounds
         raise ConvergenceError("Wu fit left the left half plane (internal bound failure)")
@@ -741,50 +710,6 @@ def _wu_result(tgt: _Target, fits: Mapping[int, _OrderFit], orders: Sequence[int
         tightness_median_db=chk.tightness_median_db, tightness_max_db=chk.tightness_max_db,
         mean_gap_db=chk.mean_gap_db, rms_db=float(np.sqrt(np.mean(err ** 2))),
         converged=ok, band_hz=chk.band_hz, orders_tried=scored)
-
-
-def _fit_wu_axes(tasks: Sequence[tuple[np.ndarray, np.ndarray, Mapping]], jobs: int,
-                 executor) -> list[WuResult]:
-    """:func:`fit_wu` of each task ``(f_hz, wmax, options)``, the orders of every axis
-    run as tasks of their own (:class:`armfit.workers.TaskQueue`): an axis's next order
-    starts as soon as its own order below is done, so that the axes' chains share the
-    workers instead of one axis's whole fit waiting behind another's. Every order's
-    result depends only on its arguments: the same weights as :func:`fit_wu`."""
-    results: list[WuResult | None] = [None] * len(tasks)
-    defaults = {"max_pairs": MAX_PAIRS, "order_tol_db": _ORDER_TOL_DB, "n_bins": _N_BINS,
-                "n_sub": _N_SUB}
-    with executor_for(executor, jobs, tasks=len(tasks),
-                      preload=POOL_PRELOAD["uncertainty"]) as pool:
-        queue = TaskQueue(pool, None if pool is None or pool is executor else int(jobs))
-
-        def begin(i: int) -> None:
-            f, wmax, options = tasks[i]
-            o = {**defaults, **options}
-            cost, n_pairs = o.get("cost", "envelope"), o.get("n_pairs")
-            _check_wu_options(n_pairs, cost, o["max_pairs"])
-            tgt = _prepare(f, wmax, o.get("band"), o["n_bins"], o["n_sub"])
-            orders = _orders(n_pairs, o["max_pairs"])
-            fits: dict[int, _OrderFit] = {}
-
-            def then(res: _OrderFit, n: int) -> None:
-                fits[n] = res
-                if n < max(orders):
-                    queue.add(n + 1, _order_task, (n + 1, tgt, res[0], cost),
-                              lambda r: then(r, n + 1))
-                    return
-                results[i] = _wu_result(tgt, fits, orders, cost, o["order_tol_db"],
-                                        o["n_sub"])
-
-            queue.add(0, _order_task, (0, tgt, None, cost), lambda r: then(r, 0))
-
-        # the one-thread limit set from this thread too: OpenBLAS takes it only from the
-        # thread that set its threads (a limit set in a thread pool's thread is ignored,
-        # and the fits there would differ from those in worker processes)
-        with _one_blas_thread():
-            for i in range(len(tasks)):
-                begin(i)
-            queue.run()
-    return results  # type: ignore[return-value]
 
 
 # ---------------------------------------------------------------------------
@@ -896,6 +821,22 @@ class AxisUncertainty:
     n_trials: int
     result: WuResult
     checks: Mapping[tuple[str, str], EnvelopeCheck]
+
+
+def _fit_wu_task(args) -> WuResult:
+    f, target, kw = args
+    return fit_wu(f, target, **kw)
+
+
+def _fit_wu_axes(tasks, jobs: int, executor) -> list[WuResult]:
+    """:func:`fit_wu` of each task ``(f_hz, wmax, options)``, an axis a task, in ``jobs``
+    worker processes or on ``executor``. BLAS is held on one thread from this thread
+    too: a fit handed to a pool of threads would otherwise run with BLAS's threads (its
+    own limit ignored, see :func:`_one_blas_thread`), and differ from the fit in a
+    process."""
+    with _one_blas_thread():
+        return map_tasks(_fit_wu_task, tasks, jobs, preload=POOL_PRELOAD["uncertainty"],
+                         executor=executor)
 
 
 def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None = None,

@@ -354,38 +354,24 @@ def test_read_wu_missing_file(tmp_path):
         read_wu(tmp_path / "nope.csv")
 
 
-# --- the axes' Wu fits, order by order ------------------------------------------------
+# --- the axes' Wu fits on a pool of threads -------------------------------------------
 
 
-def test_the_axes_wu_fits_run_order_by_order_and_give_fit_wus_weights(monkeypatch):
-    # three W_max of known order (Table III's weights, as a fit must recover them) fitted
-    # as fit_weights fits an axis each: every order of every axis a task of its own on a
-    # pool of two threads. The reference is fit_wu of each, its orders one after the
-    # other here. Each axis's whole fit a task of its own, the third axis would start
-    # only once another had ended; order by order, every axis starts before any ends
+def test_the_axes_wu_fits_on_a_pool_of_threads_are_fit_wus():
+    # three W_max of known order (Table III's weights, as a fit must recover them),
+    # fitted as fit_weights fits the axes, on a pool of two threads (an executor such as
+    # a dask worker's or a notebook's). The reference is fit_wu of each here, in this
+    # thread. BLAS is held on one thread for the fits: OpenBLAS ignores a limit set in
+    # a pool's thread, and there its threaded kernels gave another local minimum (order
+    # 4's mean gap 0.0815 dB instead of 0.0776 dB for the X weight)
     from concurrent.futures import ThreadPoolExecutor
 
     from armfit import uncertainty as U
     targets = [np.abs(table3_weight(a).response(F_LOG)) for a in ("x", "y", "z")]
     tasks = [(F_LOG, w, {"cost": "envelope", "band": BAND}) for w in targets]
     expected = [fit_wu(F_LOG, w, band=BAND) for w in targets]
-    started = []
-    real = U._fit_order
-
-    def recorded(n, tgt, prev, cost):
-        started.append((id(tgt), n))       # an axis's orders share its target
-        return real(n, tgt, prev, cost)
-
-    monkeypatch.setattr(U, "_fit_order", recorded)
     with ThreadPoolExecutor(2) as pool:
         got = U._fit_wu_axes(tasks, 2, pool)
-    assert len(started) == 3 * (U.MAX_PAIRS + 1)
-    axes = {a for a, _ in started}
-    first = {a: started.index((a, 0)) for a in axes}
-    last = {a: started.index((a, U.MAX_PAIRS)) for a in axes}
-    assert len(axes) == 3 and max(first.values()) < min(last.values())
-    for axis in {a for a, _ in started}:   # each axis's orders in turn, 0 to 5
-        assert [n for a, n in started if a == axis] == list(range(U.MAX_PAIRS + 1))
     for a, b in zip(got, expected, strict=True):
         assert (a.order, a.orders_tried, a.converged) == (b.order, b.orders_tried,
                                                          b.converged)

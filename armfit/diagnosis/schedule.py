@@ -1,6 +1,5 @@
 """Where the diagnosis's tasks run: each task's result handed to a continuation as soon as
-it arrives (:class:`armfit.workers.TaskQueue`), so that an axis's next fits start while
-other axes are still busy.
+it arrives, so that an axis's next fits start while other axes are still busy.
 
 The stepwise search is a chain of tasks per axis (base fit, screening fits, joint fits on
 all trials, the next step's screening, ...). Run step by step over all axes at once, every
@@ -12,13 +11,120 @@ so the results are the same whatever order the tasks run in, and on any executor
 from __future__ import annotations
 
 import contextlib
+import heapq
+import itertools
 import threading
-from collections.abc import Iterator
-from concurrent.futures import Executor
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
 
-from armfit.workers import POOL_PRELOAD, TaskQueue, executor_for
+from armfit.workers import POOL_PRELOAD, executor_for
 
 __all__ = ["TaskQueue", "task_queue"]
+
+
+class TaskQueue:
+    """Tasks ``fn(args)`` with continuations, run on ``pool`` (an executor; None: here,
+    one after the other).
+
+    :meth:`add` queues a task with its priority (lower first; ties in the order added)
+    and the continuation ``then(result)``, called in this thread; :meth:`run` runs until
+    no task is left, continuations adding tasks as they go. At most ``capacity`` tasks
+    are handed to the pool at once (the rest wait here, so that a task added later with
+    a higher priority goes first; None: every task as soon as it is ready, for an
+    executor that queues tasks itself). While the thread ``starting`` runs (it starts
+    the pool's workers), the ready tasks run here instead, one at a time, so that this
+    process works while the workers start; once they are up, that thread hands the
+    ready tasks to the pool (:meth:`hand_over`) without waiting for the task running
+    here to end. The first error of a task (or continuation) is raised after the tasks
+    not yet started are cancelled.
+    """
+
+    def __init__(self, pool: Executor | None = None, capacity: int | None = None,
+                 starting: threading.Thread | None = None):
+        self.pool = pool
+        self.capacity = capacity
+        self.starting = starting
+        self._ready: list = []
+        self._running: dict[Future, tuple[int, Callable]] = {}
+        self._order = itertools.count()
+        # the queue is changed by this thread and, once, by the thread ``starting``
+        self._lock = threading.Lock()
+
+    def add(self, priority: tuple | int, fn: Callable, args, then: Callable) -> None:
+        """Queue ``fn(args)``; ``then(result)`` is called with its result."""
+        with self._lock:
+            heapq.heappush(self._ready, (priority, next(self._order), fn, args, then))
+
+    def hand_over(self) -> None:
+        """Hand the ready tasks to the pool, up to ``capacity`` running: called by the
+        thread ``starting`` once the workers are up, while a task may still be running
+        here (its continuation, and those of the tasks handed over, are called by
+        :meth:`run` in its own thread, as always). A task the pool refuses stays ready:
+        :meth:`run` submits it again and raises the pool's error."""
+        with self._lock:
+            self._submit()
+
+    def start_ready(self) -> None:
+        """Hand the ready tasks to the pool now, up to ``capacity`` running, so that they
+        run while the caller prepares more (tasks added before :meth:`run`). Nothing
+        without a pool, or while the thread ``starting`` starts it (it hands them over
+        itself once the workers are up)."""
+        if self.pool is None or (self.starting is not None and self.starting.is_alive()):
+            return
+        with self._lock:
+            self._submit()
+
+    def _submit(self) -> None:
+        """Submit ready tasks, up to ``capacity`` running (the lock held)."""
+        while self._ready and (self.capacity is None or len(self._running) < self.capacity):
+            item = heapq.heappop(self._ready)
+            try:
+                fut = self.pool.submit(item[2], item[3])
+            except BaseException:
+                heapq.heappush(self._ready, item)
+                raise
+            self._running[fut] = (item[1], item[4])
+
+    def run(self) -> None:
+        """Run every queued task and those their continuations add."""
+        try:
+            while True:
+                with self._lock:
+                    if not (self._ready or self._running):
+                        return
+                    here = self.pool is None or (self._ready and self.starting is not None
+                                                 and self.starting.is_alive())
+                    if here:
+                        _, _, fn, args, then = heapq.heappop(self._ready)
+                    else:
+                        self._submit()
+                        running = list(self._running)
+                if here:
+                    then(fn(args))
+                    continue
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                with self._lock:
+                    ended = [(self._running.pop(f)[1], f) for f in
+                             sorted(done, key=lambda f: self._running[f][0])]
+                for then, fut in ended:
+                    then(fut.result())
+        except BaseException:
+            with self._lock:
+                for fut in self._running:
+                    fut.cancel()
+                self._running.clear()
+                self._ready.clear()
+            raise
+
+    def map(self, fn: Callable, items: Iterable, priority: tuple | int = 0) -> list:
+        """``[fn(a) for a in items]``, the tasks run as :meth:`run` runs them (with any
+        already queued)."""
+        items = list(items)
+        out: list = [None] * len(items)
+        for i, a in enumerate(items):
+            self.add(priority, fn, a, lambda r, i=i: out.__setitem__(i, r))
+        self.run()
+        return out
 
 
 def _start(pool: Executor, queue: TaskQueue) -> None:
