@@ -2375,19 +2375,16 @@ def _arrow_spectra(table, meta: Mapping, source: str | None) -> Spectra | None:
     starts = pa.array(np.flatnonzero(change))
     keys = {c: cols[c].take(starts).to_pylist() for c in (*SPECTRA_KEYS, "n")}
     keys["grip_N"] = [np.nan if v is None or v != v else float(v) for v in keys["grip_N"]]
-    ident = {tuple(None if c == "grip_N" and v != v else v for c, v in zip(SPECTRA_KEYS, k,
-                                                                          strict=True))
-             for k in zip(*(keys[c] for c in SPECTRA_KEYS), strict=True)}
-    if len(ident) != len(starts):    # a response in two places: from_frame groups them
-        return None
     enc = cols["flags"].dictionary_encode()
     try:
-        return _assemble(np.cumsum(change) - 1, freq,
-                         lambda c: cols[c].to_numpy(zero_copy_only=False),
-                         enc.indices.fill_null(-1).to_numpy(zero_copy_only=False),
-                         enc.dictionary.to_pylist(), keys, meta, source)
+        sp = _assemble(np.cumsum(change) - 1, freq,
+                       lambda c: cols[c].to_numpy(zero_copy_only=False),
+                       enc.indices.fill_null(-1).to_numpy(zero_copy_only=False),
+                       enc.dictionary.to_pylist(), keys, meta, source)
     except BadInputError:            # a frequency twice in a response: from_frame says so
         return None
+    # a response in two places, which from_frame groups into one
+    return sp if len(_response_keys(sp)) == len(sp) else None
 
 
 def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.ndarray],
