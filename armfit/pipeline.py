@@ -105,7 +105,7 @@ from armfit.memory import release_memory
 from armfit.models.params import ParamRows, read_param_rows
 from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimator_summary
-from armfit.workers import RUN_FIGURES_PRELOAD, cancel_pools, executor_for
+from armfit.workers import RUN_FIGURES_PRELOAD, cancel_pools, executor_for, giving_way
 
 #: The levels of spectra.parquet a run keeps (its trial rows are read where they are
 #: used).
@@ -429,10 +429,13 @@ class _Drawings:
 @dataclass(frozen=True)
 class _Workers:
     """Where the stages' work runs: ``executor`` runs their tasks (None: here, in turn),
-    ``drawings`` draws the figures, and ``stack`` stops the background work still running
+    ``later`` those no stage waits for soon (the per-trial fits; on the run's own pool
+    they give way to the others: :func:`armfit.workers.giving_way`), ``drawings`` draws
+    the figures (giving way too), and ``stack`` stops the background work still running
     when the run ends (:meth:`Background.stop`)."""
 
     executor: Executor | None
+    later: Executor | None
     drawings: _Drawings
     stack: contextlib.ExitStack
 
@@ -739,8 +742,9 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                      adoption: Adoption) -> UncertaintyFit:
     """W_max and Wu (Table III) of the adopted nominal, apparatus effects removed: wu.csv,
     wu_summary.csv, wu_wmax.csv, wu.tex, from the derived trial rows of spectra.parquet
-    (read here, let go after). The per-trial fits start first and run meanwhile in the
-    worker processes."""
+    (read here, let go after). The per-trial fits start first and run in the worker
+    processes whenever the Wu fits leave one free (they give way: the stability stage
+    needs both, and the Wu fits are the longer chain)."""
     o = config.options
     # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
     grip = models.grip
@@ -752,7 +756,7 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                                config.path("spectra.parquet"), cost=o.cost,
                                jobs=o.jobs, source="spectra.parquet", starts=starts,
                                bands=models.bands, effects=_effects_of(adoption),
-                               executor=workers.executor, **per_subject)
+                               executor=workers.later, **per_subject)
     wu_path = config.path("wu.csv")
     derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived")
     unc = api.fit_uncertainty(derived, models.nominal, cost=o.wu_cost, jobs=o.jobs,
@@ -1037,7 +1041,8 @@ def _run_in(inputs: list, folder: Path, options: RunOptions, *,
     with executor_for(executor, options.jobs, preload=preload) as pool, \
             contextlib.ExitStack() as stack:
         own = pool is not None and pool is not executor
-        workers = _Workers(pool, _Drawings(pool if own else None), stack)
+        later = giving_way(pool)
+        workers = _Workers(pool, later, _Drawings(later if own else None), stack)
         try:
             return _stages(config, workers, _Clock(on_stage))
         except BaseException:

@@ -21,6 +21,8 @@ same, bit for bit, whatever runs them.
 
 :func:`executor_for` turns "executor or jobs" into something with ``map`` and
 ``submit``; :func:`iter_tasks` and :func:`map_tasks` run a list of tasks on it.
+:func:`giving_way` gives a pool's tasks that may wait a place behind the others: on a
+pool of :func:`process_pool` they reach the workers only while one is free.
 
 Start method. armfit's pools start their workers with the ``forkserver`` method where
 Python offers it, except on macOS, and with ``spawn`` elsewhere (macOS, Windows): one
@@ -68,7 +70,9 @@ any pool whose workers do not fork the script's process.
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import itertools
 import multiprocessing
 import os
 import signal
@@ -76,12 +80,13 @@ import sys
 import threading
 import weakref
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import CancelledError, Executor, Future, ProcessPoolExecutor
 from concurrent.futures import wait as _wait_futures
 from concurrent.futures.process import BrokenProcessPool
 
 __all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "RUN_FIGURES_PRELOAD", "cancel_pools",
-           "child_environment", "executor_for", "ignore_sigint", "iter_tasks", "map_tasks",
+           "child_environment", "executor_for", "giving_way", "ignore_sigint", "iter_tasks",
+           "map_tasks",
            "preload_own_only", "read_ahead", "process_pool", "start_fork_server",
            "start_method", "stop_workers", "worker_start", "tune_allocator",
            "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
@@ -304,6 +309,11 @@ class _Pool(ProcessPoolExecutor):
     those not done fail at once (:meth:`_armfit_stopped`), whatever the pool's own thread
     makes of the killed workers (a worker killed while it sent a result leaves that
     thread waiting for the rest of it), and :meth:`shutdown` no longer waits.
+
+    Tasks that give way (:func:`giving_way`) wait in the pool's own queue and are handed
+    to the workers only while fewer tasks than workers are unfinished; every task's end
+    hands over the next. A task submitted to the pool itself is handed over at once, so
+    it runs before every task still waiting there.
     """
 
     def __init__(self, jobs: int, mp_context) -> None:
@@ -315,15 +325,82 @@ class _Pool(ProcessPoolExecutor):
         self._armfit_started = False
         self._armfit_killed = False
         self._armfit_futures: weakref.WeakSet = weakref.WeakSet()
+        # the tasks that give way: (future, fn, args, kwargs) waiting, in order; the
+        # tasks handed to the workers and not done; no task added once shutting down
+        self._armfit_queue = threading.Lock()
+        self._armfit_waiting: collections.deque = collections.deque()
+        self._armfit_unfinished = 0
+        self._armfit_closing = False
 
     def submit(self, fn, /, *args, **kwargs):
-        if not self._armfit_started:
-            self._armfit_start()
+        with self._armfit_queue:
+            self._armfit_unfinished += 1
+        return self._armfit_hand(fn, args, kwargs)
+
+    def _armfit_hand(self, fn, args, kwargs):
+        """Hand ``fn(*args, **kwargs)`` to the workers, counted as unfinished already."""
+        try:
+            if not self._armfit_started:
+                self._armfit_start()
+            if self._armfit_killed:
+                raise BrokenProcessPool("the worker processes were stopped")
+            fut = super().submit(fn, *args, **kwargs)
+        except BaseException:
+            with self._armfit_queue:
+                self._armfit_unfinished -= 1
+            raise
+        self._armfit_futures.add(fut)
+        fut.add_done_callback(self._armfit_done)
+        return fut
+
+    def _armfit_done(self, fut) -> None:
+        """A task handed to the workers has ended (or was cancelled): its place goes to
+        the next task that gives way."""
+        with self._armfit_queue:
+            self._armfit_unfinished -= 1
+        self._armfit_feed()
+
+    def _armfit_submit_later(self, fn, args, kwargs) -> Future:
+        """Queue ``fn(*args, **kwargs)`` as a task that gives way; its future."""
         if self._armfit_killed:
             raise BrokenProcessPool("the worker processes were stopped")
-        fut = super().submit(fn, *args, **kwargs)
-        self._armfit_futures.add(fut)
-        return fut
+        proxy: Future = Future()
+        with self._armfit_queue:
+            if self._armfit_closing:
+                raise RuntimeError("cannot schedule new futures after shutdown")
+            self._armfit_waiting.append((proxy, fn, args, kwargs))
+        self._armfit_feed()
+        return proxy
+
+    def _armfit_feed(self, every: bool = False) -> None:
+        """Hand the waiting tasks to the workers while fewer than ``jobs`` are unfinished
+        (``every``: all of them); a cancelled one is dropped, one the pool refuses fails."""
+        while True:
+            with self._armfit_queue:
+                if not self._armfit_waiting or (
+                        not every and self._armfit_unfinished >= self._armfit_jobs):
+                    return
+                proxy, fn, args, kwargs = self._armfit_waiting.popleft()
+                if not proxy.set_running_or_notify_cancel():
+                    continue
+                self._armfit_unfinished += 1
+            try:
+                fut = self._armfit_hand(fn, args, kwargs)
+            except BaseException as exc:
+                proxy.set_exception(exc)
+                continue
+            fut.add_done_callback(lambda f, proxy=proxy: _settle(proxy, f))
+
+    def _armfit_drop_waiting(self, exc: BaseException | None) -> None:
+        """Cancel the tasks still waiting (``exc`` None), or fail them with ``exc``."""
+        with self._armfit_queue:
+            waiting = list(self._armfit_waiting)
+            self._armfit_waiting.clear()
+        for proxy, *_ in waiting:
+            if exc is None:
+                proxy.cancel()
+            elif proxy.set_running_or_notify_cancel():
+                proxy.set_exception(exc)
 
     def _armfit_stopped(self, grace: float = 1.0) -> None:
         """Its workers were killed: every task not done fails (BrokenProcessPool). The
@@ -331,6 +408,7 @@ class _Pool(ProcessPoolExecutor):
         not failed within ``grace`` seconds (it waits for the rest of a result) fail
         here."""
         self._armfit_killed = True
+        self._armfit_drop_waiting(BrokenProcessPool("the worker processes were stopped"))
         for _ in range(3):  # another thread may add a task meanwhile
             try:
                 futures = list(self._armfit_futures)
@@ -382,12 +460,91 @@ class _Pool(ProcessPoolExecutor):
         One call at a time: the thread that made the pool and :func:`cancel_pools` (a
         failing run stopping a stage in the background) may shut it down together, and
         two concurrent shutdowns of a ProcessPoolExecutor close its queues twice (EBADF).
-        The second call finds the pool shut down and returns."""
+        The second call finds the pool shut down and returns.
+
+        The tasks that give way and still wait are cancelled with ``cancel_futures``,
+        else handed to the workers now, to run before the pool ends."""
         with _OPEN_LOCK:
             _OPEN.pop(self, None)
+        with self._armfit_queue:
+            self._armfit_closing = True
+        if cancel_futures or self._armfit_killed:
+            self._armfit_drop_waiting(None)
+        else:
+            self._armfit_feed(every=True)
         with self._armfit_shutting:
             super().shutdown(wait=wait and not self._armfit_killed,
                              cancel_futures=cancel_futures)
+
+
+def _settle(proxy: Future, fut: Future) -> None:
+    """Give ``proxy`` (a task that gave way) the outcome of ``fut``, the task the workers
+    ran for it."""
+    if fut.cancelled():
+        proxy.set_exception(CancelledError())
+    elif fut.exception() is not None:
+        proxy.set_exception(fut.exception())
+    else:
+        proxy.set_result(fut.result())
+
+
+def _run_chunk(fn: Callable, chunk: Sequence[tuple]) -> list:
+    """Worker: ``[fn(*args) for args in chunk]`` (one task of :class:`_GivingWay.map`)."""
+    return [fn(*args) for args in chunk]
+
+
+def _flatten(results: Iterator[list]) -> Iterator:
+    """The items of each list of ``results`` in turn; closing it closes ``results``."""
+    try:
+        for chunk in results:
+            yield from chunk
+    finally:
+        results.close()
+
+
+class _GivingWay(Executor):
+    """The tasks of a pool of :func:`process_pool` that give way (:func:`giving_way`)."""
+
+    def __init__(self, pool: _Pool):
+        self.pool = pool
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        return self.pool._armfit_submit_later(fn, args, kwargs)
+
+    def map(self, fn, *iterables, timeout=None, chunksize=1):
+        """As :meth:`ProcessPoolExecutor.map`: ``chunksize`` calls per task."""
+        if chunksize < 1:
+            raise ValueError("chunksize must be >= 1.")
+        pairs = zip(*iterables, strict=False)   # as map: to the shortest
+        chunks = iter(lambda: tuple(itertools.islice(pairs, chunksize)), ())
+        results = super().map(_run_chunk, itertools.repeat(fn), chunks, timeout=timeout)
+        return _flatten(results)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        """Nothing: the pool belongs to its maker, who shuts it down."""
+
+
+def giving_way(executor: Executor | None) -> Executor | None:
+    """An executor for tasks that may wait while others run first.
+
+    Parameters
+    ----------
+    executor : concurrent.futures.Executor or None
+        The executor the tasks run on.
+
+    Returns
+    -------
+    concurrent.futures.Executor or None
+        For a pool of :func:`process_pool`: an executor of the same workers whose tasks
+        wait in the pool's queue and are handed to the workers only while fewer tasks
+        than workers are unfinished, so every task submitted to the pool itself meanwhile
+        runs first (``armfit run`` gives the per-trial fits and the figures this place,
+        behind the fits that the next stages wait for); the tasks that give way run in the
+        order submitted, and a pool shut down without ``cancel_futures`` runs those still
+        waiting first. Any other executor, or None, is returned as it is. Where a task
+        runs never changes its result.
+    """
+    return _GivingWay(executor) if isinstance(executor, _Pool) else executor
 
 
 def _set_preload(ctx, preload: Sequence[str]) -> None:

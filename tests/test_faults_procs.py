@@ -415,8 +415,9 @@ def test_a_temporary_made_just_as_the_signal_came_is_removed(tmp_path):
 #: A task whose worker dies in the middle of sending its result: the header of a
 #: 1000-byte message and 10 bytes of it reach the result pipe, then the worker ends. The
 #: pool's thread then waits forever for the other 990 bytes (the main process holds the
-#: pipe's write end too). stop_workers must fail the task at once and let the pool be
-#: shut down.
+#: pipe's write end too). stop_workers must fail the task at once, and the task still
+#: waiting behind it (one that gives way: workers.giving_way), and let the pool be shut
+#: down.
 PARTIAL_RESULT = textwrap.dedent("""
     import gc, os, struct
     from multiprocessing.queues import SimpleQueue
@@ -435,6 +436,7 @@ STUCK_POOL = textwrap.dedent("""
 
     pool = workers.process_pool(1)
     fut = pool.submit(partial_result, 0)
+    later = workers.giving_way(pool).submit(abs, -1)
     try:
         fut.exception(timeout=2)
         print("the task ended by itself", flush=True)
@@ -443,7 +445,7 @@ STUCK_POOL = textwrap.dedent("""
         pass                                         # the pool's thread is stuck
     workers.stop_workers()
     try:
-        exc = type(fut.exception(timeout=5)).__name__
+        exc = " ".join(type(f.exception(timeout=5)).__name__ for f in (fut, later))
     except TimeoutError:
         exc = "still pending"
     done = threading.Thread(target=pool.shutdown, kwargs={"cancel_futures": True},
@@ -459,7 +461,7 @@ def test_a_worker_that_died_while_sending_its_result_fails_its_task(tmp_path):
     (tmp_path / "partial_result.py").write_text(PARTIAL_RESULT)
     res = subprocess.run([sys.executable, "-c", STUCK_POOL, str(tmp_path)],
                          capture_output=True, text=True, timeout=120)
-    assert res.stdout == "BrokenProcessPool shut down\n", res.stderr
+    assert res.stdout == "BrokenProcessPool BrokenProcessPool shut down\n", res.stderr
 
 
 @needs_proc

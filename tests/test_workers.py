@@ -468,3 +468,149 @@ def test_read_ahead_of_one_item_runs_here():
     assert list(workers.read_ahead(lambda i: (i, threading.current_thread().name), [7])) == [
         (7, here)]
     assert list(workers.read_ahead(_square, [])) == []
+
+
+# ---------------------------------------------------------------------------
+# giving_way: tasks that wait while the pool's other tasks run first
+# ---------------------------------------------------------------------------
+
+
+def _logged(args) -> str:
+    """Worker: wait until the file ``gate`` exists (if given), then append ``name`` to
+    ``log`` (the order the tasks ran in, one worker running them one at a time)."""
+    import os
+    import time
+    log, name, gate = args
+    while gate is not None and not os.path.exists(gate):
+        time.sleep(0.01)
+    with open(log, "a") as f:
+        f.write(name + "\n")
+    return name
+
+
+def _ran(log: Path) -> list[str]:
+    return log.read_text().split()
+
+
+def _wait_until(cond, timeout: float = 30.0) -> bool:
+    end = threading.Event()
+    for _ in range(int(timeout / 0.01)):
+        if cond():
+            return True
+        end.wait(0.01)
+    return False
+
+
+def test_tasks_that_give_way_run_after_those_submitted_to_the_pool_later(tmp_path):
+    # the rule of workers.giving_way: with the one worker busy, the tasks that give way
+    # wait; a task submitted to the pool itself after them runs first, then they run in
+    # the order they were submitted
+    log, gate = tmp_path / "log", tmp_path / "gate"
+    pool = workers.process_pool(1)
+    later = workers.giving_way(pool)
+    try:
+        busy = pool.submit(_logged, (log, "busy", gate))
+        a = later.submit(_logged, (log, "a", None))
+        b = later.submit(_logged, (log, "b", None))
+        now = pool.submit(_logged, (log, "now", None))
+        assert not (a.running() or b.running())      # still in the pool's own queue
+        gate.touch()
+        assert [f.result(timeout=60) for f in (busy, a, b, now)] == ["busy", "a", "b", "now"]
+    finally:
+        pool.shutdown()
+    assert _ran(log) == ["busy", "now", "a", "b"]
+
+
+def test_tasks_that_give_way_fill_idle_workers_at_once(tmp_path):
+    # nothing else to run: both workers take a task that gives way, without waiting for
+    # anything (the second task's gate opens only when the first has started)
+    log = tmp_path / "log"
+    pool = workers.process_pool(2)
+    later = workers.giving_way(pool)
+    try:
+        first = later.submit(_logged, (log, "first", tmp_path / "second-started"))
+        second = later.submit(_logged, (log, "second", None))
+        assert second.result(timeout=60) == "second"
+        (tmp_path / "second-started").touch()
+        assert first.result(timeout=60) == "first"
+    finally:
+        pool.shutdown()
+    assert _ran(log) == ["second", "first"]
+
+
+@pytest.mark.parametrize("chunksize", [1, 3])
+def test_map_of_tasks_that_give_way_is_map(chunksize):
+    # the values of the builtin map, in order, whatever the chunks
+    pool = workers.process_pool(2)
+    try:
+        later = workers.giving_way(pool)
+        assert list(later.map(_square, range(10), chunksize=chunksize)) == [
+            x * x for x in range(10)]
+        assert workers.map_tasks(_square, range(7), chunksize=chunksize,
+                                 executor=later) == [x * x for x in range(7)]
+        with pytest.raises(ValueError, match="chunksize"):
+            later.map(_square, range(3), chunksize=0)
+    finally:
+        pool.shutdown()
+
+
+def test_a_task_that_gives_way_raises_its_error_in_the_caller():
+    pool = workers.process_pool(1)
+    try:
+        fut = workers.giving_way(pool).submit(int, "not a number")
+        with pytest.raises(ValueError, match="not a number"):
+            fut.result(timeout=60)
+    finally:
+        pool.shutdown()
+
+
+def test_a_pool_shut_down_runs_the_tasks_still_waiting(tmp_path):
+    # shutdown without cancel_futures hands the waiting task to the workers while the
+    # busy one still runs (the waiting task shows as running before the gate opens)
+    log, gate = tmp_path / "log", tmp_path / "gate"
+    pool = workers.process_pool(1)
+    busy = pool.submit(_logged, (log, "busy", gate))
+    waiting = workers.giving_way(pool).submit(_logged, (log, "waiting", None))
+    stopper = threading.Thread(target=pool.shutdown)
+    stopper.start()
+    assert _wait_until(waiting.running)
+    gate.touch()
+    stopper.join(60)
+    assert busy.result() == "busy" and waiting.result() == "waiting"
+    assert _ran(log) == ["busy", "waiting"]
+    with pytest.raises(RuntimeError, match="after shutdown"):
+        workers.giving_way(pool).submit(_square, 2)
+
+
+def test_a_pool_shut_down_with_cancel_futures_cancels_the_tasks_still_waiting(tmp_path):
+    log, gate = tmp_path / "log", tmp_path / "gate"
+    pool = workers.process_pool(1)
+    busy = pool.submit(_logged, (log, "busy", gate))
+    waiting = workers.giving_way(pool).submit(_logged, (log, "waiting", None))
+    assert _wait_until(busy.running)    # handed to the worker (else shutdown cancels it)
+    threading.Timer(0.5, gate.touch).start()
+    pool.shutdown(wait=True, cancel_futures=True)
+    assert busy.result() == "busy" and waiting.cancelled()
+    assert _ran(log) == ["busy"]
+
+
+def test_a_task_that_gives_way_cancelled_while_waiting_never_runs(tmp_path):
+    log, gate = tmp_path / "log", tmp_path / "gate"
+    pool = workers.process_pool(1)
+    later = workers.giving_way(pool)
+    try:
+        busy = pool.submit(_logged, (log, "busy", gate))
+        dropped = later.submit(_logged, (log, "dropped", None))
+        kept = later.submit(_logged, (log, "kept", None))
+        assert dropped.cancel()
+        gate.touch()
+        assert busy.result(timeout=60) == "busy" and kept.result(timeout=60) == "kept"
+    finally:
+        pool.shutdown()
+    assert _ran(log) == ["busy", "kept"]
+
+
+def test_giving_way_leaves_other_executors_as_they_are():
+    assert workers.giving_way(None) is None
+    with ThreadPoolExecutor(max_workers=1) as given:
+        assert workers.giving_way(given) is given
