@@ -14,8 +14,11 @@ run alternately with
   against the floor on those files. Target: run / floor <= 3.
 - `--jobs 2` against `--jobs 1` for both commands (target: never slower, <= 1.0).
 
-Best of --repeat rounds each; the load average is printed at the start and the end (a
-shared machine inflates and scatters the times: compare the ratios).
+The commands are run in rounds, one of each per round in turn, --repeat rounds. Each
+ratio is taken within a round (the two commands saw the same load) and the median of
+the rounds' ratios is the figure; the best time of each command is printed beside it.
+The load average is printed at the start and the end (a shared machine inflates and
+scatters the times: compare the ratios).
 
     .venv/bin/python benchmarks/bench_floor.py [--repeat 3] [--scale] [--figures]
 """
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -62,13 +66,20 @@ def wall(cmd: list[str]) -> float:
     return time.perf_counter() - t0
 
 
-def best_of(commands: dict[str, list[str]], repeat: int) -> dict[str, float]:
-    """Best wall time of each command, the commands alternated ``repeat`` times."""
-    best = dict.fromkeys(commands, float("inf"))
-    for _ in range(repeat):
-        for name, cmd in commands.items():
-            best[name] = min(best[name], wall(cmd))
-    return best
+class Rounds:
+    """Wall times of commands run in rounds, one of each per round in turn."""
+
+    def __init__(self, commands: dict[str, list[str]], repeat: int):
+        self.times = [{name: wall(cmd) for name, cmd in commands.items()}
+                      for _ in range(repeat)]
+
+    def best(self, name: str) -> float:
+        """The command's best time (s)."""
+        return min(t[name] for t in self.times)
+
+    def ratio(self, a: str, b: str) -> float:
+        """The median over the rounds of time(a) / time(b) within each round."""
+        return statistics.median(t[a] / t[b] for t in self.times)
 
 
 def floor_cmd(target: Path) -> list[str]:
@@ -78,11 +89,11 @@ def floor_cmd(target: Path) -> list[str]:
 def estimate_rows(data: Path, tmp: Path, repeat: int, label: str) -> None:
     out = tmp / "spectra.parquet"
     est = [ARMFIT, "-q", "estimate", str(data), "-o", str(out), "--overwrite"]
-    t = best_of({"floor": floor_cmd(data), "j1": [*est, "--jobs", "1"],
-                 "j2": [*est, "--jobs", "2"]}, repeat)
-    print(f"{label}: floor {t['floor']:6.2f} s | estimate -j1 {t['j1']:6.2f} s "
-          f"({t['j1'] / t['floor']:.2f} x floor; target <= 1.3) | -j2 {t['j2']:6.2f} s "
-          f"({t['j2'] / t['j1']:.2f} x -j1; target <= 1.0)")
+    t = Rounds({"floor": floor_cmd(data), "j1": [*est, "--jobs", "1"],
+                "j2": [*est, "--jobs", "2"]}, repeat)
+    print(f"{label}: floor {t.best('floor'):6.2f} s | estimate -j1 {t.best('j1'):6.2f} s "
+          f"({t.ratio('j1', 'floor'):.2f} x floor; target <= 1.3) | -j2 "
+          f"{t.best('j2'):6.2f} s ({t.ratio('j2', 'j1'):.2f} x -j1; target <= 1.0)")
 
 
 def run_rows(tmp: Path, repeat: int, figures: bool) -> None:
@@ -95,11 +106,11 @@ def run_rows(tmp: Path, repeat: int, figures: bool) -> None:
         cmds[f"j{jobs}"] = [ARMFIT, "-q", "run", str(study), "-o", str(tmp / f"out{jobs}"),
                             "--jobs", str(jobs), "--overwrite",
                             *([] if figures else ["--no-figures"])]
-    t = best_of(cmds, repeat)
+    t = Rounds(cmds, repeat)
     what = "run" + ("" if figures else " --no-figures")
-    print(f"{what} ({n} raw trials): floor {t['floor']:6.2f} s | -j2 {t['j2']:6.2f} s "
-          f"({t['j2'] / t['floor']:.2f} x floor; target <= 3) | -j1 {t['j1']:6.2f} s "
-          f"(-j2 / -j1 {t['j2'] / t['j1']:.2f}; target <= 1.0)")
+    print(f"{what} ({n} raw trials): floor {t.best('floor'):6.2f} s | -j2 "
+          f"{t.best('j2'):6.2f} s ({t.ratio('j2', 'floor'):.2f} x floor; target <= 3) | "
+          f"-j1 {t.best('j1'):6.2f} s (-j2 / -j1 {t.ratio('j2', 'j1'):.2f}; target <= 1.0)")
 
 
 def main() -> None:
