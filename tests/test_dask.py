@@ -59,6 +59,32 @@ def test_diagnose_on_dask_is_the_same(serial_spectra, executor):
     assert on_dask == here
 
 
+def test_wu_fits_on_dask_are_the_same(executor):
+    """The axes' Wu fits (fit_weights hands them to the executor, an axis a task) run in
+    the workers' threads: each equals fit_wu here, as on armfit's own pools. Table
+    III's weights are the targets: fitted with BLAS's threaded kernels, order 4 of the
+    X weight reaches another local minimum (armfit.uncertainty._one_blas_thread). A
+    dask worker started by its nanny (``dask worker``, a LocalCluster of processes) has
+    one BLAS thread from its environment (dask's ``distributed.nanny.pre-spawn-environ``),
+    whatever the thread that runs the task sets."""
+    from importlib import resources
+
+    import numpy as np
+
+    from armfit import uncertainty as U
+    with resources.as_file(resources.files("armfit.data")
+                           .joinpath("table3_uncertainty_weights.csv")) as path:
+        table3 = U.read_wu(path)
+    f = np.logspace(-2, np.log10(30.0), 140)
+    targets = [np.abs(table3[a].response(f)) for a in ("x", "y", "z")]
+    tasks = [(f, w, {"cost": "envelope", "band": (0.01, 30.0)}) for w in targets]
+    got = U._fit_wu_axes(tasks, 2, executor)
+    for a, w in zip(got, targets, strict=True):
+        b = U.fit_wu(f, w, band=(0.01, 30.0))
+        assert (a.order, a.orders_tried, a.gain) == (b.order, b.orders_tried, b.gain)
+        assert np.array_equal(a.zeros, b.zeros) and np.array_equal(a.poles, b.poles)
+
+
 def test_run_on_dask_writes_the_same_files(small_study, executor, tmp_path):
     """Every stage's tasks on the cluster (the diagnosis in this process, jobs=1):
     every file the same bytes as the run in this process (two folders of one name: the
