@@ -862,9 +862,10 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
     drawn = api.Stability(table=table, settings=settings, models=rows.table,
                           outside_loop=tuple(loop))
     if config.options.figures and trials.sweeps:
-        # drawn in the worker pool as soon as it has the sweeps
+        # drawn in the worker pool as soon as it has the sweeps, ahead of the figures
+        # still waiting (they give way): the run's last dependency, and a long drawing
         figure = STABILITY_FIGURE
-        task = workers.start(_draw_when_swept, workers.drawings.pool, trials.sweeps,
+        task = workers.start(_draw_when_swept, workers.executor, trials.sweeps,
                              ("stability_figure", (drawn,), {}, config.folder / figure))
     elif config.options.figures:
         # listed after the paper's and the residual figures (see _report)
@@ -946,8 +947,8 @@ def _residuals(config: RunConfig, workers: _Workers, spectra: Spectra, models: M
 def _draw_when_swept(pool: Executor, sweeps: Mapping[str, Future], task: tuple) -> None:
     """In a thread of the run: wait for the stability figure's sweeps, then have the
     worker pool draw the figure ``task`` (:func:`_draw_task`) from them, and wait for it.
-    Sent as soon as the sweeps are done, the drawing queues ahead of the figures sent
-    after that."""
+    Sent to the pool itself as soon as the sweeps are done, the drawing runs ahead of the
+    figures that still wait (:attr:`_Workers.later`)."""
     fn, args, kwargs, path = task
     done = {axis: fut.result() for axis, fut in sweeps.items()}
     pool.submit(_draw_task, (fn, args, {**kwargs, "sweeps": done}, path)).result()
