@@ -474,13 +474,21 @@ class Ingested(StageResult):
 
 @dataclass(frozen=True)
 class Estimated(StageResult):
-    """estimate: the trials estimated, the aggregates of spectra.parquet as read back
-    (levels mean and median: the trial rows stay in the file, read by the stages that
-    use them), and every trial left out (ingest's, then the estimate's)."""
+    """estimate: the trials estimated, the aggregates of spectra.parquet (levels mean and
+    median, the rows the file holds: the trial rows stay in the file, read by the stages
+    that use them), every trial left out (ingest's, then the estimate's), and the file
+    being written (a future: :meth:`written` waits for it)."""
 
     n_trials: int
     spectra: Spectra
     skipped: tuple[tuple[str, str], ...]
+    writing: Background[None]
+
+    def written(self) -> None:
+        """Wait until spectra.parquet is written (its error if the write failed); the
+        estimate's trial responses are let go then."""
+        self.writing.result()
+        release_memory()
 
 
 @dataclass(frozen=True)
@@ -598,10 +606,12 @@ def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
                     + (f", {len(skipped)} skipped" if skipped else ""))
 
 
-def _estimate(config: RunConfig, ingested: Ingested) -> Estimated:
+def _estimate(config: RunConfig, workers: _Workers, ingested: Ingested) -> Estimated:
     """Wait for the estimate ingest started (from the same inputs, so that a message
-    names the user's files) and write spectra.parquet; later stages read that file back,
-    as the subcommands do."""
+    names the user's files) and write spectra.parquet, in a thread of its own: the grip
+    fits start meanwhile from the aggregates, the rows the file holds
+    (:meth:`StudySpectra.aggregates`). The stages after them read the file's trial rows,
+    as the subcommands do, once it is written (:meth:`Estimated.written`)."""
     est = ingested.estimating.result()
     started = ingested.estimating.started
     if config.warn is not None:     # what the estimators say of the force, per trial
@@ -609,13 +619,12 @@ def _estimate(config: RunConfig, ingested: Ingested) -> Estimated:
             config.warn(line)
     seen = {f for f, _ in ingested.skipped}
     skipped = ingested.skipped + tuple((f, r) for f, r in est.skipped if f not in seen)
-    est.write(config.path("spectra.parquet"))
+    spectra = est.aggregates()
     n_trials = len(est.trials)
-    del est   # the trials' responses are in the file now
-    release_memory()
-    spectra = Spectra.read(config.path("spectra.parquet"), level=AGGREGATES)
+    writing = workers.start(est.write, config.path("spectra.parquet"))
+    del est   # held by the write until the file is written
     c = config.estimate
-    return Estimated(n_trials, spectra, skipped, files=("spectra.parquet",),
+    return Estimated(n_trials, spectra, skipped, writing, files=("spectra.parquet",),
                      started=started,
                      summary=f"{n_trials} trial(s), method {c.method}, "
                              f"{len(c.grid())} frequencies {c.fmin:g}-{c.fmax:g} Hz")
@@ -649,11 +658,13 @@ def _diagnosis(path: Path, spectra: Spectra, grip: api.ModelFit, axes: Sequence[
     return api.Diagnosis(axes_done, spectra, grip)
 
 
-def _fit_grip(config: RunConfig, workers: _Workers, spectra: Spectra) -> GripFits:
-    """Table I of the base model; the diagnosis starts from it at once. It has worker
-    processes of its own: its steps are long, and the stages that wait for their pool
-    tasks should not queue behind them."""
+def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> GripFits:
+    """Table I of the base model; the diagnosis starts from it at once, from
+    spectra.parquet written. It has worker processes of its own: its steps are long, and
+    the stages that wait for their pool tasks should not queue behind them."""
+    spectra = estimated.spectra
     grip = _fit_table("grip", config, workers, spectra)
+    estimated.written()     # every later stage reads the file
     axes = [a for a in AXES if (grip.table["axis"] == a).any()]
     diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), spectra, grip,
                                axes, config.options.jobs)
@@ -1056,9 +1067,9 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
     """Every stage of :data:`STAGES`, in order, each given the results it needs."""
     figures = config.options.figures
     ingested = clock.done("ingest", _ingest(config, workers))
-    estimated = clock.done("estimate", _estimate(config, ingested))
+    estimated = clock.done("estimate", _estimate(config, workers, ingested))
     spectra = estimated.spectra
-    grip = clock.done("fit-grip", _fit_grip(config, workers, spectra))
+    grip = clock.done("fit-grip", _fit_grip(config, workers, estimated))
     nominal = clock.done("fit-nominal", _fit_nominal(config, workers, spectra))
     diagnosed = clock.done("diagnose", _diagnose(config, grip))
     adoption = diagnosed.adoption

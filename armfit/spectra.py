@@ -2745,6 +2745,18 @@ class StudySpectra:
         while chunk := list(itertools.islice(blocks, rows)):
             yield _stack_blocks(chunk, self.meta)
 
+    def aggregates(self) -> Spectra:
+        """The aggregate rows of the spectra file (levels mean and median), with
+        :attr:`meta`, made without the trial rows.
+
+        Returns
+        -------
+        Spectra
+            What ``Spectra.read(path, level=("mean", "median"))`` reads back from the
+            file :meth:`write` writes: the same rows in the same order, bit for bit.
+        """
+        return _stack_blocks(self._aggregates, self.meta)
+
     def write(self, path, *, overwrite: bool = False):
         """Write the spectra file without making the whole :attr:`spectra`.
 

@@ -735,3 +735,21 @@ def test_path_that_fits_but_not_with_its_temporary_names(study, tmp_path):
     line = one_line_error(res.stderr)
     assert str(out) in line and "with the temporary names armfit writes beside it" in line
     assert list(tmp_path.iterdir()) == []
+
+
+def test_run_stops_when_its_spectra_file_cannot_be_written(study, tmp_path, monkeypatch):
+    # spectra.parquet is written in a thread of its own while the grip fits run: the
+    # disk filling up there stops the run with the file's one-line error, and OUTDIR is
+    # never made
+    from armfit import spectra as S
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(S, "_arrow_table", full)     # only the spectra file's writer
+    out = tmp_path / "results"
+    res = invoke("run", study, "-o", out, "--no-figures", "--jobs", "2")
+    assert res.exit_code == EXIT_CANTCREAT, res.output
+    line = one_line_error(res.stderr)
+    assert "spectra.parquet" in line and "No space left on device" in line, line
+    assert not out.exists() and leftovers(tmp_path) == []

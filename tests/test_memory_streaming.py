@@ -360,3 +360,17 @@ def test_a_group_not_laid_out_as_armfit_writes_it_is_read_by_from_frame(sample, 
     else:
         assert what in ("split", "text", "negative run")
         assert_same(S.Spectra.read(path), expected)
+
+
+@pytest.mark.parametrize("study", ["study", "hidden"])
+def test_a_studys_aggregates_are_the_rows_its_file_reads_back(study, tmp_path):
+    # `armfit run` starts the grip fits from StudySpectra.aggregates() while the file is
+    # written: they must be the rows Spectra.read gives of the levels mean and median
+    est = S.estimate_study([STUDY.parent / study], S.EstimateConfig())
+    path = est.write(tmp_path / "spectra.parquet")
+    read = S.Spectra.read(path, level=("mean", "median"))
+    made = est.aggregates()
+    assert set(made.keys["level"]) == {"mean", "median"} and len(made) == len(read)
+    pd.testing.assert_frame_equal(made.to_frame(), read.to_frame(), check_exact=True)
+    assert made.meta == read.meta
+    assert np.array_equal(made.present, read.present)
