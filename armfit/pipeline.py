@@ -493,11 +493,12 @@ class Estimated(StageResult):
 
 @dataclass(frozen=True)
 class GripFits(StageResult):
-    """fit-grip: Table I of the base model (as read back from grip_params.csv), and the
-    diagnosis started from it (a future)."""
+    """fit-grip: Table I of the base model (as read back from grip_params.csv), the
+    diagnosis started from it and the fits of Table II (futures)."""
 
     grip: api.ModelFit
     diagnosing: Background[api.Diagnosis]
+    nominal: Background[api.ModelFit]
 
 
 @dataclass(frozen=True)
@@ -630,13 +631,18 @@ def _estimate(config: RunConfig, workers: _Workers, ingested: Ingested) -> Estim
                              f"{len(c.grid())} frequencies {c.fmin:g}-{c.fmax:g} Hz")
 
 
-def _fit_table(which: str, config: RunConfig, workers: _Workers,
-               spectra: Spectra) -> api.ModelFit:
-    """Table I ("grip") or II ("nominal") of the base model, written (params CSV and
-    LaTeX) and read back, as the subcommands do."""
+def _fit_base(which: str, config: RunConfig, workers: _Workers,
+              spectra: Spectra) -> api.ModelFit:
+    """The fits of Table I ("grip") or II ("nominal") of the base model."""
     fit = api.fit_grip if which == "grip" else api.fit_nominal
-    model = fit(spectra, cost=config.options.cost, bands=config.bands,
-                jobs=config.options.jobs, executor=workers.executor)
+    return fit(spectra, cost=config.options.cost, bands=config.bands,
+               jobs=config.options.jobs, executor=workers.executor)
+
+
+def _table(which: str, config: RunConfig, model: api.ModelFit,
+           spectra: Spectra) -> api.ModelFit:
+    """Table I ("grip") or II ("nominal") of the base model fitted (``model``), written
+    (params CSV and LaTeX) and read back, as the subcommands do."""
     _warn_at_bound(which, model, config.warn)
     model.write(config.path(f"{which}_params.csv"), latex=config.path(f"{which}_params.tex"))
     return replace(api.ModelFit.read(config.path(f"{which}_params.csv")), fits=model.fits,
@@ -661,21 +667,25 @@ def _diagnosis(path: Path, spectra: Spectra, grip: api.ModelFit, axes: Sequence[
 def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> GripFits:
     """Table I of the base model; the diagnosis starts from it at once, from
     spectra.parquet written. It has worker processes of its own: its steps are long, and
-    the stages that wait for their pool tasks should not queue behind them."""
+    the stages that wait for their pool tasks should not queue behind them. Table II's
+    fits start as soon as Table I's are done, while Table I is written."""
     spectra = estimated.spectra
-    grip = _fit_table("grip", config, workers, spectra)
+    fitted = _fit_base("grip", config, workers, spectra)
+    nominal = workers.start(_fit_base, "nominal", config, workers, spectra)
+    grip = _table("grip", config, fitted, spectra)
     estimated.written()     # every later stage reads the file
     axes = [a for a in AXES if (grip.table["axis"] == a).any()]
     diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), spectra, grip,
                                axes, config.options.jobs)
-    return GripFits(grip, diagnosing, files=("grip_params.csv", "grip_params.tex"),
+    return GripFits(grip, diagnosing, nominal, files=("grip_params.csv", "grip_params.tex"),
                     summary=_fit_summary(grip, config.options.cost))
 
 
-def _fit_nominal(config: RunConfig, workers: _Workers, spectra: Spectra) -> NominalFits:
-    """Table II of the base model."""
-    nominal = _fit_table("nominal", config, workers, spectra)
+def _fit_nominal(config: RunConfig, grip: GripFits, spectra: Spectra) -> NominalFits:
+    """Table II of the base model, from the fits fit-grip started."""
+    nominal = _table("nominal", config, grip.nominal.result(), spectra)
     return NominalFits(nominal, files=("nominal_params.csv", "nominal_params.tex"),
+                       started=grip.nominal.started,
                        summary=_fit_summary(nominal, config.options.cost))
 
 
@@ -1070,7 +1080,7 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
     estimated = clock.done("estimate", _estimate(config, workers, ingested))
     spectra = estimated.spectra
     grip = clock.done("fit-grip", _fit_grip(config, workers, estimated))
-    nominal = clock.done("fit-nominal", _fit_nominal(config, workers, spectra))
+    nominal = clock.done("fit-nominal", _fit_nominal(config, grip, spectra))
     diagnosed = clock.done("diagnose", _diagnose(config, grip))
     adoption = diagnosed.adoption
     models = (clock.done("adopt", _adopt(config, workers, spectra, grip, nominal, diagnosed))
