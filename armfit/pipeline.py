@@ -107,10 +107,6 @@ from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
 from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimator_summary
 from armfit.workers import RUN_FIGURES_PRELOAD, cancel_pools, executor_for, giving_way
 
-#: The levels of spectra.parquet a run keeps (its trial rows are read where they are
-#: used).
-AGGREGATES: tuple[str, ...] = ("mean", "median")
-
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
 FIGURES = ("figures/bode.png", "figures/uncertainty.png", "figures/literature.png")
 
@@ -125,7 +121,7 @@ STAGES: tuple[str, ...] = ("ingest", "estimate", "fit-grip", "fit-nominal", "dia
                            "adopt", "fit-uncertainty", "fit-trials", "stability",
                            "figures", "compare", "residuals", "drawing", "report")
 
-__all__ = ["AGGREGATES", "COMPARE_COLUMNS", "FIGURES", "STABILITY_FIGURE", "STAGES", "Background",
+__all__ = ["COMPARE_COLUMNS", "FIGURES", "STABILITY_FIGURE", "STAGES", "Background",
            "Compared", "Diagnosed", "Drawn", "Estimated", "GripFits", "Ingested", "Models",
            "NominalFits", "Reported", "RunConfig", "RunOptions", "RunResult", "StabilityChecked",
            "Stage", "StageResult", "TrialsFitted", "UncertaintyFit", "check_outdir",

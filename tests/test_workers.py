@@ -493,32 +493,44 @@ def _ran(log: Path) -> list[str]:
 
 
 def _wait_until(cond, timeout: float = 30.0) -> bool:
-    end = threading.Event()
-    for _ in range(int(timeout / 0.01)):
-        if cond():
-            return True
-        end.wait(0.01)
-    return False
+    import time
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
 
 
-def test_tasks_that_give_way_run_after_those_submitted_to_the_pool_later(tmp_path):
+@pytest.fixture
+def one_busy_worker(tmp_path):
+    """A pool of one worker busy with a task that logs "busy" once the file ``gate``
+    exists; its tasks that give way; the log. Shut down at the end (again, if the test
+    did)."""
+    from types import SimpleNamespace
+    log, gate = tmp_path / "log", tmp_path / "gate"
+    pool = workers.process_pool(1)
+    busy = pool.submit(_logged, (log, "busy", gate))
+    try:
+        yield SimpleNamespace(pool=pool, later=workers.giving_way(pool), busy=busy,
+                              log=log, gate=gate)
+    finally:
+        gate.touch()
+        pool.shutdown()
+
+
+def test_tasks_that_give_way_run_after_those_submitted_to_the_pool_later(one_busy_worker):
     # the rule of workers.giving_way: with the one worker busy, the tasks that give way
     # wait; a task submitted to the pool itself after them runs first, then they run in
     # the order they were submitted
-    log, gate = tmp_path / "log", tmp_path / "gate"
-    pool = workers.process_pool(1)
-    later = workers.giving_way(pool)
-    try:
-        busy = pool.submit(_logged, (log, "busy", gate))
-        a = later.submit(_logged, (log, "a", None))
-        b = later.submit(_logged, (log, "b", None))
-        now = pool.submit(_logged, (log, "now", None))
-        assert not (a.running() or b.running())      # still in the pool's own queue
-        gate.touch()
-        assert [f.result(timeout=60) for f in (busy, a, b, now)] == ["busy", "a", "b", "now"]
-    finally:
-        pool.shutdown()
-    assert _ran(log) == ["busy", "now", "a", "b"]
+    w = one_busy_worker
+    a = w.later.submit(_logged, (w.log, "a", None))
+    b = w.later.submit(_logged, (w.log, "b", None))
+    now = w.pool.submit(_logged, (w.log, "now", None))
+    assert not (a.running() or b.running())      # still in the pool's own queue
+    w.gate.touch()
+    assert [f.result(timeout=60) for f in (w.busy, a, b, now)] == ["busy", "a", "b", "now"]
+    assert _ran(w.log) == ["busy", "now", "a", "b"]
 
 
 def test_tasks_that_give_way_fill_idle_workers_at_once(tmp_path):
@@ -564,50 +576,41 @@ def test_a_task_that_gives_way_raises_its_error_in_the_caller():
         pool.shutdown()
 
 
-def test_a_pool_shut_down_runs_the_tasks_still_waiting(tmp_path):
+def test_a_pool_shut_down_runs_the_tasks_still_waiting(one_busy_worker):
     # shutdown without cancel_futures hands the waiting task to the workers while the
     # busy one still runs (the waiting task shows as running before the gate opens)
-    log, gate = tmp_path / "log", tmp_path / "gate"
-    pool = workers.process_pool(1)
-    busy = pool.submit(_logged, (log, "busy", gate))
-    waiting = workers.giving_way(pool).submit(_logged, (log, "waiting", None))
-    stopper = threading.Thread(target=pool.shutdown)
+    w = one_busy_worker
+    waiting = w.later.submit(_logged, (w.log, "waiting", None))
+    stopper = threading.Thread(target=w.pool.shutdown)
     stopper.start()
     assert _wait_until(waiting.running)
-    gate.touch()
+    w.gate.touch()
     stopper.join(60)
-    assert busy.result() == "busy" and waiting.result() == "waiting"
-    assert _ran(log) == ["busy", "waiting"]
+    assert w.busy.result() == "busy" and waiting.result() == "waiting"
+    assert _ran(w.log) == ["busy", "waiting"]
     with pytest.raises(RuntimeError, match="after shutdown"):
-        workers.giving_way(pool).submit(_square, 2)
+        w.later.submit(_square, 2)
 
 
-def test_a_pool_shut_down_with_cancel_futures_cancels_the_tasks_still_waiting(tmp_path):
-    log, gate = tmp_path / "log", tmp_path / "gate"
-    pool = workers.process_pool(1)
-    busy = pool.submit(_logged, (log, "busy", gate))
-    waiting = workers.giving_way(pool).submit(_logged, (log, "waiting", None))
-    assert _wait_until(busy.running)    # handed to the worker (else shutdown cancels it)
-    threading.Timer(0.5, gate.touch).start()
-    pool.shutdown(wait=True, cancel_futures=True)
-    assert busy.result() == "busy" and waiting.cancelled()
-    assert _ran(log) == ["busy"]
+def test_a_pool_shut_down_with_cancel_futures_cancels_the_tasks_still_waiting(
+        one_busy_worker):
+    w = one_busy_worker
+    waiting = w.later.submit(_logged, (w.log, "waiting", None))
+    assert _wait_until(w.busy.running)  # handed to the worker (else shutdown cancels it)
+    threading.Timer(0.5, w.gate.touch).start()
+    w.pool.shutdown(wait=True, cancel_futures=True)
+    assert w.busy.result() == "busy" and waiting.cancelled()
+    assert _ran(w.log) == ["busy"]
 
 
-def test_a_task_that_gives_way_cancelled_while_waiting_never_runs(tmp_path):
-    log, gate = tmp_path / "log", tmp_path / "gate"
-    pool = workers.process_pool(1)
-    later = workers.giving_way(pool)
-    try:
-        busy = pool.submit(_logged, (log, "busy", gate))
-        dropped = later.submit(_logged, (log, "dropped", None))
-        kept = later.submit(_logged, (log, "kept", None))
-        assert dropped.cancel()
-        gate.touch()
-        assert busy.result(timeout=60) == "busy" and kept.result(timeout=60) == "kept"
-    finally:
-        pool.shutdown()
-    assert _ran(log) == ["busy", "kept"]
+def test_a_task_that_gives_way_cancelled_while_waiting_never_runs(one_busy_worker):
+    w = one_busy_worker
+    dropped = w.later.submit(_logged, (w.log, "dropped", None))
+    kept = w.later.submit(_logged, (w.log, "kept", None))
+    assert dropped.cancel()
+    w.gate.touch()
+    assert w.busy.result(timeout=60) == "busy" and kept.result(timeout=60) == "kept"
+    assert _ran(w.log) == ["busy", "kept"]
 
 
 def test_giving_way_leaves_other_executors_as_they_are():
