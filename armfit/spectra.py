@@ -334,19 +334,21 @@ def derived_arm_signals(force, pos, fs: float, mp: float) -> tuple[np.ndarray, n
 
 
 def derived_spectra(force, pos, fs: float, mp: float, *, segments: int = 4,
-                    detrend: bool = True) -> BinSpectra:
+                    detrend: bool = True, fmax_hz: float | None = None) -> BinSpectra:
     """Derived arm dynamics spectra: Xa/Fa by Welch (MATLAB tfestimate semantics).
 
     Input Fa (N), output xa (m) from :func:`derived_arm_signals`; ``segments`` Hamming
     (symmetric, as MATLAB ``hamming``) segments with 50 % overlap, nfft per
     :func:`tfestimate_segment`. ``detrend`` removes each segment's mean (MATLAB does not;
-    the record's posture offset otherwise leaks into the lowest bins).
+    the record's posture offset otherwise leaks into the lowest bins). ``fmax_hz`` (Hz):
+    keep only the bins up to the first one above it, as :func:`welch_spectra` (the
+    nfft of tfestimate puts most bins far above the common grid).
     """
     fa, xa = derived_arm_signals(force, pos, fs, mp)
     nperseg, noverlap, nfft = tfestimate_segment(fa.size, segments)
     win = _cached_window("hamming", nperseg, False)
     return welch_spectra(fa, xa, fs, nperseg=nperseg, noverlap=noverlap, window=win,
-                         nfft=nfft, detrend=detrend, method="tfestimate")
+                         nfft=nfft, detrend=detrend, method="tfestimate", fmax_hz=fmax_hz)
 
 
 # ---------------------------------------------------------------------------
@@ -1280,7 +1282,8 @@ def _derived_reference(f: np.ndarray, x: np.ndarray, ref: np.ndarray, fs: float,
     nperseg, noverlap, nfft = tfestimate_segment(fa.size, config.derived_segments)
     win = _cached_window("hamming", nperseg, False)
     rsp = welch_spectra(ref[1:-1], np.column_stack([fa, xa]), fs, nperseg=nperseg,
-                        noverlap=noverlap, window=win, nfft=nfft, method="tfestimate-ref")
+                        noverlap=noverlap, window=win, nfft=nfft, method="tfestimate-ref",
+                        fmax_hz=grid[-1])
     return reference_to_grid(rsp, dsp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
 
 
@@ -1304,7 +1307,8 @@ def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: 
     _check_finite_spectra(sp, f, axis, source)
     opts = dict(min_avg=config.min_avg, max_avg=config.max_avg)
     mp = config.mp.get(axis, DEVICE_MASS_KG[axis])
-    dsp = derived_spectra(f, pos[:, i], fs, mp, segments=config.derived_segments)
+    dsp = derived_spectra(f, pos[:, i], fs, mp, segments=config.derived_segments,
+                          fmax_hz=grid[-1])
     _check_finite_spectra(dsp, f, axis, source)
     with np.errstate(all="ignore"):  # cells without signal are marked below (no_signal)
         g = to_grid(sp, grid, **opts)

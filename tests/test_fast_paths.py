@@ -27,9 +27,12 @@ from armfit.io.arrow import arrow_array
 from armfit.io.numbers import parse_numbers
 from armfit.noise import _moving_mean as _moving_mean_exact
 from armfit.spectra import (
+    EstimateConfig,
     Spectra,
     _cached_window,
     _pandas_metadata,
+    derived_spectra,
+    estimate_trial_checked,
     moving_mean,
     welch_spectra,
     write_parts,
@@ -93,6 +96,41 @@ def test_welch_up_to_fmax_keeps_the_full_spectra_bins():
         assert np.array_equal(getattr(cut, a), getattr(full, a)[..., :nb]), a
     _, p_ref = signal.welch(f, 1000.0, nperseg=4096)
     np.testing.assert_allclose(cut.p_ff, p_ref[:nb], rtol=1e-12)
+
+
+def test_derived_spectra_up_to_fmax_keep_the_full_spectra_bins():
+    # tfestimate's nfft puts most bins far above the grid: those above fmax are dropped,
+    # the kept ones unchanged to the bit (the full spectra are checked against Octave's
+    # tfestimate in tests/test_bench_octave.py)
+    rng = np.random.default_rng(1)
+    f = rng.normal(size=30001)
+    x = 1e-3 * np.convolve(f, [0.5, 0.3, 0.2])[:30001] + 1e-5 * rng.normal(size=30001)
+    full = derived_spectra(f, x, 1000.0, 0.12)
+    cut = derived_spectra(f, x, 1000.0, 0.12, fmax_hz=30.0)
+    nb = cut.freq_hz.size
+    assert cut.freq_hz[-2] <= 30.0 < cut.freq_hz[-1] and nb < full.freq_hz.size // 10
+    for a in ("freq_hz", "p_ff", "p_fx", "p_xx"):
+        assert np.array_equal(getattr(cut, a), getattr(full, a)[..., :nb]), a
+    assert (cut.n_avg, cut.enbw_bins, cut.first_bin) == (
+        full.n_avg, full.enbw_bins, full.first_bin)
+
+
+def test_trial_estimate_does_not_depend_on_the_arrays_memory_layout():
+    # trials are read into column-major (n, 3) arrays, each signal contiguous; a caller's
+    # row-major arrays give the same responses to the bit
+    trial = pq.read_table(TRIAL).to_pandas()
+    force = np.ascontiguousarray(trial[[f"force_{a}_N" for a in "xyz"]].to_numpy(float))
+    pos = np.ascontiguousarray(trial[[f"pos_{a}_m" for a in "xyz"]].to_numpy(float))
+    fs = 1.0 / float(np.median(np.diff(trial["time_s"].to_numpy())))
+    config = EstimateConfig()
+    rows, _ = estimate_trial_checked(force, pos, fs, "x", config)
+    cols, _ = estimate_trial_checked(np.asfortranarray(force), np.asfortranarray(pos), fs,
+                                     "x", config)
+    assert len(rows) == len(cols) >= 3
+    for r, c in zip(rows, cols, strict=True):
+        for a in ("h", "coherence", "se_db", "se_deg"):
+            assert np.array_equal(getattr(r, a), getattr(c, a), equal_nan=True), a
+        assert r.flags == c.flags
 
 
 @pytest.mark.parametrize("kind, values", [

@@ -890,8 +890,8 @@ def read_trial(source: TrialSource, *, f_min_hz: float = GRID_HZ[0],
         cols = _read_table(path, list(dict.fromkeys(pick.values())))
         t = cols[pick["time_s"]]
         n = t.size
-        force = np.full((n, 3), np.nan)
-        pos = np.full((n, 3), np.nan)
+        force = np.full((n, 3), np.nan, order="F")
+        pos = np.full((n, 3), np.nan, order="F")
         for j, a in enumerate(AXES):
             for arr, canon, scale in ((force, f"force_{a}_N", None),
                                       (pos, f"pos_{a}_m", 1000.0)):
@@ -1016,8 +1016,8 @@ def _read_mapped_trial(source: TrialSource, *, grip: bool) -> Trial:
             raise BadInputError(f"{size} samples, but {first} has {sizes[first]}; the "
                                 "signals of a trial have one length", file=file, column=src)
     n = sizes[first]
-    force = np.full((n, 3), np.nan)
-    pos = np.full((n, 3), np.nan)
+    force = np.full((n, 3), np.nan, order="F")
+    pos = np.full((n, 3), np.nan, order="F")
     grip_N = ref = None
     for c in convs:
         with _named_by_source(c, cmap):
@@ -1370,8 +1370,8 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
         raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
                             file=source.label) from None
     n = table.num_rows
-    force = np.full((n, 3), np.nan)
-    pos = np.full((n, 3), np.nan)
+    force = np.full((n, 3), np.nan, order="F")
+    pos = np.full((n, 3), np.nan, order="F")
     for j, c in enumerate(DATASET_COLUMNS[:6]):
         if c in names:
             (force if j < 3 else pos)[:, j % 3] = parse_numbers(
