@@ -23,13 +23,16 @@ from scipy import ndimage, signal
 from scipy.stats import qmc
 
 from armfit.data import sobol_points
+from armfit.errors import BadInputError
 from armfit.io.arrow import arrow_array
 from armfit.io.numbers import parse_numbers
+from armfit.io.trials import MAX_ABS_VALUE, MAX_POSITION_M, check_values
 from armfit.noise import _moving_mean as _moving_mean_exact
 from armfit.spectra import (
     EstimateConfig,
     Spectra,
     _cached_window,
+    _installed_version,
     _pandas_metadata,
     derived_spectra,
     estimate_trial_checked,
@@ -186,6 +189,32 @@ def test_numeric_columns_read_as_to_numpy_reads_them(typ):
         assert np.array_equal(parse_numbers(a), ref, equal_nan=True)
 
 
+@pytest.mark.parametrize("name, bad", [
+    ("force_x_N", None), ("pos_y_m", None), ("pos_z_mm", None),
+    ("force_x_N", np.nan), ("force_y_N", -np.inf), ("force_z_N", 1e100),
+    ("force_x_N", -1e100), ("pos_x_m", 0.5), ("pos_x_m", np.nextafter(0.5, 1.0)),
+    ("pos_y_m", -0.6), ("pos_x_mm", 500.0), ("pos_x_mm", -500.001), ("pos_z_m", np.nan),
+])
+def test_sample_checks_refuse_exactly_the_samples_their_rule_names(name, bad):
+    # the rule, sample by sample: finite, |v| < MAX_ABS_VALUE, and for a position
+    # |v| / (1000 if mm else 1) <= MAX_POSITION_M; the first sample breaking it is named
+    v = np.random.default_rng(3).uniform(-0.4, 0.4, 1000) * (1000.0 if "_mm" in name else 1)
+    if bad is not None:
+        v[[417, 802]] = bad
+    scale = 1000.0 if name.endswith("_mm") else 1.0
+    with np.errstate(invalid="ignore"):
+        broken = ~np.isfinite(v) | (np.abs(v) >= MAX_ABS_VALUE)
+        if name.startswith("pos_"):
+            broken |= np.abs(v) / scale > MAX_POSITION_M
+    if not broken.any():
+        assert check_values(v, name, "t.csv") is v
+        return
+    with pytest.raises(BadInputError) as err:
+        check_values(v, name, "t.csv")
+    assert err.value.row == int(np.flatnonzero(broken)[0]) + 1 == 418
+    assert err.value.column == name
+
+
 @pytest.mark.parametrize("n, d", [(512, 5), (512, 13), (1, 3), (100, 32), (4096, 2)])
 def test_sobol_points_are_scipys(n, d):
     # the reference: scipy.stats.qmc.Sobol, unscrambled (the fits' global-search starts)
@@ -222,6 +251,15 @@ def test_spectra_file_is_what_the_pandas_writer_made(spectra, tmp_path):
     back = pq.read_table(out).to_pandas()
     assert str(back["level"].dtype) == str(frame["level"].dtype)
     assert str(back["run"].dtype) == "Int64"
+
+
+@pytest.mark.parametrize("name", ["pandas", "numpy", "pyarrow", "click",
+                                  "python-dateutil"])
+def test_installed_versions_are_importlib_metadatas(name):
+    # the reference: importlib.metadata.version (python-dateutil's package is named
+    # dateutil: its version comes from importlib.metadata itself)
+    from importlib.metadata import version
+    assert _installed_version(name) == version(name)
 
 
 def _modules_after(args: list[str]) -> set[str]:
