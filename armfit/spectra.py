@@ -1567,18 +1567,33 @@ def _block(level: str, subject, axis: str, grip, run, kind: str, out_axis: str, 
     }
 
 
+#: The flags an aggregate can carry, in the order they are written.
+_MAJORITY_FLAGS = ("low_coherence", "saturation", "drift", NO_SIGNAL, NOT_EXCITATION)
+
+
 def _majority_flags(flag_rows: Sequence[Sequence[str]]) -> list[str]:
-    """Per frequency, the flags carried by more than half of the responses."""
+    """Per frequency, the flags carried by more than half of the responses.
+
+    A response's flags at one frequency are one comma-separated string; a study holds
+    few distinct ones, so each is parsed once: its count of each flag of
+    :data:`_MAJORITY_FLAGS`, summed over the responses at every frequency at once.
+    """
     n = len(flag_rows)
+    if not n:
+        return []
+    index: dict[str, int] = {}
+    codes = np.array([[index.setdefault(s, len(index)) for s in row] for row in flag_rows],
+                     dtype=np.intp)
+    occurs = np.array([[s.split(",").count(f) for f in _MAJORITY_FLAGS] for s in index],
+                      dtype=np.intp)
+    carried = occurs[codes].sum(axis=0) * 2 > n              # (frequencies, flags)
+    names = {}
     out = []
-    for per_freq in zip(*flag_rows, strict=True):
-        counts: dict[str, int] = {}
-        for s in per_freq:
-            for flag in filter(None, s.split(",")):
-                counts[flag] = counts.get(flag, 0) + 1
-        out.append(",".join(f for f in ("low_coherence", "saturation", "drift", NO_SIGNAL,
-                                        NOT_EXCITATION)
-                            if counts.get(f, 0) * 2 > n))
+    for row in carried:
+        key = row.tobytes()
+        if key not in names:
+            names[key] = ",".join(f for f, c in zip(_MAJORITY_FLAGS, row, strict=True) if c)
+        out.append(names[key])
     return out
 
 

@@ -33,6 +33,7 @@ from armfit.spectra import (
     Spectra,
     _cached_window,
     _installed_version,
+    _majority_flags,
     _pandas_metadata,
     derived_spectra,
     estimate_trial_checked,
@@ -134,6 +135,25 @@ def test_trial_estimate_does_not_depend_on_the_arrays_memory_layout():
         for a in ("h", "coherence", "se_db", "se_deg"):
             assert np.array_equal(getattr(r, a), getattr(c, a), equal_nan=True), a
         assert r.flags == c.flags
+
+
+@pytest.mark.parametrize("members", [1, 2, 3, 4, 9, 27])
+def test_majority_flags_count_each_flag_of_each_response(members):
+    # the reference: the definition, frequency by frequency, each comma-separated flag
+    # of each response counted (an unknown flag too, though never written; a flag
+    # repeated in one string counts twice), those above half of the responses written
+    # in the fixed order
+    order = ("low_coherence", "saturation", "drift", "no_signal", "not_excitation")
+    pool = ["", "drift", "low_coherence", "low_coherence,drift", "saturation,drift",
+            "no_signal", "not_excitation", "drift,drift", "other", "low_coherence,other"]
+    rng = np.random.default_rng(members)
+    rows = [[pool[k] for k in rng.integers(0, len(pool), 40)] for _ in range(members)]
+    expected = []
+    for per_freq in zip(*rows, strict=True):
+        flags = [f for s in per_freq for f in s.split(",") if f]
+        expected.append(",".join(f for f in order if 2 * flags.count(f) > members))
+    assert _majority_flags(rows) == expected
+    assert _majority_flags([]) == []
 
 
 @pytest.mark.parametrize("kind, values", [
