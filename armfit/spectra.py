@@ -1643,8 +1643,8 @@ def _aggregate_blocks(trials: Sequence[TrialResponses]) -> list[dict[str, object
             by_grip.setdefault(tr.grip_N, {}).setdefault(tr.subject, []).append(r)
         for grip in sorted(by_grip):
             subjects = by_grip[grip]
-            per_subject = np.array([aggregate(np.array([r.h for r in rs]), "mean")
-                                    for rs in subjects.values()])
+            per_subject = _subject_means([np.array([r.h for r in rs])
+                                          for rs in subjects.values()])
             rs_all = [r for rs in subjects.values() for r in rs]
             blocks.append(_aggregate_block("mean", axis, grip, kind, out_axis, method, freq,
                                            per_subject, rs_all, len(subjects)))
@@ -1652,6 +1652,30 @@ def _aggregate_blocks(trials: Sequence[TrialResponses]) -> list[dict[str, object
         blocks.append(_aggregate_block("median", axis, np.nan, kind, out_axis, method, freq,
                                        np.array([r.h for r in rs_all]), rs_all, len(rs_all)))
     return blocks
+
+
+def _subject_means(runs: Sequence[np.ndarray]) -> np.ndarray:
+    """:func:`aggregate` ("mean") of each subject's runs (one (n_runs, n_freq) array per
+    subject), stacked (n_subjects, n_freq).
+
+    A subject with a single run and signal at every frequency is that run brought
+    through :func:`_log_parts` and back, which is done for all such subjects at once
+    (the same operations on each row: the mean of one row is that row, to the bit); the
+    others are aggregated one by one.
+    """
+    out = np.empty((len(runs), runs[0].shape[-1]), complex) if runs else np.zeros((0, 0))
+    single = [k for k, h in enumerate(runs)
+              if h.shape[0] == 1 and np.isfinite(h).all() and (h != 0).all()]
+    if single:
+        H = np.concatenate([runs[k] for k in single]).astype(complex)
+        db = 20.0 * np.log10(np.abs(H))
+        unit = H / np.abs(H)
+        centre = np.angle(unit)
+        ph = np.unwrap(centre, axis=-1) + np.angle(unit * np.exp(-1j * centre))
+        out[single] = 10.0 ** (db / 20.0) * np.exp(1j * ph)
+    for k in sorted(set(range(len(runs))) - set(single)):
+        out[k] = aggregate(runs[k], "mean")
+    return out
 
 
 def _aggregate_block(level: str, axis: str, grip: float, kind: str, out_axis: str,

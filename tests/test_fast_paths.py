@@ -35,6 +35,8 @@ from armfit.spectra import (
     _installed_version,
     _majority_flags,
     _pandas_metadata,
+    _subject_means,
+    aggregate,
     derived_spectra,
     estimate_trial_checked,
     moving_mean,
@@ -135,6 +137,26 @@ def test_trial_estimate_does_not_depend_on_the_arrays_memory_layout():
         for a in ("h", "coherence", "se_db", "se_deg"):
             assert np.array_equal(getattr(r, a), getattr(c, a), equal_nan=True), a
         assert r.flags == c.flags
+
+
+def test_subject_means_are_each_subjects_aggregate_to_the_bit():
+    # the reference: aggregate(runs, "mean") subject by subject; single runs (done all
+    # at once) whose phase turns through several cycles, a subject with two runs, one
+    # with a cell without signal (NaN) and one with a zero
+    rng = np.random.default_rng(7)
+    f = np.geomspace(0.1, 30.0, 100)
+    base = 1e-3 / (1.0 + 1j * f / 3.0) ** 2 * np.exp(-2j * np.pi * f * 0.04)
+    runs = [(base * (1.0 + 0.1 * rng.normal(size=(1, f.size)))
+             * np.exp(0.2j * rng.normal(size=(1, f.size)))) for _ in range(6)]
+    runs.append(np.concatenate([runs[0], runs[1] * 1.1]))
+    runs.append(runs[2].copy())
+    runs[-1][0, 40] = np.nan
+    runs.append(runs[3].copy())
+    runs[-1][0, 7] = 0.0
+    got = _subject_means(runs)
+    ref = np.array([aggregate(h, "mean") for h in runs])
+    assert got.shape == (9, f.size)
+    assert got.tobytes() == ref.tobytes()
 
 
 @pytest.mark.parametrize("members", [1, 2, 3, 4, 9, 27])
