@@ -513,6 +513,15 @@ def _line_fit(y: np.ndarray, u: np.ndarray, valid: np.ndarray
 _CURVATURE_MAX_VAR = 1.0 / 6.0
 
 
+@functools.lru_cache(maxsize=8)
+def _uniform_log_step(grid: bytes) -> float | None:
+    """The step in ln f of a grid (float64 bytes, Hz) uniform in ln f, else None."""
+    step = np.diff(np.log(np.frombuffer(grid)))
+    if not np.allclose(step, step.mean(), rtol=1e-6):
+        return None
+    return float(step.mean())
+
+
 def _curvature_correction(h: np.ndarray, grid: np.ndarray, var_u: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray]:
     """Second-order correction of a band average for the response's curvature.
@@ -529,10 +538,9 @@ def _curvature_correction(h: np.ndarray, grid: np.ndarray, var_u: np.ndarray
     ones = np.ones(ng)
     if ng < 3:
         return h, ones
-    step = np.diff(np.log(grid))
-    if not np.allclose(step, step.mean(), rtol=1e-6):
+    d = _uniform_log_step(np.ascontiguousarray(grid, dtype=float).tobytes())
+    if d is None:
         return h, ones
-    d = float(step.mean())
     with np.errstate(divide="ignore", invalid="ignore"):
         L = np.log(np.abs(h)) + 1j * np.unwrap(np.angle(h), axis=-1)
     L1 = np.empty_like(L)
@@ -549,17 +557,49 @@ def _curvature_correction(h: np.ndarray, grid: np.ndarray, var_u: np.ndarray
     return h, gain
 
 
+@dataclass(frozen=True)
+class _Bands:
+    """The native bins of each grid band (:func:`_grid_bands`): ranges [lo, hi), their
+    counts (float), the end of the usable range, and the bins gathered into a padded
+    (ng, width) block (:func:`_band_block`). Read-only: shared by the trials whose
+    spectra have the same bins and bands."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    count: np.ndarray
+    last: int
+    idx: np.ndarray
+    valid: np.ndarray
+    u: np.ndarray
+
+
 def _grid_bands(sp: BinSpectra, grid: np.ndarray, min_avg: float, max_avg: float | None,
-                bins: tuple[int, int] | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Native-bin ranges [lo, hi) of each grid band, their counts (float) and the end of
-    the usable range (see :func:`to_grid`); ``bins`` overrides :func:`usable_bins`."""
+                bins: tuple[int, int] | None = None) -> _Bands:
+    """The bands of each grid point in the native bins of ``sp`` (see :func:`to_grid`);
+    ``bins`` overrides :func:`usable_bins`."""
     min_bins = max(1, math.ceil(min_avg * sp.enbw_bins / sp.n_avg))
     max_bins = None if max_avg is None else max(min_bins, math.ceil(
         max_avg * sp.enbw_bins / sp.n_avg))
     first, last = usable_bins(sp, grid) if bins is None else bins
-    lo, hi = band_bins(sp.freq_hz, grid, min_bins, max_bins, first, last)
-    return lo, hi, (hi - lo).astype(float), last
+    freq = np.ascontiguousarray(sp.freq_hz, dtype=float)
+    grid = np.ascontiguousarray(grid, dtype=float)
+    return _cached_bands(freq.tobytes(), grid.tobytes(), min_bins, max_bins, int(first),
+                         int(last))
+
+
+@functools.lru_cache(maxsize=32)
+def _cached_bands(freq: bytes, grid: bytes, min_bins: int, max_bins: int | None,
+                  first: int, last: int) -> _Bands:
+    """:class:`_Bands` of native bins ``freq`` and grid ``grid`` (float64 bytes, Hz),
+    made once: the trials of a study share their segment lengths and so their bins, and
+    H1 and H2 of a trial share their bands."""
+    freq_hz = np.frombuffer(freq)
+    lo, hi = band_bins(freq_hz, np.frombuffer(grid), min_bins, max_bins, first, last)
+    count = (hi - lo).astype(float)
+    idx, valid, u = _band_block(freq_hz, lo, count, last)
+    for a in (lo, hi, count, idx, valid, u):
+        a.setflags(write=False)
+    return _Bands(lo, hi, count, last, idx, valid, u)
 
 
 def _band_means(lo: np.ndarray, hi: np.ndarray, count: np.ndarray):
@@ -676,8 +716,9 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
     average is corrected for the response's curvature across the band
     (:func:`_curvature_correction`).
     """
-    lo, hi, count, last = _grid_bands(sp, grid, min_avg, max_avg, bins)
-    band_mean = _band_means(lo, hi, count)
+    bands = _grid_bands(sp, grid, min_avg, max_avg, bins)
+    count, idx, valid, u = bands.count, bands.idx, bands.valid, bands.u
+    band_mean = _band_means(bands.lo, bands.hi, count)
     p_ff = band_mean(sp.p_ff)
     p_fx = band_mean(sp.p_fx)
     p_xx = band_mean(sp.p_xx)
@@ -686,7 +727,6 @@ def to_grid(sp: BinSpectra, grid: np.ndarray, *, min_avg: float = 8.0,
         coh = np.abs(p_fx) ** 2 / (p_ff * p_xx)
     coh = np.where(np.isfinite(coh), np.clip(coh, 0.0, 1.0), np.nan)
     n_d = sp.n_avg * np.maximum(1.0, count / sp.enbw_bins)
-    idx, valid, u = _band_block(sp.freq_hz, lo, count, last)
     w = np.where(valid, sp.p_ff[idx], 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         h_bin = sp.p_fx[:, idx] / sp.p_ff[idx]                  # (k, ng, width)
@@ -795,8 +835,9 @@ def reference_to_grid(rsp: BinSpectra, sp: BinSpectra, grid: np.ndarray, *,
     f1, l1 = usable_bins(sp, grid)
     f2, l2 = usable_bins(rsp, grid)
     bins = (max(f1, f2), min(l1, l2)) if min(l1, l2) - max(f1, f2) >= 1 else (f1, l1)
-    lo, hi, count, last = _grid_bands(rsp, grid, min_avg, max_avg, bins)
-    band_mean = _band_means(lo, hi, count)
+    bands = _grid_bands(rsp, grid, min_avg, max_avg, bins)
+    count, idx, valid, u = bands.count, bands.idx, bands.valid, bands.u
+    band_mean = _band_means(bands.lo, bands.hi, count)
     p_rr = band_mean(rsp.p_ff)
     p_rf = band_mean(rsp.p_fx[0])
     p_ff = band_mean(rsp.p_xx[0])
@@ -804,7 +845,6 @@ def reference_to_grid(rsp: BinSpectra, sp: BinSpectra, grid: np.ndarray, *,
         h = band_mean(rsp.p_fx[1:]) / p_rf
         coh_rf = np.abs(p_rf) ** 2 / (p_rr * p_ff)
     n_d = rsp.n_avg * np.maximum(1.0, count / rsp.enbw_bins)
-    idx, valid, u = _band_block(rsp.freq_hz, lo, count, last)
     w = np.where(valid, np.abs(rsp.p_fx[0][idx]), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         h_bin = rsp.p_fx[1:][:, idx] / rsp.p_fx[0][idx]
