@@ -31,6 +31,7 @@ from armfit.noise import _moving_mean as _moving_mean_exact
 from armfit.spectra import (
     EstimateConfig,
     Spectra,
+    _cached_bands,
     _cached_window,
     _installed_version,
     _majority_flags,
@@ -39,7 +40,9 @@ from armfit.spectra import (
     aggregate,
     derived_spectra,
     estimate_trial_checked,
+    h2_to_grid,
     moving_mean,
+    to_grid,
     welch_spectra,
     write_parts,
 )
@@ -119,6 +122,35 @@ def test_derived_spectra_up_to_fmax_keep_the_full_spectra_bins():
         assert np.array_equal(getattr(cut, a), getattr(full, a)[..., :nb]), a
     assert (cut.n_avg, cut.enbw_bins, cut.first_bin) == (
         full.n_avg, full.enbw_bins, full.first_bin)
+
+
+def test_grid_bands_shared_between_spectra_leave_each_ones_numbers_unchanged():
+    # the bands are made once per bins and reused (H1 and H2, trial after trial): each
+    # spectrum brought to the grid with the bands already made gives the numbers it
+    # gives with none made yet
+    rng = np.random.default_rng(4)
+    grid = np.geomspace(0.5, 30.0, 60)
+    spectra = []
+    for k in range(3):
+        f = rng.normal(size=40000)
+        x = np.convolve(f, [0.4, 0.3, 0.2, 0.1])[:40000] + (0.05 + k) * rng.normal(size=40000)
+        spectra.append(welch_spectra(f, x, 1000.0, nperseg=2048, fmax_hz=30.0))
+
+    def responses(sp):
+        return [to_grid(sp, grid, max_avg=32.0), h2_to_grid(sp, grid, max_avg=32.0)]
+
+    fresh = []
+    for sp in spectra:
+        _cached_bands.cache_clear()
+        fresh.append(responses(sp))
+    _cached_bands.cache_clear()
+    shared = [responses(sp) for sp in spectra]
+    assert _cached_bands.cache_info().hits >= len(spectra)
+    for a, b in zip(fresh, shared, strict=True):
+        for ra, rb in zip(a, b, strict=True):
+            for name in ("h", "coherence", "se_db", "se_deg", "n_avg"):
+                assert np.array_equal(getattr(ra, name), getattr(rb, name),
+                                      equal_nan=True), name
 
 
 def test_trial_estimate_does_not_depend_on_the_arrays_memory_layout():
