@@ -1329,11 +1329,14 @@ def _derived_reference(f: np.ndarray, x: np.ndarray, ref: np.ndarray, fs: float,
 
 def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: str,
                            config: EstimateConfig, *, source: str = "",
-                           ref: np.ndarray | None = None, reference: str | None = None
+                           ref: np.ndarray | None = None, reference: str | None = None,
+                           drift: Mapping[int, bool] | None = None
                            ) -> tuple[tuple[Response, ...], EstimatorCheck]:
     """:func:`estimate_trial` and what the estimators say of the trial
     (:class:`EstimatorCheck`: the feedback test, H1 against H2 or the reference
-    estimate, the points flagged ``not_excitation``)."""
+    estimate, the points flagged ``not_excitation``). ``drift``: the position columns'
+    drift flags already found (:func:`drift_flags`), by column; those not given are
+    found here."""
     check_band(fs, force.shape[0], config, source)
     i = AXES.index(axis)
     f = force[:, i]
@@ -1371,8 +1374,9 @@ def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: 
     sat = ["saturation"] if saturated(f, config.force_limit_N) else []
 
     def trial_flags(j: int) -> list[str]:
-        drift = drifting(pos[:, j], fs, config.fmin, config.drift_factor)
-        return sat + (["drift"] if drift else [])
+        drifts = (drift[j] if drift is not None and j in drift
+                  else drifting(pos[:, j], fs, config.fmin, config.drift_factor))
+        return sat + (["drift"] if drifts else [])
 
     stim_flags = trial_flags(i)
 
@@ -2898,15 +2902,24 @@ def _estimate_source(source, config: EstimateConfig):
 
 
 def _read_source(source, config: EstimateConfig):
-    """The reading half of :func:`_estimate_source`: ("read", Trial, warnings) or its
-    ("bad", ...) result."""
+    """The reading half of :func:`_estimate_source`: ("read", Trial, warnings, drift
+    flags) or its ("bad", ...) result. The drift flags (:func:`drift_flags`) are found
+    here: they need the samples only, and in a serial estimate this half runs in the
+    reading thread while the trial before is estimated."""
     warnings: list[str] = []
     try:
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
                            warn=warnings.append, grip=False)  # estimate needs no grip
     except BadInputError as exc:
         return ("bad", source.label, exc.template, exc.detail)
-    return ("read", trial, warnings)
+    return ("read", trial, warnings, drift_flags(trial.pos, trial.meta.fs, config))
+
+
+def drift_flags(pos: np.ndarray, fs: float, config: EstimateConfig) -> dict[int, bool]:
+    """:func:`drifting` of each recorded (finite) position column of ``pos`` (n, 3), m,
+    by column index, with ``config``'s lowest frequency and drift factor."""
+    return {j: drifting(pos[:, j], fs, config.fmin, config.drift_factor)
+            for j in range(pos.shape[1]) if np.all(np.isfinite(pos[:, j]))}
 
 
 def _estimate_read(source, read, config: EstimateConfig):
@@ -2914,12 +2927,13 @@ def _estimate_read(source, read, config: EstimateConfig):
     ``read``."""
     if read[0] == "bad":
         return read
-    _, trial, warnings = read
+    _, trial, warnings, drift = read
     try:
         m = trial.meta
         responses, check = estimate_trial_checked(trial.force, trial.pos, m.fs, m.axis,
                                                   config, source=source.label,
-                                                  ref=trial.ref, reference=m.reference)
+                                                  ref=trial.ref, reference=m.reference,
+                                                  drift=drift)
         warnings += no_signal_messages(source.label, m.axis, responses)
         said = check.message(source.label, config.grid(), m.axis)
         if said is not None:

@@ -39,6 +39,8 @@ from armfit.spectra import (
     _subject_means,
     aggregate,
     derived_spectra,
+    drift_flags,
+    drifting,
     estimate_trial_checked,
     h2_to_grid,
     moving_mean,
@@ -151,6 +153,30 @@ def test_grid_bands_shared_between_spectra_leave_each_ones_numbers_unchanged():
             for name in ("h", "coherence", "se_db", "se_deg", "n_avg"):
                 assert np.array_equal(getattr(ra, name), getattr(rb, name),
                                       equal_nan=True), name
+
+
+def test_drift_flags_found_while_reading_are_the_estimates_own():
+    # the serial estimate finds the drift flags in its reading thread: given to the
+    # trial's estimate, the responses are those it gives finding them itself; a flag
+    # given is the one used (the estimate does not find it again)
+    trial = pq.read_table(TRIAL).to_pandas()
+    force = np.asfortranarray(trial[[f"force_{a}_N" for a in "xyz"]].to_numpy(float))
+    pos = np.array(trial[[f"pos_{a}_m" for a in "xyz"]].to_numpy(float), order="F")
+    pos[:, 1] += np.linspace(0.0, 0.05, pos.shape[0])      # y drifts 5 cm
+    fs = 1.0 / float(np.median(np.diff(trial["time_s"].to_numpy())))
+    config = EstimateConfig()
+    flags = drift_flags(pos, fs, config)
+    assert flags == {j: drifting(pos[:, j], fs, config.fmin, config.drift_factor)
+                     for j in range(3)}
+    assert flags[1] and not flags[0]
+    own, _ = estimate_trial_checked(force, pos, fs, "x", config)
+    given, _ = estimate_trial_checked(force, pos, fs, "x", config, drift=flags)
+    assert [r.flags for r in own] == [r.flags for r in given]
+    assert any("drift" in f for r in own if r.out_axis == "y" for f in r.flags)
+    said, _ = estimate_trial_checked(force, pos, fs, "x", config,
+                                     drift={0: True, 1: False, 2: True})
+    for r in said:
+        assert all(("drift" in f) == (r.out_axis != "y") for f in r.flags), r.out_axis
 
 
 def test_trial_estimate_does_not_depend_on_the_arrays_memory_layout():
