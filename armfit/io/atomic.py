@@ -72,7 +72,6 @@ import json
 import logging
 import os
 import re
-import secrets
 import shutil
 import socket
 import sys
@@ -135,7 +134,7 @@ def temp_name(dest_name: str, kind: str = "tmp") -> str:
     str
         ``.<short>.<pid>.<host tag><random>.<kind>``, at most :data:`TEMP_NAME_BYTES`.
     """
-    return f".{_short(dest_name)}.{os.getpid()}.{_host_tag()}{secrets.token_hex(2)}.{kind}"
+    return f".{_short(dest_name)}.{os.getpid()}.{_host_tag()}{os.urandom(2).hex()}.{kind}"
 
 
 def _alive(pid: int) -> bool:

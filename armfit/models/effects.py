@@ -69,7 +69,6 @@ non-finite model.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import importlib.util
 import math
 import sys
@@ -757,6 +756,7 @@ class EffectRegistry(Mapping):
 def _import_file(path: Path, key: str, label: str):
     """Execute a Python file as a fresh module (what it prints on stdout goes to
     stderr); any failure becomes one line naming it (``label``)."""
+    import hashlib
     mod_name = "armfit_user_effects_" + hashlib.sha1(key.encode()).hexdigest()[:12]
     try:
         spec = importlib.util.spec_from_file_location(mod_name, path)
