@@ -122,7 +122,10 @@ class BinSpectra:
         return np.abs(self.p_fx) ** 2 / (self.p_ff * self.p_xx)
 
 
-def _as_outputs(pos: np.ndarray) -> np.ndarray:
+def _as_outputs(pos) -> np.ndarray | list[np.ndarray]:
+    """The outputs one by one: rows of a (k, n) array, or the signals of a list."""
+    if isinstance(pos, (list, tuple)):  # signals of one length, not stacked into a copy
+        return [np.asarray(p, dtype=float) for p in pos]
     pos = np.asarray(pos, dtype=float)
     return pos[None, :] if pos.ndim == 1 else pos.T  # (k, n)
 
@@ -200,7 +203,8 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
                   window="hann", nfft: int | None = None, detrend: bool = True,
                   method: str = "h1", first_bin: int | None = None,
                   fmax_hz: float | None = None) -> BinSpectra:
-    """Welch auto- and cross-spectra of force (n,) and positions (n,) or (n, k).
+    """Welch auto- and cross-spectra of force (n,) and positions (n,), (n, k) or a list
+    of k signals (n,).
 
     Same definitions as :func:`scipy.signal.csd` / :func:`scipy.signal.welch` with
     ``scaling="density"``, one-sided, ``average="mean"``: segments of ``nperseg`` samples
@@ -232,7 +236,7 @@ def welch_spectra(force, pos, fs: float, *, nperseg: int, noverlap: int | None =
     nb = freq.size if fmax_hz is None else min(freq.size, int(np.searchsorted(
         freq, fmax_hz * (1.0 + 1e-9), side="right")) + 1)
     # the signals' segments, mean removed and windowed, zero-padded to nfft, in one buffer
-    buf = np.empty((1 + y.shape[0], n_seg, nfft))
+    buf = np.empty((1 + len(y), n_seg, nfft))
     buf[..., nperseg:] = 0.0
     seg = buf[..., :nperseg]
     for s, x in enumerate((f, *y)):
@@ -873,8 +877,14 @@ def reference_to_grid(rsp: BinSpectra, sp: BinSpectra, grid: np.ndarray, *,
 
 def saturated(force, limit_N: float) -> bool:
     """True when |F| reaches the device's force limit (N) anywhere in the record (the
-    rule of :func:`armfit.io.trials.saturated_samples`)."""
-    return bool(saturated_samples(force, limit_N).any())
+    rule of :func:`armfit.io.trials.saturated_samples`), from the record's extremes
+    unless a sample is NaN (which the rule passes over)."""
+    f = np.asarray(force, dtype=np.float64)
+    if f.size:
+        top = max(abs(float(f.min())), abs(float(f.max())))
+        if top == top:     # no NaN: the extremes decide
+            return bool(top >= limit_N)
+    return bool(saturated_samples(f, limit_N).any())
 
 
 def moving_mean(x: np.ndarray, width: int) -> np.ndarray:
@@ -1321,7 +1331,7 @@ def _derived_reference(f: np.ndarray, x: np.ndarray, ref: np.ndarray, fs: float,
     fa, xa = derived_arm_signals(f, x, fs, mp)
     nperseg, noverlap, nfft = tfestimate_segment(fa.size, config.derived_segments)
     win = _cached_window("hamming", nperseg, False)
-    rsp = welch_spectra(ref[1:-1], np.column_stack([fa, xa]), fs, nperseg=nperseg,
+    rsp = welch_spectra(ref[1:-1], [fa, xa], fs, nperseg=nperseg,
                         noverlap=noverlap, window=win, nfft=nfft, method="tfestimate-ref",
                         fmax_hz=grid[-1])
     return reference_to_grid(rsp, dsp, grid, min_avg=config.min_avg, max_avg=config.max_avg)
@@ -1341,12 +1351,12 @@ def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: 
     i = AXES.index(axis)
     f = force[:, i]
     outs = [i] + [j for j in range(3) if j != i and np.all(np.isfinite(pos[:, j]))]
-    y = pos[:, outs]
+    y = [pos[:, j] for j in outs]     # the columns themselves, not a copy
     grid = config.grid()
     n = force.shape[0]
     use_ref = ref is not None and config.reference and config.method == "h1"
     sp = (_welch(config, f, y, fs, n, grid, "h1") if config.method == "h1"
-          else chebwin_spectra(f, y, fs))
+          else chebwin_spectra(f, pos[:, outs], fs))
     _check_finite_spectra(sp, f, axis, source)
     opts = dict(min_avg=config.min_avg, max_avg=config.max_avg)
     mp = config.mp.get(axis, DEVICE_MASS_KG[axis])
@@ -1359,7 +1369,7 @@ def estimate_trial_checked(force: np.ndarray, pos: np.ndarray, fs: float, axis: 
         d = to_grid(dsp, grid, **opts)
         gr = dr = rf = None
         if use_ref:
-            rsp = _welch(config, ref, np.column_stack([f, y]), fs, n, grid, "ref")
+            rsp = _welch(config, ref, [f, *y], fs, n, grid, "ref")
             _check_finite_spectra(rsp, f, axis, source)
             gr = reference_to_grid(rsp, sp, grid, **opts)
             dr = _derived_reference(f, pos[:, i], ref, fs, mp, dsp, config, grid)

@@ -26,7 +26,7 @@ from armfit.data import sobol_points
 from armfit.errors import BadInputError
 from armfit.io.arrow import arrow_array
 from armfit.io.numbers import parse_numbers
-from armfit.io.trials import MAX_ABS_VALUE, MAX_POSITION_M, check_values
+from armfit.io.trials import MAX_ABS_VALUE, MAX_POSITION_M, check_values, saturated_samples
 from armfit.noise import _moving_mean as _moving_mean_exact
 from armfit.spectra import (
     EstimateConfig,
@@ -44,6 +44,7 @@ from armfit.spectra import (
     estimate_trial_checked,
     h2_to_grid,
     moving_mean,
+    saturated,
     to_grid,
     welch_spectra,
     write_parts,
@@ -107,6 +108,20 @@ def test_welch_up_to_fmax_keeps_the_full_spectra_bins():
         assert np.array_equal(getattr(cut, a), getattr(full, a)[..., :nb]), a
     _, p_ref = signal.welch(f, 1000.0, nperseg=4096)
     np.testing.assert_allclose(cut.p_ff, p_ref[:nb], rtol=1e-12)
+
+
+def test_welch_of_a_list_of_signals_is_welch_of_their_columns():
+    # the estimate passes a trial's position columns as they are, not stacked: the
+    # same spectra as the (n, k) array of the same signals
+    rng = np.random.default_rng(2)
+    f = rng.normal(size=20000)
+    pos = np.asfortranarray(rng.normal(size=(20000, 3)))
+    cols = [pos[:, 1], pos[:, 0], pos[:, 2]]
+    a = welch_spectra(f, np.stack(cols, axis=1), 1000.0, nperseg=2048, fmax_hz=30.0)
+    b = welch_spectra(f, cols, 1000.0, nperseg=2048, fmax_hz=30.0)
+    for name in ("freq_hz", "p_ff", "p_fx", "p_xx"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert b.p_fx.shape == (3, a.freq_hz.size)
 
 
 def test_derived_spectra_up_to_fmax_keep_the_full_spectra_bins():
@@ -313,6 +328,15 @@ def test_sample_checks_refuse_exactly_the_samples_their_rule_names(name, bad):
         check_values(v, name, "t.csv")
     assert err.value.row == int(np.flatnonzero(broken)[0]) + 1 == 418
     assert err.value.column == name
+
+
+@pytest.mark.parametrize("limit", [7.0, 8.0, 0.5, np.inf, -1.0])
+@pytest.mark.parametrize("force", [[3.0, -8.0, 1.0], [8.0], [-7.999], [], [np.nan, 9.0],
+                                   [np.nan, 1.0], [np.inf], [-np.inf, np.nan]])
+def test_saturation_from_the_extremes_is_the_sample_rule(force, limit):
+    # the reference: any sample with |F| >= the limit (saturated_samples; NaN never is)
+    f = np.array(force, dtype=float)
+    assert saturated(f, limit) == bool(saturated_samples(f, limit).any())
 
 
 @pytest.mark.parametrize("n, d", [(512, 5), (512, 13), (1, 3), (100, 32), (4096, 2)])
