@@ -123,7 +123,7 @@ def test_output_that_is_an_explicit_input_or_a_manifest_entry(study, tmp_path):
 def test_temporary_is_created_once_exclusively(tmp_path, monkeypatch):
     dest = tmp_path / "out.csv"
     tokens = iter(["abcd", "abcd", "beef"])
-    monkeypatch.setattr(atomic.secrets, "token_hex", lambda n: next(tokens))
+    monkeypatch.setattr(atomic, "_random_hex", lambda n: next(tokens))
     squatter = tmp_path / atomic.temp_name("out.csv")  # the first name is taken
     squatter.write_text("someone else's")
     with atomic_path(dest) as tmp:

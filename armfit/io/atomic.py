@@ -134,7 +134,13 @@ def temp_name(dest_name: str, kind: str = "tmp") -> str:
     str
         ``.<short>.<pid>.<host tag><random>.<kind>``, at most :data:`TEMP_NAME_BYTES`.
     """
-    return f".{_short(dest_name)}.{os.getpid()}.{_host_tag()}{os.urandom(2).hex()}.{kind}"
+    return f".{_short(dest_name)}.{os.getpid()}.{_host_tag()}{_random_hex(2)}.{kind}"
+
+
+def _random_hex(nbytes: int) -> str:
+    """``nbytes`` random bytes from the system, in hex (what ``secrets.token_hex`` does,
+    without importing secrets, hmac and hashlib at start-up)."""
+    return os.urandom(nbytes).hex()
 
 
 def _alive(pid: int) -> bool:
