@@ -30,13 +30,17 @@ from armfit.io.trials import MAX_ABS_VALUE, MAX_POSITION_M, check_values, satura
 from armfit.noise import _moving_mean as _moving_mean_exact
 from armfit.spectra import (
     EstimateConfig,
+    Response,
     Spectra,
+    TrialResponses,
+    _block,
     _cached_bands,
     _cached_window,
     _installed_version,
     _majority_flags,
     _pandas_metadata,
     _subject_means,
+    _trial_blocks,
     aggregate,
     derived_spectra,
     drift_flags,
@@ -230,6 +234,39 @@ def test_subject_means_are_each_subjects_aggregate_to_the_bit():
     ref = np.array([aggregate(h, "mean") for h in runs])
     assert got.shape == (9, f.size)
     assert got.tobytes() == ref.tobytes()
+
+
+@pytest.mark.parametrize("batch", [1, 3, 64])
+def test_trial_rows_made_in_batches_are_each_responses_own(batch):
+    # the reference: each response's row made alone (_block: its magnitude and its
+    # phase unwrapped over its finite cells); responses whose phase turns through
+    # several cycles, one with cells without signal (NaN) and one with a zero
+    rng = np.random.default_rng(5)
+    f = np.geomspace(0.1, 30.0, 100)
+    base = 1e-3 / (1.0 + 1j * f / 3.0) ** 2 * np.exp(-2j * np.pi * f * 0.05)
+    trials = []
+    for t in range(4):
+        hs = [base * (1.0 + 0.1 * rng.normal(size=f.size)) for _ in range(3)]
+        if t == 1:
+            hs[1][[0, 40, 41]] = np.nan
+        if t == 2:
+            hs[2][7] = 0.0
+        rs = tuple(Response(kind, "x", "h1", h, np.full(f.size, 0.9), np.full(f.size, 0.1),
+                            np.full(f.size, 1.0), ("",) * f.size)
+                   for kind, h in zip(("measured", "derived", "cross"), hs, strict=True))
+        trials.append(TrialResponses(f"{t:02d}", "x", 1.0, None, f"t{t}", f, rs))
+    got = list(_trial_blocks(trials, batch=batch))
+    ref = [_block("trial", tr.subject, tr.axis, tr.grip_N, tr.run, r.kind, r.out_axis,
+                  r.method, tr.freq_hz, r.h, r.coherence, r.se_db, r.se_deg, 1, r.flags)
+           for tr in trials for r in tr.responses]
+    assert len(got) == len(ref) == 12
+    for g, r in zip(got, ref, strict=True):
+        assert g.keys() == r.keys()
+        for key in g:
+            if isinstance(r[key], np.ndarray):
+                assert g[key].tobytes() == r[key].tobytes(), key
+            else:
+                assert g[key] == r[key] or (g[key] != g[key] and r[key] != r[key]), key
 
 
 @pytest.mark.parametrize("members", [1, 2, 3, 4, 9, 27])
