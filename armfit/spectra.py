@@ -71,7 +71,7 @@ from armfit.io.schema import (
     SPECTRA_VALUES,
     json_default,
 )
-from armfit.io.trials import Trial, open_trials, read_trial, saturated_samples
+from armfit.io.trials import Trial, open_trials, peak_abs, read_trial, saturated_samples
 from armfit.workers import POOL_PRELOAD, iter_tasks, read_ahead
 
 if TYPE_CHECKING:
@@ -880,10 +880,9 @@ def saturated(force, limit_N: float) -> bool:
     rule of :func:`armfit.io.trials.saturated_samples`), from the record's extremes
     unless a sample is NaN (which the rule passes over)."""
     f = np.asarray(force, dtype=np.float64)
-    if f.size:
-        top = max(abs(float(f.min())), abs(float(f.max())))
-        if top == top:     # no NaN: the extremes decide
-            return bool(top >= limit_N)
+    top = peak_abs(f)
+    if top == top:     # no NaN: the extremes decide
+        return bool(top >= limit_N)
     return bool(saturated_samples(f, limit_N).any())
 
 
@@ -1480,23 +1479,24 @@ def _log_parts(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """20 log10|H| (dB) and phase (rad) of each trial, on one continuous branch: the
     circular mean of the trials is unwrapped along frequency and each trial's phase is
     taken within π of it at every frequency (so a 2π slip of one noisy trial cannot shift
-    the aggregate)."""
+    the aggregate). ``H``: (n_trials, n_freq), or a stack (..., n_trials, n_freq) of
+    such sets, each taken on its own."""
     H = np.atleast_2d(np.asarray(H, dtype=complex))
     ok = np.isfinite(H) & (H != 0)
     if not ok.all():  # cells without signal (NaN): left out, NaN where none is left
         with np.errstate(all="ignore"):
             db = np.where(ok, 20.0 * np.log10(np.abs(H)), np.nan)
             unit = np.where(ok, H / np.abs(H), 0.0)
-        centre = np.angle(unit.sum(axis=0))
+        centre = np.angle(unit.sum(axis=-2))
         ref = np.unwrap(centre)
-        dev = np.where(ok, np.angle(unit * np.exp(-1j * centre)), np.nan)
-        return db, ref[None, :] + dev
+        dev = np.where(ok, np.angle(unit * np.exp(-1j * centre[..., None, :])), np.nan)
+        return db, ref[..., None, :] + dev
     db = 20.0 * np.log10(np.abs(H))
     unit = H / np.abs(H)
-    centre = np.angle(np.mean(unit, axis=0))            # circular mean per frequency
+    centre = np.angle(np.mean(unit, axis=-2))           # circular mean per frequency
     ref = np.unwrap(centre)                              # continuous along frequency
-    dev = np.angle(unit * np.exp(-1j * centre))          # each trial's offset, in (-π, π]
-    return db, ref[None, :] + dev
+    dev = np.angle(unit * np.exp(-1j * centre[..., None, :]))  # offsets, in (-π, π]
+    return db, ref[..., None, :] + dev
 
 
 def _nan_stat(x: np.ndarray, how: str, *, ddof: int = 0, q=None) -> np.ndarray:
@@ -1529,7 +1529,8 @@ def aggregate(H: np.ndarray, how: str) -> np.ndarray:
     trial taken within π of the trials' circular mean, itself unwrapped along frequency)
     are averaged (``"mean"``) or their medians taken (``"median"``), then
     recombined as 10^(dB/20)·e^(jφ). This matches the dB cost of eq. 5 and keeps a few
-    outlying trials from pulling the magnitude.
+    outlying trials from pulling the magnitude. A stack (..., n_trials, n_freq) of
+    such sets with signal everywhere gives each set's (..., n_freq).
     """
     db, ph = _log_parts(H)
     if how not in ("mean", "median"):
@@ -1537,9 +1538,9 @@ def aggregate(H: np.ndarray, how: str) -> np.ndarray:
     if not np.isfinite(db).all():
         m_db, m_ph = _nan_stat(db, how), _nan_stat(ph, how)
     elif how == "mean":
-        m_db, m_ph = db.mean(axis=0), ph.mean(axis=0)
+        m_db, m_ph = db.mean(axis=-2), ph.mean(axis=-2)
     else:
-        m_db, m_ph = np.median(db, axis=0), np.median(ph, axis=0)
+        m_db, m_ph = np.median(db, axis=-2), np.median(ph, axis=-2)
     return 10.0 ** (m_db / 20.0) * np.exp(1j * m_ph)
 
 
@@ -1722,21 +1723,14 @@ def _subject_means(runs: Sequence[np.ndarray]) -> np.ndarray:
     """:func:`aggregate` ("mean") of each subject's runs (one (n_runs, n_freq) array per
     subject), stacked (n_subjects, n_freq).
 
-    A subject with a single run and signal at every frequency is that run brought
-    through :func:`_log_parts` and back, which is done for all such subjects at once
-    (the same operations on each row: the mean of one row is that row, to the bit); the
-    others are aggregated one by one.
+    The subjects with a single run and signal at every frequency are aggregated at
+    once, as one stack (the same operations on each); the others one by one.
     """
     out = np.empty((len(runs), runs[0].shape[-1]), complex) if runs else np.zeros((0, 0))
     single = [k for k, h in enumerate(runs)
               if h.shape[0] == 1 and np.isfinite(h).all() and (h != 0).all()]
     if single:
-        H = np.concatenate([runs[k] for k in single]).astype(complex)
-        db = 20.0 * np.log10(np.abs(H))
-        unit = H / np.abs(H)
-        centre = np.angle(unit)
-        ph = np.unwrap(centre, axis=-1) + np.angle(unit * np.exp(-1j * centre))
-        out[single] = 10.0 ** (db / 20.0) * np.exp(1j * ph)
+        out[single] = aggregate(np.stack([runs[k] for k in single]), "mean")
     for k in sorted(set(range(len(runs))) - set(single)):
         out[k] = aggregate(runs[k], "mean")
     return out

@@ -1060,6 +1060,15 @@ MAX_ABS_VALUE = 1e100
 MAX_POSITION_M = 0.5
 
 
+def peak_abs(v: np.ndarray) -> float:
+    """max |v| of a float array from its two extremes; NaN when a sample is NaN (min and
+    max spread it) or there is none, so that a caller's test on it fails and it looks
+    sample by sample."""
+    if not v.size:
+        return math.nan
+    return max(abs(float(v.min())), abs(float(v.max())))
+
+
 def check_values(v: np.ndarray, name: str, file: str, *,
                  unit_hint: str | None = None) -> np.ndarray:
     """Refuse non-finite or absurd samples of a force or position column ``name``.
@@ -1071,12 +1080,10 @@ def check_values(v: np.ndarray, name: str, file: str, *,
     first offending row.
     """
     v = np.asarray(v, dtype=np.float64)
-    if v.size:     # the usual case, all in range, from the extremes alone (NaN spreads)
-        top = max(abs(float(v.min())), abs(float(v.max())))
-        scale = 1000.0 if name.endswith("_mm") else 1.0
-        if top < MAX_ABS_VALUE and not (name.startswith("pos_") and
-                                        top / scale > MAX_POSITION_M):
-            return v
+    top = peak_abs(v)   # the usual case, all in range, from the extremes alone
+    scale = 1000.0 if name.endswith("_mm") else 1.0
+    if top < MAX_ABS_VALUE and not (name.startswith("pos_") and top / scale > MAX_POSITION_M):
+        return v
     badv = np.flatnonzero(~np.isfinite(v))
     if badv.size:
         k = int(badv[0])
