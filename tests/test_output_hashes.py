@@ -68,7 +68,7 @@ EXPECTED: dict[str, str] = {
     "compare.stdout":
         "77fc7927666fa7ab872528c5fd22c688dd3e3fe7b83c7823577a2f1ccb7633ef",
     "diagnose.stdout":
-        "8f43140c18e0cdb443186b1ee855230b93a4e59b4dd376e4f63ae000ecdc2fef",
+        "16f0158ade6b336dd2f755c24d56687410f854b19f385fbf9dedded2bfce1f9a",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
@@ -84,7 +84,7 @@ EXPECTED: dict[str, str] = {
     "run/compare.csv":
         "178b79f03f672b1e15c0a973f2e9fb6d7b4c45f2cb8dc841f6e47c1ff3d8dd66",
     "run/diagnosis.json":
-        "8f43140c18e0cdb443186b1ee855230b93a4e59b4dd376e4f63ae000ecdc2fef",
+        "16f0158ade6b336dd2f755c24d56687410f854b19f385fbf9dedded2bfce1f9a",
     "run/grip_params.csv":
         "8fe7b51ecf2f2b77c017d85f9cf80b54ac2ff2d65a4880d37590533f9edf74fe",
     "run/grip_params.tex":

@@ -16,10 +16,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from armfit import _scipy, blocklsq
-from armfit.constants import PARAM_NAMES, Z_975
+from armfit.constants import DB_PER_NEPER, PARAM_NAMES, Z_975
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.tuning import (
+    FTOL_VARIANCE,
     OUTLIER,
     REFINE_BEST,
     START_SCREEN_NFEV,
@@ -192,13 +193,14 @@ class JointProblem:
         return np.where(np.isfinite(r), r, 1e6 if self.unused is None else self.unused).ravel()
 
     def jac(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Forward-difference Jacobian of :meth:`fun` as its blocks (per-trial
-        (T, m, 5), shared (T, m, k); see :mod:`armfit.blocklsq`), all columns in one
-        vectorised evaluation: column j of every trial is perturbed at once (the trials'
-        blocks do not overlap), shared columns for all trials together. Steps
-        √eps·max(1, |z|), taken backwards at an upper bound. The trials are taken
-        :data:`CHUNK_TRIALS` at a time, so the temporaries do not grow with the number of
-        trials."""
+        """The Jacobian of :meth:`fun` as its blocks (per-trial (T, m, 5), shared
+        (T, m, k); see :mod:`armfit.blocklsq`): the arm parameters' columns analytic
+        (:meth:`armfit.models.arm.ClosedLoopModel.base_log_derivatives`), the effect
+        parameters' by forward differences, all of these in one vectorised evaluation
+        (column j of every trial perturbed at once: the trials' blocks do not overlap;
+        shared columns for all trials together), steps √eps·max(1, |z|), taken backwards
+        at an upper bound. The trials are taken :data:`CHUNK_TRIALS` at a time, so the
+        temporaries do not grow with the number of trials."""
         z = self.unpack(x)                                    # (T, P)
         m = 2 * self.f.size
         jb, js = np.empty((self.T, m, self.nb)), np.empty((self.T, m, self.k))
@@ -209,21 +211,39 @@ class JointProblem:
         return jb, js
 
     def _jac_rows(self, z: np.ndarray, rows: slice) -> np.ndarray:
-        """The Jacobian of the trials ``rows`` (their parameters ``z``), (t, m, P)."""
+        """The Jacobian of the trials ``rows`` (their parameters ``z``), (t, m, P).
+
+        The residuals are r = (−20 log10|H/H_meas|, −angle(H/H_meas) in deg) times the
+        weights, so an arm parameter's column is (−DB_PER_NEPER Re, −180/π Im) of
+        ∂ ln H/∂θ times the weights and dθ/dz (θ for a parameter fitted in log, else
+        upper − lower); the effect parameters' columns are forward differences. A point
+        whose residual is not finite (replaced by a constant in :meth:`fun`) has a zero
+        row."""
         t, P = z.shape
-        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(z))
-        h = np.where(z + h > self.space.zhi, -h, h)
-        Z = np.repeat(z[None], P + 1, axis=0)                 # (P + 1, t, P)
-        idx = np.arange(P)
-        Z[idx + 1, :, idx] += h.T
+        nb, k = self.nb, P - self.nb
+        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(z[:, nb:]))
+        h = np.where(z[:, nb:] + h > self.space.zhi[nb:], -h, h)
+        Z = np.repeat(z[None], k + 1, axis=0)                 # (k + 1, t, P)
+        idx = np.arange(k)
+        Z[idx + 1, :, nb + idx] += h.T
         theta = self.space.to_theta(Z)
         values = {n: theta[..., i:i + 1] for i, n in enumerate(self.space.names)}
+        w_db, w_deg = self.w_db[rows], self.w_deg[rows]
+        fill = 1e6 if self.unused is None else self.unused[rows]
         with np.errstate(all="ignore"):
             r_db, r_deg = residuals(self.h[None, rows], self.model.response(self.f, values))
-            R = np.concatenate([r_db * self.w_db[rows], r_deg * self.w_deg[rows]], axis=-1)
-        R = np.where(np.isfinite(R), R, 1e6 if self.unused is None else self.unused[rows])
-        D = (R[1:] - R[:1]) / h.T[:, :, None]                  # (P, t, m)
-        return np.moveaxis(D, 0, -1)                           # (t, m, P)
+            R = np.concatenate([r_db * w_db, r_deg * w_deg], axis=-1)
+            first = {n: v[0] for n, v in values.items()}
+            dlog = self.model.base_log_derivatives(self.f, first)       # (5, t, n)
+            dz = np.where(self.space.log[:nb], theta[0, :, :nb],
+                          self.space.upper[:nb] - self.space.lower[:nb])  # dθ/dz, (t, 5)
+            Db = np.concatenate([-DB_PER_NEPER * dlog.real * w_db,
+                                 -np.degrees(dlog.imag) * w_deg], axis=-1) * dz.T[:, :, None]
+        ok = np.isfinite(R[0])
+        Db = np.where(ok & np.isfinite(Db), Db, 0.0)                   # (5, t, m)
+        R = np.where(np.isfinite(R), R, fill)
+        De = (R[1:] - R[:1]) / h.T[:, :, None]                         # (k, t, m)
+        return np.moveaxis(np.concatenate([Db, De]), 0, -1)            # (t, m, P)
 
     def solve(self, x0: np.ndarray, max_nfev: int, **tol) -> blocklsq.BlockResult:
         """The joint least-squares fit from ``x0`` (:func:`armfit.blocklsq.solve`)."""
@@ -358,8 +378,14 @@ def refine(prob: JointProblem, x0: np.ndarray, max_nfev: int) -> blocklsq.BlockR
     """The joint fit from ``x0``, without its Jacobian blocks (``jb``, ``js`` None): a
     joint fit holds several results at once, each block as large as the study, and the
     intervals evaluate the Jacobian again at the solution (:func:`_effect_ci`; the same
-    values, :meth:`JointProblem.jac` being a function of the parameters alone)."""
-    return replace(prob.solve(x0, max_nfev, ftol=1e-8, xtol=1e-8), jb=None, js=None)
+    values, :meth:`JointProblem.jac` being a function of the parameters alone).
+
+    The fit stops when a step lowers the cost by less than :data:`FTOL_VARIANCE` of the
+    residual variance s² = 2·cost/(m − p) (``ftol`` = 2·FTOL_VARIANCE/(m − p), at least
+    1e-8), or moves the parameters by less than 1e-8 of their size."""
+    m = 2 * prob.f.size * prob.T
+    ftol = max(1e-8, 2.0 * FTOL_VARIANCE / max(m - x0.size, 1))
+    return replace(prob.solve(x0, max_nfev, ftol=ftol, xtol=1e-8), jb=None, js=None)
 
 
 def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, sel, res,

@@ -10,11 +10,11 @@ from __future__ import annotations
 from armfit.constants import UNIT_SE_DEG
 
 __all__ = [
-    "BANDS", "DROP_POINTS", "MAX_STEPS", "MIN_EFFECT_DB", "MIN_EFFECT_DEG", "MIN_REDUCTION",
-    "MIN_RUN", "NOISE_TOL", "OUTLIER", "QUICK_BEST", "QUICK_NFEV", "QUICK_SCREEN_NFEV",
-    "REFINE_BEST", "SCREEN_GAP", "SCREEN_KEEP", "SCREEN_SUBSET", "SHARED_EFFECTS",
-    "SIGNIFICANT_BIC", "START_SCREEN_NFEV", "START_SCREEN_TRIALS", "TIE_BIC", "TIE_FRACTION",
-    "T_FAIL", "UNIT_DEG",
+    "BANDS", "DROP_POINTS", "FTOL_VARIANCE", "MAX_STEPS", "MIN_EFFECT_DB", "MIN_EFFECT_DEG",
+    "MIN_REDUCTION", "MIN_RUN", "NOISE_TOL", "OUTLIER", "QUICK_BEST", "QUICK_NFEV",
+    "QUICK_SCREEN_NFEV", "REFINE_BEST", "SCREEN_GAP", "SCREEN_KEEP", "SCREEN_SUBSET",
+    "SHARED_EFFECTS", "SIGNIFICANT_BIC", "START_SCREEN_NFEV", "START_SCREEN_TRIALS",
+    "TIE_BIC", "TIE_FRACTION", "T_FAIL", "UNIT_DEG",
 ]
 
 # ---------------------------------------------------------------------------
@@ -69,6 +69,14 @@ SHARED_EFFECTS: tuple[str, ...] = ("delay", "lowpass")
 # The search's budget (how much work; the answers do not depend on it when it suffices)
 # ---------------------------------------------------------------------------
 
+#: A joint fit has converged when a step lowers its cost (½χ², noise-weighted) by less
+#: than this fraction of the residual variance s² = χ²/(m − p): a change of the fit's
+#: χ² by less than 2 % of one residual's share, nothing any statistic of the diagnosis
+#: can show (the ΔBIC threshold is 10 and its values are printed to 0.1). A model far
+#: from the data has s² of thousands, and its fit creeps along a flat valley of its
+#: cost by steps of this order for a hundred evaluations; a model within the noise has
+#: s² ≈ 1 and converges in a few steps, where this stops it at the same point.
+FTOL_VARIANCE = 0.01
 #: A trial whose misfit exceeds this many times the median trial's (and twice the
 #: number of its residuals) is refitted on its own: it sits in a poor local minimum.
 OUTLIER = 4.0

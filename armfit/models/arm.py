@@ -364,6 +364,28 @@ class ClosedLoopModel:
                 factor = factor * e.evaluate(s, v, self.mp)
         return factor / z
 
+    def base_log_derivatives(self, f_hz, theta) -> np.ndarray:
+        """∂ ln H/∂θ of :meth:`response` H for each base parameter θ (Ma, k1, k2, b1, b2 in
+        their units), analytically: H = R/(Z_ARM + Mp s² + ΔZ) with R and ΔZ independent of
+        the base parameters (the effects' terms), so ∂ ln H/∂θ = −(∂Z_ARM/∂θ)/(Z_ARM + Mp s²
+        + ΔZ), and with Z_ARM = N/D (eq. 3), N = C1 (Ma s² + C2), D = Ma s² + C1 + C2,
+        ∂Z_ARM/∂θ = (∂N/∂θ − Z_ARM ∂D/∂θ)/D. Returns (5, ...) complex, the parameters
+        first, then the broadcast shape of ``theta``'s values and the frequencies."""
+        base, eff = self._split(theta)
+        s = laplace(f_hz)
+        Ma, k1, k2, b1, b2 = (base[n] for n in PARAM_NAMES)
+        c1 = k1 + b1 * s
+        c2 = k2 + b2 * s
+        ms2 = Ma * s * s
+        den = ms2 + c1 + c2
+        z_arm = c1 * (ms2 + c2) / den
+        _, dz = self._effect_terms(s, eff, ("arm", "device"))
+        scale = -1.0 / (den * (z_arm + self.mp * s * s + dz))
+        d_k1 = (ms2 + c2 - z_arm) * scale        # (∂N/∂k1 − Z_ARM ∂D/∂k1) · (−1/(D z))
+        d_k2 = (c1 - z_arm) * scale              # the same for k2
+        # ∂/∂Ma = s² ∂/∂k2, ∂/∂b1 = s ∂/∂k1, ∂/∂b2 = s ∂/∂k2
+        return np.stack(np.broadcast_arrays(s * s * d_k2, d_k1, d_k2, s * d_k1, s * d_k2))
+
     def _effect_terms(self, s, eff: Sequence[Mapping[str, float]], stages: Sequence[str]
                       ) -> tuple[np.ndarray, np.ndarray]:
         """(R, ΔZ) at s (rad/s): the product of the output factors and the sum of the
