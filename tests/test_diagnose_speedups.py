@@ -449,7 +449,7 @@ def test_joint_fit_refines_a_repeated_start_once_with_the_same_result(study, mon
     rescued = []
     real = joint.rescue_trials
     monkeypatch.setattr(joint, "rescue_trials",
-                        lambda *a: rescued.append(a[4]) or real(*a))
+                        lambda *a, **k: rescued.append(a[4]) or real(*a, **k))
     got = joint.joint_fit(model, data, band, start, starts, max_nfev=60)
     assert len(rescued) == 1
     # the long way: every start of the screening refined and rescued, the first of the
@@ -463,6 +463,33 @@ def test_joint_fit_refines_a_repeated_start_once_with_the_same_result(study, mon
     theta = prob.space.to_theta(prob.unpack(best.x))
     np.testing.assert_array_equal(got.base, theta[:, :5])
     assert got.shared == {"delay.delay_s": float(theta[0, 5])}
+
+
+def test_a_stuck_trial_takes_its_arm_parameters_from_the_best_start_first(study,
+                                                                          monkeypatch):
+    # a start whose fit leaves a trial stuck, while another start's fit has none: the
+    # trial takes its arm parameters from that fit and the joint fit is refined, with no
+    # single-trial fit; without such a fit the single-trial fits are made, as before
+    data, band = _z_data(study)
+    model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    prob = joint.JointProblem(model, data, sel)
+    prior = joint.refine(prob, prob.pack(start_array(data), {"delay.delay_s": 0.05}), 200)
+    assert joint._stuck(prob, prior).size == 0
+    lo, hi = prob.bounds()
+    x = prior.x.copy()
+    x[5:10] = np.clip(x[5:10] + 3.0, lo[5:10], hi[5:10])   # trial 1's arm far off
+    r = prob.fun(x)
+    res = replace(prior, x=x, fun=r, cost=0.5 * float(r @ r))
+    assert joint._stuck(prob, res).tolist() == [1]
+    real = joint.trial_fit
+    calls = []
+    monkeypatch.setattr(joint, "trial_fit", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    got = joint.rescue_trials(prob, model, data, sel, res, 200, prior=prior)
+    assert calls == []
+    assert joint._stuck(prob, got).size == 0 and got.cost <= prior.cost
+    joint.rescue_trials(prob, model, data, sel, res, 200)
+    assert calls and set(calls) == {1}
 
 
 def test_trial_fit_is_the_single_trial_fit_and_made_once(study):

@@ -302,6 +302,8 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
     tries: ``screen_nfev``, default :data:`START_SCREEN_NFEV`). ``varying``: effect
     parameters (``effect.param``) with one value per subject, started at their subject's
     value of ``by_subject`` {subject: {name: value}} where given, else at the start's.
+    Each refined start's stuck trials are rescued (:func:`rescue_trials`, the best fit
+    of the starts before it the ``prior``).
     """
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
     prob = JointProblem(model, data, sel, varying)
@@ -320,7 +322,8 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
         if x0.tobytes() in seen:   # the same start ends where it ended before: no better
             continue
         seen.add(x0.tobytes())
-        r = rescue_trials(prob, model, data, sel, refine(prob, x0, max_nfev), max_nfev)
+        r = rescue_trials(prob, model, data, sel, refine(prob, x0, max_nfev), max_nfev,
+                          prior=res)
         if res is None or r.cost < res.cost:
             res = r
     return _result(prob, res)
@@ -388,20 +391,40 @@ def refine(prob: JointProblem, x0: np.ndarray, max_nfev: int) -> blocklsq.BlockR
     return replace(prob.solve(x0, max_nfev, ftol=ftol, xtol=1e-8), jb=None, js=None)
 
 
+def _stuck(prob: JointProblem, res) -> np.ndarray:
+    """The trials of ``res`` whose misfit exceeds :data:`OUTLIER` times the median
+    trial's (and twice the number of its residuals)."""
+    per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
+    return np.flatnonzero(per > OUTLIER * max(np.median(per), 2.0 * prob.f.size))
+
+
 def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, sel, res,
-                  max_nfev: int):
+                  max_nfev: int, prior=None):
     """Trials stuck in a poor local minimum of the joint fit (misfit far above the median
     trial's) get new arm parameters from a single-trial fit
     (:func:`armfit.fitting.fit_response`): first a local one from the median arm
     parameters of the trials that fit, then, for a trial still far off, the global
     search. The single-trial fit weighs the trial's residuals by the same noise model's
     standard errors as the joint fit (it is given the whole grid and the band). The joint
-    fit is refined again; the better of the two results is returned."""
-    per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
-    limit = OUTLIER * max(np.median(per), 2.0 * prob.f.size)
-    bad = np.flatnonzero(per > limit)
+    fit is refined again; the better of the two results is returned.
+
+    ``prior``: the best fit of another start of the same problem, made already, with no
+    trial stuck. The stuck trials then first take their arm parameters there and the
+    joint fit is refined; when that leaves no trial stuck, it is the rescue (the better
+    of it and ``res``), and no single-trial fit is made. A start that ends with its
+    effects in another valley leaves trials stuck that fit well in the prior's."""
+    bad = _stuck(prob, res)
     if bad.size == 0:
         return res
+    if prior is not None and not _stuck(prob, prior).size:
+        x1 = res.x.copy()
+        n = prob.T * prob.nb
+        x1[:n].reshape(prob.T, prob.nb)[bad] = prior.x[:n].reshape(prob.T, prob.nb)[bad]
+        res1 = refine(prob, x1, max_nfev)
+        if not _stuck(prob, res1).size:
+            return res1 if res1.cost < res.cost else res
+    per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
+    limit = OUTLIER * max(np.median(per), 2.0 * prob.f.size)
     x0 = res.x.copy()
     zb = x0[: prob.T * prob.nb].reshape(prob.T, prob.nb)
     theta = prob.space.to_theta(prob.unpack(res.x))
