@@ -451,6 +451,11 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
     return res2 if res2.cost < res.cost else res
 
 
+#: Evaluations per parameter of the final polish of :func:`trial_fit` (fit_response's
+#: default is 200): the single-trial fit only gives the joint fit, which refines every
+#: trial again, a start.
+TRIAL_FIT_NFEV = 20
+
 #: The single-trial fits of :func:`rescue_trials` made in this process, by their inputs
 #: (the last :data:`_TRIAL_FITS_KEPT`): the same trial is often rescued with the same
 #: model again, by another start of the same joint fit, or by the fit on all trials after
@@ -477,7 +482,8 @@ def trial_fit(model: ClosedLoopModel, data: AxisData, i: int, band: tuple[float,
         fit = fit_response(model, data.f_hz, data.h[i], se_db=data.se_db[i],
                            se_deg=data.se_deg[i], band=band, x0=start,
                            global_search=start is None, strict=False, intervals=False,
-                           second_opinion=False)
+                           second_opinion=False,
+                           max_nfev=TRIAL_FIT_NFEV * len(model.param_names))
         with _TRIAL_FITS_LOCK:
             while len(_TRIAL_FITS) >= _TRIAL_FITS_KEPT:
                 del _TRIAL_FITS[next(iter(_TRIAL_FITS))]
