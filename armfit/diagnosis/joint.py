@@ -25,6 +25,7 @@ from armfit.diagnosis.tuning import (
     REFINE_BEST,
     START_SCREEN_NFEV,
     START_SCREEN_TRIALS,
+    TRIAL_FIT_NFEV,
 )
 from armfit.fitting import ParamSpace, fit_response
 from armfit.models.arm import ClosedLoopModel
@@ -391,22 +392,29 @@ def refine(prob: JointProblem, x0: np.ndarray, max_nfev: int) -> blocklsq.BlockR
     return replace(prob.solve(x0, max_nfev, ftol=ftol, xtol=1e-8), jb=None, js=None)
 
 
-def _stuck(prob: JointProblem, res) -> np.ndarray:
-    """The trials of ``res`` whose misfit exceeds :data:`OUTLIER` times the median
-    trial's (and twice the number of its residuals)."""
+def _misfit_limit(prob: JointProblem, res) -> tuple[np.ndarray, float]:
+    """Each trial's misfit in ``res`` (its sum of squared weighted residuals) and the
+    limit above which it is stuck: :data:`OUTLIER` times the median trial's, and at
+    least twice the number of its residuals."""
     per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
-    return np.flatnonzero(per > OUTLIER * max(np.median(per), 2.0 * prob.f.size))
+    return per, OUTLIER * max(float(np.median(per)), 2.0 * prob.f.size)
+
+
+def _stuck(prob: JointProblem, res) -> np.ndarray:
+    """The stuck trials of ``res`` (:func:`_misfit_limit`)."""
+    per, limit = _misfit_limit(prob, res)
+    return np.flatnonzero(per > limit)
 
 
 def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, sel, res,
-                  max_nfev: int, prior=None):
+                  max_nfev: int, prior: blocklsq.BlockResult | None = None):
     """Trials stuck in a poor local minimum of the joint fit (misfit far above the median
-    trial's) get new arm parameters from a single-trial fit
-    (:func:`armfit.fitting.fit_response`): first a local one from the median arm
-    parameters of the trials that fit, then, for a trial still far off, the global
-    search. The single-trial fit weighs the trial's residuals by the same noise model's
-    standard errors as the joint fit (it is given the whole grid and the band). The joint
-    fit is refined again; the better of the two results is returned.
+    trial's) get new arm parameters from a single-trial fit (:func:`trial_fit`): first a
+    local one from the median arm parameters of the trials that fit, then, for a trial
+    still far off, the global search. The single-trial fit weighs the trial's residuals
+    by the same noise model's standard errors as the joint fit (it is given the whole
+    grid and the band). The joint fit is refined again; the better of the two results is
+    returned.
 
     ``prior``: the best fit of another start of the same problem, made already, with no
     trial stuck. The stuck trials then first take their arm parameters there and the
@@ -423,8 +431,7 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
         res1 = refine(prob, x1, max_nfev)
         if not _stuck(prob, res1).size:
             return res1 if res1.cost < res.cost else res
-    per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
-    limit = OUTLIER * max(np.median(per), 2.0 * prob.f.size)
+    _, limit = _misfit_limit(prob, res)
     x0 = res.x.copy()
     zb = x0[: prob.T * prob.nb].reshape(prob.T, prob.nb)
     theta = prob.space.to_theta(prob.unpack(res.x))
@@ -451,11 +458,6 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
     return res2 if res2.cost < res.cost else res
 
 
-#: Evaluations per parameter of the final polish of :func:`trial_fit` (fit_response's
-#: default is 200): the single-trial fit only gives the joint fit, which refines every
-#: trial again, a start.
-TRIAL_FIT_NFEV = 20
-
 #: The single-trial fits of :func:`rescue_trials` made in this process, by their inputs
 #: (the last :data:`_TRIAL_FITS_KEPT`): the same trial is often rescued with the same
 #: model again, by another start of the same joint fit, or by the fit on all trials after
@@ -472,7 +474,8 @@ def trial_fit(model: ClosedLoopModel, data: AxisData, i: int, band: tuple[float,
     standard errors), locally from ``start``, or by the global search without one. Only
     its parameters are used: no intervals, no second opinion on its convergence (which
     would change its message and flag only). A fit with the same inputs made before in
-    this process is returned again (the fit is deterministic: the same result)."""
+    this process is returned again (the fit is deterministic: the same result). Its
+    final polish has :data:`TRIAL_FIT_NFEV` evaluations per parameter."""
     key = (model, band, None if start is None else tuple(start.items()),
            data.f_hz.tobytes(), data.h[i].tobytes(), data.se_db[i].tobytes(),
            data.se_deg[i].tobytes())

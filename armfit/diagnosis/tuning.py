@@ -14,7 +14,7 @@ __all__ = [
     "MIN_REDUCTION", "MIN_RUN", "NOISE_TOL", "OUTLIER", "QUICK_BEST", "QUICK_NFEV",
     "QUICK_SCREEN_NFEV", "REFINE_BEST", "SCREEN_GAP", "SCREEN_KEEP", "SCREEN_SUBSET",
     "SHARED_EFFECTS", "SIGNIFICANT_BIC", "START_SCREEN_NFEV", "START_SCREEN_TRIALS",
-    "TIE_BIC", "TIE_FRACTION", "T_FAIL", "UNIT_DEG",
+    "TIE_BIC", "TIE_FRACTION", "TRIAL_FIT_NFEV", "T_FAIL", "UNIT_DEG",
 ]
 
 # ---------------------------------------------------------------------------
@@ -75,11 +75,16 @@ SHARED_EFFECTS: tuple[str, ...] = ("delay", "lowpass")
 #: can show (the ΔBIC threshold is 10 and its values are printed to 0.1). A model far
 #: from the data has s² of thousands, and its fit creeps along a flat valley of its
 #: cost by steps of this order for a hundred evaluations; a model within the noise has
-#: s² ≈ 1 and converges in a few steps, where this stops it at the same point.
+#: s² ≈ 1 and converges in a few steps, and stops within a small fraction of its
+#: intervals of where a 1e-14 tolerance would (tests/test_diagnose_speedups.py).
 FTOL_VARIANCE = 0.01
 #: A trial whose misfit exceeds this many times the median trial's (and twice the
 #: number of its residuals) is refitted on its own: it sits in a poor local minimum.
 OUTLIER = 4.0
+#: Evaluations per parameter of the final polish of that single-trial fit
+#: (fit_response's default is 200, to 1e-12): it only gives the joint fit, which refines
+#: every trial again, a start.
+TRIAL_FIT_NFEV = 20
 #: Trials (at most, spread over the axis) on which every starting combination of a joint
 #: fit is tried briefly, and the evaluations each such try gets.
 START_SCREEN_TRIALS = 9
