@@ -446,17 +446,21 @@ def test_read_ahead_raises_an_items_error_in_its_turn_and_leaves_no_thread():
 
 
 def test_read_ahead_closed_early_waits_for_the_call_under_way():
-    release = threading.Event()
+    started, release = threading.Event(), threading.Event()
     finished = []
 
     def fn(i):
         if i == 1:
+            started.set()
             release.wait(10.0)
         finished.append(i)
         return i
 
     it = workers.read_ahead(fn, [0, 1, 2])
     assert next(it) == 0
+    # the call for item 1 is under way (on a busy machine the reading thread may not
+    # have begun it when next() returns: closing then starts nothing, rightly)
+    assert started.wait(10.0)
     threading.Timer(0.2, release.set).start()
     it.close()                              # returns once the call for item 1 has ended
     assert finished == [0, 1]               # item 2 was never started
