@@ -206,7 +206,8 @@ def test_base_log_derivatives_are_those_of_the_response(name):
     m = ClosedLoopModel.for_axis("y", effects)
     theta = m.start_points(X1)[-1]
     rows = {n: np.array([[v], [1.3 * v]]) for n, v in theta.items()}
-    got = m.base_log_derivatives(F, rows)
+    h, got = m.response_and_base_log_derivatives(F, rows)
+    assert np.array_equal(h, m.response(F, rows))       # the response itself, to the bit
     assert got.shape == (5, 2, F.size)
     for j, n in enumerate(("Ma", "k1", "k2", "b1", "b2")):
         h = 1e-6 * rows[n]

@@ -196,7 +196,7 @@ class JointProblem:
     def jac(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Jacobian of :meth:`fun` as its blocks (per-trial (T, m, 5), shared
         (T, m, k); see :mod:`armfit.blocklsq`): the arm parameters' columns analytic
-        (:meth:`armfit.models.arm.ClosedLoopModel.base_log_derivatives`), the effect
+        (:meth:`armfit.models.arm.ClosedLoopModel.response_and_base_log_derivatives`), the effect
         parameters' by forward differences, all of these in one vectorised evaluation
         (column j of every trial perturbed at once: the trials' blocks do not overlap;
         shared columns for all trials together), steps √eps·max(1, |z|), taken backwards
@@ -232,10 +232,13 @@ class JointProblem:
         w_db, w_deg = self.w_db[rows], self.w_deg[rows]
         fill = 1e6 if self.unused is None else self.unused[rows]
         with np.errstate(all="ignore"):
-            r_db, r_deg = residuals(self.h[None, rows], self.model.response(self.f, values))
+            # the response at z and the base derivatives there, then at the k steps
+            h0, dlog = self.model.response_and_base_log_derivatives(
+                self.f, {n: v[0] for n, v in values.items()})           # (t, n), (5, t, n)
+            hm = h0[None] if not k else np.concatenate([h0[None], self.model.response(
+                self.f, {n: v[1:] for n, v in values.items()})])
+            r_db, r_deg = residuals(self.h[None, rows], hm)
             R = np.concatenate([r_db * w_db, r_deg * w_deg], axis=-1)
-            first = {n: v[0] for n, v in values.items()}
-            dlog = self.model.base_log_derivatives(self.f, first)       # (5, t, n)
             dz = np.where(self.space.log[:nb], theta[0, :, :nb],
                           self.space.upper[:nb] - self.space.lower[:nb])  # dθ/dz, (t, 5)
             Db = np.concatenate([-DB_PER_NEPER * dlog.real * w_db,

@@ -154,10 +154,16 @@ def z_arm(f_hz, Ma, k1, k2, b1, b2) -> np.ndarray:
 
 def _z_arm_at(s, Ma, k1, k2, b1, b2) -> np.ndarray:
     """:func:`z_arm` at s = j·2π·f (rad/s), for a caller that has s already."""
+    c1, c2, ms2, den = _z_arm_terms(s, Ma, k1, k2, b1, b2)
+    return c1 * (ms2 + c2) / den
+
+
+def _z_arm_terms(s, Ma, k1, k2, b1, b2) -> tuple[np.ndarray, ...]:
+    """C1, C2, Ma s² and the denominator D = Ma s² + C1 + C2 of Z_ARM (eq. 3) at s."""
     c1 = k1 + b1 * s
     c2 = k2 + b2 * s
     ms2 = Ma * s * s
-    return c1 * (ms2 + c2) / (ms2 + c1 + c2)
+    return c1, c2, ms2, ms2 + c1 + c2
 
 
 def h_arm(f_hz, Ma, k1, k2, b1, b2) -> np.ndarray:
@@ -355,44 +361,41 @@ class ClosedLoopModel:
         """Measured dynamics X/F (m/N): eq. 4 with every effect applied."""
         base, eff = self._split(theta)
         s = laplace(f_hz)
-        z = _z_arm_at(s, **base) + self.mp * s * s        # Z_ARM + H_dev (eq. 2)
-        factor = np.ones_like(s)
-        for e, v in zip(self.effects, eff, strict=True):
-            if e.stage in ("arm", "device"):
-                z = z + e.evaluate(s, v, self.mp)
-            else:
-                factor = factor * e.evaluate(s, v, self.mp)
+        # Z_ARM + H_dev (eq. 2), the effects' impedances added, the output factors
+        factor, z = self._effect_terms(s, eff, STAGE_NAMES,
+                                       _z_arm_at(s, **base) + self.mp * s * s)
         return factor / z
 
-    def base_log_derivatives(self, f_hz, theta) -> np.ndarray:
-        """∂ ln H/∂θ of :meth:`response` H for each base parameter θ (Ma, k1, k2, b1, b2 in
-        their units), analytically: H = R/(Z_ARM + Mp s² + ΔZ) with R and ΔZ independent of
-        the base parameters (the effects' terms), so ∂ ln H/∂θ = −(∂Z_ARM/∂θ)/(Z_ARM + Mp s²
-        + ΔZ), and with Z_ARM = N/D (eq. 3), N = C1 (Ma s² + C2), D = Ma s² + C1 + C2,
-        ∂Z_ARM/∂θ = (∂N/∂θ − Z_ARM ∂D/∂θ)/D. Returns (5, ...) complex, the parameters
-        first, then the broadcast shape of ``theta``'s values and the frequencies."""
+    def response_and_base_log_derivatives(self, f_hz, theta
+                                          ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`response` H (the same values) and ∂ ln H/∂θ for each base parameter θ
+        (Ma, k1, k2, b1, b2 in their units), analytically: H = R/Z with Z = Z_ARM + Mp s²
+        + ΔZ, R and ΔZ the effects' terms (independent of the base parameters), so
+        ∂ ln H/∂θ = −(∂Z_ARM/∂θ)/Z, and with Z_ARM = N/D (eq. 3), N = C1 (Ma s² + C2),
+        D = Ma s² + C1 + C2, ∂Z_ARM/∂θ = (∂N/∂θ − Z_ARM ∂D/∂θ)/D. The derivatives are
+        (5, ...) complex, the parameters first, then the broadcast shape of ``theta``'s
+        values and the frequencies."""
         base, eff = self._split(theta)
         s = laplace(f_hz)
-        Ma, k1, k2, b1, b2 = (base[n] for n in PARAM_NAMES)
-        c1 = k1 + b1 * s
-        c2 = k2 + b2 * s
-        ms2 = Ma * s * s
-        den = ms2 + c1 + c2
+        c1, c2, ms2, den = _z_arm_terms(s, **base)
         z_arm = c1 * (ms2 + c2) / den
-        _, dz = self._effect_terms(s, eff, ("arm", "device"))
-        scale = -1.0 / (den * (z_arm + self.mp * s * s + dz))
-        d_k1 = (ms2 + c2 - z_arm) * scale        # (∂N/∂k1 − Z_ARM ∂D/∂k1) · (−1/(D z))
+        factor, z = self._effect_terms(s, eff, STAGE_NAMES, z_arm + self.mp * s * s)
+        scale = -1.0 / (den * z)
+        d_k1 = (ms2 + c2 - z_arm) * scale        # (∂N/∂k1 − Z_ARM ∂D/∂k1) · (−1/(D Z))
         d_k2 = (c1 - z_arm) * scale              # the same for k2
         # ∂/∂Ma = s² ∂/∂k2, ∂/∂b1 = s ∂/∂k1, ∂/∂b2 = s ∂/∂k2
-        return np.stack(np.broadcast_arrays(s * s * d_k2, d_k1, d_k2, s * d_k1, s * d_k2))
+        return factor / z, np.stack(np.broadcast_arrays(s * s * d_k2, d_k1, d_k2,
+                                                        s * d_k1, s * d_k2))
 
-    def _effect_terms(self, s, eff: Sequence[Mapping[str, float]], stages: Sequence[str]
-                      ) -> tuple[np.ndarray, np.ndarray]:
+    def _effect_terms(self, s, eff: Sequence[Mapping[str, float]], stages: Sequence[str],
+                      z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(R, ΔZ) at s (rad/s): the product of the output factors and the sum of the
         added impedances (N/m) of the effects whose stage is in ``stages``; ``eff`` holds
-        each effect's own values, in the order of :attr:`effects`."""
+        each effect's own values, in the order of :attr:`effects`. Given an impedance
+        ``z``, the impedances are added to it in turn (z + ΔZ₁ + ΔZ₂ …) and that sum is
+        returned in place of ΔZ."""
         factor = np.ones_like(s)
-        dz = np.zeros_like(s)
+        dz = np.zeros_like(s) if z is None else z
         for e, v in zip(self.effects, eff, strict=True):
             if e.stage not in stages:
                 continue
