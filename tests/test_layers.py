@@ -26,7 +26,7 @@ LAYERS: dict[str, float] = {
     "spectra": 2, "feedback": 2,
     "models": 3,
     "fitting": 4, "uncertainty": 4, "diagnosis": 4, "simulation": 4, "tables": 4,
-    "loop": 4, "blocklsq": 4,
+    "loop": 4, "blocklsq": 4, "multilsq": 4,
     "figures": 5, "adopt": 5, "export": 5,
     "api": 6,
     "report": 6.5,        # report.md from the typed results; the pipeline imports it

@@ -60,65 +60,65 @@ EXPECTED: dict[str, str] = {
     "run.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "fit-grip.stdout":
-        "1a85f0f517451792cf92760ac2c84c6ae5560d7e7c875d267a5af4917ec87d74",
+        "46cddf80361b3b94a5dabe89ed29416ac87b2f98e18b7d6ef53aeae486dca377",
     "fit-nominal.stdout":
-        "f1fc3b0808bd3d1c5e1e9a9936e0869b0b862a3e138d2500cc93833853a3be14",
+        "6331e3c3963de01cbfbfbbf3c04db27af51b19e9d393f5c76c629b10305e9e08",
     "fit-uncertainty.stdout":
-        "179c93a6a111dcf81a553f61d6d2248b38f0c0f8cfecf9fec1385719f54a1597",
+        "a334d8acc21429e650fb0cd27194893139dda8b329e45c236c2e9b3b9fb8848e",
     "compare.stdout":
-        "77fc7927666fa7ab872528c5fd22c688dd3e3fe7b83c7823577a2f1ccb7633ef",
+        "b4cecbc42c6e6340b9641259aa572d35418dd91401306c65a51b9f81208eb869",
     "diagnose.stdout":
-        "16f0158ade6b336dd2f755c24d56687410f854b19f385fbf9dedded2bfce1f9a",
+        "521c30725c1ea20289ef9369407f5b5802845618a1c797fff4574347c91c133b",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
         "dc2740e86ae04d0e296505cb92bca6fd32a8e421bc87a689f88cfd9836382350",
     "grip.csv":
-        "8fe7b51ecf2f2b77c017d85f9cf80b54ac2ff2d65a4880d37590533f9edf74fe",
+        "6aa7f9deaf4f2c7f0147e43dbc1806902a41bb71d93f70d830b6b4152af39fde",
     "nominal.csv":
-        "9dc56dd6d9d5f8090fa3a12701b1134c9d95116b70df28a8c40a7927391a54fa",
+        "3bcf935c5e6c13d3f027096c5e9c944fe641d1511f340e39345f53b55f9dbfbc",
     "run/adoption.csv":
         "a03dd023790b6e27d056b12e9a0658e098fa0e3ddfd4d75e6ee17b5f5ad43866",
     "run/certificate.csv":
-        "201327c5c213fe5451985f8d0c1f8618637512074e0500ce3c5325925c029315",
+        "e74a7ed296f1d06718da4a37dde5d032e4680a3632df9d443e0378b29fb8dcfa",
     "run/compare.csv":
-        "178b79f03f672b1e15c0a973f2e9fb6d7b4c45f2cb8dc841f6e47c1ff3d8dd66",
+        "b9bdb0630e0b4fbb0294ff1512b93cc35bf724c01a5070d498889f0553d7106e",
     "run/diagnosis.json":
-        "16f0158ade6b336dd2f755c24d56687410f854b19f385fbf9dedded2bfce1f9a",
+        "521c30725c1ea20289ef9369407f5b5802845618a1c797fff4574347c91c133b",
     "run/grip_params.csv":
-        "8fe7b51ecf2f2b77c017d85f9cf80b54ac2ff2d65a4880d37590533f9edf74fe",
+        "6aa7f9deaf4f2c7f0147e43dbc1806902a41bb71d93f70d830b6b4152af39fde",
     "run/grip_params.tex":
         "a30e9288acad14b36f41695e560bea5d7201a820e8e1f5151b4040acda5136ca",
     "run/nominal_params.csv":
-        "9dc56dd6d9d5f8090fa3a12701b1134c9d95116b70df28a8c40a7927391a54fa",
+        "3bcf935c5e6c13d3f027096c5e9c944fe641d1511f340e39345f53b55f9dbfbc",
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.html":
-        "ce6be3e3cdca2ed676baaafa9da59a2e3e6d4637d61f0979b6057fbd561592d5",
+        "21cc53d4c906ca4825b45bb991293b3353cad2a01ab19923b772e2458aae5364",
     "run/report.md":
-        "ba46f70481cc8c0ac169eee1fd0b4b3e0c9a05f4e53cd869b226c90f3ac855ad",
+        "89004638c33548d4e0d7beb7b580e067b0d87bd87ca3c7e4db1d433ec7869846",
     "run/spectra.parquet":
         "7f7910c503a4059c4f6ea3bdc8c362fb29624ee31197ec605d4c4b9f3f33f8d9",
     "run/stability.csv":
-        "f3df1ad3b5c4dedf2c337f30499d2a7d74144b83f83b053e1258d4b9bd6428dc",
+        "4c751cf9560947f6728a317aa44c19dec17ae7071cbe9d19207d7fe49fcb02bb",
     "run/trial_params.csv":
-        "d415cee8608ec56da3f1d7612649367860eee5bb2a6afbe7fc6e6c014fbfc129",
+        "5f327ae0b30a1475cd1fd94f03dcbb7dda7e75d9bf3300818b130e20e1b5760f",
     "run/trials.parquet":
         "34eb582f5fec86f6d7c0d27c62e2eb917c898821d3fbf387c5b22af4ba5c9bea",
     "run/wu.csv":
-        "c37cea69e1732f61d2a9d77674c51b087f9cb744c7c6969a11ceec9f6374098e",
+        "148745bcc1f43833c8b22950a49a45ce95fc5383c231ddd9e95e25b85ee5c862",
     "run/wu.tex":
-        "c0da1267f7c7a4af26773acf74f5a2799a2d247b91dfa96b96862689697517f5",
+        "442aa76aa4b6a2ed5e3a8591345af1f51f620ef3d3af613b93c3476204031043",
     "run/wu_summary.csv":
-        "14bdae00c03cf98cf2401e899fc00b5b5f9f48335197e7c8bd7d081f31c5d15e",
+        "fb437e16c09dfd23d14f9e39e4a31c47e77ff0ef6a2ebac206917b7ba665f4e8",
     "run/wu_wmax.csv":
-        "3ae2f2e2180a3f3b4b0a3d7308ade707de004cace608eecdd658126ab4b4f78f",
+        "8622a1edf26615820937c73ce294d1a013b7686eda38147b0a6ed5fe953e4a99",
     "wu.csv":
-        "c37cea69e1732f61d2a9d77674c51b087f9cb744c7c6969a11ceec9f6374098e",
+        "148745bcc1f43833c8b22950a49a45ce95fc5383c231ddd9e95e25b85ee5c862",
     "wu_summary.csv":
-        "14bdae00c03cf98cf2401e899fc00b5b5f9f48335197e7c8bd7d081f31c5d15e",
+        "fb437e16c09dfd23d14f9e39e4a31c47e77ff0ef6a2ebac206917b7ba665f4e8",
     "wu_wmax.csv":
-        "3ae2f2e2180a3f3b4b0a3d7308ade707de004cace608eecdd658126ab4b4f78f",
+        "8622a1edf26615820937c73ce294d1a013b7686eda38147b0a6ed5fe953e4a99",
 }
 
 

@@ -1,0 +1,387 @@
+"""Many small bounded nonlinear least-squares problems solved together.
+
+The global search of :func:`armfit.fitting.fit_response` refines a dozen starts of the
+same problem, and its band jackknife refits the same problem without each band: many
+independent problems of the same size (p ≤ ~10 parameters, a few hundred residuals),
+each a fraction of a millisecond of arithmetic. Solved one after the other, each
+iteration's Python overhead costs more than its arithmetic. :func:`solve_many` runs them
+in lock-step, every problem's iteration vectorised over the problems still running:
+one evaluation of the residuals (and of the Jacobian) for all of them, one batched SVD.
+
+Each problem follows its own path exactly as :func:`scipy.optimize.least_squares`
+(``method="trf"``, ``x_scale=1``, ``tr_solver="exact"``, no loss function) would take
+it: its own trust radius and Levenberg-Marquardt parameter, Coleman-Li scaling, the same
+step selection (trust-region step, its reflection off a bound, or the scaled steepest
+descent), radius updates, termination tests and statuses, and its own evaluation
+budget. Only the rounding differs (a batched SVD, batched products): each problem takes
+the same number of evaluations and stops converged or not alike, at an end point within
+the tolerances asked of scipy's (``tests/test_multilsq.py``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["ManyResult", "solve_many"]
+
+_EPS = np.finfo(float).eps
+
+#: Residuals of several problems: (X (k, n) points, rows (k,) the problems' indices) ->
+#: residuals (k, m).
+FunMany = Callable[[np.ndarray, np.ndarray], np.ndarray]
+#: Jacobians of several problems: (X (k, n), rows (k,)) -> (k, m, n).
+JacMany = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class ManyResult:
+    """The solutions of :func:`solve_many`, one row per problem: ``x`` (N, n), ``cost``
+    ½‖r‖² (N,), residuals ``fun`` (N, m), ``status`` (N,) as
+    :func:`scipy.optimize.least_squares` (0: evaluation budget spent; 1: gtol, 2: ftol,
+    3: xtol, 4: ftol and xtol) and ``nfev`` (N,) residual evaluations."""
+
+    x: np.ndarray
+    cost: np.ndarray
+    fun: np.ndarray
+    status: np.ndarray
+    nfev: np.ndarray
+
+
+def _strictly_feasible(x: np.ndarray, lb: np.ndarray, ub: np.ndarray,
+                       rstep: float) -> np.ndarray:
+    """Rows of ``x`` moved inside the bounds, as scipy's ``make_strictly_feasible``:
+    at least ``rstep`` (relative) from a bound, or the next float with ``rstep`` 0."""
+    x_new = x.copy()
+    if rstep == 0:
+        lo, hi = x <= lb, x >= ub
+        x_new = np.where(lo, np.nextafter(lb, ub), x_new)
+        x_new = np.where(hi, np.nextafter(ub, lb), x_new)
+    else:
+        lower_dist, upper_dist = x - lb, ub - x
+        lo = lower_dist <= np.minimum(upper_dist, rstep * np.maximum(1, np.abs(lb)))
+        hi = upper_dist <= np.minimum(lower_dist, rstep * np.maximum(1, np.abs(ub)))
+        x_new = np.where(lo, lb + rstep * np.maximum(1, np.abs(lb)), x_new)
+        x_new = np.where(hi, ub - rstep * np.maximum(1, np.abs(ub)), x_new)
+    tight = (x_new < lb) | (x_new > ub)
+    return np.where(tight, 0.5 * (lb + ub), x_new)
+
+
+def _cl_scaling(x: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray):
+    """Coleman-Li scaling vector v and its derivative's sign dv, row by row."""
+    v, dv = np.ones_like(x), np.zeros_like(x)
+    m = g < 0
+    v, dv = np.where(m, ub - x, v), np.where(m, -1.0, dv)
+    m = g > 0
+    v, dv = np.where(m, x - lb, v), np.where(m, 1.0, dv)
+    return v, dv
+
+
+def _tr_steps(uf, s, V, delta, alpha, m: int, rtol: float = 0.01, max_iter: int = 10):
+    """The trust-region steps p_h (k, n) and Levenberg-Marquardt parameters α of k
+    problems from the SVDs of their scaled augmented Jacobians (``uf`` = Uᵀf (k, n),
+    singular values ``s`` (k, n), right singular vectors ``V`` (k, n, n)): the
+    Gauss-Newton step when it fits in the radius ``delta``, else Moré's iteration on
+    ‖p(α)‖ = delta to ``rtol`` (scipy's ``solve_lsq_trust_region``, row by row)."""
+    n = s.shape[1]
+    suf = s * uf
+    full_rank = (s[:, -1] > _EPS * m * s[:, 0]) if m >= n else np.zeros(len(s), bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p_gn = -np.einsum("kij,kj->ki", V, np.where(full_rank[:, None], uf / s, 0.0))
+    gn = full_rank & (np.linalg.norm(p_gn, axis=1) <= delta)
+    if gn.all():
+        return p_gn, np.zeros(len(s))
+
+    def phi_and_derivative(a):
+        denom = s ** 2 + a[:, None]
+        p_norm = np.linalg.norm(suf / denom, axis=1)
+        return p_norm - delta, -np.sum(suf ** 2 / denom ** 3, axis=1) / p_norm
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a_hi = np.linalg.norm(suf, axis=1) / delta
+        phi0, dphi0 = phi_and_derivative(np.zeros(len(s)))
+        a_lo = np.where(full_rank, -phi0 / dphi0, 0.0)
+        reset = ~full_rank & (alpha == 0)
+        a = np.where(reset, np.maximum(0.001 * a_hi, np.sqrt(a_lo * a_hi)), alpha)
+        live = ~gn
+        for _ in range(max_iter):
+            if not live.any():
+                break
+            out = (a < a_lo) | (a > a_hi)
+            a = np.where(live & out, np.maximum(0.001 * a_hi, np.sqrt(a_lo * a_hi)), a)
+            phi, dphi = phi_and_derivative(a)
+            a_hi = np.where(live & (phi < 0), a, a_hi)
+            ratio = phi / dphi
+            a_lo = np.where(live, np.maximum(a_lo, a - ratio), a_lo)
+            a = np.where(live, a - (phi + delta) * ratio / delta, a)
+            live = live & ~(np.abs(phi) < rtol * delta)
+        p = -np.einsum("kij,kj->ki", V, suf / (s ** 2 + a[:, None]))
+        p *= (delta / np.linalg.norm(p, axis=1))[:, None]
+    return np.where(gn[:, None], p_gn, p), np.where(gn, 0.0, a)
+
+
+def _to_bound(x, s, lb, ub):
+    """scipy's ``step_size_to_bound`` for one problem."""
+    steps = np.full_like(x, np.inf)
+    nz = s != 0
+    with np.errstate(over="ignore"):
+        steps[nz] = np.maximum((lb - x)[nz] / s[nz], (ub - x)[nz] / s[nz])
+    t = np.min(steps)
+    return t, np.equal(steps, t) * np.sign(s).astype(int)
+
+
+def _quadratic_1d(J, g, s, diag, s0=None):
+    v = J.dot(s)
+    a = 0.5 * (np.dot(v, v) + np.dot(s * diag, s))
+    b = np.dot(g, s)
+    if s0 is None:
+        return a, b, 0.0
+    u = J.dot(s0)
+    b += np.dot(u, v) + np.dot(s0 * diag, s)
+    c = 0.5 * np.dot(u, u) + np.dot(g, s0) + 0.5 * np.dot(s0 * diag, s0)
+    return a, b, c
+
+
+def _min_1d(a, b, lo, hi, c=0.0):
+    t = [lo, hi]
+    if a != 0 and lo < -0.5 * b / a < hi:
+        t.append(-0.5 * b / a)
+    t = np.asarray(t)
+    y = t * (a * t + b) + c
+    i = np.argmin(y)
+    return t[i], y[i]
+
+
+def _evaluate_quadratic(J, g, s, diag):
+    js = J.dot(s)
+    return 0.5 * (np.dot(js, js) + np.dot(s * diag, s)) + np.dot(g, s)
+
+
+def _select_step_bounded(x, J_h, diag_h, g_h, p, p_h, d, delta, lb, ub, theta):
+    """scipy's trust-region-reflective ``select_step`` for one problem whose
+    trust-region step leaves the box: the best of that step stopped short of the bound,
+    its reflection, and the scaled steepest-descent step. (step, step_h, predicted)."""
+    p_stride, hits = _to_bound(x, p, lb, ub)
+    r_h = np.copy(p_h)
+    r_h[hits.astype(bool)] *= -1
+    r = d * r_h
+    p = p * p_stride
+    p_h = p_h * p_stride
+    x_on_bound = x + p
+    a, b, c = np.dot(r_h, r_h), np.dot(p_h, r_h), np.dot(p_h, p_h) - delta ** 2
+    disc = np.sqrt(b * b - a * c)
+    q = -(b + np.copysign(disc, b))
+    to_tr = max(q / a, c / q)
+    to_bound, _ = _to_bound(x_on_bound, r, lb, ub)
+    r_stride = min(to_bound, to_tr)
+    if r_stride > 0:
+        r_lo = (1 - theta) * p_stride / r_stride
+        r_hi = theta * to_bound if r_stride == to_bound else to_tr
+    else:
+        r_lo, r_hi = 0, -1
+    if r_lo <= r_hi:
+        a, b, c = _quadratic_1d(J_h, g_h, r_h, diag_h, s0=p_h)
+        r_stride, r_value = _min_1d(a, b, r_lo, r_hi, c)
+        r_h = r_h * r_stride + p_h
+        r = r_h * d
+    else:
+        r_value = np.inf
+    p = p * theta
+    p_h = p_h * theta
+    p_value = _evaluate_quadratic(J_h, g_h, p_h, diag_h)
+    ag_h = -g_h
+    ag = d * ag_h
+    to_tr = delta / np.linalg.norm(ag_h)
+    to_bound, _ = _to_bound(x, ag, lb, ub)
+    ag_stride = theta * to_bound if to_bound < to_tr else to_tr
+    a, b, _ = _quadratic_1d(J_h, g_h, ag_h, diag_h)
+    ag_stride, ag_value = _min_1d(a, b, 0, ag_stride)
+    if p_value < r_value and p_value < ag_value:
+        return p, p_h, -p_value
+    if r_value < p_value and r_value < ag_value:
+        return r, r_h, -r_value
+    return ag * ag_stride, ag_h * ag_stride, -ag_value
+
+
+def solve_many(fun: FunMany, jac: JacMany, x0: np.ndarray, lb: np.ndarray,
+               ub: np.ndarray, *, max_nfev: int, ftol: float = 1e-8, xtol: float = 1e-8,
+               gtol: float = 1e-8) -> ManyResult:
+    """Minimise ½‖r_i(x)‖² over lb ≤ x ≤ ub for N independent problems at once.
+
+    Each problem i behaves as ``scipy.optimize.least_squares(r_i, x0[i], jac=J_i,
+    bounds=(lb, ub), method="trf", x_scale=1.0, max_nfev=max_nfev, ftol=ftol,
+    xtol=xtol, gtol=gtol)`` (see the module docstring), but for one status: a step
+    that stops the fit by ``ftol`` or ``xtol`` keeps that status, where scipy evaluates
+    the Jacobian at the new point once more and reports ``gtol`` (1) when its gradient
+    is also that small. No Jacobian is evaluated at a point where a fit stops.
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(X, rows)``: the residuals (k, m) of the problems ``rows`` (k,) at their
+        points ``X`` (k, n); must be finite at the starts.
+    jac : callable
+        ``jac(X, rows)``: their Jacobians (k, m, n).
+    x0 : ndarray, shape (N, n)
+        Starts, inside the bounds (moved strictly inside, as scipy does).
+    lb, ub : ndarray, shape (n,)
+        Finite bounds, the same for every problem.
+    max_nfev : int
+        Residual evaluations per problem (the Jacobian's not counted).
+    ftol, xtol, gtol : float
+        scipy's termination tolerances.
+
+    Returns
+    -------
+    ManyResult
+    """
+    lb, ub = np.asarray(lb, float), np.asarray(ub, float)
+    st = _Fits(fun, jac, _strictly_feasible(np.asarray(x0, float), lb, ub, 1e-10), lb, ub)
+    while st.ids.size:
+        st.begin_iterations(gtol, max_nfev)
+        # a fit whose budget ran out inside an outer iteration stops (status 0)
+        st.retire(st.nfev >= max_nfev)
+        if st.ids.size:
+            st.try_steps(ftol, xtol)
+    return st.out
+
+
+class _Fits:
+    """The state of :func:`solve_many`'s fits still running, one row each (scipy's
+    ``trf`` variables: point, residuals, Jacobian, gradient, cost, radius Δ, α, and those
+    of the current outer iteration: scaling d, diag_h, g_h, θ and the SVD of the
+    augmented scaled Jacobian); ``ids`` their rows in ``x0``. A fit that stops is
+    written to :attr:`out` and its row dropped, so that every step works on the running
+    fits' rows without gathering them."""
+
+    def __init__(self, fun: FunMany, jac: JacMany, x: np.ndarray, lb, ub):
+        self.fun, self.jac, self.lb, self.ub = fun, jac, lb, ub
+        N, n = x.shape
+        self.ids = np.arange(N)
+        self.x = x
+        self.f = np.asarray(fun(x, self.ids), float)
+        self.m = self.f.shape[1]
+        self.J = np.asarray(jac(x, self.ids), float)
+        self.nfev = np.ones(N, int)
+        self.cost = 0.5 * np.einsum("km,km->k", self.f, self.f)
+        self.g = np.einsum("kmn,km->kn", self.J, self.f)
+        v, _ = _cl_scaling(x, self.g, lb, ub)
+        self.delta = np.linalg.norm(x / np.sqrt(v), axis=1)
+        self.delta[self.delta == 0] = 1.0
+        self.alpha = np.zeros(N)
+        self.status = np.zeros(N, int)
+        self.fresh = np.ones(N, bool)     # starting an outer iteration
+        self.d, self.diag_h, self.g_h = (np.empty((N, n)) for _ in range(3))
+        self.theta = np.empty(N)
+        self.uf, self.sv = np.empty((N, n)), np.empty((N, n))
+        self.V = np.empty((N, n, n))
+        self.out = ManyResult(x.copy(), self.cost.copy(), self.f.copy(), np.zeros(N, int),
+                              np.ones(N, int))
+
+    _ROWS = ("x", "f", "J", "nfev", "cost", "g", "delta", "alpha", "status", "fresh", "d",
+             "diag_h", "g_h", "theta", "uf", "sv", "V", "ids")
+
+    def retire(self, stop: np.ndarray) -> None:
+        """Write the fits ``stop`` (a mask of the running rows) to :attr:`out` and drop
+        their rows."""
+        if not stop.any():
+            return
+        o, i = self.out, self.ids[stop]
+        o.x[i], o.cost[i], o.fun[i] = self.x[stop], self.cost[stop], self.f[stop]
+        o.status[i], o.nfev[i] = self.status[stop], self.nfev[stop]
+        keep = ~stop
+        for name in self._ROWS:
+            setattr(self, name, getattr(self, name)[keep])
+
+    def begin_iterations(self, gtol: float, max_nfev: int) -> None:
+        """Outer iterations of the fits that start one: the gtol and budget tests, then
+        the scaling and the SVD of [J·d; diag(diag_h)^½] (scipy's ``trf_bounds`` loop
+        head)."""
+        new = np.flatnonzero(self.fresh)
+        if not new.size:
+            return
+        self.fresh[new] = False
+        v, dv = _cl_scaling(self.x[new], self.g[new], self.lb, self.ub)
+        g_norm = np.max(np.abs(self.g[new] * v), axis=1)
+        small_g = g_norm < gtol
+        self.status[new[small_g]] = 1
+        stop = small_g | (self.nfev[new] >= max_nfev)
+        if stop.any():
+            mask = np.zeros(self.ids.size, bool)
+            mask[new[stop]] = True
+            new, v, dv, g_norm = new[~stop], v[~stop], dv[~stop], g_norm[~stop]
+            new = new - np.cumsum(mask)[new]      # rows after the drop
+            self.retire(mask)
+            if not new.size:
+                return
+        n = v.shape[1]
+        d = np.sqrt(v)
+        g = self.g[new]
+        self.d[new], self.diag_h[new], self.g_h[new] = d, g * dv, d * g
+        aug = np.concatenate([self.J[new] * d[:, None, :],
+                              np.sqrt(g * dv)[:, None, :] * np.eye(n)], axis=1)
+        U, s, VT = np.linalg.svd(aug, full_matrices=False)
+        self.V[new] = np.swapaxes(VT, 1, 2)
+        self.sv[new] = s
+        self.uf[new] = np.einsum("kmi,km->ki", U[:, : self.m], self.f[new])
+        self.theta[new] = np.maximum(0.995, 1 - g_norm)
+
+    def _select(self):
+        """The steps of the running fits (scipy's ``select_step``): (step, step_h,
+        predicted reduction)."""
+        lb, ub, d, diag_h, g_h = self.lb, self.ub, self.d, self.diag_h, self.g_h
+        p_h, self.alpha = _tr_steps(self.uf, self.sv, self.V, self.delta, self.alpha, self.m)
+        p = d * p_h
+        J_h = self.J * d[:, None, :]
+        js = np.einsum("kmn,kn->km", J_h, p_h)
+        predicted = -(0.5 * (np.einsum("km,km->k", js, js)
+                             + np.einsum("kn,kn->k", p_h * diag_h, p_h))
+                      + np.einsum("kn,kn->k", g_h, p_h))
+        xp = self.x + p
+        for j in np.flatnonzero(~np.all((xp >= lb) & (xp <= ub), axis=1)):
+            p[j], p_h[j], predicted[j] = _select_step_bounded(
+                self.x[j], J_h[j], diag_h[j], g_h[j], p[j], p_h[j], d[j], self.delta[j],
+                lb, ub, self.theta[j])
+        return p, p_h, predicted
+
+    def try_steps(self, ftol: float, xtol: float) -> None:
+        """One step of each running fit: evaluated, the radius updated, the termination
+        tests made, and the point accepted when the cost fell (scipy's inner loop, one
+        pass; a fit whose step is refused tries again at the next call)."""
+        step, step_h, predicted = self._select()
+        x_new = _strictly_feasible(self.x + step, self.lb, self.ub, 0)
+        f_new = np.asarray(self.fun(x_new, self.ids), float)
+        self.nfev += 1
+        step_h_norm = np.linalg.norm(step_h, axis=1)
+        finite = np.all(np.isfinite(f_new), axis=1)
+        cost_new = 0.5 * np.einsum("km,km->k", f_new, f_new)
+        actual = self.cost - cost_new
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(predicted > 0, actual / predicted,
+                             np.where((predicted == 0) & (actual == 0), 1.0, 0.0))
+        dl = self.delta
+        dl_new = np.where(ratio < 0.25, 0.25 * step_h_norm,
+                          np.where((ratio > 0.75) & (step_h_norm > 0.95 * dl), 2.0 * dl, dl))
+        small_f = (actual < ftol * self.cost) & (ratio > 0.25)
+        small_x = (np.linalg.norm(step, axis=1)
+                   < xtol * (xtol + np.linalg.norm(self.x, axis=1)))
+        term = finite & (small_f | small_x)
+        self.status = np.where(term, np.where(small_f & small_x, 4, np.where(small_f, 2, 3)),
+                               self.status)
+        go = finite & ~term
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.alpha = np.where(go, self.alpha * dl / dl_new, self.alpha)
+        # not finite: a quarter of the step as radius, and try again
+        self.delta = np.where(go, dl_new, np.where(finite, dl, 0.25 * step_h_norm))
+        accept = finite & (actual > 0)
+        if accept.any():
+            self.x[accept], self.f[accept] = x_new[accept], f_new[accept]
+            self.cost[accept] = cost_new[accept]
+            todo = np.flatnonzero(accept & ~term)   # a fit that stopped needs no Jacobian
+            if todo.size:
+                self.J[todo] = self.jac(self.x[todo], self.ids[todo])
+                self.g[todo] = np.einsum("kmn,km->kn", self.J[todo], self.f[todo])
+                self.fresh[todo] = True
+        self.retire(term)
