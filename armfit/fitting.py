@@ -22,8 +22,10 @@ at their null, starting and typical values (the Sobol set is thin in the stiff-Z
 The starts of (1)–(2), the 3 best screened Sobol points and the 3 best structured starts
 are refined on a log-spaced
 subset of the band, both with the cost's weights and with unit weights (a smoother
-landscape); the two best distinct end points (by the full weighted cost) are polished on
-every bin of the band and the better kept. Jacobians are central differences evaluated in
+landscape), all these local fits solved together by :mod:`armfit.multilsq` (the same
+trust-region-reflective method, vectorised over the fits); the two best distinct end
+points (by the full weighted cost) are polished on every bin of the band and the better
+kept. Jacobians are central differences evaluated in
 one vectorised batch. No random numbers are drawn: the answer is the same on every run.
 
 Convergence: a fit is converged when the optimiser is and, should it end more than
@@ -742,7 +744,8 @@ def band_jackknife(prob: _Problem, z: np.ndarray, groups: int | None = None
     """Delete-a-band jackknife of the fit in search coordinates: the band's bins (sorted
     by frequency, log-spaced) are cut into ``groups`` contiguous bands
     (:data:`JACKKNIFE_BANDS`), the fit is repeated without each band (a local refit from
-    ``z``), and the spread of the G answers gives the standard error
+    ``z``; the G refits solved together, :meth:`_Problem.solve_many`, a band's points
+    left out by a zero weight), and the spread of the G answers gives the standard error
     sd_j = √((G − 1)/G · Σ (z_g − z̄)²) (Quenouille–Tukey; deleting contiguous blocks
     keeps it valid for residuals correlated along frequency, Künsch 1989). Returns
     (sd_j per parameter, G)."""
