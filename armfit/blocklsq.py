@@ -101,7 +101,38 @@ def _normal(jb: np.ndarray, js: np.ndarray, r: np.ndarray, groups: Groups | None
     return A, B, C, gb, gs
 
 
-class _Scaled:
+class _Quadratic:
+    """The model q(p) = ½‖J_h p‖² + ½pᵀdiag(c_h)p + g_hᵀp of a trust-region subproblem in
+    the scaled ("hat") variables, as :func:`_select_step` uses it: a subclass gives
+    :meth:`jdot` (J_h·p, any shape), :attr:`g_h` and :attr:`c_h` (flat, one entry per
+    parameter)."""
+
+    g_h: np.ndarray
+    c_h: np.ndarray
+
+    def jdot(self, p: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def quadratic_1d(self, s: np.ndarray, s0: np.ndarray | None = None):
+        """(a, b, c) of q(s0 + t·s) = a t² + b t + c."""
+        g, c = self.g_h, self.c_h
+        js = self.jdot(s)
+        a = 0.5 * (float(np.sum(js * js)) + float(s @ (c * s)))
+        b = float(g @ s)
+        cc = 0.0
+        if s0 is not None:
+            j0 = self.jdot(s0)
+            b += float(np.sum(js * j0)) + float(s0 @ (c * s))
+            cc = 0.5 * (float(np.sum(j0 * j0)) + float(s0 @ (c * s0))) + float(g @ s0)
+        return a, b, cc
+
+    def value(self, p: np.ndarray) -> float:
+        """q(p)."""
+        a, b, _ = self.quadratic_1d(p)
+        return a + b
+
+
+class _Scaled(_Quadratic):
     """The trust-region subproblem of one iteration in the scaled ("hat") variables of
     the trust-region-reflective method: J_h = J·diag(d), H_h = J_hᵀJ_h + diag(c),
     g_h = d·g, blocks as :func:`_normal` (per-trial part first, then the shared one)."""
@@ -136,33 +167,22 @@ class _Scaled:
         ys = np.linalg.solve(S, rs - g.add_vectors(np.einsum("tpk,tp->tk", self.B, Air)))
         return Air - np.einsum("tpk,tk->tp", AiB, g.take(ys)), ys
 
-    def jdot(self, hb: np.ndarray, hs: np.ndarray) -> np.ndarray:
-        """J_h·h, (T, m)."""
+    @property
+    def g_h(self) -> np.ndarray:
+        return np.concatenate([self.gb.ravel(), self.gs])
+
+    @property
+    def c_h(self) -> np.ndarray:
+        return np.concatenate([self.cb.ravel(), self.cs])
+
+    def jdot(self, p: np.ndarray) -> np.ndarray:
+        """J_h·p, (T, m)."""
+        hb, hs = self._split(p)
         if self.groups is None:
             return (np.einsum("tmp,tp->tm", self.jb, hb * self.db)
                     + np.einsum("tmk,k->tm", self.js, hs * self.ds))
         return (np.einsum("tmp,tp->tm", self.jb, hb * self.db)
                 + np.einsum("tmk,tk->tm", self.js, self.groups.take(hs * self.ds)))
-
-    def quadratic_1d(self, s: np.ndarray, s0: np.ndarray | None = None):
-        """(a, b, c) of q(s0 + t·s) = a t² + b t + c, q(p) = ½pᵀH_h p + g_hᵀp."""
-        g = np.concatenate([self.gb.ravel(), self.gs])
-        c = np.concatenate([self.cb.ravel(), self.cs])
-        sb, ss = self._split(s)
-        js = self.jdot(sb, ss)
-        a = 0.5 * (float(np.sum(js * js)) + float(s @ (c * s)))
-        b = float(g @ s)
-        cc = 0.0
-        if s0 is not None:
-            j0 = self.jdot(*self._split(s0))
-            b += float(np.sum(js * j0)) + float(s0 @ (c * s))
-            cc = 0.5 * (float(np.sum(j0 * j0)) + float(s0 @ (c * s0))) + float(g @ s0)
-        return a, b, cc
-
-    def value(self, p: np.ndarray) -> float:
-        """q(p)."""
-        a, b, _ = self.quadratic_1d(p)
-        return a + b
 
     def _split(self, v: np.ndarray):
         return v[: self.T * self.nb].reshape(self.T, self.nb), v[self.T * self.nb:]
@@ -233,11 +253,13 @@ def _min_1d(a, b, lo, hi, c=0.0) -> tuple[float, float]:
     return float(t[i]), float(y[i])
 
 
-def _select_step(x, sub: _Scaled, d, p_h, delta, lower, upper, theta):
+def _select_step(x, sub: _Quadratic, d, p_h, delta, lower, upper, theta):
     """The step of the trust-region-reflective method: the trust-region step if it stays
     in the box, otherwise the best of that step stopped short of the bound, its
     reflection off the bound, and the scaled steepest-descent step (Branch, Coleman &
-    Li, SIAM J. Sci. Comput. 21, 1999). Returns (step, step_h, predicted reduction)."""
+    Li, SIAM J. Sci. Comput. 21, 1999). ``sub``: the subproblem's model (its J_h, g_h
+    and diagonal), ``d`` the scaling, ``p_h`` the trust-region step (scaled), ``theta``
+    the step-back factor from a bound. Returns (step, step_h, predicted reduction)."""
     p = d * p_h
     if np.all((x + p >= lower) & (x + p <= upper)):
         return p, p_h, -sub.value(p_h)
@@ -263,7 +285,7 @@ def _select_step(x, sub: _Scaled, d, p_h, delta, lower, upper, theta):
         r_value = np.inf
     p, p_h = p * theta, p_h * theta
     p_value = sub.value(p_h)
-    ag_h = -np.concatenate([sub.gb.ravel(), sub.gs])
+    ag_h = -sub.g_h
     ag = d * ag_h
     to_tr = delta / np.linalg.norm(ag_h)
     to_bound, _ = _to_bound(x, ag, lower, upper)
@@ -278,11 +300,10 @@ def _select_step(x, sub: _Scaled, d, p_h, delta, lower, upper, theta):
 
 
 def _strictly_inside(x, lower, upper) -> np.ndarray:
-    x = x.copy()
-    lo, hi = x <= lower, x >= upper
-    x[lo] = np.nextafter(lower[lo], upper[lo])
-    x[hi] = np.nextafter(upper[hi], lower[hi])
-    return x
+    """``x`` (any shape broadcasting with the bounds) with every value on or beyond a
+    bound moved to the next float inside it."""
+    x = np.where(x <= lower, np.nextafter(lower, upper), x)
+    return np.where(x >= upper, np.nextafter(upper, lower), x)
 
 
 def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, *,
@@ -388,13 +409,13 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
 
 def _cl_scaling(x, g, lower, upper) -> tuple[np.ndarray, np.ndarray]:
     """Coleman-Li scaling: v is the distance to the bound the gradient points towards
-    (1 without one), dv its derivative's sign."""
-    v, dv = np.ones_like(x), np.zeros_like(x)
-    m = (g < 0) & np.isfinite(upper)
-    v[m], dv[m] = upper[m] - x[m], -1.0
-    m = (g > 0) & np.isfinite(lower)
-    v[m], dv[m] = x[m] - lower[m], 1.0
-    return v, dv
+    (1 without one), dv its derivative's sign; ``x`` and ``g`` of any shape broadcasting
+    with the bounds (a row per problem, say)."""
+    up = (g < 0) & np.isfinite(upper)
+    low = (g > 0) & np.isfinite(lower)
+    with np.errstate(invalid="ignore"):
+        v = np.where(up, upper - x, np.where(low, x - lower, 1.0))
+    return v, np.where(up, -1.0, np.where(low, 1.0, 0.0))
 
 
 def shared_covariance(jb: np.ndarray, js: np.ndarray, cols: np.ndarray | None = None,

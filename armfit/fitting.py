@@ -290,8 +290,6 @@ def solve_together(problems: Sequence[_Problem], z0: Sequence[np.ndarray],
     fit i multiplied by mask[i] (0 leaves a point out). Fewer than :data:`_MIN_TOGETHER`
     fits are made one by one by scipy's solver (the same path, to rounding)."""
     owner = np.repeat(np.arange(len(problems)), [len(z) for z in z0])
-    if owner.size < _MIN_TOGETHER:
-        return _one_by_one(problems, owner, np.vstack(z0), idx, mask, opts)
 
     def each(x, rows, method):
         parts = [(j, owner[rows] == j) for j in range(len(problems))]
@@ -306,10 +304,16 @@ def solve_together(problems: Sequence[_Problem], z0: Sequence[np.ndarray],
             return out
         return out * mask[rows].reshape(len(rows), -1, *(1,) * (out.ndim - 2))
 
+    def fun(x, rows):
+        return each(x, rows, _Problem.residuals_batch)
+
+    def jac(x, rows):
+        return each(x, rows, _Problem.jacobian_batch)
+
     space = problems[0].space
-    return multilsq.solve_many(lambda x, r: each(x, r, _Problem.residuals_batch),
-                               lambda x, r: each(x, r, _Problem.jacobian_batch),
-                               np.vstack(z0), space.zlo, space.zhi, **opts)
+    if owner.size < _MIN_TOGETHER:
+        return _one_by_one(fun, jac, np.vstack(z0), space, opts)
+    return multilsq.solve_many(fun, jac, np.vstack(z0), space.zlo, space.zhi, **opts)
 
 
 #: Fewer local fits than this are solved one by one by scipy: vectorised over one or two
@@ -317,22 +321,18 @@ def solve_together(problems: Sequence[_Problem], z0: Sequence[np.ndarray],
 _MIN_TOGETHER = 3
 
 
-def _one_by_one(problems, owner, z0, idx, mask, opts) -> multilsq.ManyResult:
-    """:func:`solve_together`'s fits made one after the other by scipy's solver."""
+def _one_by_one(fun, jac, z0: np.ndarray, space: ParamSpace, opts) -> multilsq.ManyResult:
+    """:func:`solve_together`'s fits (its ``fun`` and ``jac`` of rows) made one after the
+    other by scipy's solver."""
     res = []
     for i, z in enumerate(z0):
-        p = problems[owner[i]]
-        w = None if mask is None else mask[i]
-        fun = p.residuals if w is None else (lambda z, k, p=p, w=w: p.residuals(z, k) * w)
-        jac = p.jacobian if w is None else (
-            lambda z, k, p=p, w=w: p.jacobian(z, k) * w[:, None])
-        res.append(_scipy.least_squares(fun, z, jac=jac, args=(idx,),
-                                        bounds=(p.space.zlo, p.space.zhi), method="trf",
+        row = np.array([i])
+        res.append(_scipy.least_squares(lambda x, r=row: fun(x[None], r)[0], z,
+                                        jac=lambda x, r=row: jac(x[None], r)[0],
+                                        bounds=(space.zlo, space.zhi), method="trf",
                                         x_scale=1.0, **opts))
-    return multilsq.ManyResult(np.array([r.x for r in res]), np.array([r.cost for r in res]),
-                               np.array([r.fun for r in res]),
-                               np.array([r.status for r in res]),
-                               np.array([r.nfev for r in res]))
+    return multilsq.ManyResult(*(np.array([getattr(r, k) for r in res])
+                                 for k in ("x", "cost", "fun", "status", "nfev")))
 
 
 def _weights(se_db, se_deg, order: np.ndarray, n: int

@@ -12,10 +12,12 @@ Each problem follows its own path exactly as :func:`scipy.optimize.least_squares
 (``method="trf"``, ``x_scale=1``, ``tr_solver="exact"``, no loss function) would take
 it: its own trust radius and Levenberg-Marquardt parameter, Coleman-Li scaling, the same
 step selection (trust-region step, its reflection off a bound, or the scaled steepest
-descent), radius updates, termination tests and statuses, and its own evaluation
-budget. Only the rounding differs (a batched SVD, batched products): each problem takes
-the same number of evaluations and stops converged or not alike, at an end point within
-the tolerances asked of scipy's (``tests/test_multilsq.py``).
+descent; :mod:`armfit.blocklsq`'s, with its Coleman-Li scaling and the step back inside
+the bounds, which the joint fits use too), radius updates, termination tests and
+statuses, and its own evaluation budget. Only the rounding differs (a batched SVD,
+batched products): each problem takes the same number of evaluations and stops
+converged or not alike, at an end point within the tolerances asked of scipy's
+(``tests/test_multilsq.py``).
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+from armfit.blocklsq import _cl_scaling, _Quadratic, _select_step, _strictly_inside
 
 __all__ = ["ManyResult", "solve_many"]
 
@@ -50,33 +54,16 @@ class ManyResult:
     nfev: np.ndarray
 
 
-def _strictly_feasible(x: np.ndarray, lb: np.ndarray, ub: np.ndarray,
-                       rstep: float) -> np.ndarray:
-    """Rows of ``x`` moved inside the bounds, as scipy's ``make_strictly_feasible``:
-    at least ``rstep`` (relative) from a bound, or the next float with ``rstep`` 0."""
-    x_new = x.copy()
-    if rstep == 0:
-        lo, hi = x <= lb, x >= ub
-        x_new = np.where(lo, np.nextafter(lb, ub), x_new)
-        x_new = np.where(hi, np.nextafter(ub, lb), x_new)
-    else:
-        lower_dist, upper_dist = x - lb, ub - x
-        lo = lower_dist <= np.minimum(upper_dist, rstep * np.maximum(1, np.abs(lb)))
-        hi = upper_dist <= np.minimum(lower_dist, rstep * np.maximum(1, np.abs(ub)))
-        x_new = np.where(lo, lb + rstep * np.maximum(1, np.abs(lb)), x_new)
-        x_new = np.where(hi, ub - rstep * np.maximum(1, np.abs(ub)), x_new)
-    tight = (x_new < lb) | (x_new > ub)
-    return np.where(tight, 0.5 * (lb + ub), x_new)
-
-
-def _cl_scaling(x: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray):
-    """Coleman-Li scaling vector v and its derivative's sign dv, row by row."""
-    v, dv = np.ones_like(x), np.zeros_like(x)
-    m = g < 0
-    v, dv = np.where(m, ub - x, v), np.where(m, -1.0, dv)
-    m = g > 0
-    v, dv = np.where(m, x - lb, v), np.where(m, 1.0, dv)
-    return v, dv
+def _inside_start(x: np.ndarray, lb: np.ndarray, ub: np.ndarray,
+                  rstep: float = 1e-10) -> np.ndarray:
+    """Starts moved inside the bounds as scipy's ``least_squares`` moves them
+    (``make_strictly_feasible``): at least ``rstep`` (relative) from a bound."""
+    lower_dist, upper_dist = x - lb, ub - x
+    lo = lower_dist <= np.minimum(upper_dist, rstep * np.maximum(1, np.abs(lb)))
+    hi = upper_dist <= np.minimum(lower_dist, rstep * np.maximum(1, np.abs(ub)))
+    x_new = np.where(lo, lb + rstep * np.maximum(1, np.abs(lb)), x)
+    x_new = np.where(hi, ub - rstep * np.maximum(1, np.abs(ub)), x_new)
+    return np.where((x_new < lb) | (x_new > ub), 0.5 * (lb + ub), x_new)
 
 
 def _tr_steps(uf, s, V, delta, alpha, m: int, rtol: float = 0.01, max_iter: int = 10):
@@ -122,87 +109,15 @@ def _tr_steps(uf, s, V, delta, alpha, m: int, rtol: float = 0.01, max_iter: int 
     return np.where(gn[:, None], p_gn, p), np.where(gn, 0.0, a)
 
 
-def _to_bound(x, s, lb, ub):
-    """scipy's ``step_size_to_bound`` for one problem."""
-    steps = np.full_like(x, np.inf)
-    nz = s != 0
-    with np.errstate(over="ignore"):
-        steps[nz] = np.maximum((lb - x)[nz] / s[nz], (ub - x)[nz] / s[nz])
-    t = np.min(steps)
-    return t, np.equal(steps, t) * np.sign(s).astype(int)
+class _Dense(_Quadratic):
+    """One fit's trust-region subproblem, as :func:`armfit.blocklsq._select_step` takes
+    it: J_h (m, n), g_h and the diagonal c_h (n,)."""
 
+    def __init__(self, J_h: np.ndarray, g_h: np.ndarray, c_h: np.ndarray):
+        self.J_h, self.g_h, self.c_h = J_h, g_h, c_h
 
-def _quadratic_1d(J, g, s, diag, s0=None):
-    v = J.dot(s)
-    a = 0.5 * (np.dot(v, v) + np.dot(s * diag, s))
-    b = np.dot(g, s)
-    if s0 is None:
-        return a, b, 0.0
-    u = J.dot(s0)
-    b += np.dot(u, v) + np.dot(s0 * diag, s)
-    c = 0.5 * np.dot(u, u) + np.dot(g, s0) + 0.5 * np.dot(s0 * diag, s0)
-    return a, b, c
-
-
-def _min_1d(a, b, lo, hi, c=0.0):
-    t = [lo, hi]
-    if a != 0 and lo < -0.5 * b / a < hi:
-        t.append(-0.5 * b / a)
-    t = np.asarray(t)
-    y = t * (a * t + b) + c
-    i = np.argmin(y)
-    return t[i], y[i]
-
-
-def _evaluate_quadratic(J, g, s, diag):
-    js = J.dot(s)
-    return 0.5 * (np.dot(js, js) + np.dot(s * diag, s)) + np.dot(g, s)
-
-
-def _select_step_bounded(x, J_h, diag_h, g_h, p, p_h, d, delta, lb, ub, theta):
-    """scipy's trust-region-reflective ``select_step`` for one problem whose
-    trust-region step leaves the box: the best of that step stopped short of the bound,
-    its reflection, and the scaled steepest-descent step. (step, step_h, predicted)."""
-    p_stride, hits = _to_bound(x, p, lb, ub)
-    r_h = np.copy(p_h)
-    r_h[hits.astype(bool)] *= -1
-    r = d * r_h
-    p = p * p_stride
-    p_h = p_h * p_stride
-    x_on_bound = x + p
-    a, b, c = np.dot(r_h, r_h), np.dot(p_h, r_h), np.dot(p_h, p_h) - delta ** 2
-    disc = np.sqrt(b * b - a * c)
-    q = -(b + np.copysign(disc, b))
-    to_tr = max(q / a, c / q)
-    to_bound, _ = _to_bound(x_on_bound, r, lb, ub)
-    r_stride = min(to_bound, to_tr)
-    if r_stride > 0:
-        r_lo = (1 - theta) * p_stride / r_stride
-        r_hi = theta * to_bound if r_stride == to_bound else to_tr
-    else:
-        r_lo, r_hi = 0, -1
-    if r_lo <= r_hi:
-        a, b, c = _quadratic_1d(J_h, g_h, r_h, diag_h, s0=p_h)
-        r_stride, r_value = _min_1d(a, b, r_lo, r_hi, c)
-        r_h = r_h * r_stride + p_h
-        r = r_h * d
-    else:
-        r_value = np.inf
-    p = p * theta
-    p_h = p_h * theta
-    p_value = _evaluate_quadratic(J_h, g_h, p_h, diag_h)
-    ag_h = -g_h
-    ag = d * ag_h
-    to_tr = delta / np.linalg.norm(ag_h)
-    to_bound, _ = _to_bound(x, ag, lb, ub)
-    ag_stride = theta * to_bound if to_bound < to_tr else to_tr
-    a, b, _ = _quadratic_1d(J_h, g_h, ag_h, diag_h)
-    ag_stride, ag_value = _min_1d(a, b, 0, ag_stride)
-    if p_value < r_value and p_value < ag_value:
-        return p, p_h, -p_value
-    if r_value < p_value and r_value < ag_value:
-        return r, r_h, -r_value
-    return ag * ag_stride, ag_h * ag_stride, -ag_value
+    def jdot(self, p: np.ndarray) -> np.ndarray:
+        return self.J_h @ p
 
 
 def solve_many(fun: FunMany, jac: JacMany, x0: np.ndarray, lb: np.ndarray,
@@ -238,7 +153,7 @@ def solve_many(fun: FunMany, jac: JacMany, x0: np.ndarray, lb: np.ndarray,
     ManyResult
     """
     lb, ub = np.asarray(lb, float), np.asarray(ub, float)
-    st = _Fits(fun, jac, _strictly_feasible(np.asarray(x0, float), lb, ub, 1e-10), lb, ub)
+    st = _Fits(fun, jac, _inside_start(np.asarray(x0, float), lb, ub), lb, ub)
     while st.ids.size:
         st.begin_iterations(gtol, max_nfev)
         # a fit whose budget ran out inside an outer iteration stops (status 0)
@@ -341,9 +256,9 @@ class _Fits:
                       + np.einsum("kn,kn->k", g_h, p_h))
         xp = self.x + p
         for j in np.flatnonzero(~np.all((xp >= lb) & (xp <= ub), axis=1)):
-            p[j], p_h[j], predicted[j] = _select_step_bounded(
-                self.x[j], J_h[j], diag_h[j], g_h[j], p[j], p_h[j], d[j], self.delta[j],
-                lb, ub, self.theta[j])
+            p[j], p_h[j], predicted[j] = _select_step(
+                self.x[j], _Dense(J_h[j], g_h[j], diag_h[j]), d[j], p_h[j],
+                self.delta[j], lb, ub, self.theta[j])
         return p, p_h, predicted
 
     def try_steps(self, ftol: float, xtol: float) -> None:
@@ -351,7 +266,7 @@ class _Fits:
         tests made, and the point accepted when the cost fell (scipy's inner loop, one
         pass; a fit whose step is refused tries again at the next call)."""
         step, step_h, predicted = self._select()
-        x_new = _strictly_feasible(self.x + step, self.lb, self.ub, 0)
+        x_new = _strictly_inside(self.x + step, self.lb, self.ub)
         f_new = np.asarray(self.fun(x_new, self.ids), float)
         self.nfev += 1
         step_h_norm = np.linalg.norm(step_h, axis=1)

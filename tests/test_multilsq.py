@@ -53,8 +53,8 @@ def test_each_problem_follows_scipys_path(opts, monkeypatch):
     fun, jac, rng = _decays(40, seed=0)
     x0 = rng.uniform(LB, UB, (40, 3))
     bounded = []
-    real = multilsq._select_step_bounded
-    monkeypatch.setattr(multilsq, "_select_step_bounded",
+    real = multilsq._select_step
+    monkeypatch.setattr(multilsq, "_select_step",
                         lambda *a: bounded.append(1) or real(*a))
     res = multilsq.solve_many(fun, jac, x0, LB, UB, **opts)
     assert bounded, "no step met a bound: the reflective path was not exercised"
@@ -153,3 +153,28 @@ def test_band_jackknife_is_the_refits_without_each_band():
     assert g == 6
     np.testing.assert_allclose(sd, ref, rtol=1e-6)
     assert np.all(sd > 0)
+
+
+def test_two_fits_are_scipys_one_by_one():
+    """Fewer than three fits (the second opinion's two) go to scipy one by one, through
+    the same residuals and masks as a batch: each is scipy's fit of its own problem (the
+    second with a band left out by a zero mask, against scipy on the bins kept): the
+    same evaluations and stop, the cost to 1e-9, the end within 1e-5 in log coordinates
+    (ftol 1e-8 leaves a flat direction free to that order: 1.5e-6 measured)."""
+    prob, space, _ = _arm_problem()
+    rng = np.random.default_rng(4)
+    z0 = space.clip_z(space.zlo + rng.uniform(0.3, 0.7, (2, len(space.names)))
+                      * (space.zhi - space.zlo))
+    m = prob.f.size
+    keep = np.ones((2, m))
+    keep[1, 40:60] = 0.0
+    opts = {"max_nfev": 300, "ftol": 1e-8, "xtol": 1e-8}
+    res = solve_together([prob], [z0], mask=np.concatenate([keep, keep], axis=1), **opts)
+    bins = [np.arange(m), np.flatnonzero(keep[1])]
+    for i in range(2):
+        ref = least_squares(prob.residuals, z0[i], jac=prob.jacobian, args=(bins[i],),
+                            bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
+                            **opts)
+        assert (res.nfev[i], res.status[i]) == (ref.nfev, ref.status)
+        assert res.cost[i] == pytest.approx(ref.cost, rel=1e-9)
+        np.testing.assert_allclose(res.x[i], ref.x, rtol=0, atol=1e-5)

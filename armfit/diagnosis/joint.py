@@ -424,7 +424,8 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
     joint fit is refined; when that leaves no trial stuck, it is the rescue (the better
     of it and ``res``), and no single-trial fit is made. A start that ends with its
     effects in another valley leaves trials stuck that fit well in the prior's."""
-    bad = _stuck(prob, res)
+    per, limit = _misfit_limit(prob, res)
+    bad = np.flatnonzero(per > limit)
     if bad.size == 0:
         return res
     if prior is not None and not _stuck(prob, prior).size:
@@ -434,7 +435,6 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
         res1 = refine(prob, x1, max_nfev)
         if not _stuck(prob, res1).size:
             return res1 if res1.cost < res.cost else res
-    _, limit = _misfit_limit(prob, res)
     x0 = res.x.copy()
     zb = x0[: prob.T * prob.nb].reshape(prob.T, prob.nb)
     theta = prob.space.to_theta(prob.unpack(res.x))
