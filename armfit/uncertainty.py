@@ -63,6 +63,14 @@ MAX_PAIRS = 5
 #: Smallest damping ratio a fitted pair may have (keeps peaks resolvable on the grid).
 ZETA_MIN = 0.01
 
+#: Step (dB) of the W_max the envelope fit's shape search sees (its reduced points; see
+#: :func:`fit_wu`). The search is a multi-start local optimisation whose end can jump
+#: between near-equal optima when its data change by rounding (1e-9 relative); on that
+#: step the data it sees do not change unless W_max moves by about 1e-7 relative or
+#: more, so the weight is a reproducible function of the measurements. 0.01 dB is far
+#: below W_max's own scatter; the gain and every check use the W_max not rounded.
+SEARCH_STEP_DB = 0.01
+
 _DB = 10.0 / np.log(10.0)  # d(10 log10 Q) = _DB dQ/Q
 _PHI_MAX = float(np.arccos(ZETA_MIN))
 
@@ -432,7 +440,7 @@ class _Target:
     wdb: np.ndarray        # W_max at f, dB
     w_log: np.ndarray      # log-frequency weights of f (sum 1)
     fr: np.ndarray         # reduced points (largest W_max per log bin), Hz
-    wr: np.ndarray         # W_max at fr, dB
+    wr: np.ndarray         # W_max at fr, dB, on steps of SEARCH_STEP_DB
     wr_w: np.ndarray       # log-frequency weight of each bin (sum 1)
     fd: np.ndarray         # dense grid (grid points and between), Hz
     wd: np.ndarray         # W_max interpolated on fd, dB
@@ -441,17 +449,20 @@ class _Target:
 def _prepare(f_hz, wmax, band, n_bins: int, n_sub: int) -> _Target:
     f, w, _ = _band_points(f_hz, wmax, band)
     wdb = _to_db(w)
+    # the search's points and values from W_max on steps of SEARCH_STEP_DB (ties: the
+    # lowest frequency of the bin), so that rounding upstream does not move them
+    wq = np.round(wdb / SEARCH_STEP_DB) * SEARCH_STEP_DB
     wl = _log_weights(f)
     lf = np.log(f)
     edges = np.linspace(lf[0], lf[-1], n_bins + 1)
     idx = np.clip(np.searchsorted(edges, lf, side="right") - 1, 0, n_bins - 1)
-    order = np.lexsort((-wdb, idx))           # within each bin, largest W_max first
+    order = np.lexsort((-wq, idx))            # within each bin, largest W_max first
     first = np.ones(order.size, dtype=bool)
     first[1:] = idx[order][1:] != idx[order][:-1]
     rep = order[first]
     bin_w = np.bincount(idx, weights=wl, minlength=n_bins)[idx[rep]]
     fd, wd = _dense(f, wdb, n_sub)
-    return _Target(f, wdb, wl, f[rep], wdb[rep], bin_w / bin_w.sum(), fd, wd)
+    return _Target(f, wdb, wl, f[rep], wq[rep], bin_w / bin_w.sum(), fd, wd)
 
 
 def _finish_envelope(sec_d: _Sections, theta: np.ndarray, tgt: _Target) -> float:
@@ -628,6 +639,11 @@ def _one_blas_thread():
     global _blas_users, _blas_limits
     with _BLAS_LOCK:
         if _blas_users == 0:
+            # the limit reaches only the libraries loaded when it is set: scipy's own
+            # BLAS, which its optimisers call, is loaded first (else a process's first
+            # fit, importing scipy.optimize, would run with BLAS's threads and end
+            # elsewhere than every later fit)
+            import scipy.optimize  # noqa: F401
             _blas_limits = threadpool_limits(limits=1, user_api="blas")
         _blas_users += 1
     try:
@@ -654,7 +670,9 @@ def fit_wu(f_hz, wmax, *, n_pairs: int | None = None, cost: str = "envelope",
     a margin for the curvature of |Wu| in between). The shape is optimised by SLSQP with
     the constraint on the largest W_max of each of ``n_bins`` log-frequency bins, from
     least-squares starts; the gain K is then raised exactly as far as the full dense
-    check requires, so coverage is 100 % by construction.
+    check requires, so coverage is 100 % by construction. The search sees W_max on
+    steps of :data:`SEARCH_STEP_DB` (0.01 dB), the gain and the checks the W_max given:
+    a W_max that differs by rounding gives the same shape.
     Order: the smallest whose mean gap is within ``order_tol_db`` of the best order's.
     Orders are fitted upwards from 0 (each solution, with a cancelling zero/pole pair
     added, starts the next), also when ``n_pairs`` is given.

@@ -64,7 +64,7 @@ EXPECTED: dict[str, str] = {
     "fit-nominal.stdout":
         "6331e3c3963de01cbfbfbbf3c04db27af51b19e9d393f5c76c629b10305e9e08",
     "fit-uncertainty.stdout":
-        "a334d8acc21429e650fb0cd27194893139dda8b329e45c236c2e9b3b9fb8848e",
+        "2807c442f802b6022aba9056603f2e96c5242ec28bba7932beb770a4f305693a",
     "compare.stdout":
         "b4cecbc42c6e6340b9641259aa572d35418dd91401306c65a51b9f81208eb869",
     "diagnose.stdout":
@@ -80,7 +80,7 @@ EXPECTED: dict[str, str] = {
     "run/adoption.csv":
         "a03dd023790b6e27d056b12e9a0658e098fa0e3ddfd4d75e6ee17b5f5ad43866",
     "run/certificate.csv":
-        "e74a7ed296f1d06718da4a37dde5d032e4680a3632df9d443e0378b29fb8dcfa",
+        "473ec418b9e07de6d072651c62fe7f73e309250a460a2d0d80c7738895f52607",
     "run/compare.csv":
         "b9bdb0630e0b4fbb0294ff1512b93cc35bf724c01a5070d498889f0553d7106e",
     "run/diagnosis.json":
@@ -94,9 +94,9 @@ EXPECTED: dict[str, str] = {
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.html":
-        "21cc53d4c906ca4825b45bb991293b3353cad2a01ab19923b772e2458aae5364",
+        "363f329d37f61ede9f4ee767add45edd9e790be8e739f5362163d7573cc46895",
     "run/report.md":
-        "89004638c33548d4e0d7beb7b580e067b0d87bd87ca3c7e4db1d433ec7869846",
+        "a102f11d95d46ddf21149b88f6ab49170039a3691c212b2e391327c3de05e409",
     "run/spectra.parquet":
         "7f7910c503a4059c4f6ea3bdc8c362fb29624ee31197ec605d4c4b9f3f33f8d9",
     "run/stability.csv":
@@ -106,19 +106,19 @@ EXPECTED: dict[str, str] = {
     "run/trials.parquet":
         "34eb582f5fec86f6d7c0d27c62e2eb917c898821d3fbf387c5b22af4ba5c9bea",
     "run/wu.csv":
-        "148745bcc1f43833c8b22950a49a45ce95fc5383c231ddd9e95e25b85ee5c862",
+        "4100bef392aeaee7a6cb0d46ce95c15a685b85152f5d4ec3e3d666f56ac98665",
     "run/wu.tex":
-        "442aa76aa4b6a2ed5e3a8591345af1f51f620ef3d3af613b93c3476204031043",
+        "901fbf68ac0c0225bb5c2c4117e45ca4d786b80b9a7c4561ce248c20115faad3",
     "run/wu_summary.csv":
-        "fb437e16c09dfd23d14f9e39e4a31c47e77ff0ef6a2ebac206917b7ba665f4e8",
+        "014f26b056609fd661a20045fb9469027c70f6983cec7b7e67750389d632a79f",
     "run/wu_wmax.csv":
-        "8622a1edf26615820937c73ce294d1a013b7686eda38147b0a6ed5fe953e4a99",
+        "ff4cd1fedcc42ec6a80c27aba20f74bac299eb2d74e8b6aeb989c85573b06005",
     "wu.csv":
-        "148745bcc1f43833c8b22950a49a45ce95fc5383c231ddd9e95e25b85ee5c862",
+        "4100bef392aeaee7a6cb0d46ce95c15a685b85152f5d4ec3e3d666f56ac98665",
     "wu_summary.csv":
-        "fb437e16c09dfd23d14f9e39e4a31c47e77ff0ef6a2ebac206917b7ba665f4e8",
+        "014f26b056609fd661a20045fb9469027c70f6983cec7b7e67750389d632a79f",
     "wu_wmax.csv":
-        "8622a1edf26615820937c73ce294d1a013b7686eda38147b0a6ed5fe953e4a99",
+        "ff4cd1fedcc42ec6a80c27aba20f74bac299eb2d74e8b6aeb989c85573b06005",
 }
 
 
