@@ -25,8 +25,9 @@ subset of the band, both with the cost's weights and with unit weights (a smooth
 landscape), all these local fits solved together by :mod:`armfit.multilsq` (the same
 trust-region-reflective method, vectorised over the fits); the two best distinct end
 points (by the full weighted cost) are polished on every bin of the band and the better
-kept. Jacobians are central differences evaluated in
-one vectorised batch. No random numbers are drawn: the answer is the same on every run.
+kept. Jacobians are analytic in the arm parameters (∂ ln H/∂θ of eq. 3) and central
+differences in an effect's, evaluated in one vectorised batch. No random numbers are
+drawn: the answer is the same on every run.
 
 Convergence: a fit is converged when the optimiser is and, should it end more than
 :data:`FAR_FROM_NOISE` times the noise, no point the search reached has a cost below
@@ -252,10 +253,55 @@ class _Problem:
         r = self.residuals_batch(pts.reshape(2 * k * p, p), idx).reshape(k, 2 * p, -1)
         return np.swapaxes(r[:, :p] - r[:, p:], 1, 2) / (2 * step)
 
+    def jacobian_analytic(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)
+                          ) -> np.ndarray:
+        """:meth:`jacobian_analytic_batch` at one point z (p,) → (m, p)."""
+        return self.jacobian_analytic_batch(z[None], idx)[0]
+
+    def jacobian_analytic_batch(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)
+                                ) -> np.ndarray:
+        """∂r/∂z at a batch of points z (k, p) → (k, m, p), the arm parameters' columns
+        analytic: r holds 20 log10|Hm/Hd| and angle(Hm/Hd) in deg times the weights, so
+        an arm parameter's column is (DB_PER_NEPER Re, 180/π Im) of ∂ ln H/∂θ (eq. 3,
+        :meth:`~armfit.models.arm.ClosedLoopModel.response_and_base_log_derivatives`)
+        times the weights and dθ/dz (θ for a parameter fitted in log, else upper −
+        lower). An effect's columns are central differences as :meth:`jacobian_batch`
+        takes them. A point whose residual is not finite (a constant in the residuals)
+        has a zero row there."""
+        k, p = z.shape
+        nb = len(PARAM_NAMES)
+        if self.space.names[:nb] != PARAM_NAMES:   # an arm parameter held: all differences
+            return self.jacobian_batch(z, idx)
+        theta = self.space.to_theta(z)
+        values = {n: v[:, None] for n, v in self.theta_dict(theta).items()}
+        f, h = self.f[idx], self.h[idx]
+        with np.errstate(all="ignore"):
+            hm, dlog = self.model.response_and_base_log_derivatives(f, values)  # (k, n)
+            dz = np.where(self.space.log[:nb], theta[:, :nb],
+                          self.space.upper[:nb] - self.space.lower[:nb]).T[:, :, None]
+            d_db = DB_PER_NEPER * dlog.real * dz                             # (5, k, n)
+            if self.cost == "paper":
+                db = d_db
+            else:
+                db = np.concatenate([d_db * self.w_db[idx],
+                                     np.degrees(dlog.imag) * dz * self.w_deg[idx]], axis=-1)
+            finite = np.isfinite(log_errors(hm, h)[0])
+        ok = finite if self.cost == "paper" else np.concatenate([finite, finite], axis=-1)
+        jb = np.moveaxis(np.where(ok & np.isfinite(db), db, 0.0), 0, -1)    # (k, m, 5)
+        if p == nb:
+            return jb
+        step = 1e-6
+        e = step * np.eye(p)[nb:]                                            # (q, p)
+        pts = np.concatenate([z[:, None, :] + e, z[:, None, :] - e], axis=1)  # (k, 2q, p)
+        q = p - nb
+        re = self.residuals_batch(pts.reshape(2 * k * q, p), idx).reshape(k, 2 * q, -1)
+        je = np.swapaxes(re[:, :q] - re[:, q:], 1, 2) / (2 * step)
+        return np.concatenate([jb, je], axis=-1)
+
     def solve_many(self, z0: np.ndarray, idx: np.ndarray | slice = slice(None), *,
                    mask: np.ndarray | None = None, **opts) -> multilsq.ManyResult:
         """Local fits from the starts z0 (k, p), each as
-        ``least_squares(self.residuals, z0[i], jac=self.jacobian, args=(idx,),
+        ``least_squares(self.residuals, z0[i], jac=self.jacobian_analytic, args=(idx,),
         bounds=(zlo, zhi), method="trf", x_scale=1.0, **opts)``, solved together
         (:func:`solve_together`). ``mask`` (k, m): residuals of fit i multiplied by
         mask[i] (0 leaves a point out)."""
@@ -284,7 +330,7 @@ def solve_together(problems: Sequence[_Problem], z0: Sequence[np.ndarray],
     one problem under two weightings) from their starts ``z0[j]`` (k_j, p), on the bins
     ``idx``, all solved together by :func:`armfit.multilsq.solve_many` (``opts``: its
     ``max_nfev``, ``ftol``, ``xtol``, ``gtol``): each as
-    ``least_squares(problems[j].residuals, start, jac=problems[j].jacobian,
+    ``least_squares(problems[j].residuals, start, jac=problems[j].jacobian_analytic,
     args=(idx,), bounds=(zlo, zhi), method="trf", x_scale=1.0, **opts)``. The results'
     rows are the starts in order (problem 0's first). ``mask`` (Σk_j, m): residuals of
     fit i multiplied by mask[i] (0 leaves a point out). Fewer than :data:`_MIN_TOGETHER`
@@ -308,7 +354,7 @@ def solve_together(problems: Sequence[_Problem], z0: Sequence[np.ndarray],
         return each(x, rows, _Problem.residuals_batch)
 
     def jac(x, rows):
-        return each(x, rows, _Problem.jacobian_batch)
+        return each(x, rows, _Problem.jacobian_analytic_batch)
 
     space = problems[0].space
     if owner.size < _MIN_TOGETHER:
@@ -652,7 +698,7 @@ def _search(prob: _Problem, x0: Mapping[str, float] | None, global_search: bool,
         z_starts = starts[:1]
 
     def polish(z0):
-        return _scipy.least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=bounds,
+        return _scipy.least_squares(prob.residuals, z0, jac=prob.jacobian_analytic, bounds=bounds,
                                     method="trf", x_scale=1.0, max_nfev=budget,
                                     ftol=_TOL, xtol=_TOL, gtol=_TOL)
 

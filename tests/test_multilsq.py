@@ -107,12 +107,45 @@ def _arm_problem():
     return prob, space, truth
 
 
+@pytest.mark.parametrize("cost", ["complex", "paper"])
+@pytest.mark.parametrize("effect", [None, *sorted(EFFECTS)])
+def test_analytic_jacobian_is_the_central_differences(effect, cost):
+    """The batched fits' Jacobian (the arm parameters' columns from ∂ ln H/∂θ of eq. 3)
+    against central differences of the residuals (step 1e-6 in z, an independent
+    computation), with every effect of the library, under both costs, at three points
+    near Table I's values (an effect's parameters mid-range): within 1e-6 of each
+    column's largest entry."""
+    model = ClosedLoopModel.for_axis("y")
+    if effect is not None:
+        model = model.with_effect(EFFECTS[effect])
+    space = ParamSpace.of(model)
+    f = np.geomspace(0.1, 30, 80)
+    rng = np.random.default_rng(3)
+    arm = {"Ma": 0.18, "k1": 85.0, "k2": 650.0, "b1": 7.2, "b2": 3.1}   # Table I's size
+    mid = space.to_z(np.array([arm.get(n, np.sqrt(lo * hi) if log else 0.5 * (lo + hi))
+                               for n, log, lo, hi in zip(space.names, space.log, space.lower,
+                                                         space.upper, strict=True)]))
+    z = space.clip_z(mid + rng.uniform(-0.2, 0.2, (4, mid.size)) * (space.zhi - space.zlo)
+                     / np.where(space.log, 10.0, 1.0))
+    h = model.response(f, dict(zip(space.names, space.to_theta(z[0]), strict=True)))
+    h = h * (1 + 0.05 * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)))
+    prob = _Problem(model, space, f, h, np.full(f.size, 1 / 0.2), np.full(f.size, 1 / 1.5),
+                    cost)
+    got = prob.jacobian_analytic_batch(z[1:])
+    want = prob.jacobian_batch(z[1:])
+    assert got.shape == want.shape == (3, f.size * (1 if cost == "paper" else 2),
+                                       len(space.names))
+    scale = np.abs(want).max(axis=1, keepdims=True)
+    assert np.all(scale[..., :5] > 0)
+    assert np.all(np.abs(got - want) <= 1e-6 * scale)
+
+
 def test_arm_fits_from_many_starts_match_scipy_one_by_one():
     """The global search's local fits (fitting._global_starts: the starts of the problem
     with unit weights and with its own, solved together) on the arm model: the batched
     central-difference Jacobian and residuals give every start scipy's end on its own
-    problem: the same evaluations and stop, the cost to 1e-7 (ftol 1e-6; an end in a
-    flat valley may lie elsewhere along it, by 4e-5 in log coordinates measured)."""
+    problem (the same Jacobian function: analytic arm columns): the same evaluations and
+    stop, the cost to 1e-7 (ftol 1e-6; an end in a flat valley may lie elsewhere along it, by 4e-5 in log coordinates measured)."""
     prob, space, _ = _arm_problem()
     rng = np.random.default_rng(1)
     z0 = space.clip_z(space.zlo + rng.uniform(0.2, 0.8, (10, len(space.names)))
@@ -122,7 +155,7 @@ def test_arm_fits_from_many_starts_match_scipy_one_by_one():
     res = solve_together(problems, [z0[:4], z0[4:]], **opts)
     for i in range(len(z0)):
         p = problems[int(i >= 4)]
-        ref = least_squares(p.residuals, z0[i], jac=p.jacobian,
+        ref = least_squares(p.residuals, z0[i], jac=p.jacobian_analytic,
                             bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
                             **opts)
         assert (res.nfev[i], res.status[i]) == (ref.nfev, ref.status)
@@ -135,16 +168,16 @@ def test_band_jackknife_is_the_refits_without_each_band():
     scipy's refits on the bins kept, one band at a time, from the same optimum."""
     prob, space, truth = _arm_problem()
     z_true = space.to_z(np.array([truth[n] for n in space.names]))
-    best = least_squares(prob.residuals, space.clip_z(z_true), jac=prob.jacobian,
-                         bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
+    best = least_squares(prob.residuals, space.clip_z(z_true),
+                         jac=prob.jacobian_analytic, bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
                          ftol=1e-12, xtol=1e-12, gtol=1e-12)
     sd, g = band_jackknife(prob, best.x, 6)
     ends = []
     m = prob.f.size
     for part in np.array_split(np.arange(m), g):
         keep = np.setdiff1d(np.arange(m), part)
-        r = least_squares(prob.residuals, space.clip_z(best.x), jac=prob.jacobian,
-                          args=(keep,), bounds=(space.zlo, space.zhi), method="trf",
+        r = least_squares(prob.residuals, space.clip_z(best.x),
+                          jac=prob.jacobian_analytic, args=(keep,), bounds=(space.zlo, space.zhi), method="trf",
                           x_scale=1.0, max_nfev=50 * best.x.size, ftol=1e-10,
                           xtol=1e-10, gtol=1e-10)
         ends.append(r.x)
@@ -172,8 +205,8 @@ def test_two_fits_are_scipys_one_by_one():
     res = solve_together([prob], [z0], mask=np.concatenate([keep, keep], axis=1), **opts)
     bins = [np.arange(m), np.flatnonzero(keep[1])]
     for i in range(2):
-        ref = least_squares(prob.residuals, z0[i], jac=prob.jacobian, args=(bins[i],),
-                            bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
+        ref = least_squares(prob.residuals, z0[i], jac=prob.jacobian_analytic,
+                            args=(bins[i],), bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
                             **opts)
         assert (res.nfev[i], res.status[i]) == (ref.nfev, ref.status)
         assert res.cost[i] == pytest.approx(ref.cost, rel=1e-9)

@@ -60,37 +60,37 @@ EXPECTED: dict[str, str] = {
     "run.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "fit-grip.stdout":
-        "46cddf80361b3b94a5dabe89ed29416ac87b2f98e18b7d6ef53aeae486dca377",
+        "65c98de42aab0ec652d34dec0e70855323c016e270fa384aa0f0ee866c47a7b9",
     "fit-nominal.stdout":
-        "6331e3c3963de01cbfbfbbf3c04db27af51b19e9d393f5c76c629b10305e9e08",
+        "2724105eef96d99dc5068166ebc5fafc7763d8f24dd2a3a74c5fb679096b431f",
     "fit-uncertainty.stdout":
-        "2807c442f802b6022aba9056603f2e96c5242ec28bba7932beb770a4f305693a",
+        "8f475d7ea5c090bdc7b37b1d8322fbc4b34332aa94c9ad221da7872497bb5422",
     "compare.stdout":
-        "b4cecbc42c6e6340b9641259aa572d35418dd91401306c65a51b9f81208eb869",
+        "9ec295d8ffc8ff63475dc0ce8b4ae3c280a08dd2fd2818a338b84af58aca4193",
     "diagnose.stdout":
-        "521c30725c1ea20289ef9369407f5b5802845618a1c797fff4574347c91c133b",
+        "f32a1ca69c348b68b4f9c878027ddd7863ba687688c0775e3483aea6a5cebaa7",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
         "dc2740e86ae04d0e296505cb92bca6fd32a8e421bc87a689f88cfd9836382350",
     "grip.csv":
-        "6aa7f9deaf4f2c7f0147e43dbc1806902a41bb71d93f70d830b6b4152af39fde",
+        "e606715dee166b08ea22b22a9e8fcdb5dab3169aaba93469eec68b08f6f6901d",
     "nominal.csv":
-        "3bcf935c5e6c13d3f027096c5e9c944fe641d1511f340e39345f53b55f9dbfbc",
+        "ce4943d2636582eadb0cbaa6c34618639c17b1cd390c0986ab8db2bc7228364c",
     "run/adoption.csv":
         "a03dd023790b6e27d056b12e9a0658e098fa0e3ddfd4d75e6ee17b5f5ad43866",
     "run/certificate.csv":
-        "473ec418b9e07de6d072651c62fe7f73e309250a460a2d0d80c7738895f52607",
+        "9c9961a45ea63796526a4492ecb74669bfb2a9dc12ebfb5183ff94172d5bbed6",
     "run/compare.csv":
-        "b9bdb0630e0b4fbb0294ff1512b93cc35bf724c01a5070d498889f0553d7106e",
+        "07077598cb14bdf883654c1287ff00aeb0f59ec1873e435de395420e079bf7e5",
     "run/diagnosis.json":
-        "521c30725c1ea20289ef9369407f5b5802845618a1c797fff4574347c91c133b",
+        "f32a1ca69c348b68b4f9c878027ddd7863ba687688c0775e3483aea6a5cebaa7",
     "run/grip_params.csv":
-        "6aa7f9deaf4f2c7f0147e43dbc1806902a41bb71d93f70d830b6b4152af39fde",
+        "e606715dee166b08ea22b22a9e8fcdb5dab3169aaba93469eec68b08f6f6901d",
     "run/grip_params.tex":
         "a30e9288acad14b36f41695e560bea5d7201a820e8e1f5151b4040acda5136ca",
     "run/nominal_params.csv":
-        "3bcf935c5e6c13d3f027096c5e9c944fe641d1511f340e39345f53b55f9dbfbc",
+        "ce4943d2636582eadb0cbaa6c34618639c17b1cd390c0986ab8db2bc7228364c",
     "run/nominal_params.tex":
         "13e3da5b8799deacf95f0f56b253209c06456e428bedb35d019dfda8775e8fea",
     "run/report.html":
@@ -100,25 +100,25 @@ EXPECTED: dict[str, str] = {
     "run/spectra.parquet":
         "7f7910c503a4059c4f6ea3bdc8c362fb29624ee31197ec605d4c4b9f3f33f8d9",
     "run/stability.csv":
-        "4c751cf9560947f6728a317aa44c19dec17ae7071cbe9d19207d7fe49fcb02bb",
+        "2212753ac4ebe213e5c782cbeaf69217018ef1f2a92af072997d3153d73a90f3",
     "run/trial_params.csv":
-        "5f327ae0b30a1475cd1fd94f03dcbb7dda7e75d9bf3300818b130e20e1b5760f",
+        "84f536709d0747e263c043c3b0b636daa5cacb528009bad9f78a833ba99b3e24",
     "run/trials.parquet":
         "34eb582f5fec86f6d7c0d27c62e2eb917c898821d3fbf387c5b22af4ba5c9bea",
     "run/wu.csv":
-        "4100bef392aeaee7a6cb0d46ce95c15a685b85152f5d4ec3e3d666f56ac98665",
+        "bde604c7b102c6e9c3db382a45ffeb81e46666fbfebe9bbdab2bd27c6844ca84",
     "run/wu.tex":
         "901fbf68ac0c0225bb5c2c4117e45ca4d786b80b9a7c4561ce248c20115faad3",
     "run/wu_summary.csv":
-        "014f26b056609fd661a20045fb9469027c70f6983cec7b7e67750389d632a79f",
+        "8c1ced425bb1f6f2bcf036dda1d8ff1977afccf482f605da619290df7d6eda68",
     "run/wu_wmax.csv":
-        "ff4cd1fedcc42ec6a80c27aba20f74bac299eb2d74e8b6aeb989c85573b06005",
+        "aa3b230c4bf6324e322f177d3f179e94beeb7c7793cbace6e88630e9cdac1ace",
     "wu.csv":
-        "4100bef392aeaee7a6cb0d46ce95c15a685b85152f5d4ec3e3d666f56ac98665",
+        "bde604c7b102c6e9c3db382a45ffeb81e46666fbfebe9bbdab2bd27c6844ca84",
     "wu_summary.csv":
-        "014f26b056609fd661a20045fb9469027c70f6983cec7b7e67750389d632a79f",
+        "8c1ced425bb1f6f2bcf036dda1d8ff1977afccf482f605da619290df7d6eda68",
     "wu_wmax.csv":
-        "ff4cd1fedcc42ec6a80c27aba20f74bac299eb2d74e8b6aeb989c85573b06005",
+        "aa3b230c4bf6324e322f177d3f179e94beeb7c7793cbace6e88630e9cdac1ace",
 }
 
 
