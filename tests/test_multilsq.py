@@ -143,9 +143,10 @@ def test_analytic_jacobian_is_the_central_differences(effect, cost):
 def test_arm_fits_from_many_starts_match_scipy_one_by_one():
     """The global search's local fits (fitting._global_starts: the starts of the problem
     with unit weights and with its own, solved together) on the arm model: the batched
-    central-difference Jacobian and residuals give every start scipy's end on its own
-    problem (the same Jacobian function: analytic arm columns): the same evaluations and
-    stop, the cost to 1e-7 (ftol 1e-6; an end in a flat valley may lie elsewhere along it, by 4e-5 in log coordinates measured)."""
+    Jacobians (analytic arm columns) and residuals give every start scipy's end on its
+    own problem with the same functions: the same evaluations and stop, the cost to 1e-7
+    (ftol 1e-6; an end in a flat valley may lie elsewhere along it, by 4e-5 in log
+    coordinates measured)."""
     prob, space, _ = _arm_problem()
     rng = np.random.default_rng(1)
     z0 = space.clip_z(space.zlo + rng.uniform(0.2, 0.8, (10, len(space.names)))
@@ -169,17 +170,17 @@ def test_band_jackknife_is_the_refits_without_each_band():
     prob, space, truth = _arm_problem()
     z_true = space.to_z(np.array([truth[n] for n in space.names]))
     best = least_squares(prob.residuals, space.clip_z(z_true),
-                         jac=prob.jacobian_analytic, bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
-                         ftol=1e-12, xtol=1e-12, gtol=1e-12)
+                         jac=prob.jacobian_analytic, bounds=(space.zlo, space.zhi),
+                         method="trf", x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12)
     sd, g = band_jackknife(prob, best.x, 6)
     ends = []
     m = prob.f.size
     for part in np.array_split(np.arange(m), g):
         keep = np.setdiff1d(np.arange(m), part)
         r = least_squares(prob.residuals, space.clip_z(best.x),
-                          jac=prob.jacobian_analytic, args=(keep,), bounds=(space.zlo, space.zhi), method="trf",
-                          x_scale=1.0, max_nfev=50 * best.x.size, ftol=1e-10,
-                          xtol=1e-10, gtol=1e-10)
+                          jac=prob.jacobian_analytic, args=(keep,),
+                          bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
+                          max_nfev=50 * best.x.size, ftol=1e-10, xtol=1e-10, gtol=1e-10)
         ends.append(r.x)
     ends = np.array(ends)
     ref = np.sqrt((g - 1) / g * np.sum((ends - ends.mean(axis=0)) ** 2, axis=0))
@@ -206,8 +207,8 @@ def test_two_fits_are_scipys_one_by_one():
     bins = [np.arange(m), np.flatnonzero(keep[1])]
     for i in range(2):
         ref = least_squares(prob.residuals, z0[i], jac=prob.jacobian_analytic,
-                            args=(bins[i],), bounds=(space.zlo, space.zhi), method="trf", x_scale=1.0,
-                            **opts)
+                            args=(bins[i],), bounds=(space.zlo, space.zhi), method="trf",
+                            x_scale=1.0, **opts)
         assert (res.nfev[i], res.status[i]) == (ref.nfev, ref.status)
         assert res.cost[i] == pytest.approx(ref.cost, rel=1e-9)
         np.testing.assert_allclose(res.x[i], ref.x, rtol=0, atol=1e-5)
