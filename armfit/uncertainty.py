@@ -69,6 +69,7 @@ ZETA_MIN = 0.01
 #: step the data it sees do not change unless W_max moves by about 1e-7 relative or
 #: more, so the weight is a reproducible function of the measurements. 0.01 dB is far
 #: below W_max's own scatter; the gain and every check use the W_max not rounded.
+#: (``benchmarks/validate_wu_rounding.py`` measures both; 0 turns the steps off.)
 SEARCH_STEP_DB = 0.01
 
 _DB = 10.0 / np.log(10.0)  # d(10 log10 Q) = _DB dQ/Q
@@ -451,7 +452,8 @@ def _prepare(f_hz, wmax, band, n_bins: int, n_sub: int) -> _Target:
     wdb = _to_db(w)
     # the search's points and values from W_max on steps of SEARCH_STEP_DB (ties: the
     # lowest frequency of the bin), so that rounding upstream does not move them
-    wq = np.round(wdb / SEARCH_STEP_DB) * SEARCH_STEP_DB
+    step = SEARCH_STEP_DB
+    wq = np.round(wdb / step) * step if step else wdb       # 0: no steps
     wl = _log_weights(f)
     lf = np.log(f)
     edges = np.linspace(lf[0], lf[-1], n_bins + 1)
