@@ -238,20 +238,18 @@ class _Problem:
         hm = self.model.response(self.f[idx], self.theta_dict(theta))
         return self._weighted(hm, idx)
 
-    def jacobian(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
-        """∂r/∂z by central differences (step 1e-6 in z), all 2p points in one batch."""
-        return self.jacobian_batch(z[None], idx)[0]
-
-    def jacobian_batch(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)
-                       ) -> np.ndarray:
-        """:meth:`jacobian` at a batch of points z (k, p) → (k, m, p), all 2kp points
-        in one batch."""
+    def jacobian_batch(self, z: np.ndarray, idx: np.ndarray | slice = slice(None),
+                       first: int = 0) -> np.ndarray:
+        """∂r/∂z by central differences (step 1e-6 in z) at a batch of points z (k, p) →
+        (k, m, p − first): the columns of the parameters from ``first`` on, all their
+        2k(p − first) points in one batch."""
         step = 1e-6
         k, p = z.shape
-        e = step * np.eye(p)
-        pts = np.concatenate([z[:, None, :] + e, z[:, None, :] - e], axis=1)  # (k, 2p, p)
-        r = self.residuals_batch(pts.reshape(2 * k * p, p), idx).reshape(k, 2 * p, -1)
-        return np.swapaxes(r[:, :p] - r[:, p:], 1, 2) / (2 * step)
+        q = p - first
+        e = step * np.eye(p)[first:]
+        pts = np.concatenate([z[:, None, :] + e, z[:, None, :] - e], axis=1)  # (k, 2q, p)
+        r = self.residuals_batch(pts.reshape(2 * k * q, p), idx).reshape(k, 2 * q, -1)
+        return np.swapaxes(r[:, :q] - r[:, q:], 1, 2) / (2 * step)
 
     def jacobian_analytic(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)
                           ) -> np.ndarray:
@@ -265,9 +263,9 @@ class _Problem:
         an arm parameter's column is (DB_PER_NEPER Re, 180/π Im) of ∂ ln H/∂θ (eq. 3,
         :meth:`~armfit.models.arm.ClosedLoopModel.response_and_base_log_derivatives`)
         times the weights and dθ/dz (θ for a parameter fitted in log, else upper −
-        lower). An effect's columns are central differences as :meth:`jacobian_batch`
-        takes them. A point whose residual is not finite (a constant in the residuals)
-        has a zero row there."""
+        lower). An effect's columns are central differences (:meth:`jacobian_batch`). A
+        point whose residual is not finite (a constant in the residuals) has a zero row
+        there."""
         k, p = z.shape
         nb = len(PARAM_NAMES)
         if self.space.names[:nb] != PARAM_NAMES:   # an arm parameter held: all differences
@@ -290,13 +288,7 @@ class _Problem:
         jb = np.moveaxis(np.where(ok & np.isfinite(db), db, 0.0), 0, -1)    # (k, m, 5)
         if p == nb:
             return jb
-        step = 1e-6
-        e = step * np.eye(p)[nb:]                                            # (q, p)
-        pts = np.concatenate([z[:, None, :] + e, z[:, None, :] - e], axis=1)  # (k, 2q, p)
-        q = p - nb
-        re = self.residuals_batch(pts.reshape(2 * k * q, p), idx).reshape(k, 2 * q, -1)
-        je = np.swapaxes(re[:, :q] - re[:, q:], 1, 2) / (2 * step)
-        return np.concatenate([jb, je], axis=-1)
+        return np.concatenate([jb, self.jacobian_batch(z, idx, first=nb)], axis=-1)
 
     def solve_many(self, z0: np.ndarray, idx: np.ndarray | slice = slice(None), *,
                    mask: np.ndarray | None = None, **opts) -> multilsq.ManyResult:
