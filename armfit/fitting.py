@@ -283,7 +283,8 @@ class _Problem:
             else:
                 db = np.concatenate([d_db * self.w_db[idx],
                                      np.degrees(dlog.imag) * dz * self.w_deg[idx]], axis=-1)
-            finite = np.isfinite(log_errors(hm, h)[0])
+            size = np.abs(hm / h)         # the residuals are finite where ln|Hm/Hd| is
+            finite = np.isfinite(size) & (size > 0)
         ok = finite if self.cost == "paper" else np.concatenate([finite, finite], axis=-1)
         jb = np.moveaxis(np.where(ok & np.isfinite(db), db, 0.0), 0, -1)    # (k, m, 5)
         if p == nb:
