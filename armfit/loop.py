@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -282,6 +282,31 @@ class _Group:
     M0: np.ndarray            # (R, N, N)
     b: np.ndarray             # (R, N)
     c: np.ndarray             # (R, N)
+    #: the sampled plant x[k+1] = Pd x[k] + Gd u[k], y = Cd x (n states, n ≤ N) and the
+    #: controller's D and B/T, from which :meth:`g` takes g(z) = cᵀ(zI − M0)⁻¹b
+    Pd: np.ndarray            # (R, n, n)
+    Gd: np.ndarray            # (R, n)
+    Cd: np.ndarray            # (R, n)
+    D: int
+    BT: float
+
+    def g(self, idx: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """g(z) = cᵀ(zI − M0)⁻¹b of loops ``idx`` at ``z`` (one each), from the plant
+        alone: the controller u = −(K + (B/T)(1 − z⁻¹)) z^(−D) y closes the loop, so with
+        P(z) = Cd(zI − Pd)⁻¹Gd, 1 − K g(z) = 0 ⇔ z^(D+1) + ((B/T)(z − 1) + K z) P(z) = 0,
+        i.e. g(z) = −z P(z) / (z^(D+1) + (B/T)(z − 1) P(z)). One solve of the plant's n
+        states per point instead of the loop's N (the delay's shift register is the rest
+        of M0)."""
+        n = self.Pd.shape[-1]
+        mats = z[:, None, None] * np.eye(n) - self.Pd[idx]
+        with np.errstate(all="ignore"):
+            try:
+                sol = np.linalg.solve(mats, self.Gd[idx][..., None].astype(complex))[..., 0]
+            except np.linalg.LinAlgError:
+                sol = np.stack([np.linalg.lstsq(m, v, rcond=None)[0] for m, v in
+                                zip(mats, self.Gd[idx].astype(complex), strict=True)])
+            P = np.einsum("pn,pn->p", sol, self.Cd[idx])
+            return -z * P / (z ** (self.D + 1) + self.BT * (z - 1.0) * P)
 
 
 def _loops(plants: Sequence[RationalPlant], settings: WallSettings) -> list[_Group]:
@@ -347,7 +372,7 @@ def _loops(plants: Sequence[RationalPlant], settings: WallSettings) -> list[_Gro
         rD1[:, nd + D] = 1.0
         M0[:, :nd, :] += BT * Gd[:, :, None] * (rD1 - rD)[:, None, :]
         b = np.concatenate([-Gd, np.zeros((R, D + 1))], axis=1)
-        groups.append(_Group(np.array([it[0] for it in its]), M0, b, rD))
+        groups.append(_Group(np.array([it[0] for it in its]), M0, b, rD, Pd, Gd, Cd, D, BT))
     return groups
 
 
@@ -396,10 +421,13 @@ def _pencils(M0: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, 
 
 
 def _crossing_gains_batch(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *,
-                          tol: float = 1e-6) -> list[tuple[np.ndarray, np.ndarray]]:
+                          tol: float = 1e-6, g_of: Callable | None = None
+                          ) -> list[tuple[np.ndarray, np.ndarray]]:
     """:func:`crossing_gains` of each loop of a stack (M0 (R, N, N), b, c (R, N)): the
     pencils are built at once and g(e^(jθ)) of every candidate is solved in one batch;
-    only the generalised eigenvalue problems (LAPACK ``ggev``) go one by one."""
+    only the generalised eigenvalue problems (LAPACK ``ggev``) go one by one. ``g_of``
+    (loop indices, z) → g(z) replaces that solve (:meth:`_Group.g`: from the plant's
+    states alone)."""
     R, N, _ = M0.shape
     A, E = _pencils(M0, b, c)
     ggev, = linalg.get_lapack_funcs(("ggev",), (A[0],))
@@ -422,7 +450,8 @@ def _crossing_gains_batch(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *,
     idx = np.concatenate(rows)
     theta = np.concatenate(thetas)
     u_idx = np.concatenate([np.full(u.size, r) for r, u in enumerate(unique)])
-    g = _g_of(M0[u_idx], b[u_idx], c[u_idx], np.exp(1j * np.concatenate(unique)))
+    zu = np.exp(1j * np.concatenate(unique))
+    g = (_g_of(M0[u_idx], b[u_idx], c[u_idx], zu) if g_of is None else g_of(u_idx, zu))
     g = g[np.concatenate(inverse)]
     with np.errstate(all="ignore"):
         K = 1.0 / g.real
@@ -474,7 +503,7 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
         R = g.M0.shape[0]
         cands = []
         thetas = []
-        for K, th in _crossing_gains_batch(g.M0, g.b, g.c):
+        for K, th in _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g):
             order = np.argsort(K)
             K, th = K[order], th[order]
             keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0

@@ -561,6 +561,30 @@ def test_crossing_gains_solve_each_angle_once_with_the_same_gains(settings):
 
 
 @pytest.mark.parametrize("settings", SETTINGS)
+def test_open_loop_from_the_plant_alone_is_that_of_the_whole_loop(settings):
+    # g(z) = cᵀ(zI − M0)⁻¹b solved with the loop's N states (the independent
+    # computation, _g_of) against the plant's n states and the controller's closed form
+    # (_Group.g), on and off the unit circle; the crossing gains wall_stability takes
+    # from the latter are those of the former
+    z = np.concatenate([np.exp(1j * np.linspace(0.0, np.pi, 41)),
+                        0.7 * np.exp(0.4j) * np.ones(1), 1.3 * np.exp(2.0j) * np.ones(1)])
+    n_shift = 0
+    for g in _loops(_plants(), settings):
+        R, N = g.M0.shape[:2]
+        n_shift += N - g.Pd.shape[1]
+        idx = np.repeat(np.arange(R), z.size)
+        zz = np.tile(z, R)
+        whole = _g_of(g.M0[idx], g.b[idx], g.c[idx], zz)
+        np.testing.assert_allclose(g.g(idx, zz), whole, rtol=1e-9, atol=0)
+        for (k1, t1), (k2, t2) in zip(_crossing_gains_batch(g.M0, g.b, g.c),
+                                      _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g),
+                                      strict=True):
+            np.testing.assert_array_equal(t1, t2)
+            np.testing.assert_allclose(k1, k2, rtol=1e-9)
+    assert n_shift > 0      # loops whose shift register the plant-only solve skips
+
+
+@pytest.mark.parametrize("settings", SETTINGS)
 def test_first_unstable_gain_is_that_of_testing_every_gain(settings):
     tested = 0
     for g in _loops(_plants(), settings):
