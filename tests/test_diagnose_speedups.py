@@ -440,6 +440,30 @@ def test_screen_starts_with_repeated_combinations_is_each_tried(study):
         np.testing.assert_array_equal(g, w)
 
 
+def test_a_start_far_behind_after_its_brief_try_is_not_refined(study, monkeypatch):
+    # START_GAP: of the best REFINE_BEST brief tries, one whose cost exceeds START_GAP
+    # times the best one's is left out; the reference is the short fits made the long
+    # way (as above), the premise that this start is that far behind checked first
+    data, band = _z_data(study)
+    model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    prob = joint.JointProblem(model, data, sel)
+    start = start_array(data)
+    combos = [(start, {"delay.delay_s": 0.012}), (start * 30.0, {"delay.delay_s": 0.09})]
+    T = data.h.shape[0]
+    idx = np.unique(np.linspace(0, T - 1, min(T, 9)).round().astype(int))
+    sub = joint.AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx],
+                         data.se_deg[idx], tuple(data.starts[i] for i in idx))
+    sprob = joint.JointProblem(model, sub, sel)
+    near, far = (sprob.solve(sprob.pack(b[idx], st), 12).cost for b, st in combos)
+    assert far > joint.START_GAP * near
+    got = joint.screen_starts(model, data, sel, combos, prob, keep=2, nfev=12)
+    monkeypatch.setattr(joint, "START_GAP", np.inf)
+    every = joint.screen_starts(model, data, sel, combos, prob, keep=2, nfev=12)
+    assert len(got) == 1 and len(every) == 2
+    np.testing.assert_array_equal(got[0], every[0])
+
+
 def test_joint_fit_refines_a_repeated_start_once_with_the_same_result(study, monkeypatch):
     data, band = _z_data(study)
     model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])

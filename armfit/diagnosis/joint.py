@@ -23,6 +23,7 @@ from armfit.diagnosis.tuning import (
     FTOL_VARIANCE,
     OUTLIER,
     REFINE_BEST,
+    START_GAP,
     START_SCREEN_NFEV,
     START_SCREEN_TRIALS,
     TRIAL_FIT_NFEV,
@@ -501,7 +502,8 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
                   nfev: int = START_SCREEN_NFEV,
                   by_subject: Mapping[str, Mapping[str, float]] | None = None) -> np.ndarray:
     """Short fits of every (base, start) pair on a spread-out subset of the trials;
-    returns the full starting vectors built from the ``keep`` best (their effect values,
+    returns the full starting vectors built from the ``keep`` best, less those whose cost
+    exceeds :data:`START_GAP` times the best one's (their effect values,
     and the per-subject values of the subset's subjects, from the short fit; the other
     subjects' from ``by_subject``)."""
     T = data.h.shape[0]
@@ -520,7 +522,9 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
         scored.append((r.cost, b, st, r.x))
     scored.sort(key=lambda t: t[0])
     out = []
-    for _, b, st, xs in scored[:keep]:
+    for cost, b, st, xs in scored[:keep]:
+        if cost > START_GAP * scored[0][0]:     # far behind the best: not refined
+            break
         if not prob.varying:
             x0 = prob.pack(b, st)
             if prob.k:
