@@ -509,38 +509,68 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
             keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
             cands.append(K[keep])
             thetas.append(th[keep])
-        # test one gain inside each interval between crossings (and beyond the last), in
-        # order of K, up to the first unstable one
-        mids = [_interval_gains(K) for K in cands]
-        first, top_first = _first_unstable(g, mids)
-        pending = []
-        for r in range(R):
-            K, j, Ks = cands[r], int(first[r]), mids[r]
-            if j < 0:
-                out[g.rows[r]] = WallStability(math.inf, math.nan, False)
-                continue
-            if j == 0:
-                rho0, top0 = _spectral_radius(g, np.array([r]), np.array([0.0]))
-                z0 = top0[0] if rho0[0] >= 1.0 else top_first[r]
-                out[g.rows[r]] = WallStability(0.0, abs(float(np.angle(z0))) / (2 * np.pi * T),
-                                               True)
-                continue
-            pending.append((r, float(K[j - 1]), float(thetas[r][j - 1]),
-                            float(Ks[j - 1]), float(Ks[j])))
-        # check stability just below and loss just above each K* (± K_REL_TOL/2), all
-        # loops at once; where the check fails, bisect between the stable and the
-        # unstable test gains
-        if pending:
-            rs = np.repeat([p[0] for p in pending], 2)
-            probe = np.array([[p[1] * (1 - K_REL_TOL / 2), p[1] * (1 + K_REL_TOL / 2)]
-                              for p in pending]).ravel()
-            rho, _ = _spectral_radius(g, rs, probe)
-            for i, (r, k_star, th, k_lo, k_hi) in enumerate(pending):
-                if rho[2 * i] < 1.0 <= rho[2 * i + 1]:
-                    out[g.rows[r]] = WallStability(k_star, th / (2 * np.pi * T), False)
+        # the usual case first: stable just below the first crossing gain K₁ and unstable
+        # just above it (± K_REL_TOL/2, before the next crossing), all loops at once:
+        # these two gains lie in the first two intervals between crossings, so they are
+        # the interval test's gains and its check at once (K_max = K₁, as the interval
+        # test finds it); any other loop is tested interval by interval
+        rest = [r for r in range(R) if not cands[r].size]
+        first = [r for r in range(R) if cands[r].size]
+        if first:
+            k1 = np.array([cands[r][0] for r in first])
+            probe = np.stack([k1 * (1 - K_REL_TOL / 2), k1 * (1 + K_REL_TOL / 2)], 1).ravel()
+            rho, _ = _spectral_radius(g, np.repeat(first, 2), probe)
+            for i, r in enumerate(first):
+                K = cands[r]
+                if rho[2 * i] < 1.0 <= rho[2 * i + 1] and (K.size == 1
+                                                           or probe[2 * i + 1] < K[1]):
+                    out[g.rows[r]] = WallStability(float(K[0]),
+                                                   float(thetas[r][0]) / (2 * np.pi * T), False)
                 else:
-                    out[g.rows[r]] = _bisect(g, r, k_lo, k_hi, T)
+                    rest.append(r)
+        _by_intervals(g, sorted(rest), cands, thetas, T, out)
     return out  # type: ignore[return-value]
+
+
+def _by_intervals(g: _Group, rows: Sequence[int], cands: Sequence[np.ndarray],
+                  thetas: Sequence[np.ndarray], T: float, out: list) -> None:
+    """K_max of the loops ``rows`` of ``g`` from their sorted crossing gains ``cands``
+    (and angles ``thetas``), into ``out``: one gain inside each interval between
+    crossings (and beyond the last) tested in order of K up to the first unstable one;
+    the loss of stability at the crossing below it checked, else bisected."""
+    if not rows:
+        return
+    # test one gain inside each interval between crossings (and beyond the last), in
+    # order of K, up to the first unstable one
+    mids = {r: _interval_gains(cands[r]) for r in rows}
+    first, top_first = _first_unstable(g, [mids[r] for r in rows], rows)
+    pending = []
+    for i, r in enumerate(rows):
+        K, j, Ks = cands[r], int(first[i]), mids[r]
+        if j < 0:
+            out[g.rows[r]] = WallStability(math.inf, math.nan, False)
+            continue
+        if j == 0:
+            rho0, top0 = _spectral_radius(g, np.array([r]), np.array([0.0]))
+            z0 = top0[0] if rho0[0] >= 1.0 else top_first[i]
+            out[g.rows[r]] = WallStability(0.0, abs(float(np.angle(z0))) / (2 * np.pi * T),
+                                           True)
+            continue
+        pending.append((r, float(K[j - 1]), float(thetas[r][j - 1]),
+                        float(Ks[j - 1]), float(Ks[j])))
+    # check stability just below and loss just above each K* (± K_REL_TOL/2), all
+    # loops at once; where the check fails, bisect between the stable and the
+    # unstable test gains
+    if pending:
+        rs = np.repeat([p[0] for p in pending], 2)
+        probe = np.array([[p[1] * (1 - K_REL_TOL / 2), p[1] * (1 + K_REL_TOL / 2)]
+                          for p in pending]).ravel()
+        rho, _ = _spectral_radius(g, rs, probe)
+        for i, (r, k_star, th, k_lo, k_hi) in enumerate(pending):
+            if rho[2 * i] < 1.0 <= rho[2 * i + 1]:
+                out[g.rows[r]] = WallStability(k_star, th / (2 * np.pi * T), False)
+            else:
+                out[g.rows[r]] = _bisect(g, r, k_lo, k_hi, T)
 
 
 def _interval_gains(K: np.ndarray) -> np.ndarray:
@@ -552,21 +582,24 @@ def _interval_gains(K: np.ndarray) -> np.ndarray:
     return np.concatenate([0.5 * (edges[:-1] + edges[1:]), [2.0 * K[-1]]])
 
 
-def _first_unstable(g: _Group, mids: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """For each loop r of ``g``: the index of the first gain of ``mids[r]`` (in order) at
-    which the loop is unstable (−1 if at none), and the outermost eigenvalue at its first
+def _first_unstable(g: _Group, mids: Sequence[np.ndarray],
+                    rows: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """For each loop of ``g`` (``rows``: those of these indices into the group, in this
+    order; default all): the index of the first gain of its ``mids`` (in order) at which
+    the loop is unstable (−1 if at none), and the outermost eigenvalue at its first
     gain. The gains are tested in rounds, the i-th gain of every loop still stable
     through its first i in one batch, so that a loop stops at its first unstable gain:
     with a long delay a loop crosses the unit circle at dozens of gains, of which the
     answer needs the first two or three. Each matrix's eigenvalues are those a test of
     every gain at once would give."""
     R = len(mids)
+    at = np.arange(R) if rows is None else np.asarray(rows, int)
     first = np.full(R, -1)
     top_first = np.zeros(R, complex)
     live = np.arange(R)
     i = 0
     while live.size:
-        rho, top = _spectral_radius(g, live, np.array([mids[r][i] for r in live]))
+        rho, top = _spectral_radius(g, at[live], np.array([mids[r][i] for r in live]))
         if i == 0:
             top_first[live] = top
         unstable = rho >= 1.0

@@ -33,6 +33,7 @@ from armfit.diagnosis.tuning import FTOL_VARIANCE, SHARED_EFFECTS
 from armfit.fitting import fit_response
 from armfit.loop import (
     WallSettings,
+    _by_intervals,
     _crossing_gains_batch,
     _first_unstable,
     _g_of,
@@ -41,6 +42,7 @@ from armfit.loop import (
     _pencils,
     _spectral_radius,
     plant_from_model,
+    wall_stability,
 )
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import EFFECTS
@@ -628,6 +630,48 @@ def test_first_unstable_gain_is_that_of_testing_every_gain(settings):
             assert top[r] == tops[sel[0]]
             tested += mids[r].size
     assert tested > 3 * len(_plants())      # loops with many crossings among them
+
+
+def _against_interval_test(settings) -> int:
+    """wall_stability of _plants() against the interval test alone (_by_intervals) for
+    every loop, asserted equal; the number of loops whose K_max is not their first
+    crossing gain (or that have none)."""
+    plants = _plants()
+    got = wall_stability(plants, settings)
+    want: list = [None] * len(plants)
+    fallback = 0
+    for g in _loops(plants, settings):
+        cands, thetas = [], []
+        for K, th in _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g):
+            order = np.argsort(K)
+            K, th = K[order], th[order]
+            keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
+            cands.append(K[keep])
+            thetas.append(th[keep])
+        _by_intervals(g, list(range(g.M0.shape[0])), cands, thetas,
+                      settings.sample_time_s, want)
+        fallback += sum(1 for r, K in enumerate(cands)
+                        if not K.size or want[g.rows[r]].k_max_N_per_m != K[0])
+    for a, b in zip(got, want, strict=True):
+        assert a.k_max_N_per_m == b.k_max_N_per_m
+        assert a.unstable_at_zero == b.unstable_at_zero
+        np.testing.assert_array_equal(a.f_unstable_hz, b.f_unstable_hz)
+    assert any(np.isfinite(w.k_max_N_per_m) for w in want)
+    return fallback
+
+
+@pytest.mark.parametrize("settings", SETTINGS)
+def test_k_max_checked_at_the_first_crossing_is_that_of_the_interval_test(settings):
+    # wall_stability first probes every loop just below and above its first crossing
+    # gain; the reference is the interval test alone for every loop: the same K_max,
+    # frequency and flag, loop by loop
+    _against_interval_test(settings)
+
+
+def test_loops_whose_first_crossing_is_no_loss_of_stability_are_among_those_tested():
+    # the premise of the test above: at some setting a loop's K_max is not its first
+    # crossing gain (or it has none), so the interval test's own path is compared too
+    assert sum(_against_interval_test(s) for s in SETTINGS) > 0
 
 
 # ---------------------------------------------------------------------------
