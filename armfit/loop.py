@@ -515,12 +515,12 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
         # the interval test's gains and its check at once (K_max = K₁, as the interval
         # test finds it); any other loop is tested interval by interval
         rest = [r for r in range(R) if not cands[r].size]
-        first = [r for r in range(R) if cands[r].size]
-        if first:
-            k1 = np.array([cands[r][0] for r in first])
+        crossing = [r for r in range(R) if cands[r].size]
+        if crossing:
+            k1 = np.array([cands[r][0] for r in crossing])
             probe = np.stack([k1 * (1 - K_REL_TOL / 2), k1 * (1 + K_REL_TOL / 2)], 1).ravel()
-            rho, _ = _spectral_radius(g, np.repeat(first, 2), probe)
-            for i, r in enumerate(first):
+            rho, _ = _spectral_radius(g, np.repeat(crossing, 2), probe)
+            for i, r in enumerate(crossing):
                 K = cands[r]
                 if rho[2 * i] < 1.0 <= rho[2 * i + 1] and (K.size == 1
                                                            or probe[2 * i + 1] < K[1]):

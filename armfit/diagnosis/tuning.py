@@ -98,7 +98,7 @@ REFINE_BEST = 2
 #: 4.1 behind ended better than the best one's by more than 1e-6 of the cost, and a few
 #: more than 10 behind ended better by rounding only, on the same optimum; a start that
 #: far behind creeps along a poor minimum for a hundred evaluations and its stuck trials
-#: are refitted one by one, for nothing (a gap of 100 leaves out 27 starts, 18 % of the
+#: are refitted one by one, for nothing (a gap of 100 leaves out 27 starts, 18–19 % of the
 #: refinements' CPU).
 START_GAP = 100.0
 #: The ``quick`` joint fits of the candidate screening: evaluations of the refinement,
