@@ -158,6 +158,18 @@ def pade_delay(delay_s: float, order: int) -> tuple[np.ndarray, np.ndarray]:
     return num, tk[::-1].copy()
 
 
+def _polymul(a, b) -> np.ndarray:
+    """``np.polymul(a, b)`` of coefficient arrays (highest power first) without its
+    ``poly1d`` objects: the leading zeros of each dropped (all zeros: [0]), then their
+    convolution, the same numbers."""
+    out = []
+    for c in (a, b):
+        c = np.atleast_1d(c)
+        nz = np.flatnonzero(c)
+        out.append(c[nz[0]:] if nz.size else np.zeros(1, c.dtype))
+    return np.convolve(out[0], out[1])
+
+
 def rational_sum(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
                  ) -> tuple[np.ndarray, np.ndarray]:
     """a + b of two rational functions given as (numerator, denominator) coefficients,
@@ -171,8 +183,8 @@ def rational_sum(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarr
     -------
     tuple of numpy.ndarray
     """
-    return (np.polyadd(np.polymul(a[0], b[1]), np.polymul(b[0], a[1])),
-            np.polymul(a[1], b[1]))
+    return (np.polyadd(_polymul(a[0], b[1]), _polymul(b[0], a[1])),
+            _polymul(a[1], b[1]))
 
 
 def _effect_rational(e: Effect, values: Mapping[str, float], mp: float
@@ -210,7 +222,7 @@ def plant_from_model(model: ClosedLoopModel, theta: Mapping[str, float], *,
     """
     values = {n: float(v) for n, v in model.values(theta).items()}
     Ma, k1, k2, b1, b2 = (values[n] for n in ("Ma", "k1", "k2", "b1", "b2"))
-    z = (np.polymul([b1, k1], [Ma, b2, k2]), np.array([Ma, b1 + b2, k1 + k2]))
+    z = (_polymul([b1, k1], [Ma, b2, k2]), np.array([Ma, b1 + b2, k1 + k2]))
     z = rational_sum(z, (np.array([model.mp, 0.0, 0.0]), np.array([1.0])))
     out = (np.array([1.0]), np.array([1.0]))
     delay = 0.0
@@ -218,15 +230,15 @@ def plant_from_model(model: ClosedLoopModel, theta: Mapping[str, float], *,
         v = {p.name: values[f"{e.name}.{p.name}"] for p in e.params}
         num, den, tau = _effect_rational(e, v, model.mp)
         if e.stage == "output":
-            out = (np.polymul(out[0], num), np.polymul(out[1], den))
+            out = (_polymul(out[0], num), _polymul(out[1], den))
             delay += tau
             continue
         if tau > 0:
             pn, pd = pade_delay(tau, pade_order)
-            num, den = np.polymul(num, pn), np.polymul(den, pd)
+            num, den = _polymul(num, pn), _polymul(den, pd)
         z = rational_sum(z, (num, den))
-    num = np.polymul(out[0], z[1])
-    den = np.polymul(out[1], z[0])
+    num = _polymul(out[0], z[1])
+    den = _polymul(out[1], z[0])
     num = np.trim_zeros(num, "f")
     den = np.trim_zeros(den, "f")
     if num.size >= den.size:

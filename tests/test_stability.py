@@ -347,3 +347,25 @@ def test_reflex_at_null_gain_gives_the_base_k_max():
     theta.update({"reflex.gain_N_per_m": 1000.0, "reflex.delay_s": 0.005})
     strong = wall_stability([plant_from_model(model, theta)], WallSettings())[0]
     assert strong.unstable_at_zero and strong.k_max_N_per_m == 0.0
+
+
+def test_plant_products_are_numpys_polymul_to_the_bit():
+    # plant_from_model multiplies its polynomials with loop._polymul (np.polymul without
+    # its poly1d objects): the same bytes as np.polymul, leading zeros (and -0.0, and all
+    # zeros) included
+    from armfit.loop import _polymul
+    rng = np.random.default_rng(7)
+    trimmed = 0
+    for _ in range(2000):
+        a = rng.standard_normal(rng.integers(1, 8))
+        b = rng.standard_normal(rng.integers(1, 8))
+        if rng.random() < 0.3:
+            a[:rng.integers(0, a.size + 1)] = 0.0
+        if rng.random() < 0.3:
+            b[:rng.integers(0, b.size + 1)] = -0.0
+        trimmed += int(a[0] == 0 or b[0] == 0)
+        want = np.polymul(a, b)
+        got = _polymul(a, b)
+        assert got.shape == want.shape and got.tobytes() == want.tobytes()
+    assert trimmed > 100
+    assert _polymul([0.5, 2.0], [3.0]).tolist() == np.polymul([0.5, 2.0], [3.0]).tolist()
