@@ -309,15 +309,8 @@ class _Group:
         i.e. g(z) = −z P(z) / (z^(D+1) + (B/T)(z − 1) P(z)). One solve of the plant's n
         states per point instead of the loop's N (the delay's shift register is the rest
         of M0)."""
-        n = self.Pd.shape[-1]
-        mats = z[:, None, None] * np.eye(n) - self.Pd[idx]
+        P = _g_of(self.Pd[idx], self.Gd[idx], self.Cd[idx], z)     # Cd(zI − Pd)⁻¹Gd
         with np.errstate(all="ignore"):
-            try:
-                sol = np.linalg.solve(mats, self.Gd[idx][..., None].astype(complex))[..., 0]
-            except np.linalg.LinAlgError:
-                sol = np.stack([np.linalg.lstsq(m, v, rcond=None)[0] for m, v in
-                                zip(mats, self.Gd[idx].astype(complex), strict=True)])
-            P = np.einsum("pn,pn->p", sol, self.Cd[idx])
             return -z * P / (z ** (self.D + 1) + self.BT * (z - 1.0) * P)
 
 
@@ -513,14 +506,7 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
                          "{opt:sample_time_s}")
     for g in _loops(plants, settings):
         R = g.M0.shape[0]
-        cands = []
-        thetas = []
-        for K, th in _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g):
-            order = np.argsort(K)
-            K, th = K[order], th[order]
-            keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
-            cands.append(K[keep])
-            thetas.append(th[keep])
+        cands, thetas = _crossings(g)
         # the usual case first: stable just below the first crossing gain K₁ and unstable
         # just above it (± K_REL_TOL/2, before the next crossing), all loops at once:
         # these two gains lie in the first two intervals between crossings, so they are
@@ -542,6 +528,19 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
                     rest.append(r)
         _by_intervals(g, sorted(rest), cands, thetas, T, out)
     return out  # type: ignore[return-value]
+
+
+def _crossings(g: _Group) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each loop's crossing gains (:func:`crossing_gains`, g from the plant alone)
+    sorted, those within 1e-9 (relative) of the one below dropped, and their angles."""
+    cands, thetas = [], []
+    for K, th in _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g):
+        order = np.argsort(K)
+        K, th = K[order], th[order]
+        keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
+        cands.append(K[keep])
+        thetas.append(th[keep])
+    return cands, thetas
 
 
 def _by_intervals(g: _Group, rows: Sequence[int], cands: Sequence[np.ndarray],

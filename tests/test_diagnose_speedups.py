@@ -35,6 +35,7 @@ from armfit.loop import (
     WallSettings,
     _by_intervals,
     _crossing_gains_batch,
+    _crossings,
     _first_unstable,
     _g_of,
     _interval_gains,
@@ -454,9 +455,7 @@ def test_a_start_far_behind_after_its_brief_try_is_not_refined(study, monkeypatc
     combos = [(start, {"delay.delay_s": 0.012}), (start * 30.0, {"delay.delay_s": 0.09})]
     T = data.h.shape[0]
     idx = np.unique(np.linspace(0, T - 1, min(T, 9)).round().astype(int))
-    sub = joint.AxisData(data.axis, data.f_hz, data.h[idx], data.se_db[idx],
-                         data.se_deg[idx], tuple(data.starts[i] for i in idx))
-    sprob = joint.JointProblem(model, sub, sel)
+    sprob = joint.JointProblem(model, data.subset(idx), sel)
     near, far = (sprob.solve(sprob.pack(b[idx], st), 12).cost for b, st in combos)
     assert far > joint.START_GAP * near
     got = joint.screen_starts(model, data, sel, combos, prob, keep=2, nfev=12)
@@ -641,13 +640,7 @@ def _against_interval_test(settings) -> int:
     want: list = [None] * len(plants)
     fallback = 0
     for g in _loops(plants, settings):
-        cands, thetas = [], []
-        for K, th in _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g):
-            order = np.argsort(K)
-            K, th = K[order], th[order]
-            keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
-            cands.append(K[keep])
-            thetas.append(th[keep])
+        cands, thetas = _crossings(g)
         _by_intervals(g, list(range(g.M0.shape[0])), cands, thetas,
                       settings.sample_time_s, want)
         fallback += sum(1 for r, K in enumerate(cands)
