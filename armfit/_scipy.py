@@ -9,7 +9,7 @@ so each is imported here when first called. The functions are scipy's, unchanged
 
 from __future__ import annotations
 
-__all__ = ["chdtrc", "least_squares", "minimize", "stdtrit"]
+__all__ = ["least_squares", "minimize", "stdtrit"]
 
 
 def least_squares(*args, **kwargs):
@@ -30,8 +30,3 @@ def stdtrit(df, p):
     from scipy.special import stdtrit as fn
     return fn(df, p)
 
-
-def chdtrc(df, x):
-    """:func:`scipy.special.chdtrc`: P(χ²_df ≥ x)."""
-    from scipy.special import chdtrc as fn
-    return fn(df, x)

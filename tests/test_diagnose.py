@@ -246,3 +246,42 @@ def test_diagnose_from_a_params_file(tmp_path, runner):
     assert d.axis == "y" and d.n_trials == 6
     # no hidden effect: the base model is adequate, so no candidate is fitted
     assert d.adequate and d.candidates == () and len(d.error_steps) == 1
+
+
+def _named(axis, effect, params, lo, hi):
+    """An axis's diagnosis reduced to what cross_axis_agreement reads: the effect it
+    named, its parameters and their 95 % intervals."""
+    from types import SimpleNamespace
+    m = SimpleNamespace(effect=effect, params=params, params_lo=lo, params_hi=hi)
+    return SimpleNamespace(axis=axis, missing_effects=(m,))
+
+
+@pytest.mark.parametrize(("delays_ms", "disagree"), [((10.0, 12.0), True),
+                                                    ((10.0, 10.4, 11.5), False)])
+def test_cross_axis_agreement_is_the_weighted_mean_and_its_chi2(delays_ms, disagree):
+    # the delay (a linear parameter) named on two or three axes, with intervals of
+    # half-widths 0.5, 1 and 1.5 ms: the common value is the precision-weighted mean, the
+    # chi2 its weighted squared deviations with axes - 1 degrees of freedom, and p the
+    # chi2 survival function, computed independently by scipy.special.chdtrc
+    from scipy.special import chdtrc
+
+    from armfit.constants import Z_975
+    from armfit.diagnosis.search import cross_axis_agreement
+    half_s = np.array([0.5e-3, 1.0e-3, 1.5e-3])[: len(delays_ms)]
+    vals = np.array(delays_ms) * 1e-3
+    results = [_named(ax, "delay", {"delay_s": v}, {"delay_s": v - h}, {"delay_s": v + h})
+               for ax, v, h in zip("xyz", vals, half_s, strict=False)]
+    got = cross_axis_agreement(results, ("delay",))["delay"]
+    w = (Z_975 / half_s) ** 2
+    common = float(np.sum(w * vals) / np.sum(w))
+    chi2 = float(np.sum(w * (vals - common) ** 2))
+    entry = got["params"]["delay_s"]
+    assert got["axes"] == list("xyz"[: len(delays_ms)])
+    assert entry["common"] == pytest.approx(common, rel=1e-12)
+    assert entry["chi2"] == pytest.approx(chi2, rel=1e-9)
+    assert entry["dof"] == len(delays_ms) - 1
+    assert entry["p"] == pytest.approx(float(chdtrc(len(delays_ms) - 1, chi2)), rel=1e-12)
+    # two axes 2 ms apart with 0.5 and 1 ms half-widths: chi2 = 12.3, p = 0.00045 < 0.01
+    # with a spread of 19 % of the common value (> 10 %), so they disagree; the three
+    # axes: chi2 = 3.65 on 2 degrees of freedom, p = 0.16, so they agree
+    assert got["disagree"] is disagree

@@ -465,6 +465,21 @@ def test_diagnose_imports_no_optimiser_until_it_refits_a_trial_alone():
     assert "armfit.diagnosis.joint" in loaded and not loaded & heavy
 
 
+@pytest.mark.parametrize("pool", ["diagnosis", "fit"])
+def test_the_diagnosis_and_fit_workers_modules_load_no_pandas(pool):
+    # the fork server of a diagnosis's or a fit's pool imports these before its workers
+    # start (armfit.workers.POOL_PRELOAD), while the command's own process imports pandas
+    # to read its inputs: pandas (about a third of a second) would delay the workers
+    from armfit.workers import POOL_PRELOAD
+    names = [m for m in POOL_PRELOAD[pool] if m.startswith("armfit")]
+    code = (f"import sys, json\nimport {', '.join(names)}\n"
+            "print(json.dumps(sorted(sys.modules)))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    loaded = set(json.loads(res.stdout))
+    assert set(names) <= loaded and "pandas" not in loaded
+
+
 _PAGE_FAULTS = """
 import resource, sys
 import numpy as np

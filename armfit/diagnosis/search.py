@@ -11,7 +11,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from armfit import _scipy
 from armfit.constants import AXES, Z_975, axis_band
 from armfit.diagnosis.bands import BandError, _runs, band_error
 from armfit.diagnosis.evidence import (
@@ -56,6 +55,7 @@ from armfit.diagnosis.tuning import (
 )
 from armfit.diagnosis.verdict import verdict_text
 from armfit.errors import EffectDefinitionError
+from armfit.feedback import chi2_sf
 from armfit.memory import release_memory
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
@@ -714,7 +714,7 @@ def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]
             vals, ws = np.array(vals), np.array(ws)
             common = float(np.sum(ws * vals) / np.sum(ws))
             chi2 = float(np.sum(ws * (vals - common) ** 2))
-            pval = float(_scipy.chdtrc(len(vals) - 1, chi2))
+            pval = chi2_sf(chi2, len(vals) - 1)
             value = float(np.exp(common)) if p.log else common
             # practically different: the values spread by more than 10 % of the value
             # (log parameters) or than 10 % of the common value (linear ones)

@@ -12,9 +12,9 @@ from __future__ import annotations
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from armfit.constants import AXES
 from armfit.errors import BadInputError, NoInputError, cell
@@ -28,6 +28,9 @@ from armfit.io.schema import (
     params_columns,
 )
 
+if TYPE_CHECKING:
+    import pandas as pd
+
 # ---------------------------------------------------------------------------
 # Fitted parameters (written by `armfit fit-grip` / `fit-nominal`)
 # ---------------------------------------------------------------------------
@@ -39,6 +42,7 @@ def params_frame(rows: Iterable[Mapping], param_names, *, grip: bool) -> pd.Data
     parameters)."""
     rows = list(rows)
     held = any(r.get(PARAMS_HELD) for r in rows)
+    import pandas as pd
     return pd.DataFrame(rows, columns=params_columns(param_names, grip=grip, held=held))
 
 
@@ -94,6 +98,7 @@ def wu_frame(weights: Mapping) -> pd.DataFrame:
         for kind, reps in (("zero", w.zeros), ("pole", w.poles)):
             for i, r in enumerate(reps, start=1):
                 rows.append((axis, kind, i, float(r.real), float(abs(r.imag))))
+    import pandas as pd
     return pd.DataFrame(rows, columns=list(WU_COLUMNS))
 
 
@@ -137,6 +142,7 @@ def read_wu_rows(path: str | os.PathLike, *, require_stable: bool = True
     p = Path(path)
     if not p.is_file():
         raise NoInputError(f"{p}: no such uncertainty-weights file")
+    import pandas as pd
     try:
         df = pd.read_csv(p, dtype=str, keep_default_na=False)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
