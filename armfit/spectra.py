@@ -72,6 +72,7 @@ from armfit.io.schema import (
     json_default,
 )
 from armfit.io.trials import Trial, open_trials, peak_abs, read_trial, saturated_samples
+from armfit.memory import release_memory
 from armfit.workers import POOL_PRELOAD, iter_tasks, read_ahead
 
 if TYPE_CHECKING:
@@ -2066,7 +2067,7 @@ class Spectra:
         return df
 
     @classmethod
-    def read(cls, path, *, level=None, kind=None, axis=None) -> Spectra:
+    def read(cls, path, *, level=None, kind=None, axis=None, values=None) -> Spectra:
         """Read a spectra Parquet file written by ``armfit estimate``, a row group at a time.
 
         Parameters
@@ -2078,6 +2079,10 @@ class Spectra:
             kinds and stimulated axes (None: all). Every row is read and checked, kept
             or not, so the result and the errors are those of
             ``Spectra.read(path).select(...)``; the rows left out are never held.
+        values : sequence of str, optional
+            Keep only these of :data:`armfit.io.schema.SPECTRA_VALUES` in :attr:`values`
+            (None: all); the responses, flags and the other values kept are the same,
+            and the values left out are never held for more than a row group.
 
         Returns
         -------
@@ -2106,12 +2111,19 @@ class Spectra:
         wanted = {k: (v,) if isinstance(v, str) else tuple(v)
                   for k, v in (("level", level), ("kind", kind), ("axis", axis))
                   if v is not None}
+        if values is not None:
+            values = (values,) if isinstance(values, str) else tuple(values)
+            unknown = [v for v in values if v not in SPECTRA_VALUES]
+            if unknown:
+                raise UsageError(f"values: {', '.join(map(repr, unknown))} not among "
+                                 f"{', '.join(SPECTRA_VALUES)}")
         try:
-            return _read_by_group(p, wanted)
+            return _read_by_group(p, wanted, values)
         except Exception:  # noqa: BLE001 - the whole read decides: same result or error
             pass
         whole = _read_whole(p)
-        return whole.take(_wanted_rows(whole, wanted)) if wanted else whole
+        return _only_values(whole.take(_wanted_rows(whole, wanted)) if wanted else whole,
+                            values)
 
     def write(self, path, *, overwrite: bool = False):
         """Write the spectra Parquet file (zstd), atomically, with :attr:`meta` as JSON
@@ -2386,10 +2398,19 @@ def _response_keys(sp: Spectra) -> set[tuple]:
     return set(zip(*cols, strict=True))
 
 
-def _read_by_group(p: Path, wanted: Mapping[str, tuple]) -> Spectra:
+def _only_values(sp: Spectra, values: tuple[str, ...] | None) -> Spectra:
+    """``sp`` holding only the arrays of ``values`` in :attr:`Spectra.values` (None:
+    ``sp`` itself)."""
+    if values is None:
+        return sp
+    return replace(sp, values={c: a for c, a in sp.values.items() if c in values})
+
+
+def _read_by_group(p: Path, wanted: Mapping[str, tuple],
+                   values: tuple[str, ...] | None = None) -> Spectra:
     """:meth:`Spectra.read` of ``p`` a row group at a time, keeping the responses
-    ``wanted`` selects; raises :class:`_NotByGroup` (or the error of a bad file) when
-    the whole read must decide."""
+    ``wanted`` selects and the ``values`` (None: all); raises :class:`_NotByGroup` (or
+    the error of a bad file) when the whole read must decide."""
     import pyarrow.parquet as pq
     pf = pq.ParquetFile(p)
     schema = pf.schema_arrow
@@ -2411,10 +2432,16 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple]) -> Spectra:
         seen |= keys
         rows = _wanted_rows(part, wanted) if wanted else np.arange(len(part))
         if empty is None:
-            empty = part.take(rows[:0])
+            empty = _only_values(part.take(rows[:0]), values)
         if rows.size:
-            parts.append(part if rows.size == len(part) else part.take(rows))
+            parts.append(_only_values(part if rows.size == len(part) else part.take(rows),
+                                      values))
         del part
+        if g % _TRIM_EVERY == _TRIM_EVERY - 1:
+            # Arrow's allocator (mimalloc) and the C library's keep the memory of the
+            # groups read so far: give it back, so that a file of many groups needs no
+            # more memory than a few of them besides the responses kept
+            release_memory()
     return _concat(parts, meta, str(p)) if parts else empty
 
 
@@ -2529,19 +2556,27 @@ def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.nd
     return Spectra(grid, out, h, values, flags, present, dict(meta or {}), source)
 
 
+#: :func:`_concat` gives the memory of the parts it has copied back every this many parts.
+_TRIM_EVERY = 8
+
+
 def _concat(parts: list[Spectra], meta: Mapping, source: str) -> Spectra:
     """The responses of ``parts`` in order, on the union of their frequencies (each part
     is released as soon as it is copied)."""
     grid = np.unique(np.concatenate([p.freq_hz for p in parts]))
     nr, nf = sum(len(p) for p in parts), grid.size
     h = np.empty((nr, nf), complex)
-    values = {c: np.empty((nr, nf)) for c in SPECTRA_VALUES}
+    values = {c: np.empty((nr, nf)) for c in parts[0].values}
     flags = np.empty((nr, nf), object)
     present = np.empty((nr, nf), bool)
     keys = {k: np.concatenate([p.keys[k] for p in parts]) for k in parts[0].keys}
     i = 0
     parts.reverse()
     while parts:
+        if len(parts) % _TRIM_EVERY == 0:
+            # the parts copied so far are freed: their pages go back to the system, so
+            # that the parts and the table they make are not held at once
+            release_memory()
         part = parts.pop()
         rows = slice(i, i + len(part))
         i += len(part)
@@ -2550,12 +2585,12 @@ def _concat(parts: list[Spectra], meta: Mapping, source: str) -> Spectra:
         else:   # on a grid of its own: the other frequencies absent
             cols = np.searchsorted(grid, part.freq_hz)
             h[rows], flags[rows], present[rows] = np.nan, "", False
-            for c in SPECTRA_VALUES:
+            for c in values:
                 values[c][rows] = np.nan
         h[rows, cols] = part.h
         flags[rows, cols] = part.flags
         present[rows, cols] = part.present
-        for c in SPECTRA_VALUES:
+        for c in values:
             values[c][rows, cols] = part.values[c]
         del part
     return Spectra(grid, keys, h, values, flags, present, dict(meta), source)

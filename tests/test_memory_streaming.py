@@ -183,6 +183,30 @@ def test_a_bad_row_in_a_later_group_is_named_by_its_row_in_the_file(sample, tmp_
     assert "axis 'w' is not x, y or z" in str(exc.value)
 
 
+@pytest.mark.parametrize("layout", ["one group", "7 a group"])
+@pytest.mark.parametrize("values", [("se_db", "se_deg"), ("coherence",), ()])
+def test_a_read_keeping_some_values_is_the_whole_read_without_the_others(sample, layout,
+                                                                         values):
+    # the same responses, grid, flags and presence as the whole table read, and of its
+    # values exactly those asked for (33 row groups and 192 trial rows in the second
+    # layout: the read gives memory back every few groups and parts as it goes)
+    path = sample[layout]
+    ref = whole(path)
+    ref = ref.take(np.flatnonzero(np.array([str(v) for v in ref.keys["level"]]) == "trial"))
+    got = S.Spectra.read(path, level="trial", values=values)
+    assert list(got.values) == list(values)
+    for c in values:
+        assert np.array_equal(got.values[c], ref.values[c], equal_nan=True), c
+    assert_same(S.Spectra(got.freq_hz, got.keys, got.h, dict(ref.values), got.flags,
+                          got.present, got.meta, got.source), ref)
+
+
+def test_a_read_of_values_a_spectra_file_has_not_is_refused(sample):
+    from armfit.errors import UsageError
+    with pytest.raises(UsageError, match="'se_dB'"):
+        S.Spectra.read(sample["one group"], values=("se_db", "se_dB"))
+
+
 def test_the_diagnosis_of_a_file_read_axis_by_axis_is_that_of_the_whole(sample):
     path = sample["7 a group"]
     grip = armfit.fit_grip(S.Spectra.read(path, level="mean"))

@@ -527,7 +527,7 @@ def diagnose_axes(spectra, params, *,
                 _AxisSteps(searches[-1], tasks, steps).begin()
                 tasks.start_ready()
             del rows
-        release_memory()
+            release_memory()    # what reading the axis took, before the next is read
         if not searches:
             return []
         tasks.run()
@@ -545,10 +545,12 @@ def diagnose_axes(spectra, params, *,
 def _trial_rows(spectra) -> Callable[[str], Spectra]:
     """``axis ->`` responses of ``spectra`` holding the trial rows the diagnosis of that
     stimulated axis uses (measured and cross): read from the file when ``spectra`` is a
-    path, else ``spectra`` itself (the diagnosis selects them)."""
+    path, else ``spectra`` itself (the diagnosis selects them). Of a file, only the values
+    the diagnosis uses are kept (the standard errors; the responses and their flags
+    always are)."""
     if isinstance(spectra, str | os.PathLike):
         return lambda axis: Spectra.read(spectra, level="trial", kind=("measured", "cross"),
-                                         axis=axis)
+                                         axis=axis, values=("se_db", "se_deg"))
     sp = Spectra.of(spectra)
     return lambda axis: sp
 
