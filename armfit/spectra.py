@@ -2079,7 +2079,7 @@ class Spectra:
             kinds and stimulated axes (None: all). Every row is read and checked, kept
             or not, so the result and the errors are those of
             ``Spectra.read(path).select(...)``; the rows left out are never held.
-        values : sequence of str, optional
+        values : str or sequence of str, optional
             Keep only these of :data:`armfit.io.schema.SPECTRA_VALUES` in :attr:`values`
             (None: all); the responses, flags and the other values kept are the same,
             and the values left out are never held for more than a row group.
@@ -2398,6 +2398,12 @@ def _response_keys(sp: Spectra) -> set[tuple]:
     return set(zip(*cols, strict=True))
 
 
+#: A read gives the memory it no longer needs back to the system
+#: (:func:`armfit.memory.release_memory`) every this many row groups read
+#: (:func:`_read_by_group`) and parts copied (:func:`_concat`).
+_TRIM_EVERY = 8
+
+
 def _only_values(sp: Spectra, values: tuple[str, ...] | None) -> Spectra:
     """``sp`` holding only the arrays of ``values`` in :attr:`Spectra.values` (None:
     ``sp`` itself)."""
@@ -2554,10 +2560,6 @@ def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.nd
     missing_out = np.array([v is None for v in out["out_axis"]], bool)
     out["out_axis"][missing_out] = out["axis"][missing_out]
     return Spectra(grid, out, h, values, flags, present, dict(meta or {}), source)
-
-
-#: :func:`_concat` gives the memory of the parts it has copied back every this many parts.
-_TRIM_EVERY = 8
 
 
 def _concat(parts: list[Spectra], meta: Mapping, source: str) -> Spectra:
