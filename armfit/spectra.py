@@ -2574,8 +2574,8 @@ def _concat(parts: list[Spectra], meta: Mapping, source: str) -> Spectra:
     keys = {k: np.concatenate([p.keys[k] for p in parts]) for k in parts[0].keys}
     i = 0
     parts.reverse()
-    while parts:
-        if len(parts) % _TRIM_EVERY == 0:
+    for copied in range(len(parts)):
+        if copied and copied % _TRIM_EVERY == 0:
             # the parts copied so far are freed: their pages go back to the system, so
             # that the parts and the table they make are not held at once
             release_memory()

@@ -95,7 +95,7 @@ REFINE_BEST = 2
 #: not refined. On the validation corpus (benchmarks/validate_start_gap.py: 25 diagnoses
 #: of simulated studies over the effect library, the sample studies and the real
 #: recordings; 386 joint fits with several starts refined) no start more than a factor
-#: 4.1 behind ended better than the best one's by more than 1e-6 of the cost, and a few
+#: 4.01 behind ended better than the best one's by more than 1e-6 of the cost, and a few
 #: more than 10 behind ended better by rounding only, on the same optimum; a start that
 #: far behind creeps along a poor minimum for a hundred evaluations and its stuck trials
 #: are refitted one by one, for nothing (a gap of 100 leaves out 27 starts, 18–19 % of the
