@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import threading
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -850,13 +851,19 @@ def _fit_wu_task(args) -> WuResult:
 
 def _fit_wu_axes(tasks, jobs: int, executor) -> list[WuResult]:
     """:func:`fit_wu` of each task ``(f_hz, wmax, options)``, an axis a task, in ``jobs``
-    worker processes or on ``executor``. BLAS is held on one thread from this thread
-    too: a fit handed to a pool of threads would otherwise run with BLAS's threads (its
-    own limit ignored, see :func:`_one_blas_thread`), and differ from the fit in a
-    process."""
-    with _one_blas_thread():
+    worker processes or on ``executor``. On an executor other than a pool of processes,
+    BLAS is held on one thread from this thread too: a fit handed to a pool of threads
+    would otherwise run with BLAS's threads (its own limit ignored, see
+    :func:`_one_blas_thread`), and differ from the fit in a process. Fits here, in turn,
+    or in processes hold it themselves, and this process then needs no optimiser."""
+    def fit():
         return map_tasks(_fit_wu_task, tasks, jobs, preload=POOL_PRELOAD["uncertainty"],
                          executor=executor)
+
+    if executor is None or isinstance(executor, ProcessPoolExecutor):
+        return fit()
+    with _one_blas_thread():
+        return fit()
 
 
 def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None = None,

@@ -465,6 +465,24 @@ def test_diagnose_imports_no_optimiser_until_it_refits_a_trial_alone():
     assert "armfit.diagnosis.joint" in loaded and not loaded & heavy
 
 
+def test_uncertainty_fits_on_worker_processes_import_no_optimiser_here(spectra, nominal,
+                                                                      tmp_path):
+    # the axes' Wu fits run in the worker processes, each holding BLAS on one thread
+    # itself: the command's process has no optimiser to run, and importing
+    # scipy.optimize there (about 0.2-0.4 s) delayed the fits. The weights are those of
+    # the fits in one process, to the byte.
+    out = {jobs: tmp_path / f"wu-{jobs}.csv" for jobs in (1, 2)}
+    args = ["-q", "fit-uncertainty", str(spectra), "--nominal", str(nominal)]
+    loaded = _modules_after([*args, "-o", str(out[2]), "--jobs", "2"])
+    assert "armfit.uncertainty" in loaded and "scipy.optimize" not in loaded
+    _modules_after([*args, "-o", str(out[1]), "--jobs", "1"])
+    axes = {line.split(",")[0] for line in out[2].read_text().splitlines()[1:]}
+    assert len(axes) > 1                                      # the pool ran the fits
+    for a, b in zip(sorted(tmp_path.glob("wu-1*.csv")), sorted(tmp_path.glob("wu-2*.csv")),
+                    strict=True):
+        assert a.read_bytes() == b.read_bytes()
+
+
 @pytest.mark.parametrize("pool", ["diagnosis", "fit"])
 def test_the_diagnosis_and_fit_workers_modules_load_no_pandas(pool):
     # the fork server of a diagnosis's or a fit's pool imports these before its workers
