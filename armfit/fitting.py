@@ -469,10 +469,10 @@ def _paper_rows() -> np.ndarray:
     """The arm parameters (Ma, k1, k2, b1, b2; SI) of every row of the paper's Tables I
     and II, all axes: from the compliant X and Y arm (k1 ≈ 80 N/m) to the stiff Z arm
     (k1 ≈ 2000–5000 N/m)."""
-    from armfit.data import paper_table  # tables read once, only by the global search
+    from armfit.data import paper_values  # tables read once, only by the global search
 
     cols = ["Ma_kg", "k1_N_per_m", "k2_N_per_m", "b1_Ns_per_m", "b2_Ns_per_m"]
-    return np.vstack([paper_table(t)[cols].to_numpy(float) for t in ("grip", "nominal")])
+    return np.vstack([paper_values(t, cols) for t in ("grip", "nominal")])
 
 
 def _effect_points(model: ClosedLoopModel, names: Sequence[str]) -> list[dict[str, float]]:

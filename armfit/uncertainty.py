@@ -39,7 +39,6 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 from threadpoolctl import threadpool_limits
 
 from armfit import _scipy
@@ -995,6 +994,8 @@ def derived_mass_kg(spectra, axis: str) -> float | None:
 def summary_table(results: Sequence[AxisUncertainty], *, smooth_oct: float | None = None):
     """The per-axis summary (columns :data:`armfit.io.artifacts.WU_SUMMARY_COLUMNS`): one
     row per axis × weight × target with coverage (%) and tightness (dB)."""
+    import pandas as pd  # here: the Wu fits' workers load no pandas
+
     rows = []
     for r in results:
         for (label, tname), c in r.checks.items():
@@ -1019,6 +1020,8 @@ def summary_table(results: Sequence[AxisUncertainty], *, smooth_oct: float | Non
 def points_table(results: Sequence[AxisUncertainty]):
     """W_max points per axis (columns :data:`armfit.io.artifacts.WU_POINTS_COLUMNS`): raw
     W_max, the fitted target and the fitted |Wu| in dB at every grid frequency."""
+    import pandas as pd  # here: the Wu fits' workers load no pandas
+
     parts = []
     for r in results:
         f = r.f_hz
@@ -1060,6 +1063,8 @@ def read_weights_and_bands(path_or_name: str | Path):
 
 def _summary_bands(summary: Path, axes: set[str]) -> dict[str, tuple[float, float]]:
     """{axis: (lo, hi)} of the fitted weights' rows (target ``wmax``) of a Wu summary."""
+    import pandas as pd  # here: the Wu fits' workers load no pandas
+
     try:
         s = pd.read_csv(summary, dtype={"axis": str, "weight": str, "target": str})
     except (ValueError, UnicodeDecodeError, pd.errors.ParserError,

@@ -483,19 +483,49 @@ def test_uncertainty_fits_on_worker_processes_import_no_optimiser_here(spectra, 
         assert a.read_bytes() == b.read_bytes()
 
 
-@pytest.mark.parametrize("pool", ["diagnosis", "fit"])
-def test_the_diagnosis_and_fit_workers_modules_load_no_pandas(pool):
-    # the fork server of a diagnosis's or a fit's pool imports these before its workers
-    # start (armfit.workers.POOL_PRELOAD), while the command's own process imports pandas
-    # to read its inputs: pandas (about a third of a second) would delay the workers
-    from armfit.workers import POOL_PRELOAD
-    names = [m for m in POOL_PRELOAD[pool] if m.startswith("armfit")]
+@pytest.mark.parametrize("pool", ["estimate", "diagnosis", "fit", "uncertainty", "run"])
+def test_the_workers_modules_load_no_pandas(pool):
+    # the fork server of a pool imports these before its workers start
+    # (armfit.workers.POOL_PRELOAD; run's one pool: PRELOAD, every engine module), while
+    # the command's own process imports pandas to read its inputs: pandas (about a third
+    # of a second of CPU) would delay the workers, and in run take CPU from the estimate
+    from armfit.workers import POOL_PRELOAD, PRELOAD
+    names = [m for m in (PRELOAD if pool == "run" else POOL_PRELOAD[pool])
+             if m.startswith("armfit")]
     code = (f"import sys, json\nimport {', '.join(names)}\n"
             "print(json.dumps(sorted(sys.modules)))")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     loaded = set(json.loads(res.stdout))
     assert set(names) <= loaded and "pandas" not in loaded
+
+
+def test_the_global_search_reads_the_papers_rows_without_pandas():
+    # every fit's global search starts from the arm parameters of the paper's Tables I
+    # and II (armfit.fitting._paper_rows): read in a worker with the csv module, they
+    # are the numbers pandas reads from the same files, to the bit
+    code = ("import sys, json\nfrom armfit.fitting import _paper_rows\n"
+            "print(json.dumps({'rows': _paper_rows().tolist(), "
+            "'pandas': 'pandas' in sys.modules}))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    got = json.loads(res.stdout)
+    assert not got["pandas"]
+    from armfit.data import paper_table
+    cols = ["Ma_kg", "k1_N_per_m", "k2_N_per_m", "b1_Ns_per_m", "b2_Ns_per_m"]
+    expected = np.vstack([paper_table(t)[cols].to_numpy(float) for t in ("grip", "nominal")])
+    assert np.array(got["rows"]).tobytes() == expected.tobytes()
+
+
+@pytest.mark.parametrize("name", ["grip", "nominal", "uncertainty", "literature"])
+def test_paper_values_are_pandas_numbers_of_the_papers_tables(name):
+    # every numeric column (empty cells of Table IV included, NaN) against pandas's reader
+    from armfit.data import paper_table, paper_values
+    df = paper_table(name)
+    cols = [c for c in df.columns if df[c].dtype.kind in "fi"]
+    got = paper_values(name, cols)
+    assert got.shape == (len(df), len(cols))
+    assert got.tobytes() == df[cols].to_numpy(float).tobytes()
 
 
 _PAGE_FAULTS = """

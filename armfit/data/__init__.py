@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import functools
+from collections.abc import Sequence
 from importlib import resources
 from typing import TYPE_CHECKING
 
@@ -25,6 +27,19 @@ def paper_table(name: str) -> pd.DataFrame:
     import pandas as pd
     with resources.files(__name__).joinpath(TABLES[name]).open() as fh:
         return pd.read_csv(fh)
+
+
+def paper_values(name: str, columns: Sequence[str]) -> np.ndarray:
+    """Columns of one of the paper's tables (:func:`paper_table`'s names) as float64,
+    shape (rows, len(columns)), in the file's row order: the numbers
+    ``paper_table(name)[columns].to_numpy(float)`` gives (an empty cell is NaN), read
+    without pandas (the fits' worker processes need the numbers only)."""
+    with resources.files(__name__).joinpath(TABLES[name]).open(newline="") as fh:
+        header, *rows = list(csv.reader(fh))
+    idx = [header.index(c) for c in columns]
+    return np.array([[float(row[i]) if row[i].strip() else np.nan for i in idx]
+                     for row in rows if row],
+                    dtype=float).reshape(-1, len(idx))
 
 
 #: Sobol direction numbers (Joe & Kuo 2008) of the first dimensions and bits: see the file.
@@ -69,5 +84,5 @@ def sobol_points(n: int, d: int) -> np.ndarray | None:
 
 
 __all__ = [
-    "TABLES", "paper_table", "SOBOL_DIRECTIONS", "sobol_points",
+    "TABLES", "paper_table", "paper_values", "SOBOL_DIRECTIONS", "sobol_points",
 ]

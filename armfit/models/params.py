@@ -15,9 +15,9 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from armfit.constants import AXES, DEVICE_MASS_KG
 from armfit.data import paper_table
@@ -32,6 +32,9 @@ from armfit.io.ranges import (
 from armfit.io.schema import PARAMS_BASE, PARAMS_HELD, PARAMS_OPTIONAL, PARAMS_STATS
 from armfit.models.arm import BASE_PARAMS, ClosedLoopModel, Param
 from armfit.models.effects import get_effect
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: Names that stand for the paper's tables when no file of that name exists.
 PAPER_PARAMS: dict[str, str] = {"nominal": "nominal", "table2": "nominal",
@@ -214,6 +217,8 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
 
 def _read_csv(p: Path) -> pd.DataFrame:
     """The CSV as text columns where they are text, optional columns filled."""
+    import pandas as pd  # here: the fits' and Wu fits' workers load no pandas
+
     if not p.is_file():
         raise NoInputError(f"{p}: no such params file (or give nominal, grip: the "
                            "paper's Tables II, I)")
@@ -282,6 +287,8 @@ def _check_one_row_per_model(df: pd.DataFrame, p: str | None) -> None:
     per trial (axis, subject, grip, run) in a per-trial file; the grip forces inside
     their physical range. BadInputError at the second row of a model, naming both."""
     if "grip_N" in df.columns:
+        import pandas as pd
+
         grips = pd.to_numeric(df["grip_N"], errors="coerce").to_numpy(float)
         check_in_range(grips, GRIP_FORCE_RANGE, file=p, column="grip_N",
                        shown=list(df["grip_N"]))
