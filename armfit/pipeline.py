@@ -104,7 +104,13 @@ from armfit.loop import WallSettings, axis_summary, stability_table, subject_sum
 from armfit.memory import release_memory
 from armfit.models.params import ParamRows, read_param_rows
 from armfit.report import STABILITY_FIGURE, RunRecord, Wall, report_markdown
-from armfit.spectra import EstimateConfig, Spectra, StudySpectra, estimator_summary
+from armfit.spectra import (
+    EstimateAlongside,
+    EstimateConfig,
+    Spectra,
+    StudySpectra,
+    estimator_summary,
+)
 from armfit.workers import RUN_FIGURES_PRELOAD, cancel_pools, executor_for, giving_way
 
 #: Figures written (``figures`` on), relative to OUTDIR; residual_<axis>.png per axis.
@@ -465,7 +471,7 @@ class Ingested(StageResult):
 
     n_trials: int
     skipped: tuple[tuple[str, str], ...]
-    estimating: Background[StudySpectra]
+    estimating: _Alongside
 
 
 @dataclass(frozen=True)
@@ -584,23 +590,52 @@ class Reported(StageResult):
 # ---------------------------------------------------------------------------
 
 def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
-    """Validate the raw trials once, into the canonical dataset (trials.parquet); the
-    estimate, which reads the same inputs, starts first and runs meanwhile in the worker
-    processes. (Estimating from trials.parquet instead would read each trial once, but
-    only after the dataset is complete, when ingest ends: the two would run one after
-    the other, and the run would take longer.)"""
+    """Validate the raw trials once, into the canonical dataset (trials.parquet), and
+    estimate each trial as it is read, meanwhile, in the worker processes: each trial
+    file is read once (:class:`armfit.spectra.EstimateAlongside`). (Estimating from
+    trials.parquet instead would wait for the dataset to be complete, when ingest ends:
+    the two would run one after the other, and the run would take longer.)"""
     o = config.options
-    estimating = workers.start(api.estimate_study_result, list(config.inputs),
-                               config.estimate, manifest=o.manifest, skip_bad=o.skip_bad,
-                               jobs=o.jobs, executor=workers.executor,
-                               column_map=o.column_map)
-    ing = ingest(list(config.inputs), config.path("trials.parquet"), manifest=o.manifest,
-                 skip_bad=o.skip_bad, warn=config.warn, column_map=o.column_map,
-                 force_limit_N=o.force_limit_N, f_min_hz=o.fmin, note=config.note)
+    estimating = _Alongside(config, workers)
+    try:
+        ing = ingest(list(config.inputs), config.path("trials.parquet"),
+                     manifest=o.manifest, skip_bad=o.skip_bad, warn=config.warn,
+                     column_map=o.column_map, force_limit_N=o.force_limit_N,
+                     f_min_hz=o.fmin, note=config.note, on_open=estimating.open,
+                     on_trial=estimating.add)
+    except BaseException:
+        estimating.close()
+        raise
     skipped = tuple((s.file, s.reason) for s in ing.skipped)
     return Ingested(len(ing.trials), skipped, estimating, files=("trials.parquet",),
                     summary=f"{len(ing.trials)} trial(s)"
                     + (f", {len(skipped)} skipped" if skipped else ""))
+
+
+class _Alongside:
+    """The estimate of the trials ingest reads (:class:`EstimateAlongside`), started
+    when ingest opens its inputs; a future of the study's spectra (:meth:`result`)."""
+
+    def __init__(self, config: RunConfig, workers: _Workers):
+        self.config, self.workers = config, workers
+        self.started = time.perf_counter()
+        self.along: EstimateAlongside | None = None
+
+    def open(self, stream) -> None:
+        o = self.config.options
+        self.along = EstimateAlongside(stream, self.config.estimate, skip_bad=o.skip_bad,
+                                       jobs=o.jobs, executor=self.workers.executor)
+
+    def add(self, source, trial) -> None:
+        self.along.add(source, trial)
+
+    def result(self) -> StudySpectra:
+        along, self.along = self.along, None
+        return along.result()
+
+    def close(self) -> None:
+        if self.along is not None:
+            self.along.close()
 
 
 def _estimate(config: RunConfig, workers: _Workers, ingested: Ingested) -> Estimated:

@@ -35,11 +35,13 @@ about that line; raised where the bins' scatter about the line is larger (:func:
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import itertools
 import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -71,7 +73,14 @@ from armfit.io.schema import (
     SPECTRA_VALUES,
     json_default,
 )
-from armfit.io.trials import Trial, open_trials, peak_abs, read_trial, saturated_samples
+from armfit.io.trials import (
+    Trial,
+    TrialStream,
+    open_trials,
+    peak_abs,
+    read_trial,
+    saturated_samples,
+)
 from armfit.memory import release_memory
 from armfit.workers import POOL_PRELOAD, iter_tasks, read_ahead
 
@@ -3029,48 +3038,8 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     stream = open_trials(inputs, manifest=manifest, skip_bad=skip_bad, f_min_hz=config.fmin,
                          force_limit_N=config.force_limit_N, column_map=column_map,
                          note=note)
-    skipped = [(s.file, s.reason) for s in stream.skipped]
-    kept: list[TrialResponses] = []
-    warnings: list[str] = []
-    ref: tuple[float, str] | None = None
-    patterns: dict[tuple[str, ...], tuple[str, ...]] = {}
-
-    def handle(res) -> None:
-        nonlocal ref
-        if res[0] == "bad":
-            _, label, text, reason = res
-            if not skip_bad:
-                raise BadInputError(text)
-            skipped.append((label, reason))
-            return
-        _, tr, fs, warns = res
-        for w in warns:
-            warnings.append(w)
-            if warn is not None:
-                warn(w)
-        # responses of a study share few flag patterns: keep one tuple of each
-        tr = replace(tr, responses=tuple(replace(r, flags=patterns.setdefault(r.flags,
-                                                                              r.flags))
-                                         for r in tr.responses))
-        if ref is None:
-            ref = (fs, tr.source)
-        elif abs(fs - ref[0]) > 1e-6 * ref[0]:
-            text = (f"{tr.source}, column 'time_s': sampling rate {fs:g} Hz differs from "
-                    f"{ref[0]:g} Hz of {ref[1]}; estimate trials of one rate at a time or "
-                    "resample them with `armfit ingest --resample`")
-            if not skip_bad:
-                raise BadInputError(text)
-            skipped.append((tr.source, text.split(": ", 1)[1]))
-            return
-        try:    # a duplicate of a trial estimated before (not of one that was bad)
-            stream.admit((tr.subject, tr.axis, tr.grip_N, tr.run), tr.source)
-        except BadInputError as exc:
-            if not skip_bad:
-                raise
-            skipped.append((tr.source, exc.detail))
-            return
-        kept.append(tr)
-
+    kept = _Kept(stream, config, skip_bad=skip_bad, warn=warn)
+    kept.skipped.extend((s.file, s.reason) for s in stream.skipped)
     sources = list(stream.sources)
     if on_open is not None:
         on_open(len(sources))
@@ -3082,18 +3051,165 @@ def estimate_study(inputs, config: EstimateConfig, *, manifest=None, skip_bad: b
     # closed on a bad trial: the pending work is cancelled at once
     with contextlib.closing(tasks) as results:
         for res in results:
-            handle(res)
+            kept.handle(res)
             if advance is not None:
                 advance()
-    if not kept:
-        err = NoInputError("no trial could be estimated"
-                           + (f" ({len(skipped)} skipped)" if skipped else ""))
-        err.skipped = tuple(skipped)
-        raise err
-    fs = ref[0] if ref else None
-    return StudySpectra(tuple(kept), tuple(skipped), tuple(str(p) for p in stream.ignored),
-                        fs, tuple(warnings), study_metadata(config, fs, len(kept), skipped,
-                                                            kept))
+    return kept.result()
+
+
+class _Kept:
+    """The trials of a study estimated so far, handled in input order (:meth:`handle`):
+    the responses kept, the trials skipped with their reasons, the data warnings, and
+    the common sampling rate. ``admit``: also check each trial for a duplicate among
+    those kept (:meth:`TrialStream.admit`; False when the reader of ``stream`` did)."""
+
+    def __init__(self, stream: TrialStream, config: EstimateConfig, *, skip_bad: bool,
+                 warn=None, admit: bool = True):
+        self.stream, self.config, self.skip_bad = stream, config, skip_bad
+        self.warn, self.admit = warn, admit
+        self.skipped: list[tuple[str, str]] = []
+        self.kept: list[TrialResponses] = []
+        self.warnings: list[str] = []
+        self.ref: tuple[float, str] | None = None
+        self.patterns: dict[tuple[str, ...], tuple[str, ...]] = {}
+
+    def handle(self, res) -> None:
+        """Take one trial's result (of :func:`_estimate_read`): kept, or skipped with
+        ``skip_bad`` (else BadInputError) when it is bad, of another sampling rate than
+        the first kept, or a duplicate."""
+        if res[0] == "bad":
+            _, label, text, reason = res
+            if not self.skip_bad:
+                raise BadInputError(text)
+            self.skipped.append((label, reason))
+            return
+        _, tr, fs, warns = res
+        for w in warns:
+            self.warnings.append(w)
+            if self.warn is not None:
+                self.warn(w)
+        # responses of a study share few flag patterns: keep one tuple of each
+        patterns = self.patterns
+        tr = replace(tr, responses=tuple(replace(r, flags=patterns.setdefault(r.flags,
+                                                                              r.flags))
+                                         for r in tr.responses))
+        if self.ref is None:
+            self.ref = (fs, tr.source)
+        elif abs(fs - self.ref[0]) > 1e-6 * self.ref[0]:
+            text = (f"{tr.source}, column 'time_s': sampling rate {fs:g} Hz differs from "
+                    f"{self.ref[0]:g} Hz of {self.ref[1]}; estimate trials of one rate at a "
+                    "time or resample them with `armfit ingest --resample`")
+            if not self.skip_bad:
+                raise BadInputError(text)
+            self.skipped.append((tr.source, text.split(": ", 1)[1]))
+            return
+        if self.admit:
+            try:    # a duplicate of a trial estimated before (not of one that was bad)
+                self.stream.admit((tr.subject, tr.axis, tr.grip_N, tr.run), tr.source)
+            except BadInputError as exc:
+                if not self.skip_bad:
+                    raise
+                self.skipped.append((tr.source, exc.detail))
+                return
+        self.kept.append(tr)
+
+    def result(self) -> StudySpectra:
+        """The study's spectra; NoInputError, listing the trials skipped, when none is
+        kept."""
+        skipped = self.skipped
+        if not self.kept:
+            err = NoInputError("no trial could be estimated"
+                               + (f" ({len(skipped)} skipped)" if skipped else ""))
+            err.skipped = tuple(skipped)
+            raise err
+        fs = self.ref[0] if self.ref else None
+        return StudySpectra(tuple(self.kept), tuple(skipped),
+                            tuple(str(p) for p in self.stream.ignored), fs,
+                            tuple(self.warnings),
+                            study_metadata(self.config, fs, len(self.kept), skipped,
+                                           self.kept))
+
+
+class EstimateAlongside:
+    """Estimate the trials another reader reads, as it reads them: the reader (e.g.
+    :func:`armfit.io.trials.ingest`, ``on_trial``) validates each trial once and hands
+    it over (:meth:`add`), and its estimate runs meanwhile on ``executor`` (without one,
+    here, at once), so that no trial file is read twice. At most ``2 × jobs`` trials are
+    in flight: the reader waits for the
+    oldest beyond that (its samples are held until sent). :meth:`result` takes the
+    results in input order, with the trials the reader's ``stream`` skipped in their
+    places, as :func:`estimate_study` of the same inputs gives them (its sampling-rate
+    check included; duplicates are the reader's to refuse).
+
+    The reader's read warnings are its own; the result's ``warnings`` hold the
+    estimates'.
+    """
+
+    def __init__(self, stream: TrialStream, config: EstimateConfig, *,
+                 skip_bad: bool = False, jobs: int = 1, executor: Executor | None = None):
+        self.config = config
+        self.kept = _Kept(stream, config, skip_bad=skip_bad, admit=False)
+        self.executor = executor
+        self.window = 2 * max(1, jobs)
+        self.order: list = []             # input order: a Future, a result, or a skip
+        self.pending: collections.deque[Future] = collections.deque()
+        self.skips_seen = 0
+
+    def _skips(self) -> None:
+        skipped = self.kept.stream.skipped
+        for s in skipped[self.skips_seen:]:
+            self.order.append(("skip", s.file, s.reason))
+        self.skips_seen = len(skipped)
+
+    def add(self, source, trial: Trial) -> None:
+        """Estimate ``trial`` (read from ``source``, a :class:`TrialSource`) once the
+        trials the reader skipped before it are placed."""
+        self._skips()
+        task = (source.label, replace(trial, grip=None))   # the estimate needs no grip
+        if self.executor is None:
+            self.order.append(_estimate_given(task, self.config))
+            return
+        while len(self.pending) >= self.window:
+            self.pending.popleft().exception()   # waits; its outcome is taken in order
+        fut = self.executor.submit(_estimate_given, task, self.config)
+        self.pending.append(fut)
+        self.order.append(fut)
+
+    def result(self) -> StudySpectra:
+        """The study's spectra (:func:`estimate_study`'s :class:`StudySpectra`), once every
+        trial is estimated; the first bad trial's BadInputError without ``skip_bad``."""
+        try:
+            self._skips()
+            for item in self.order:
+                if isinstance(item, tuple) and item[0] == "skip":
+                    self.kept.skipped.append(item[1:])
+                else:
+                    self.kept.handle(item.result() if isinstance(item, Future) else item)
+            self.order = []
+            return self.kept.result()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Cancel the estimates not started (after a failure elsewhere)."""
+        for fut in self.pending:
+            fut.cancel()
+        self.pending.clear()
+
+
+def _estimate_given(task, config: EstimateConfig):
+    """Worker: estimate a trial read and validated by another reader (``task``: its
+    label and :class:`Trial`); :func:`_estimate_source`'s result."""
+    label, trial = task
+    read = ("read", trial, [], drift_flags(trial.pos, trial.meta.fs, config))
+    return _estimate_read(_Label(label), read, config)
+
+
+@dataclass(frozen=True)
+class _Label:
+    """A trial's label, where :func:`_estimate_read` asks for its source's."""
+
+    label: str
 
 
 def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpectra:
@@ -3213,6 +3329,6 @@ __all__ = [
     "saturated", "moving_mean", "drifting", "EstimateConfig", "Response", "TrialResponses",
     "check_band", "estimate_trial", "NO_SIGNAL", "no_signal_messages", "aggregate",
     "aggregate_spread", "spectra_table", "WRITE_ROWS", "Spectra", "write_parts",
-    "row_counts", "StudySpectra", "estimate_study", "estimate_trials", "study_metadata",
-    "estimator_summary",
+    "row_counts", "StudySpectra", "estimate_study", "EstimateAlongside", "estimate_trials",
+    "study_metadata", "estimator_summary",
 ]

@@ -351,6 +351,37 @@ def test_all_trials_bad_with_skip_bad_names_outdir_not_a_temporary(tmp_path, wri
     assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]
 
 
+def test_a_trial_ingest_skips_is_left_out_of_the_spectra_too(study, tmp_path):
+    # with --skip-bad, a trial whose grip column holds an infinite value is left out by
+    # ingest's read (an estimate reading the file itself does not check the grip
+    # column): run estimates the trials ingest read, so spectra.parquet holds exactly
+    # the trials trials.parquet holds, and the trial is listed once among the skipped
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from armfit.io.trials import dataset_sources
+    raw = tmp_path / "raw"
+    shutil.copytree(study, raw)
+    files = sorted(raw.glob("*.parquet"))
+    bad = files[1]
+    table = pq.read_table(bad)
+    grip = table.column("grip_N").to_numpy().copy()
+    grip[5] = np.inf
+    table = table.set_column(table.schema.get_field_index("grip_N"), "grip_N",
+                             pa.array(grip))
+    pq.write_table(table, bad)
+    out = tmp_path / "out"
+    res = _invoke("run", str(raw), "-o", str(out), "--skip-bad", "--no-figures", "--jobs",
+                  "2", "--json")
+    assert res.exit_code == 0, res.stderr
+    got = json.loads(res.stdout)
+    assert [s["file"] for s in got["skipped"]] == [str(bad)]
+    keys = Spectra.read(out / "spectra.parquet", level="trial").keys
+    estimated = set(zip(keys["subject"], keys["axis"], keys["grip_N"], strict=True))
+    ingested = {(s.subject, s.axis, s.grip_N) for s in dataset_sources(out / "trials.parquet")}
+    assert estimated == ingested and got["trials"] == len(ingested) == len(files) - 1
+
+
 def test_no_input_is_a_usage_error(tmp_path):
     res = _invoke("run", "-o", str(tmp_path / "out"))
     assert res.exit_code == 2 and "give trial files" in res.stderr

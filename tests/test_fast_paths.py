@@ -630,3 +630,83 @@ def test_serial_estimate_stops_at_a_bad_trial_or_skips_it(csv_study, tmp_path):
     assert got.skipped == ((str(bad), why),)
     assert [t.source for t in got.trials] == [str(p) for p in sorted(study.glob("*.csv"))
                                               if p != bad]
+
+
+def _spoilt_study(csv_study, tmp_path):
+    """csv_study with its third trial spoilt (a word in a force cell) and its first also
+    as a gzipped copy (a duplicate trial): (folder, the spoilt file)."""
+    import gzip
+    import shutil
+    study = tmp_path / "study"
+    shutil.copytree(csv_study, study)
+    files = sorted(study.glob("*.csv"))
+    lines = files[2].read_text().splitlines()
+    col = next(i for i, n in enumerate(lines[0].split(",")) if n.startswith("force_x"))
+    cells = lines[11].split(",")
+    cells[col] = "oops"
+    lines[11] = ",".join(cells)
+    files[2].write_text("\n".join(lines) + "\n")
+    with gzip.open(study / (files[0].name + ".gz"), "wb") as fh:
+        fh.write(files[0].read_bytes())
+    return study, files[2]
+
+
+class _SlowPool:
+    """A pool of two threads whose tasks first wait 0.2 s, and that records how many of
+    its tasks were unfinished at each submission."""
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+        self.pool = ThreadPoolExecutor(2)
+        self.futures: list = []
+        self.in_flight: list[int] = []
+
+    def submit(self, fn, /, *args, **kwargs):
+        import time
+        self.in_flight.append(sum(not f.done() for f in self.futures) + 1)
+        fut = self.pool.submit(lambda: (time.sleep(0.2), fn(*args, **kwargs))[1])
+        self.futures.append(fut)
+        return fut
+
+
+@pytest.mark.parametrize("where", ["here", "processes", "threads"])
+def test_estimate_alongside_ingest_is_the_estimate_of_the_same_files(csv_study, tmp_path,
+                                                                      where):
+    # the reference: estimate_study of the same inputs, each trial read by the estimate
+    # itself. ingest reads each trial once and hands it to the estimate; a spoilt trial
+    # and a duplicate are skipped with the same reasons in the same places, and the
+    # spectra file written is the same, byte for byte. At most 2 x jobs trials are in
+    # flight on a pool (the reader waits), whose samples the reader holds until sent:
+    # on the slow pool, with jobs 1, the third trial waits for the first
+    from armfit.io.trials import ingest
+    from armfit.spectra import EstimateAlongside, EstimateConfig, estimate_study
+    from armfit.workers import process_pool
+    study, bad = _spoilt_study(csv_study, tmp_path)
+    config = EstimateConfig()
+    ref = estimate_study([study], config, jobs=1, skip_bad=True)
+    assert {f for f, _ in ref.skipped} == {str(bad), str(study / (sorted(
+        study.glob("*.csv"))[0].name + ".gz"))}
+    pool = {"here": None, "processes": process_pool(2), "threads": _SlowPool()}[where]
+    along = {}
+
+    def opened(stream):
+        along["estimate"] = EstimateAlongside(stream, config, skip_bad=True,
+                                              jobs=1 if where == "threads" else 2,
+                                              executor=pool)
+
+    try:
+        ingest([study], tmp_path / "trials.parquet", skip_bad=True, f_min_hz=config.fmin,
+               force_limit_N=config.force_limit_N, on_open=opened,
+               on_trial=lambda source, trial: along["estimate"].add(source, trial))
+        got = along["estimate"].result()
+    finally:
+        if where == "processes":
+            pool.shutdown()
+    assert got.skipped == ref.skipped and got.ignored == ref.ignored
+    assert [t.source for t in got.trials] == [t.source for t in ref.trials]
+    assert got.fs == ref.fs and got.meta == ref.meta
+    got.write(tmp_path / "got.parquet")
+    ref.write(tmp_path / "ref.parquet")
+    assert (tmp_path / "got.parquet").read_bytes() == (tmp_path / "ref.parquet").read_bytes()
+    if where == "threads":
+        assert len(ref.trials) == 3 and pool.in_flight == [1, 2, 2]

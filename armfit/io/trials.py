@@ -1551,6 +1551,8 @@ class TrialStream:
     f_min_hz: float = GRID_HZ[0]
     force_limit_N: float = FORCE_LIMIT_N
     warn: Warn | None = None
+    #: The source of the trial the iteration yielded last.
+    current: TrialSource | None = field(default=None, init=False, repr=False)
     _read: dict[tuple, str] = field(default_factory=dict, init=False, repr=False)
 
     def __len__(self) -> int:
@@ -1595,6 +1597,7 @@ class TrialStream:
                     raise
                 self.skipped.append(Skipped(src.label, exc.detail))
                 continue
+            self.current = src
             yield trial
 
     def _common_rate(self) -> float | None:
@@ -1749,7 +1752,8 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
            advance: Callable[[], object] | None = None,
            on_open: Callable[[TrialStream], object] | None = None,
            column_map: str | os.PathLike | None = None,
-           note: Warn | None = None) -> IngestResult:
+           note: Warn | None = None,
+           on_trial: Callable[[TrialSource, Trial], object] | None = None) -> IngestResult:
     """Read and validate raw trials and write them as one canonical dataset (Parquet).
 
     The output is refused (OutputError) if it exists without ``overwrite`` or is also
@@ -1757,7 +1761,9 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
     :func:`write_dataset`; the first bad trial stops the run (BadInputError, nothing
     written) unless ``skip_bad``. ``advance`` is called after each trial, ``on_open``
     once with the stream (e.g. to size a progress bar or list ignored files);
-    ``column_map`` and ``note`` as in :func:`open_trials`.
+    ``column_map`` and ``note`` as in :func:`open_trials`. ``on_trial(source, trial)``
+    is given each trial kept, as it is read (before it is written): e.g. to estimate it
+    meanwhile without reading its file again (:class:`armfit.spectra.EstimateAlongside`).
     """
     out = Path(output)
     if _trial_ext(out.name) != ".parquet":
@@ -1773,6 +1779,8 @@ def ingest(inputs: Sequence[str | os.PathLike], output: str | os.PathLike, *,
 
     def counted() -> Iterator[Trial]:
         for trial in stream:
+            if on_trial is not None:
+                on_trial(stream.current, trial)
             yield trial
             if advance is not None:
                 advance()
