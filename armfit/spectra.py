@@ -3135,11 +3135,12 @@ class EstimateAlongside:
     :func:`armfit.io.trials.ingest`, ``on_trial``) validates each trial once and hands
     it over (:meth:`add`), and its estimate runs meanwhile on ``executor`` (without one,
     here, at once), so that no trial file is read twice. At most ``2 × jobs`` trials are
-    in flight: the reader waits for the
-    oldest beyond that (its samples are held until sent). :meth:`result` takes the
-    results in input order, with the trials the reader's ``stream`` skipped in their
-    places, as :func:`estimate_study` of the same inputs gives them (its sampling-rate
-    check included; duplicates are the reader's to refuse).
+    in flight: the reader waits for the oldest beyond that (its samples are held until
+    sent). The results are taken in input order as they come, with the trials the
+    reader's ``stream`` skipped in their places, as :func:`estimate_study` of the same
+    inputs takes them (its sampling-rate check included; duplicates are the reader's to
+    refuse); a bad trial's error (without ``skip_bad``) is raised by :meth:`result`,
+    after the reader's own.
 
     The reader's read warnings are its own; the result's ``warnings`` hold the
     estimates'.
@@ -3151,9 +3152,11 @@ class EstimateAlongside:
         self.kept = _Kept(stream, config, skip_bad=skip_bad, admit=False)
         self.executor = executor
         self.window = 2 * max(1, jobs)
-        self.order: list = []             # input order: a Future, a result, or a skip
+        # in input order, not yet taken: a Future, a result, or a skip of the reader's
+        self.order: collections.deque = collections.deque()
         self.pending: collections.deque[Future] = collections.deque()
         self.skips_seen = 0
+        self.failed: Exception | None = None
 
     def _skips(self) -> None:
         skipped = self.kept.stream.skipped
@@ -3161,40 +3164,59 @@ class EstimateAlongside:
             self.order.append(("skip", s.file, s.reason))
         self.skips_seen = len(skipped)
 
+    def _take(self, wait: bool) -> None:
+        """Take the results at the head of :attr:`order` (``wait``: all, waiting for
+        each), until one fails: its error is kept for :meth:`result`."""
+        while self.order and self.failed is None:
+            item = self.order[0]
+            if isinstance(item, Future) and not (wait or item.done()):
+                return
+            self.order.popleft()
+            try:
+                if isinstance(item, Future):
+                    item = item.result()
+                if item[0] == "skip":
+                    self.kept.skipped.append(item[1:])
+                else:
+                    self.kept.handle(item)
+            except Exception as exc:
+                self.failed = exc
+
     def add(self, source, trial: Trial) -> None:
         """Estimate ``trial`` (read from ``source``, a :class:`TrialSource`) once the
         trials the reader skipped before it are placed."""
         self._skips()
+        if self.failed is not None:     # the result is that error: nothing more to do
+            return
         task = (source.label, replace(trial, grip=None))   # the estimate needs no grip
         if self.executor is None:
             self.order.append(_estimate_given(task, self.config))
-            return
-        while len(self.pending) >= self.window:
-            self.pending.popleft().exception()   # waits; its outcome is taken in order
-        fut = self.executor.submit(_estimate_given, task, self.config)
-        self.pending.append(fut)
-        self.order.append(fut)
+        else:
+            while len(self.pending) >= self.window:
+                self.pending.popleft().exception()   # waits; its outcome is taken in order
+            fut = self.executor.submit(_estimate_given, task, self.config)
+            self.pending.append(fut)
+            self.order.append(fut)
+        self._take(wait=False)
 
     def result(self) -> StudySpectra:
         """The study's spectra (:func:`estimate_study`'s :class:`StudySpectra`), once every
         trial is estimated; the first bad trial's BadInputError without ``skip_bad``."""
         try:
             self._skips()
-            for item in self.order:
-                if isinstance(item, tuple) and item[0] == "skip":
-                    self.kept.skipped.append(item[1:])
-                else:
-                    self.kept.handle(item.result() if isinstance(item, Future) else item)
-            self.order = []
+            self._take(wait=True)
+            if self.failed is not None:
+                raise self.failed
             return self.kept.result()
         finally:
             self.close()
 
     def close(self) -> None:
-        """Cancel the estimates not started (after a failure elsewhere)."""
+        """Cancel the estimates not started (after a failure)."""
         for fut in self.pending:
             fut.cancel()
         self.pending.clear()
+        self.order.clear()
 
 
 def _estimate_given(task, config: EstimateConfig):

@@ -26,7 +26,13 @@ from armfit.data import sobol_points
 from armfit.errors import BadInputError
 from armfit.io.arrow import arrow_array
 from armfit.io.numbers import parse_numbers
-from armfit.io.trials import MAX_ABS_VALUE, MAX_POSITION_M, check_values, saturated_samples
+from armfit.io.trials import (
+    MAX_ABS_VALUE,
+    MAX_POSITION_M,
+    check_values,
+    dataset_sources,
+    saturated_samples,
+)
 from armfit.noise import _moving_mean as _moving_mean_exact
 from armfit.spectra import (
     EstimateConfig,
@@ -678,8 +684,7 @@ def test_estimate_alongside_ingest_is_the_estimate_of_the_same_files(csv_study, 
     # spectra file written is the same, byte for byte. At most 2 x jobs trials are in
     # flight on a pool (the reader waits), whose samples the reader holds until sent:
     # on the slow pool, with jobs 1, the third trial waits for the first
-    from armfit.io.trials import ingest
-    from armfit.spectra import EstimateAlongside, EstimateConfig, estimate_study
+    from armfit.spectra import EstimateConfig, estimate_study
     from armfit.workers import process_pool
     study, bad = _spoilt_study(csv_study, tmp_path)
     config = EstimateConfig()
@@ -687,18 +692,9 @@ def test_estimate_alongside_ingest_is_the_estimate_of_the_same_files(csv_study, 
     assert {f for f, _ in ref.skipped} == {str(bad), str(study / (sorted(
         study.glob("*.csv"))[0].name + ".gz"))}
     pool = {"here": None, "processes": process_pool(2), "threads": _SlowPool()}[where]
-    along = {}
-
-    def opened(stream):
-        along["estimate"] = EstimateAlongside(stream, config, skip_bad=True,
-                                              jobs=1 if where == "threads" else 2,
-                                              executor=pool)
-
     try:
-        ingest([study], tmp_path / "trials.parquet", skip_bad=True, f_min_hz=config.fmin,
-               force_limit_N=config.force_limit_N, on_open=opened,
-               on_trial=lambda source, trial: along["estimate"].add(source, trial))
-        got = along["estimate"].result()
+        got = _alongside_ingest(study, tmp_path, config, skip_bad=True, executor=pool,
+                                jobs=1 if where == "threads" else 2)
     finally:
         if where == "processes":
             pool.shutdown()
@@ -710,3 +706,61 @@ def test_estimate_alongside_ingest_is_the_estimate_of_the_same_files(csv_study, 
     assert (tmp_path / "got.parquet").read_bytes() == (tmp_path / "ref.parquet").read_bytes()
     if where == "threads":
         assert len(ref.trials) == 3 and pool.in_flight == [1, 2, 2]
+
+
+def _alongside_ingest(study, tmp_path, config, *, skip_bad, executor=None, jobs=2):
+    """ingest of ``study`` with each trial handed to an EstimateAlongside: its result."""
+    from armfit.io.trials import ingest
+    from armfit.spectra import EstimateAlongside
+    along = {}
+
+    def opened(stream):
+        along["estimate"] = EstimateAlongside(stream, config, skip_bad=skip_bad, jobs=jobs,
+                                              executor=executor)
+
+    ingest([study], tmp_path / "trials.parquet", skip_bad=skip_bad, f_min_hz=config.fmin,
+           force_limit_N=config.force_limit_N, on_open=opened,
+           on_trial=lambda source, trial: along["estimate"].add(source, trial))
+    return along["estimate"].result()
+
+
+@pytest.mark.parametrize("where", ["here", "threads"])
+@pytest.mark.parametrize("skip_bad", [False, True])
+def test_estimate_alongside_refuses_another_rate_as_the_estimate_does(csv_study, tmp_path,
+                                                                        skip_bad, where):
+    # the second trial sampled at 1000.51 Hz, the others at 1000.5 Hz: within ingest's
+    # rate tolerance (1e-4), outside the estimate's (1e-6). The reference is
+    # estimate_study of the same files: its error, raised once ingest has read every
+    # trial (trials.parquet is then complete), or the trial skipped with its reason
+    import shutil
+    from concurrent.futures import ThreadPoolExecutor
+
+    from armfit.errors import BadInputError
+    from armfit.spectra import EstimateConfig, estimate_study
+    pool = ThreadPoolExecutor(2) if where == "threads" else None
+    study = tmp_path / "study"
+    shutil.copytree(csv_study, study)
+    files = sorted(study.glob("*.csv"))
+    shifted = files[1]
+    for path in files:
+        fs = 1000.51 if path == shifted else 1000.5
+        lines = path.read_text().splitlines()
+        lines[1:] = [f"{i / fs:.9f}," + line.split(",", 1)[1]
+                     for i, line in enumerate(lines[1:])]
+        path.write_text("\n".join(lines) + "\n")
+    config = EstimateConfig()
+    if not skip_bad:
+        with pytest.raises(BadInputError) as ref:
+            estimate_study([study], config, jobs=1)
+        assert "sampling rate 1000.51 Hz differs from 1000.5 Hz" in str(ref.value)
+        with pytest.raises(BadInputError) as got:
+            _alongside_ingest(study, tmp_path, config, skip_bad=False, executor=pool)
+        assert str(got.value) == str(ref.value)
+        assert len(dataset_sources(tmp_path / "trials.parquet")) == 4
+        return
+    ref = estimate_study([study], config, jobs=1, skip_bad=True)
+    got = _alongside_ingest(study, tmp_path, config, skip_bad=True, executor=pool)
+    assert got.skipped == ref.skipped and [s for s, _ in ref.skipped] == [str(shifted)]
+    got.write(tmp_path / "got.parquet")
+    ref.write(tmp_path / "ref.parquet")
+    assert (tmp_path / "got.parquet").read_bytes() == (tmp_path / "ref.parquet").read_bytes()
