@@ -2958,7 +2958,7 @@ class StudySpectra:
 def _estimate_source(source, config: EstimateConfig):
     """Worker: read one trial and estimate it. Returns ("ok", TrialResponses, fs, warnings)
     or ("bad", label, message, reason) for a BadInputError."""
-    return _estimate_read(source, _read_source(source, config), config)
+    return _estimate_read(source.label, _read_source(source, config), config)
 
 
 def _read_source(source, config: EstimateConfig):
@@ -2982,25 +2982,25 @@ def drift_flags(pos: np.ndarray, fs: float, config: EstimateConfig) -> dict[int,
             for j in range(pos.shape[1]) if np.all(np.isfinite(pos[:, j]))}
 
 
-def _estimate_read(source, read, config: EstimateConfig):
+def _estimate_read(label: str, read, config: EstimateConfig):
     """The estimating half of :func:`_estimate_source`, from :func:`_read_source`'s
-    ``read``."""
+    ``read`` of the trial ``label`` names (its source's label, in messages)."""
     if read[0] == "bad":
         return read
     _, trial, warnings, drift = read
     try:
         m = trial.meta
         responses, check = estimate_trial_checked(trial.force, trial.pos, m.fs, m.axis,
-                                                  config, source=source.label,
+                                                  config, source=label,
                                                   ref=trial.ref, reference=m.reference,
                                                   drift=drift)
-        warnings += no_signal_messages(source.label, m.axis, responses)
-        said = check.message(source.label, config.grid(), m.axis)
+        warnings += no_signal_messages(label, m.axis, responses)
+        said = check.message(label, config.grid(), m.axis)
         if said is not None:
             warnings.append(said)
     except BadInputError as exc:
-        return ("bad", source.label, exc.template, exc.detail)
-    tr = TrialResponses(m.subject, m.axis, m.grip_N, m.run, source.label, config.grid(),
+        return ("bad", label, exc.template, exc.detail)
+    tr = TrialResponses(m.subject, m.axis, m.grip_N, m.run, label, config.grid(),
                         responses, check)
     return ("ok", tr, m.fs, tuple(warnings))
 
@@ -3011,7 +3011,7 @@ def _estimate_serially(sources, config: EstimateConfig) -> Iterator:
     reads = read_ahead(functools.partial(_read_source, config=config), sources)
     try:
         for source, read in zip(sources, reads, strict=True):
-            yield _estimate_read(source, read, config)
+            yield _estimate_read(source.label, read, config)
     finally:
         reads.close()
 
@@ -3224,14 +3224,7 @@ def _estimate_given(task, config: EstimateConfig):
     label and :class:`Trial`); :func:`_estimate_source`'s result."""
     label, trial = task
     read = ("read", trial, [], drift_flags(trial.pos, trial.meta.fs, config))
-    return _estimate_read(_Label(label), read, config)
-
-
-@dataclass(frozen=True)
-class _Label:
-    """A trial's label, where :func:`_estimate_read` asks for its source's."""
-
-    label: str
+    return _estimate_read(label, read, config)
 
 
 def estimate_trials(trials: Sequence[Trial], config: EstimateConfig) -> StudySpectra:

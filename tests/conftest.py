@@ -20,7 +20,9 @@ if "numpy" not in sys.modules:
     os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", "X86_V4 AVX512_ICL AVX512_SPR")
     os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 
+import json  # noqa: E402
 import re  # noqa: E402
+import subprocess  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -29,6 +31,23 @@ import pytest  # noqa: E402
 from click.testing import CliRunner  # noqa: E402
 
 AXES = ("x", "y", "z")
+
+
+def fresh_json(code: str):
+    """The JSON a fresh interpreter running ``code`` prints on the last line of its
+    stdout."""
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def modules_after(args: list[str]) -> set[str]:
+    """The modules a fresh interpreter holds after running ``armfit ARGS`` (which must
+    succeed)."""
+    return set(fresh_json("import sys, json\nfrom armfit.cli.main import cli\n"
+                          f"try:\n    cli({args!r}, prog_name='armfit')\n"
+                          "except SystemExit as e:\n    assert not e.code, e.code\n"
+                          "print()\nprint(json.dumps(sorted(sys.modules)))"))
 
 
 def trial_columns(axis: str = "y", *, fs: float = 100.0, duration_s: float = 25.0,

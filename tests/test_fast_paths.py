@@ -10,7 +10,6 @@ checks run a fresh interpreter and read its ``sys.modules`` after the command.
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +18,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from conftest import fresh_json, modules_after
 from scipy import ndimage, signal
 from scipy.stats import qmc
 
@@ -429,27 +429,16 @@ def test_installed_versions_are_importlib_metadatas(name):
     assert _installed_version(name) == version(name)
 
 
-def _modules_after(args: list[str]) -> set[str]:
-    """The modules a fresh interpreter holds after running ``armfit ARGS``."""
-    code = ("import sys, json\nfrom armfit.cli.main import cli\n"
-            f"try:\n    cli({args!r}, prog_name='armfit')\nexcept SystemExit as e:\n"
-            "    assert not e.code, e.code\n"
-            "print(json.dumps(sorted(sys.modules)), file=sys.stderr)")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
-    return set(json.loads(res.stderr.strip().splitlines()[-1]))
-
-
 def test_estimate_loads_neither_pandas_nor_scipy(tmp_path):
     # estimating and writing spectra needs numpy and pyarrow only (start-up of a
     # command a shell script runs once per trial file)
-    loaded = _modules_after(["-q", "estimate", str(TRIAL), "-o", str(tmp_path / "s.parquet")])
+    loaded = modules_after(["-q", "estimate", str(TRIAL), "-o", str(tmp_path / "s.parquet")])
     assert "armfit.spectra" in loaded
     assert not loaded & {"pandas", "scipy", "matplotlib", "rich", "armfit.fitting"}
 
 
 def test_fit_nominal_loads_no_figures_and_no_scipy_stats(spectra, tmp_path):
-    loaded = _modules_after(["-q", "fit-nominal", str(spectra), "-o", str(tmp_path / "n.csv")])
+    loaded = modules_after(["-q", "fit-nominal", str(spectra), "-o", str(tmp_path / "n.csv")])
     assert "armfit.fitting" in loaded
     assert not loaded & {"matplotlib", "scipy.stats", "scipy.signal", "armfit.figures",
                          "armfit.diagnosis.search", "armfit.loop"}
@@ -461,13 +450,11 @@ def test_diagnose_imports_no_optimiser_until_it_refits_a_trial_alone():
     # importing them took about 1 s of the command's start-up. scipy.optimize is
     # imported when a trial is refitted alone (armfit._scipy).
     heavy = {"scipy.optimize", "scipy.ndimage", "scipy.special", "matplotlib"}
-    loaded = _modules_after(["diagnose", "--help"])
+    loaded = modules_after(["diagnose", "--help"])
     assert "armfit.cli.diagnose" in loaded and not loaded & heavy
-    code = ("import sys, json\nimport armfit.diagnosis.search, armfit.fitting, "
-            "armfit.uncertainty\nprint(json.dumps(sorted(sys.modules)))")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
-    loaded = set(json.loads(res.stdout))
+    loaded = set(fresh_json("import sys, json\nimport armfit.diagnosis.search, "
+                            "armfit.fitting, armfit.uncertainty\n"
+                            "print(json.dumps(sorted(sys.modules)))"))
     assert "armfit.diagnosis.joint" in loaded and not loaded & heavy
 
 
@@ -479,9 +466,9 @@ def test_uncertainty_fits_on_worker_processes_import_no_optimiser_here(spectra, 
     # the fits in one process, to the byte.
     out = {jobs: tmp_path / f"wu-{jobs}.csv" for jobs in (1, 2)}
     args = ["-q", "fit-uncertainty", str(spectra), "--nominal", str(nominal)]
-    loaded = _modules_after([*args, "-o", str(out[2]), "--jobs", "2"])
+    loaded = modules_after([*args, "-o", str(out[2]), "--jobs", "2"])
     assert "armfit.uncertainty" in loaded and "scipy.optimize" not in loaded
-    _modules_after([*args, "-o", str(out[1]), "--jobs", "1"])
+    modules_after([*args, "-o", str(out[1]), "--jobs", "1"])
     axes = {line.split(",")[0] for line in out[2].read_text().splitlines()[1:]}
     assert len(axes) > 1                                      # the pool ran the fits
     for a, b in zip(sorted(tmp_path.glob("wu-1*.csv")), sorted(tmp_path.glob("wu-2*.csv")),
@@ -498,11 +485,8 @@ def test_the_workers_modules_load_no_pandas(pool):
     from armfit.workers import POOL_PRELOAD, PRELOAD
     names = [m for m in (PRELOAD if pool == "run" else POOL_PRELOAD[pool])
              if m.startswith("armfit")]
-    code = (f"import sys, json\nimport {', '.join(names)}\n"
-            "print(json.dumps(sorted(sys.modules)))")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
-    loaded = set(json.loads(res.stdout))
+    loaded = set(fresh_json(f"import sys, json\nimport {', '.join(names)}\n"
+                            "print(json.dumps(sorted(sys.modules)))"))
     assert set(names) <= loaded and "pandas" not in loaded
 
 
@@ -510,12 +494,9 @@ def test_the_global_search_reads_the_papers_rows_without_pandas():
     # every fit's global search starts from the arm parameters of the paper's Tables I
     # and II (armfit.fitting._paper_rows): read in a worker with the csv module, they
     # are the numbers pandas reads from the same files, to the bit
-    code = ("import sys, json\nfrom armfit.fitting import _paper_rows\n"
-            "print(json.dumps({'rows': _paper_rows().tolist(), "
-            "'pandas': 'pandas' in sys.modules}))")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
-    got = json.loads(res.stdout)
+    got = fresh_json("import sys, json\nfrom armfit.fitting import _paper_rows\n"
+                     "print(json.dumps({'rows': _paper_rows().tolist(), "
+                     "'pandas': 'pandas' in sys.modules}))")
     assert not got["pandas"]
     from armfit.data import paper_table
     cols = ["Ma_kg", "k1_N_per_m", "k2_N_per_m", "b1_Ns_per_m", "b2_Ns_per_m"]
