@@ -66,13 +66,34 @@ def _on_signal(signum, frame) -> None:
     # the stop, so their errors are not printed (the one line below is)
     if sys.modules.get("threading") is not None:
         sys.modules["threading"].excepthook = lambda args: None
-    _thread.start_new_thread(_watchdog, ())
+    _start_watchdog()
     stop_workers = _loaded("armfit.workers", "stop_workers")
     if stop_workers is not None:
         stop_workers(final=True)
     if signum == signal.SIGTERM:
         raise Terminated()
     raise KeyboardInterrupt()
+
+
+def _start_watchdog() -> None:
+    """Start :func:`_watchdog` in a thread that blocks SIGINT and SIGTERM.
+
+    The kernel may hand a signal sent to the process to any thread that does not block
+    it. One that lands on the watchdog only wakes the watchdog's sleep: the main thread,
+    the only one that runs Python's handlers, sleeps on, and a second signal would wait
+    for the grace to end. The new thread takes the mask in place when it starts, so the
+    signals are blocked around its start (one that comes meanwhile waits, and reaches
+    the main thread when its mask is put back).
+    """
+    block = getattr(signal, "pthread_sigmask", None)
+    if block is None:   # pragma: no cover - Windows: no per-thread masks
+        _thread.start_new_thread(_watchdog, ())
+        return
+    old = block(signal.SIG_BLOCK, (signal.SIGINT, signal.SIGTERM))
+    try:
+        _thread.start_new_thread(_watchdog, ())
+    finally:
+        block(signal.SIG_SETMASK, old)
 
 
 def _watchdog() -> None:
