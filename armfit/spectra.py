@@ -40,6 +40,9 @@ import contextlib
 import functools
 import itertools
 import math
+import pickle
+import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field, replace
@@ -57,7 +60,7 @@ from armfit.constants import (
     GRID_HZ,
     POINTS_PER_DECADE,
 )
-from armfit.errors import BadInputError, NoInputError, UsageError, cell
+from armfit.errors import BadInputError, NoInputError, OutputError, UsageError, cell
 from armfit.feedback import FEEDBACK_ALPHA, FeedbackTest, chi2_sf, feedback_test
 from armfit.io.arrow import arrow_array
 from armfit.io.atomic import atomic_path
@@ -1702,20 +1705,33 @@ def _trial_blocks(trials: Sequence[TrialResponses], batch: int = 64):
 
 
 def _aggregate_blocks(trials: Sequence[TrialResponses]) -> list[dict[str, object]]:
-    """The aggregate blocks of :func:`spectra_table`, in the file's order."""
+    """The aggregate blocks of :func:`spectra_table`, in the file's order.
+
+    One group (axis, kind, position axis) at a time: its members' responses are taken
+    from ``trials`` when the group is made and let go after, so that a study held in a
+    :class:`SpooledTrials` is never in memory whole (the members, their order and the
+    numbers are those of all trials at once).
+    """
     blocks: list[dict[str, object]] = []
-    groups: dict[tuple, list[tuple[TrialResponses, Response]]] = {}
-    for tr in trials:
-        for r in tr.responses:
-            if r.kind != "alternative":     # the alternative estimates are not aggregated
-                groups.setdefault((tr.axis, r.kind, r.out_axis), []).append((tr, r))
-    for (axis, kind, out_axis), members in sorted(groups.items()):
-        freq = members[0][0].freq_hz
+    groups: dict[tuple, list[int]] = {}
+    for i, (axis, kinds) in enumerate(_outlines(trials)):
+        for kind, out_axis in dict.fromkeys(kinds):
+            if kind != "alternative":       # the alternative estimates are not aggregated
+                groups.setdefault((axis, kind, out_axis), []).append(i)
+    for (axis, kind, out_axis), rows in sorted(groups.items()):
+        members: list[tuple[float, str, Response]] = []
+        freq = None
+        for i in rows:
+            tr = trials[i]
+            if freq is None:
+                freq = tr.freq_hz
+            members += [(tr.grip_N, tr.subject, r) for r in tr.responses
+                        if r.kind == kind and r.out_axis == out_axis]
         # trials estimated through their reference and others: both names
-        method = "+".join(sorted({r.method for _, r in members}))
+        method = "+".join(sorted({r.method for _, _, r in members}))
         by_grip: dict[float, dict[str, list[Response]]] = {}
-        for tr, r in members:
-            by_grip.setdefault(tr.grip_N, {}).setdefault(tr.subject, []).append(r)
+        for grip, subject, r in members:
+            by_grip.setdefault(grip, {}).setdefault(subject, []).append(r)
         for grip in sorted(by_grip):
             subjects = by_grip[grip]
             per_subject = _subject_means([np.array([r.h for r in rs])
@@ -1723,10 +1739,22 @@ def _aggregate_blocks(trials: Sequence[TrialResponses]) -> list[dict[str, object
             rs_all = [r for rs in subjects.values() for r in rs]
             blocks.append(_aggregate_block("mean", axis, grip, kind, out_axis, method, freq,
                                            per_subject, rs_all, len(subjects)))
-        rs_all = [r for _, r in members]
+        rs_all = [r for _, _, r in members]
         blocks.append(_aggregate_block("median", axis, np.nan, kind, out_axis, method, freq,
                                        np.array([r.h for r in rs_all]), rs_all, len(rs_all)))
     return blocks
+
+
+def _outlines(trials: Sequence[TrialResponses]):
+    """(axis, ((kind, out_axis) of each response, in order)) of each trial: kept by a
+    :class:`SpooledTrials`, so that no trial is read back for it."""
+    if isinstance(trials, SpooledTrials):
+        return trials.outlines()
+    return [_outline(tr) for tr in trials]
+
+
+def _outline(tr: TrialResponses) -> tuple[str, tuple[tuple[str, str], ...]]:
+    return tr.axis, tuple((r.kind, r.out_axis) for r in tr.responses)
 
 
 def _subject_means(runs: Sequence[np.ndarray]) -> np.ndarray:
@@ -2867,19 +2895,97 @@ def _stack_blocks(blocks: list[dict[str, object]], meta: Mapping | None = None) 
 # A study: read trials (in worker processes if asked), estimate, tabulate
 # ---------------------------------------------------------------------------
 
+class SpooledTrials(Sequence):
+    """The trials' responses of a study (:class:`TrialResponses`, in order), held in an
+    unnamed temporary file rather than in memory: a sequence whose items are read back
+    one at a time, when asked for.
+
+    What a study's estimate keeps grows with its trials (about 24 kB a trial, five
+    responses on a 100-point grid); the spectra file and the aggregates take the trials
+    one (or one group) at a time, so memory stays flat in the number of trials. The file
+    lies in the folder of :func:`tempfile.gettempdir` (``TMPDIR``); the system removes
+    it when the sequence is let go or the process ends, also when it is killed. Each
+    trial is stored pickled: what is read back is the trial appended, bit for bit. Safe
+    to read from several threads at once. Pickled, it becomes a tuple.
+    """
+
+    def __init__(self):
+        self._file = None
+        self._spans: list[tuple[int, int]] = []
+        self._outlines: list[tuple[str, tuple[tuple[str, str], ...]]] = []
+        self._end = 0
+        self._lock = threading.Lock()
+
+    def append(self, trial: TrialResponses) -> None:
+        """Store one more trial at the end.
+
+        Raises
+        ------
+        armfit.errors.OutputError
+            The temporary file cannot be made or written (the folder and the system's
+            reason named).
+        """
+        data = pickle.dumps(trial, protocol=pickle.HIGHEST_PROTOCOL)
+        with self._lock:
+            try:
+                if self._file is None:
+                    self._file = tempfile.TemporaryFile(prefix="armfit-trials-")
+                self._file.seek(self._end)
+                self._file.write(data)
+            except OSError as exc:
+                raise OutputError(
+                    f"cannot keep the trials' responses in a temporary file in "
+                    f"{tempfile.gettempdir()}: {exc.strerror or exc}; set TMPDIR to a "
+                    "folder with room") from None
+            self._spans.append((self._end, len(data)))
+            self._end += len(data)
+        self._outlines.append(_outline(trial))
+
+    def outlines(self) -> list[tuple[str, tuple[tuple[str, str], ...]]]:
+        """Each trial's axis and the (kind, out_axis) of its responses, in order, without
+        reading a trial back."""
+        return list(self._outlines)
+
+    def __len__(self) -> int:
+        return len(self._spans)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        start, size = self._spans[index]
+        with self._lock:
+            self._file.flush()
+            self._file.seek(start)
+            data = self._file.read(size)
+        return pickle.loads(data)
+
+    def __iter__(self) -> Iterator[TrialResponses]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def __reduce__(self):
+        return (tuple, (tuple(self),))
+
+    def __repr__(self) -> str:
+        return f"SpooledTrials({len(self)} trial(s))"
+
+
 @dataclass(frozen=True)
 class StudySpectra:
     """Result of :func:`estimate_study`: the trials kept (their responses), what was left
     out (``skipped``: (file, reason)), the files found that are not trials, the common
     sampling rate (Hz), data warnings and the metadata of the spectra file.
 
-    :attr:`spectra` (every response and the aggregates, :func:`spectra_table`) is made
-    when first asked for; :meth:`write` writes the same file without making it whole, a
-    row group at a time, so a large study's file takes little more memory than its
-    trials' responses.
+    ``trials`` is a sequence of :class:`TrialResponses`: estimated from files
+    (:func:`estimate_study`, :class:`EstimateAlongside`) a :class:`SpooledTrials`, whose
+    trials wait in a temporary file and are read back one at a time. :attr:`spectra`
+    (every response and the aggregates, :func:`spectra_table`) is made when first asked
+    for; :meth:`write` writes the same file without making it whole, a row group at a
+    time, and the aggregates take one group of responses at a time, so writing a large
+    study's file takes about the same memory as a small one's.
     """
 
-    trials: tuple[TrialResponses, ...]
+    trials: Sequence[TrialResponses]
     skipped: tuple[tuple[str, str], ...]
     ignored: tuple[str, ...]
     fs: float | None
@@ -3068,7 +3174,7 @@ class _Kept:
         self.stream, self.config, self.skip_bad = stream, config, skip_bad
         self.warn, self.admit = warn, admit
         self.skipped: list[tuple[str, str]] = []
-        self.kept: list[TrialResponses] = []
+        self.kept = SpooledTrials()
         self.warnings: list[str] = []
         self.ref: tuple[float, str] | None = None
         self.patterns: dict[tuple[str, ...], tuple[str, ...]] = {}
@@ -3123,7 +3229,7 @@ class _Kept:
             err.skipped = tuple(skipped)
             raise err
         fs = self.ref[0] if self.ref else None
-        return StudySpectra(tuple(self.kept), tuple(skipped),
+        return StudySpectra(self.kept, tuple(skipped),
                             tuple(str(p) for p in self.stream.ignored), fs,
                             tuple(self.warnings),
                             study_metadata(self.config, fs, len(self.kept), skipped,
@@ -3289,15 +3395,18 @@ def estimator_summary(trials: Sequence[TrialResponses]) -> dict[str, object]:
         fires), ``not_excitation_trials`` (with points flagged ``not_excitation``) and
         ``messages`` (one line per such trial, as on stderr).
     """
-    checks = [(t, t.check) for t in trials if t.check is not None]
-    return {
-        "reference_trials": sum(c.reference is not None for _, c in checks),
-        "feedback_trials": sum(c.feedback is not None and c.feedback.fires
-                               for _, c in checks),
-        "not_excitation_trials": sum(bool(c.flagged.any()) for _, c in checks),
-        "messages": [m for t, c in checks
-                     if (m := c.message(t.source, t.freq_hz, t.axis)) is not None],
-    }
+    counts = {"reference_trials": 0, "feedback_trials": 0, "not_excitation_trials": 0}
+    messages = []
+    for t in trials:        # one trial at a time (a SpooledTrials reads each back)
+        c = t.check
+        if c is None:
+            continue
+        counts["reference_trials"] += c.reference is not None
+        counts["feedback_trials"] += bool(c.feedback is not None and c.feedback.fires)
+        counts["not_excitation_trials"] += bool(c.flagged.any())
+        if (m := c.message(t.source, t.freq_hz, t.axis)) is not None:
+            messages.append(m)
+    return {**counts, "messages": messages}
 
 
 def study_metadata(config: EstimateConfig, fs: float | None, n_trials: int,
@@ -3344,6 +3453,7 @@ __all__ = [
     "saturated", "moving_mean", "drifting", "EstimateConfig", "Response", "TrialResponses",
     "check_band", "estimate_trial", "NO_SIGNAL", "no_signal_messages", "aggregate",
     "aggregate_spread", "spectra_table", "WRITE_ROWS", "Spectra", "write_parts",
-    "row_counts", "StudySpectra", "estimate_study", "EstimateAlongside", "estimate_trials",
+    "row_counts", "SpooledTrials", "StudySpectra", "estimate_study", "EstimateAlongside",
+    "estimate_trials",
     "study_metadata", "estimator_summary",
 ]

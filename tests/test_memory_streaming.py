@@ -398,3 +398,111 @@ def test_a_studys_aggregates_are_the_rows_its_file_reads_back(study, tmp_path):
     pd.testing.assert_frame_equal(made.to_frame(), read.to_frame(), check_exact=True)
     assert made.meta == read.meta
     assert np.array_equal(made.present, read.present)
+
+
+# ---------------------------------------------------------------------------
+# A study's trials wait in a temporary file (SpooledTrials), read back one at a time
+# ---------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def spooled(small_study) -> S.StudySpectra:
+    """The small study estimated from its files in this process."""
+    return S.estimate_study([small_study], S.EstimateConfig())
+
+
+def _held(sp: S.StudySpectra) -> S.StudySpectra:
+    """The same study with its trials all in memory (a tuple): the reference."""
+    from dataclasses import replace
+    return replace(sp, trials=tuple(sp.trials))
+
+
+def test_an_estimated_studys_trials_read_back_bit_for_bit(spooled):
+    # the reference: the same trials held in memory, compared array by array
+    trials = spooled.trials
+    assert isinstance(trials, S.SpooledTrials)
+    held = tuple(trials)
+    assert len(trials) == len(held) == 4          # 2 subjects x 2 grips, axis x
+    for a, b in zip(trials, held, strict=True):
+        assert (a.source, a.axis, a.grip_N, a.subject) == (b.source, b.axis, b.grip_N,
+                                                           b.subject)
+        for ra, rb in zip(a.responses, b.responses, strict=True):
+            assert ra.flags == rb.flags
+            for name in ("h", "coherence", "se_db", "se_deg"):
+                assert np.array_equal(getattr(ra, name), getattr(rb, name), equal_nan=True)
+    assert [t.source for t in trials[1:3]] == [held[1].source, held[2].source]
+    assert trials[-1].source == held[-1].source
+    import pickle
+    back = pickle.loads(pickle.dumps(trials))            # pickled, a tuple
+    assert type(back) is tuple and [t.source for t in back] == [t.source for t in held]
+
+
+def test_a_spooled_study_writes_the_file_a_held_one_writes(spooled, tmp_path):
+    # the same study with its trials in memory (the former route) writes the reference
+    spooled.write(tmp_path / "spooled.parquet")
+    _held(spooled).write(tmp_path / "held.parquet")
+    assert (tmp_path / "spooled.parquet").read_bytes() == \
+        (tmp_path / "held.parquet").read_bytes()
+    assert S.estimator_summary(spooled.trials) == \
+        S.estimator_summary(tuple(spooled.trials))
+
+
+class _Watched(S.SpooledTrials):
+    """A SpooledTrials that records, at each read, how many trials it handed out are
+    still alive."""
+
+    def __init__(self, trials):
+        super().__init__()
+        for t in trials:
+            self.append(t)
+        self.out: list = []
+        self.alive_at_read: list[int] = []
+
+    def __getitem__(self, index):
+        import weakref
+        self.alive_at_read.append(sum(r() is not None for r in self.out))
+        got = super().__getitem__(index)
+        if not isinstance(index, slice):
+            self.out.append(weakref.ref(got))
+        return got
+
+
+def test_the_aggregates_hold_one_trial_at_a_time(spooled):
+    # invariant: the aggregates of a spooled study are those of the trials held in
+    # memory, and no more than one trial read back is alive when the next is read
+    import gc
+    watched = _Watched(spooled.trials)
+    gc.disable()            # a trial alive is one still referenced, not one not yet freed
+    try:
+        blocks = S._aggregate_blocks(watched)
+    finally:
+        gc.enable()
+    want = S._aggregate_blocks(tuple(spooled.trials))
+    # measured, derived and cross to y and z: a mean per grip (2) and a median each
+    assert len(blocks) == len(want) == 4 * 3
+    for a, b in zip(blocks, want, strict=True):
+        assert a.keys() == b.keys()
+        for k in a:
+            va, vb = a[k], b[k]
+            if isinstance(va, np.ndarray):
+                assert np.array_equal(va, vb, equal_nan=True), k
+            else:
+                assert va == vb or (va != va and vb != vb), k
+    assert max(watched.alive_at_read) <= 1
+    assert len(watched.alive_at_read) >= len(watched)   # every trial was read back
+
+
+def test_a_temporary_file_that_cannot_be_written_is_an_output_error(small_study,
+                                                                     monkeypatch):
+    import errno
+    import tempfile
+
+    from armfit.errors import OutputError
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", full)
+    with pytest.raises(OutputError, match=r"cannot keep the trials' responses in a "
+                                          r"temporary file in .*No space left on device; "
+                                          r"set TMPDIR"):
+        armfit.estimate(small_study)
