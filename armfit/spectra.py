@@ -3177,7 +3177,6 @@ class _Kept:
         self.kept = SpooledTrials()
         self.warnings: list[str] = []
         self.ref: tuple[float, str] | None = None
-        self.patterns: dict[tuple[str, ...], tuple[str, ...]] = {}
 
     def handle(self, res) -> None:
         """Take one trial's result (of :func:`_estimate_read`): kept, or skipped with
@@ -3194,11 +3193,6 @@ class _Kept:
             self.warnings.append(w)
             if self.warn is not None:
                 self.warn(w)
-        # responses of a study share few flag patterns: keep one tuple of each
-        patterns = self.patterns
-        tr = replace(tr, responses=tuple(replace(r, flags=patterns.setdefault(r.flags,
-                                                                              r.flags))
-                                         for r in tr.responses))
         if self.ref is None:
             self.ref = (fs, tr.source)
         elif abs(fs - self.ref[0]) > 1e-6 * self.ref[0]:
