@@ -297,6 +297,10 @@ def _ready() -> None:
     """The task that starts a worker (see :class:`_Pool`)."""
 
 
+#: Tasks :func:`_ready` sent a worker at most while a pool starts its workers.
+_START_TASKS = 8
+
+
 class _Pool(ProcessPoolExecutor):
     """A ProcessPoolExecutor that starts all its workers at its first task and leaves the
     record of open pools when shut down.
@@ -448,9 +452,15 @@ class _Pool(ProcessPoolExecutor):
             with _STARTING, child_environment():
                 if _FINAL:
                     raise BrokenProcessPool("the worker processes were stopped")
-                # one task per worker: each submit starts a worker while none is idle
-                for fut in [super(_Pool, self).submit(_ready)
-                            for _ in range(self._armfit_jobs)]:
+                # a task per worker: a submit starts a worker while none is idle. A
+                # worker that has already done its task (a loaded machine may pause
+                # this thread between two submits) takes the next one instead, so tasks
+                # are sent until every worker is started (at most _START_TASKS a worker)
+                futures = []
+                while len(self._processes) < self._armfit_jobs \
+                        and len(futures) < _START_TASKS * self._armfit_jobs:
+                    futures.append(super().submit(_ready))
+                for fut in futures:
                     fut.result()
         except BaseException as exc:  # raised in the caller's thread
             failed.append(exc)

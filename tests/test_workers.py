@@ -10,6 +10,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import sys
 import threading
+import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 
@@ -70,6 +71,35 @@ def test_a_pool_starts_all_its_workers_at_its_first_task():
     finally:
         pool.shutdown()
     assert set(mp.active_children()) - before == set()
+
+
+def test_a_pool_starts_all_its_workers_when_the_first_is_idle_before_the_next_task(
+        monkeypatch):
+    # seen on a loaded machine: the first worker had done its start task before the next
+    # was sent, took that one too, and the pool started with one worker. Here the first
+    # start task is done and its worker idle before the next is sent, every time.
+    from concurrent.futures import ProcessPoolExecutor
+    submit = ProcessPoolExecutor.submit
+    sent = []
+
+    def first_done(self, fn, *args, **kwargs):
+        fut = submit(self, fn, *args, **kwargs)
+        sent.append(fn)
+        if sent == [workers._ready]:
+            fut.result()
+            deadline = time.monotonic() + 10
+            while not self._idle_worker_semaphore._value and time.monotonic() < deadline:
+                time.sleep(0.005)       # the pool's thread marks the worker idle
+        return fut
+
+    monkeypatch.setattr(ProcessPoolExecutor, "submit", first_done)
+    before = set(mp.active_children())
+    pool = workers.process_pool(2)
+    try:
+        assert pool.submit(_square, 6).result() == 36
+        assert len(set(mp.active_children()) - before) == 2
+    finally:
+        pool.shutdown()
 
 
 def test_cancel_pools_stops_the_pools_a_thread_made():
