@@ -456,8 +456,8 @@ class _Pool(ProcessPoolExecutor):
                 # worker that has already done its task (a loaded machine may pause
                 # this thread between two submits) takes the next one instead, so tasks
                 # are sent until every worker is started (at most _START_TASKS a worker)
-                futures = []
-                while len(self._processes) < self._armfit_jobs \
+                futures = [super().submit(_ready)]   # refused once the pool is shut down
+                while len(self._processes or ()) < self._armfit_jobs \
                         and len(futures) < _START_TASKS * self._armfit_jobs:
                     futures.append(super().submit(_ready))
                 for fut in futures:
