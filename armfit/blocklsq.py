@@ -27,6 +27,12 @@ The method is the trust-region-reflective algorithm of
 :func:`scipy.optimize.least_squares` (``method="trf"``) with every step solved exactly;
 its termination tests and statuses are those of that function (``ftol``, ``xtol``,
 ``gtol``, ``max_nfev``; status 0 when the budget is spent).
+
+**Memory.** The method needs the Jacobian only through the blocks of JᵀJ and Jᵀr: the
+step is solved from them, and the model of the cost along a step (½‖J_h s‖²) is
+sᵀ(J_hᵀJ_h)s from the same blocks. A caller that gives those blocks directly
+(``normal``: made a few trials at a time) never holds the Jacobian, which is as large as
+the residuals times the parameters of a trial; its memory is that of the residuals.
 """
 
 from __future__ import annotations
@@ -36,26 +42,31 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BlockResult", "Groups", "shared_covariance", "solve"]
+__all__ = ["BlockResult", "Groups", "Normal", "normal_blocks", "normal_covariance",
+           "shared_covariance", "solve"]
 
 #: Residual function: x (T·nb + k,) -> r (T·m,), trial-major.
 Fun = Callable[[np.ndarray], np.ndarray]
 #: Jacobian blocks: x -> (Jb (T, m, nb), Js (T, m, k)).
 Jac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+#: The blocks of JᵀJ and Jᵀr (:func:`normal_blocks`): A (T, nb, nb), B (T, nb, kl),
+#: C (K, K), gb (T, nb), gs (K,).
+Normal = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+#: The blocks at x whose residuals are r (T, m): (x, r) -> Normal.
+NormalFun = Callable[[np.ndarray, np.ndarray], Normal]
 
 
 @dataclass(frozen=True)
 class BlockResult:
-    """The solution: ``x``, ``cost`` = ½‖r‖², the residuals ``fun`` and the Jacobian
-    blocks ``jb`` (T, m, nb) and ``js`` (T, m, k) at ``x``; ``status`` as
-    :func:`scipy.optimize.least_squares` (0: evaluation budget spent; 1: gtol, 2: ftol,
-    3: xtol); ``nfev`` residual evaluations."""
+    """The solution: ``x``, ``cost`` = ½‖r‖², the residuals ``fun`` and the blocks of
+    JᵀJ at ``x`` (``normal``: A (T, nb, nb), B (T, nb, kl), C (K, K); enough for
+    :func:`normal_covariance`); ``status`` as :func:`scipy.optimize.least_squares` (0:
+    evaluation budget spent; 1: gtol, 2: ftol, 3: xtol); ``nfev`` residual evaluations."""
 
     x: np.ndarray
     cost: float
     fun: np.ndarray
-    jb: np.ndarray
-    js: np.ndarray
+    normal: tuple[np.ndarray, np.ndarray, np.ndarray]
     status: int
     nfev: int
 
@@ -85,20 +96,47 @@ class Groups:
         return v[self.cols]
 
 
-def _normal(jb: np.ndarray, js: np.ndarray, r: np.ndarray, groups: Groups | None = None):
-    """Blocks of JᵀJ (A (T, nb, nb), B (T, nb, kl), C (K, K)) and of Jᵀr (gb, gs (K,)):
-    B per trial in its local shared columns, C and gs global (K = kl = k without
-    ``groups``)."""
-    A = np.einsum("tmp,tmq->tpq", jb, jb)
-    B = np.einsum("tmp,tmk->tpk", jb, js)
-    gb = np.einsum("tmp,tm->tp", jb, r)
+def normal_blocks(chunks, n_trials: int, groups: Groups | None = None) -> Normal:
+    """The blocks of JᵀJ and Jᵀr from the Jacobian given a few trials at a time.
+
+    Parameters
+    ----------
+    chunks : iterable of (rows, jb, js, r)
+        ``rows`` a slice of the trials, ``jb`` (t, m, nb) and ``js`` (t, m, kl) their
+        Jacobian blocks, ``r`` (t, m) their residuals; every trial once.
+    n_trials : int
+        T.
+    groups : Groups, optional
+        Grouped shared parameters (the module docstring); C and gs are then global.
+
+    Returns
+    -------
+    Normal
+        A (T, nb, nb), B (T, nb, kl) per trial (B in its local shared columns), C (K, K)
+        and gs (K,) summed over the trials, gb (T, nb); K = kl without ``groups``.
+    """
+    A = B = gb = Ct = gst = None
+    for rows, jb, js, r in chunks:
+        if A is None:
+            nb, kl = jb.shape[2], js.shape[2]
+            A, B = np.empty((n_trials, nb, nb)), np.empty((n_trials, nb, kl))
+            gb = np.empty((n_trials, nb))
+            Ct, gst = np.empty((n_trials, kl, kl)), np.empty((n_trials, kl))
+        A[rows] = np.einsum("tmp,tmq->tpq", jb, jb)
+        B[rows] = np.einsum("tmp,tmk->tpk", jb, js)
+        gb[rows] = np.einsum("tmp,tm->tp", jb, r)
+        Ct[rows] = np.einsum("tmk,tml->tkl", js, js)
+        gst[rows] = np.einsum("tmk,tm->tk", js, r)
     if groups is None:
-        C = np.einsum("tmk,tml->kl", js, js)
-        gs = np.einsum("tmk,tm->k", js, r)
-    else:
-        C = groups.add_matrices(np.einsum("tmk,tml->tkl", js, js))
-        gs = groups.add_vectors(np.einsum("tmk,tm->tk", js, r))
-    return A, B, C, gb, gs
+        return A, B, Ct.sum(axis=0), gb, gst.sum(axis=0)
+    return A, B, groups.add_matrices(Ct), gb, groups.add_vectors(gst)
+
+
+def _normal(jb: np.ndarray, js: np.ndarray, r: np.ndarray, groups: Groups | None = None
+            ) -> Normal:
+    """:func:`normal_blocks` of the whole Jacobian (jb (T, m, nb), js (T, m, kl)) and the
+    residuals r (T, m)."""
+    return normal_blocks([(slice(None), jb, js, r)], jb.shape[0], groups)
 
 
 class _Quadratic:
@@ -135,10 +173,11 @@ class _Quadratic:
 class _Scaled(_Quadratic):
     """The trust-region subproblem of one iteration in the scaled ("hat") variables of
     the trust-region-reflective method: J_h = J·diag(d), H_h = J_hᵀJ_h + diag(c),
-    g_h = d·g, blocks as :func:`_normal` (per-trial part first, then the shared one)."""
+    g_h = d·g, blocks as :func:`normal_blocks` (per-trial part first, then the shared
+    one). ‖J_h s‖² is sᵀ(J_hᵀJ_h)s from the same blocks: the Jacobian is not needed."""
 
-    def __init__(self, jb, js, A, B, C, gb, gs, db, ds, cb, cs, groups: Groups | None = None):
-        self.jb, self.js, self.db, self.ds, self.cb, self.cs = jb, js, db, ds, cb, cs
+    def __init__(self, A, B, C, gb, gs, db, ds, cb, cs, groups: Groups | None = None):
+        self.db, self.ds, self.cb, self.cs = db, ds, cb, cs
         self.groups = groups
         self.A = A * db[:, :, None] * db[:, None, :]
         dsl = ds[None, None, :] if groups is None else groups.take(ds)[:, None, :]
@@ -147,6 +186,34 @@ class _Scaled(_Quadratic):
         self.gb, self.gs = gb * db, gs * ds
         self.T, self.nb = gb.shape
         self.k = gs.size
+
+    def _local(self, vs: np.ndarray) -> np.ndarray:
+        """The shared part ``vs`` (K,) as each trial's local columns see it, (T, kl)."""
+        if self.groups is None:
+            return np.broadcast_to(vs, (self.T, vs.size))
+        return self.groups.take(vs)
+
+    def hdot(self, p: np.ndarray, q: np.ndarray) -> float:
+        """pᵀ(J_hᵀJ_h)q from the blocks."""
+        pb, ps = self._split(p)
+        qb, qs = self._split(q)
+        out = float(np.sum(pb * np.einsum("tpq,tq->tp", self.A, qb)))
+        if self.k:
+            out += float(np.sum(pb * np.einsum("tpk,tk->tp", self.B, self._local(qs))))
+            out += float(np.sum(qb * np.einsum("tpk,tk->tp", self.B, self._local(ps))))
+            out += float(ps @ self.C @ qs)
+        return out
+
+    def quadratic_1d(self, s: np.ndarray, s0: np.ndarray | None = None):
+        """(a, b, c) of q(s0 + t·s) = a t² + b t + c."""
+        g, c = self.g_h, self.c_h
+        a = 0.5 * (self.hdot(s, s) + float(s @ (c * s)))
+        b = float(g @ s)
+        cc = 0.0
+        if s0 is not None:
+            b += self.hdot(s, s0) + float(s0 @ (c * s))
+            cc = 0.5 * (self.hdot(s0, s0) + float(s0 @ (c * s0))) + float(g @ s0)
+        return a, b, cc
 
     def solve(self, alpha: float, rb: np.ndarray, rs: np.ndarray):
         """y = (H_h + αI)⁻¹ (rb, rs) by eliminating the per-trial blocks."""
@@ -174,15 +241,6 @@ class _Scaled(_Quadratic):
     @property
     def c_h(self) -> np.ndarray:
         return np.concatenate([self.cb.ravel(), self.cs])
-
-    def jdot(self, p: np.ndarray) -> np.ndarray:
-        """J_h·p, (T, m)."""
-        hb, hs = self._split(p)
-        if self.groups is None:
-            return (np.einsum("tmp,tp->tm", self.jb, hb * self.db)
-                    + np.einsum("tmk,k->tm", self.js, hs * self.ds))
-        return (np.einsum("tmp,tp->tm", self.jb, hb * self.db)
-                + np.einsum("tmk,tk->tm", self.js, self.groups.take(hs * self.ds)))
 
     def _split(self, v: np.ndarray):
         return v[: self.T * self.nb].reshape(self.T, self.nb), v[self.T * self.nb:]
@@ -306,9 +364,10 @@ def _strictly_inside(x, lower, upper) -> np.ndarray:
     return np.where(x >= upper, np.nextafter(upper, lower), x)
 
 
-def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, *,
+def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, *,
           n_trials: int, n_block: int, max_nfev: int = 200, ftol: float = 1e-8,
-          xtol: float = 1e-8, gtol: float = 1e-8, cols: np.ndarray | None = None) -> BlockResult:
+          xtol: float = 1e-8, gtol: float = 1e-8, cols: np.ndarray | None = None,
+          normal: NormalFun | None = None) -> BlockResult:
     """Minimise ½‖fun(x)‖² over ``lower < x < upper`` for a block-arrow problem.
 
     The trust-region-reflective method of :func:`scipy.optimize.least_squares`
@@ -320,8 +379,9 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
     ----------
     fun : callable
         x (T·nb + k,) -> residuals (T·m,), trial-major: the first m belong to trial 0.
-    jac : callable
-        x -> (Jb (T, m, nb), Js (T, m, k)), the Jacobian's per-trial and shared blocks.
+    jac : callable or None
+        x -> (Jb (T, m, nb), Js (T, m, k)), the Jacobian's per-trial and shared blocks
+        (None with ``normal``).
     x0 : ndarray
         Start, (T·nb + k,): the per-trial parameters trial by trial, then the shared ones;
         moved strictly inside the bounds.
@@ -337,6 +397,10 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
         scaled gradient's largest component is below ``gtol``.
     cols : ndarray of int, shape (T, kl), optional
         Grouped shared parameters (module docstring; ``jac`` returns Js (T, m, kl)).
+    normal : callable, optional
+        (x, r (T, m)) -> the blocks of JᵀJ and Jᵀr at x (:data:`Normal`, as
+        :func:`normal_blocks` makes them), in place of ``jac``: the Jacobian is then
+        never held whole (the module docstring's *Memory*).
 
     Returns
     -------
@@ -346,15 +410,15 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     x = _strictly_inside(np.clip(np.asarray(x0, float), lower, upper), lower, upper)
     groups = None if cols is None else Groups(cols, x.size - T * nb)
+    normal = normal or _from_jac(jac, groups)
     r, nfev = fun(x), 1
     cost = 0.5 * float(r @ r)
-    jb, js = jac(x)
-    normal = _normal(jb, js, r.reshape(T, -1), groups)
-    v, _ = _cl_scaling(x, np.concatenate([normal[3].ravel(), normal[4]]), lower, upper)
+    blocks = normal(x, r.reshape(T, -1))
+    v, _ = _cl_scaling(x, np.concatenate([blocks[3].ravel(), blocks[4]]), lower, upper)
     delta = float(np.linalg.norm(x / np.sqrt(v))) or 1.0
     alpha, status = 0.0, 0
     while True:
-        A, B, C, gb, gs = normal
+        A, B, C, gb, gs = blocks
         g = np.concatenate([gb.ravel(), gs])
         v, dv = _cl_scaling(x, g, lower, upper)
         g_norm = float(np.max(np.abs(g * v), initial=0.0))
@@ -364,7 +428,7 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
             break
         d = np.sqrt(v)
         c = g * dv
-        sub = _Scaled(jb, js, A, B, C, gb, gs, d[: T * nb].reshape(T, nb), d[T * nb:],
+        sub = _Scaled(A, B, C, gb, gs, d[: T * nb].reshape(T, nb), d[T * nb:],
                       c[: T * nb].reshape(T, nb), c[T * nb:], groups)
         theta = max(0.995, 1.0 - g_norm)
         actual = -1.0
@@ -381,15 +445,7 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
                 delta = 0.25 * step_h_norm
                 continue
             actual = cost - cost_new
-            if predicted > 0:
-                ratio = actual / predicted
-            else:
-                ratio = 1.0 if predicted == actual == 0 else 0.0
-            new_delta = delta
-            if ratio < 0.25:
-                new_delta = 0.25 * step_h_norm
-            elif ratio > 0.75 and step_h_norm > 0.95 * delta:
-                new_delta = 2.0 * delta
+            ratio, new_delta = _radius(actual, predicted, step_h_norm, delta)
             step_norm = float(np.linalg.norm(step))
             small_f = actual < ftol * cost and ratio > 0.25
             small_x = step_norm < xtol * (xtol + float(np.linalg.norm(x)))
@@ -401,10 +457,31 @@ def solve(fun: Fun, jac: Jac, x0: np.ndarray, lower: np.ndarray, upper: np.ndarr
             delta = new_delta
         if actual > 0:
             x, r, cost = x_new, r_new, cost_new
-            sub = jb = js = None   # the old Jacobian goes before the new one is made
-            jb, js = jac(x)
-            normal = _normal(jb, js, r.reshape(T, -1), groups)
-    return BlockResult(x, cost, r, jb, js, status, nfev)
+            sub = blocks = None    # the old blocks go before the new ones are made
+            blocks = normal(x, r.reshape(T, -1))
+    return BlockResult(x, cost, r, blocks[:3], status, nfev)
+
+
+def _from_jac(jac: Jac, groups: Groups | None) -> NormalFun:
+    """:func:`solve`'s ``normal`` from the Jacobian's blocks ``jac`` (all trials at once)."""
+    def normal(x: np.ndarray, r: np.ndarray) -> Normal:
+        return _normal(*jac(x), r, groups)
+    return normal
+
+
+def _radius(actual: float, predicted: float, step_h_norm: float, delta: float
+            ) -> tuple[float, float]:
+    """The agreement ratio of a step (actual / predicted reduction) and the trust radius
+    it gives (scipy's ``update_tr_radius``)."""
+    if predicted > 0:
+        ratio = actual / predicted
+    else:
+        ratio = 1.0 if predicted == actual == 0 else 0.0
+    if ratio < 0.25:
+        return ratio, 0.25 * step_h_norm
+    if ratio > 0.75 and step_h_norm > 0.95 * delta:
+        return ratio, 2.0 * delta
+    return ratio, delta
 
 
 def _cl_scaling(x, g, lower, upper) -> tuple[np.ndarray, np.ndarray]:
@@ -420,13 +497,22 @@ def _cl_scaling(x, g, lower, upper) -> tuple[np.ndarray, np.ndarray]:
 
 def shared_covariance(jb: np.ndarray, js: np.ndarray, cols: np.ndarray | None = None,
                       n_shared: int | None = None) -> np.ndarray:
-    """The shared parameters' block of (JᵀJ)⁺, (K, K): the inverse of the Schur
-    complement C − Σ Bᵢᵀ Aᵢ⁺ Bᵢ (pseudo-inverses, so a parameter the data do not
-    determine gets a large variance instead of an error). Multiply by σ² for a
-    covariance. ``cols``, ``n_shared``: grouped shared parameters (:func:`solve`'s
-    ``cols`` and K)."""
+    """The shared parameters' block of (JᵀJ)⁺, (K, K), from the Jacobian's blocks
+    (:func:`normal_covariance` of their JᵀJ). Multiply by σ² for a covariance.
+    ``cols``, ``n_shared``: grouped shared parameters (:func:`solve`'s ``cols`` and K)."""
     groups = None if cols is None else Groups(cols, n_shared)
     A, B, C, _, _ = _normal(jb, js, np.zeros(jb.shape[:2]), groups)
+    return normal_covariance(A, B, C, cols)
+
+
+def normal_covariance(A: np.ndarray, B: np.ndarray, C: np.ndarray,
+                      cols: np.ndarray | None = None) -> np.ndarray:
+    """The shared parameters' block of (JᵀJ)⁺, (K, K), from the blocks of JᵀJ (A (T, nb,
+    nb), B (T, nb, kl), C (K, K): :attr:`BlockResult.normal`): the inverse of the Schur
+    complement C − Σ Bᵢᵀ Aᵢ⁺ Bᵢ (pseudo-inverses, so a parameter the data do not
+    determine gets a large variance instead of an error). Multiply by σ² for a
+    covariance. ``cols``: grouped shared parameters (:func:`solve`'s ``cols``)."""
+    groups = None if cols is None else Groups(cols, C.shape[0])
     Ai = np.linalg.pinv(A, rcond=1e-12)
     if groups is None:
         S = C - np.einsum("tpk,tpq,tql->kl", B, Ai, B)

@@ -198,3 +198,112 @@ def test_grouped_covariance_is_the_block_of_the_full_inverse():
     full = np.linalg.inv(J.T @ J)
     np.testing.assert_allclose(blocklsq.shared_covariance(jb, js, cols, 3),
                                full[-3:, -3:], rtol=1e-9)
+
+
+# ---------------------------------------------------------------------------
+# The normal equations' blocks, made a few trials at a time (no Jacobian held)
+# ---------------------------------------------------------------------------
+
+def _grouped_at_truth():
+    a = np.array([1.0, 2.5, 0.7, 4.0, 1.5])
+    e = np.array([0.1, -0.2, 0.0, 0.3, 0.05])
+    group = np.array([0, 1, 1, 2, 0])
+    rates = np.array([0.8, 1.3, 2.1])
+    fun, jac, dense, cols = _grouped(a, e, rates, group, offset=0.02, noise=0.05, seed=2)
+    x = np.concatenate([np.ravel(np.column_stack([a, e])) * 1.1, [0.01], rates * 0.9])
+    return fun, jac, dense, cols, x
+
+
+def _chunked(jac, fun, n, size):
+    """The ``normal`` of :func:`blocklsq.solve` from ``jac``, ``size`` trials at a time."""
+    def normal(x, r, groups):
+        jb, js = jac(x)
+        chunks = [(slice(a, a + size), jb[a:a + size], js[a:a + size], r[a:a + size])
+                  for a in range(0, n, size)]
+        return blocklsq.normal_blocks(chunks, n, groups)
+    return normal
+
+
+def test_normal_blocks_a_few_trials_at_a_time_are_those_of_the_dense_jacobian():
+    # independent computation: JᵀJ and Jᵀr of the dense Jacobian, cut into the blocks
+    # (per-trial A and B in the trial's local columns, C and gs over the shared values)
+    fun, jac, dense, cols, x = _grouped_at_truth()
+    n = cols.shape[0]
+    J, r = dense(x), fun(x)
+    H, g = J.T @ J, J.T @ r
+    groups = blocklsq.Groups(cols, 4)
+    A, B, C, gb, gs = _chunked(jac, fun, n, 2)(x, r.reshape(n, -1), groups)
+    for i in range(n):
+        b = slice(2 * i, 2 * i + 2)
+        np.testing.assert_allclose(A[i], H[b, b], rtol=1e-12)
+        np.testing.assert_allclose(B[i], H[b][:, 2 * n + cols[i]], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(gb[i], g[b], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(C, H[2 * n:, 2 * n:], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(gs, g[2 * n:], rtol=1e-12, atol=1e-12)
+
+
+def test_normal_blocks_of_one_shared_column_are_those_of_the_dense_jacobian():
+    # the plain block-arrow problem (no groups), three trials then one at a time
+    a, e, c = np.array([1.0, 2.5, 0.7, 4.0]), np.array([0.1, -0.2, 0.0, 0.3]), 1.3
+    fun, jac, dense = _problem(a, e, c, noise=0.05, seed=1)
+    n = a.size
+    x = np.concatenate([np.ravel(np.column_stack([a, e])) * 0.9, [1.1]])
+    J, r = dense(x), fun(x)
+    H, g = J.T @ J, J.T @ r
+    A, B, C, gb, gs = _chunked(jac, fun, n, 3)(x, r.reshape(n, -1), None)
+    for i in range(n):
+        b = slice(2 * i, 2 * i + 2)
+        np.testing.assert_allclose(A[i], H[b, b], rtol=1e-12)
+        np.testing.assert_allclose(B[i], H[b, -1:], rtol=1e-12)
+        np.testing.assert_allclose(gb[i], g[b], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(C, H[-1:, -1:], rtol=1e-12)
+    np.testing.assert_allclose(gs, g[-1:], rtol=1e-12)
+
+
+def test_the_model_of_the_cost_along_a_step_is_that_of_the_dense_jacobian():
+    # q(s0 + t s) = a t² + b t + c with a = ½(‖J_h s‖² + sᵀdiag(c_h)s), ... from the
+    # scaled dense Jacobian J_h = J diag(d): the blocks give the same numbers
+    fun, jac, dense, cols, x = _grouped_at_truth()
+    n = cols.shape[0]
+    rng = np.random.default_rng(4)
+    J, r = dense(x), fun(x)
+    groups = blocklsq.Groups(cols, 4)
+    A, B, C, gb, gs = blocklsq._normal(*jac(x), r.reshape(n, -1), groups)
+    d, c = rng.uniform(0.5, 2.0, x.size), rng.uniform(0.0, 1.0, x.size)
+    sub = blocklsq._Scaled(A, B, C, gb, gs, d[: 2 * n].reshape(n, 2), d[2 * n:],
+                           c[: 2 * n].reshape(n, 2), c[2 * n:], groups)
+    s, s0 = rng.standard_normal(x.size), rng.standard_normal(x.size)
+    Jh, gh = J * d, d * (J.T @ r)
+    want = (0.5 * (np.sum((Jh @ s) ** 2) + s @ (c * s)),
+            gh @ s + (Jh @ s) @ (Jh @ s0) + s0 @ (c * s),
+            0.5 * (np.sum((Jh @ s0) ** 2) + s0 @ (c * s0)) + gh @ s0)
+    np.testing.assert_allclose(sub.quadratic_1d(s, s0), want, rtol=1e-10)
+    np.testing.assert_allclose(sub.value(s), want[0] + gh @ s, rtol=1e-10)
+
+
+@pytest.mark.parametrize("c_hi", [10.0, 1.5])
+def test_solve_from_normal_blocks_agrees_with_scipy_trf(c_hi):
+    # the grouped problem of test_grouped_rates_agree_with_scipy_trf, the solver given
+    # the blocks (two trials at a time) instead of the Jacobian; the intervals'
+    # covariance from the result's blocks is that of the dense Jacobian at the solution
+    a = np.array([1.0, 2.5, 0.7, 4.0, 1.5])
+    e = np.array([0.1, -0.2, 0.0, 0.3, 0.05])
+    group = np.array([0, 1, 1, 2, 2])
+    rates = np.array([0.8, 1.3, 2.1])
+    fun, jac, dense, cols = _grouped(a, e, rates, group, offset=0.02, noise=0.05, seed=5)
+    n = a.size
+    x0 = np.concatenate([np.tile([1.0, 0.0], n), [0.0], np.full(3, 0.5)])
+    lo = np.full(x0.size, -10.0)
+    hi = np.concatenate([np.full(2 * n + 1, 10.0), np.full(3, c_hi)])
+    groups = blocklsq.Groups(cols, 4)
+    chunked = _chunked(jac, fun, n, 2)
+    res = blocklsq.solve(fun, None, x0, lo, hi, n_trials=n, n_block=2, cols=cols,
+                         normal=lambda x, r: chunked(x, r, groups))
+    ref = optimize.least_squares(fun, x0, jac=dense, bounds=(lo, hi), method="trf",
+                                 x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12)
+    np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-6)
+    np.testing.assert_allclose(res.x, ref.x, atol=1e-5)
+    J = dense(res.x)
+    full = np.linalg.pinv(J.T @ J, rcond=1e-12)
+    np.testing.assert_allclose(blocklsq.normal_covariance(*res.normal, cols),
+                               full[-4:, -4:], rtol=1e-8, atol=1e-12)

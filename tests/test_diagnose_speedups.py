@@ -374,6 +374,67 @@ def test_joint_jacobian_is_that_of_the_residuals(study):
             np.testing.assert_allclose(js[i], want[i][:, cols], rtol=1e-4, atol=1e-6 * scale)
 
 
+def test_joint_normal_blocks_a_few_trials_at_a_time_are_those_of_the_whole_jacobian(
+        study, monkeypatch):
+    # independent computation: the blocks of JᵀJ and Jᵀr from the whole Jacobian
+    # (JointProblem.jac, every trial at once), with the delay shared and per subject;
+    # the problem's own blocks are made CHUNK_TRIALS trials at a time (3 here, so that
+    # the study's trials fall in several chunks, the last one short)
+    from armfit import blocklsq
+    data, band = _z_data(study)
+    model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    monkeypatch.setattr(joint, "CHUNK_TRIALS", 3)
+    for varying in ((), ("delay.delay_s",)):
+        prob = joint.JointProblem(model, data, sel, varying)
+        assert prob.T > 3 and prob.T % 3
+        x = prob.pack(start_array(data) * 1.1, {"delay.delay_s": 0.01})
+        r = prob.fun(x).reshape(prob.T, -1)
+        groups = None if prob.cols is None else blocklsq.Groups(prob.cols, prob.K)
+        want = blocklsq._normal(*prob.jac(x), r, groups)
+        got = prob.normal(x, r)
+        for g, w in zip(got, want, strict=True):
+            assert g.shape == w.shape
+            np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12 * np.abs(w).max())
+
+
+def test_a_joint_fit_never_holds_its_whole_jacobian(study, monkeypatch):
+    # the memory of a joint fit's solve (tracemalloc's peak, numpy's arrays included):
+    # its blocks of JᵀJ are made a chunk of trials at a time, so it takes less than the
+    # same solve given the whole Jacobian (blocklsq.solve with JointProblem.jac, the
+    # reference) by at least half that Jacobian's size, (T, m, 5 + k) float64; both
+    # take the same steps
+    import tracemalloc
+
+    from armfit import blocklsq
+    data, band = _z_data(study)
+    many = data.subset(np.tile(np.arange(data.h.shape[0]), 16))     # 16 x the trials
+    model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
+    sel = (many.f_hz >= band[0]) & (many.f_hz <= band[1])
+    monkeypatch.setattr(joint, "CHUNK_TRIALS", 4)
+    prob = joint.JointProblem(model, many, sel)
+    x0 = prob.pack(start_array(many), {"delay.delay_s": 0.01})
+    lo, hi = prob.bounds()
+
+    def peak(solve):
+        tracemalloc.start()
+        try:
+            base = tracemalloc.get_traced_memory()[0]
+            res = solve()
+            return res, tracemalloc.get_traced_memory()[1] - base
+        finally:
+            tracemalloc.stop()
+
+    res, blocks = peak(lambda: prob.solve(x0, 20))
+    ref, whole = peak(lambda: blocklsq.solve(prob.fun, prob.jac, x0, lo, hi,
+                                             n_trials=prob.T, n_block=prob.nb,
+                                             max_nfev=20))
+    assert res.nfev == ref.nfev > 1
+    np.testing.assert_allclose(res.x, ref.x, rtol=1e-6, atol=1e-9)
+    jacobian = prob.T * 2 * int(sel.sum()) * (prob.nb + prob.k) * 8
+    assert blocks < whole - 0.5 * jacobian, (blocks, whole, jacobian)
+
+
 def test_refine_stops_where_the_values_are_those_of_a_tight_fit(study):
     # refine stops when a step lowers the cost by less than FTOL_VARIANCE (1 %) of the
     # residual variance s² = 2 cost/(m − p). The reference: the same fit from the same
@@ -394,7 +455,7 @@ def test_refine_stops_where_the_values_are_those_of_a_tight_fit(study):
         s2 = 2 * tight.cost / (tight.fun.size - tight.x.size)
         assert 0 <= got.cost - tight.cost <= 10 * FTOL_VARIANCE * s2
         fit = joint._result(prob, got)
-        ref = joint._result(prob, replace(tight, jb=None, js=None))
+        ref = joint._result(prob, tight)
         for n in ("delay.delay_s", "lowpass.cutoff_hz"):
             half = (ref.shared_hi[n] - ref.shared_lo[n]) / 2
             assert abs(fit.shared[n] - ref.shared[n]) < 0.1 * half, n

@@ -68,7 +68,7 @@ EXPECTED: dict[str, str] = {
     "compare.stdout":
         "9ec295d8ffc8ff63475dc0ce8b4ae3c280a08dd2fd2818a338b84af58aca4193",
     "diagnose.stdout":
-        "f32a1ca69c348b68b4f9c878027ddd7863ba687688c0775e3483aea6a5cebaa7",
+        "8480152ea1ea2eb4e8a48527c8a9dbcb436adc16c014a129fe791a48f23422a8",
     "plot-bode.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "bode.png":
@@ -84,7 +84,7 @@ EXPECTED: dict[str, str] = {
     "run/compare.csv":
         "07077598cb14bdf883654c1287ff00aeb0f59ec1873e435de395420e079bf7e5",
     "run/diagnosis.json":
-        "f32a1ca69c348b68b4f9c878027ddd7863ba687688c0775e3483aea6a5cebaa7",
+        "8480152ea1ea2eb4e8a48527c8a9dbcb436adc16c014a129fe791a48f23422a8",
     "run/grip_params.csv":
         "e606715dee166b08ea22b22a9e8fcdb5dab3169aaba93469eec68b08f6f6901d",
     "run/grip_params.tex":

@@ -190,9 +190,19 @@ class JointProblem:
         return r_db, r_deg
 
     def fun(self, x: np.ndarray) -> np.ndarray:
+        """The weighted residuals (dB, then deg, of each trial) at ``x``, (T·m,); a
+        residual that is not finite is replaced by a constant. Made in place: besides
+        the result, only the residuals in dB and deg are held."""
         r_db, r_deg = self.split_res(x)
-        r = np.concatenate([r_db * self.w_db, r_deg * self.w_deg], axis=1)
-        return np.where(np.isfinite(r), r, 1e6 if self.unused is None else self.unused).ravel()
+        n = r_db.shape[1]
+        r = np.empty((self.T, 2 * n))
+        np.multiply(r_db, self.w_db, out=r[:, :n])
+        np.multiply(r_deg, self.w_deg, out=r[:, n:])
+        del r_db, r_deg
+        bad = ~np.isfinite(r)
+        if bad.any():
+            r[bad] = 1e6 if self.unused is None else self.unused[bad]
+        return r.ravel()
 
     def jac(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Jacobian of :meth:`fun` as its blocks (per-trial (T, m, 5), shared
@@ -211,6 +221,21 @@ class JointProblem:
             D = self._jac_rows(z[rows], rows)                 # (t, m, P)
             jb[rows], js[rows] = D[..., : self.nb], D[..., self.nb:]
         return jb, js
+
+    def normal(self, x: np.ndarray, r: np.ndarray) -> blocklsq.Normal:
+        """The blocks of JᵀJ and Jᵀr (:func:`armfit.blocklsq.normal_blocks`) at ``x``,
+        whose residuals (:meth:`fun`) are ``r`` (T, m): :meth:`jac`'s Jacobian made
+        :data:`CHUNK_TRIALS` trials at a time and reduced at once, so that the Jacobian
+        (about 40 kB a trial) is never held whole."""
+        z = self.unpack(x)
+        groups = None if self.cols is None else blocklsq.Groups(self.cols, self.K)
+
+        def chunks():
+            for a in range(0, self.T, CHUNK_TRIALS):
+                rows = slice(a, a + CHUNK_TRIALS)
+                D = self._jac_rows(z[rows], rows)                 # (t, m, P)
+                yield rows, D[..., : self.nb], D[..., self.nb:], r[rows]
+        return blocklsq.normal_blocks(chunks(), self.T, groups)
 
     def _jac_rows(self, z: np.ndarray, rows: slice) -> np.ndarray:
         """The Jacobian of the trials ``rows`` (their parameters ``z``), (t, m, P).
@@ -253,8 +278,9 @@ class JointProblem:
     def solve(self, x0: np.ndarray, max_nfev: int, **tol) -> blocklsq.BlockResult:
         """The joint least-squares fit from ``x0`` (:func:`armfit.blocklsq.solve`)."""
         lo, hi = self.bounds()
-        return blocklsq.solve(self.fun, self.jac, x0, lo, hi, n_trials=self.T,
-                              n_block=self.nb, max_nfev=max_nfev, cols=self.cols, **tol)
+        return blocklsq.solve(self.fun, None, x0, lo, hi, n_trials=self.T,
+                              n_block=self.nb, max_nfev=max_nfev, cols=self.cols,
+                              normal=self.normal, **tol)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo = np.concatenate([np.tile(self.space.zlo[: self.nb], self.T),
@@ -383,17 +409,14 @@ def _population(space: ParamSpace, name: str, by_subject: Mapping[str, Mapping[s
 
 
 def refine(prob: JointProblem, x0: np.ndarray, max_nfev: int) -> blocklsq.BlockResult:
-    """The joint fit from ``x0``, without its Jacobian blocks (``jb``, ``js`` None): a
-    joint fit holds several results at once, each block as large as the study, and the
-    intervals evaluate the Jacobian again at the solution (:func:`_effect_ci`; the same
-    values, :meth:`JointProblem.jac` being a function of the parameters alone).
+    """The joint fit from ``x0`` (:meth:`JointProblem.solve`).
 
     The fit stops when a step lowers the cost by less than :data:`FTOL_VARIANCE` of the
     residual variance s² = 2·cost/(m − p) (``ftol`` = 2·FTOL_VARIANCE/(m − p), at least
     1e-8), or moves the parameters by less than 1e-8 of their size."""
     m = 2 * prob.f.size * prob.T
     ftol = max(1e-8, 2.0 * FTOL_VARIANCE / max(m - x0.size, 1))
-    return replace(prob.solve(x0, max_nfev, ftol=ftol, xtol=1e-8), jb=None, js=None)
+    return prob.solve(x0, max_nfev, ftol=ftol, xtol=1e-8)
 
 
 def _misfit_limit(prob: JointProblem, res) -> tuple[np.ndarray, float]:
@@ -537,7 +560,7 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
 
 
 def _effect_ci(prob: JointProblem, res) -> tuple[dict, dict]:
-    """95 % intervals of the effect parameters from the Jacobian (Schur complement):
+    """95 % intervals of the effect parameters from JᵀJ (Schur complement):
     {name: value} of the shared ones and {(subject, name): value} of the varying ones,
     lower and upper."""
     if not prob.k:
@@ -545,8 +568,7 @@ def _effect_ci(prob: JointProblem, res) -> tuple[dict, dict]:
     m, p = res.fun.size, res.x.size
     s2 = 2 * res.cost / max(m - p, 1)
     K = prob.K
-    jb, js = (res.jb, res.js) if res.jb is not None else prob.jac(res.x)
-    var = s2 * np.diag(blocklsq.shared_covariance(jb, js, prob.cols, K))
+    var = s2 * np.diag(blocklsq.normal_covariance(*res.normal, prob.cols))
     half = Z_975 * np.sqrt(np.maximum(var, 0))
     z = res.x[-K:]
     sp = prob.space
