@@ -142,8 +142,8 @@ def _normal(jb: np.ndarray, js: np.ndarray, r: np.ndarray, groups: Groups | None
 class _Quadratic:
     """The model q(p) = ½‖J_h p‖² + ½pᵀdiag(c_h)p + g_hᵀp of a trust-region subproblem in
     the scaled ("hat") variables, as :func:`_select_step` uses it: a subclass gives
-    :meth:`jdot` (J_h·p, any shape), :attr:`g_h` and :attr:`c_h` (flat, one entry per
-    parameter)."""
+    :attr:`g_h` and :attr:`c_h` (flat, one entry per parameter) and either :meth:`jdot`
+    (J_h·p, any shape) or its own :meth:`quadratic_1d` (:class:`_Scaled`: from JᵀJ)."""
 
     g_h: np.ndarray
     c_h: np.ndarray
