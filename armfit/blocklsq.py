@@ -42,8 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BlockResult", "Groups", "Normal", "normal_blocks", "normal_covariance",
-           "shared_covariance", "solve"]
+__all__ = ["BlockResult", "Groups", "Normal", "normal_blocks", "normal_covariance", "solve"]
 
 #: Residual function: x (T·nb + k,) -> r (T·m,), trial-major.
 Fun = Callable[[np.ndarray], np.ndarray]
@@ -493,16 +492,6 @@ def _cl_scaling(x, g, lower, upper) -> tuple[np.ndarray, np.ndarray]:
     with np.errstate(invalid="ignore"):
         v = np.where(up, upper - x, np.where(low, x - lower, 1.0))
     return v, np.where(up, -1.0, np.where(low, 1.0, 0.0))
-
-
-def shared_covariance(jb: np.ndarray, js: np.ndarray, cols: np.ndarray | None = None,
-                      n_shared: int | None = None) -> np.ndarray:
-    """The shared parameters' block of (JᵀJ)⁺, (K, K), from the Jacobian's blocks
-    (:func:`normal_covariance` of their JᵀJ). Multiply by σ² for a covariance.
-    ``cols``, ``n_shared``: grouped shared parameters (:func:`solve`'s ``cols`` and K)."""
-    groups = None if cols is None else Groups(cols, n_shared)
-    A, B, C, _, _ = _normal(jb, js, np.zeros(jb.shape[:2]), groups)
-    return normal_covariance(A, B, C, cols)
 
 
 def normal_covariance(A: np.ndarray, B: np.ndarray, C: np.ndarray,

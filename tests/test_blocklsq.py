@@ -102,7 +102,8 @@ def test_shared_covariance_is_the_block_of_the_full_inverse():
     jb, js = jac(x)
     J = dense(x)
     full = np.linalg.inv(J.T @ J)
-    np.testing.assert_allclose(blocklsq.shared_covariance(jb, js), full[-1:, -1:],
+    A, B, C, _, _ = blocklsq._normal(jb, js, np.zeros(jb.shape[:2]))
+    np.testing.assert_allclose(blocklsq.normal_covariance(A, B, C), full[-1:, -1:],
                                rtol=1e-9)
 
 
@@ -145,6 +146,16 @@ def _grouped(a, e, rates, group, offset, noise=0.0, seed=0):
     return fun, jac, dense, cols
 
 
+def _chunked(jac, n, size, groups):
+    """The ``normal`` of :func:`blocklsq.solve` from ``jac``, ``size`` trials at a time."""
+    def normal(x, r):
+        jb, js = jac(x)
+        chunks = [(slice(a, a + size), jb[a:a + size], js[a:a + size], r[a:a + size])
+                  for a in range(0, n, size)]
+        return blocklsq.normal_blocks(chunks, n, groups)
+    return normal
+
+
 def test_grouped_rates_noise_free_return_the_truth():
     # truth: three groups of trials with their own rates, a slope shared by all
     a = np.array([1.0, 2.5, 0.7, 4.0, 1.5, 3.0])
@@ -162,10 +173,14 @@ def test_grouped_rates_noise_free_return_the_truth():
     np.testing.assert_allclose(res.x[: 2 * n: 2], a, rtol=1e-7)
 
 
+@pytest.mark.parametrize("given", ["jacobian", "blocks"])
 @pytest.mark.parametrize("c_hi", [10.0, 1.5])
-def test_grouped_rates_agree_with_scipy_trf(c_hi):
+def test_grouped_rates_agree_with_scipy_trf(c_hi, given):
     # the same problem with noise, against scipy's trf on the dense Jacobian; with the
-    # rates bounded by 1.5 the last group's (true 2.1) ends on the bound
+    # rates bounded by 1.5 the last group's (true 2.1) ends on the bound. The solver is
+    # given the Jacobian's blocks, or the blocks of JᵀJ and Jᵀr made two trials at a
+    # time; the covariance from the result's blocks is that of the dense Jacobian at
+    # the solution
     a = np.array([1.0, 2.5, 0.7, 4.0, 1.5])
     e = np.array([0.1, -0.2, 0.0, 0.3, 0.05])
     group = np.array([0, 1, 1, 2, 2])
@@ -175,13 +190,21 @@ def test_grouped_rates_agree_with_scipy_trf(c_hi):
     x0 = np.concatenate([np.tile([1.0, 0.0], n), [0.0], np.full(3, 0.5)])
     lo = np.full(x0.size, -10.0)
     hi = np.concatenate([np.full(2 * n + 1, 10.0), np.full(3, c_hi)])
-    res = blocklsq.solve(fun, jac, x0, lo, hi, n_trials=n, n_block=2, cols=cols)
+    if given == "jacobian":
+        res = blocklsq.solve(fun, jac, x0, lo, hi, n_trials=n, n_block=2, cols=cols)
+    else:
+        res = blocklsq.solve(fun, None, x0, lo, hi, n_trials=n, n_block=2, cols=cols,
+                             normal=_chunked(jac, n, 2, blocklsq.Groups(cols, 4)))
     ref = optimize.least_squares(fun, x0, jac=dense, bounds=(lo, hi), method="trf",
                                  x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12)
     np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-6)
     np.testing.assert_allclose(res.x, ref.x, atol=1e-5)
     if c_hi == 1.5:
         assert res.x[-1] == pytest.approx(1.5, abs=1e-6)
+    J = dense(res.x)
+    full = np.linalg.pinv(J.T @ J, rcond=1e-12)
+    np.testing.assert_allclose(blocklsq.normal_covariance(*res.normal, cols),
+                               full[-4:, -4:], rtol=1e-8, atol=1e-12)
 
 
 def test_grouped_covariance_is_the_block_of_the_full_inverse():
@@ -196,7 +219,9 @@ def test_grouped_covariance_is_the_block_of_the_full_inverse():
     jb, js = jac(x)
     J = dense(x)
     full = np.linalg.inv(J.T @ J)
-    np.testing.assert_allclose(blocklsq.shared_covariance(jb, js, cols, 3),
+    A, B, C, _, _ = blocklsq._normal(jb, js, np.zeros(jb.shape[:2]),
+                                     blocklsq.Groups(cols, 3))
+    np.testing.assert_allclose(blocklsq.normal_covariance(A, B, C, cols),
                                full[-3:, -3:], rtol=1e-9)
 
 
@@ -214,16 +239,6 @@ def _grouped_at_truth():
     return fun, jac, dense, cols, x
 
 
-def _chunked(jac, fun, n, size):
-    """The ``normal`` of :func:`blocklsq.solve` from ``jac``, ``size`` trials at a time."""
-    def normal(x, r, groups):
-        jb, js = jac(x)
-        chunks = [(slice(a, a + size), jb[a:a + size], js[a:a + size], r[a:a + size])
-                  for a in range(0, n, size)]
-        return blocklsq.normal_blocks(chunks, n, groups)
-    return normal
-
-
 def test_normal_blocks_a_few_trials_at_a_time_are_those_of_the_dense_jacobian():
     # independent computation: JᵀJ and Jᵀr of the dense Jacobian, cut into the blocks
     # (per-trial A and B in the trial's local columns, C and gs over the shared values)
@@ -232,7 +247,7 @@ def test_normal_blocks_a_few_trials_at_a_time_are_those_of_the_dense_jacobian():
     J, r = dense(x), fun(x)
     H, g = J.T @ J, J.T @ r
     groups = blocklsq.Groups(cols, 4)
-    A, B, C, gb, gs = _chunked(jac, fun, n, 2)(x, r.reshape(n, -1), groups)
+    A, B, C, gb, gs = _chunked(jac, n, 2, groups)(x, r.reshape(n, -1))
     for i in range(n):
         b = slice(2 * i, 2 * i + 2)
         np.testing.assert_allclose(A[i], H[b, b], rtol=1e-12)
@@ -250,7 +265,7 @@ def test_normal_blocks_of_one_shared_column_are_those_of_the_dense_jacobian():
     x = np.concatenate([np.ravel(np.column_stack([a, e])) * 0.9, [1.1]])
     J, r = dense(x), fun(x)
     H, g = J.T @ J, J.T @ r
-    A, B, C, gb, gs = _chunked(jac, fun, n, 3)(x, r.reshape(n, -1), None)
+    A, B, C, gb, gs = _chunked(jac, n, 3, None)(x, r.reshape(n, -1))
     for i in range(n):
         b = slice(2 * i, 2 * i + 2)
         np.testing.assert_allclose(A[i], H[b, b], rtol=1e-12)
@@ -279,31 +294,3 @@ def test_the_model_of_the_cost_along_a_step_is_that_of_the_dense_jacobian():
             0.5 * (np.sum((Jh @ s0) ** 2) + s0 @ (c * s0)) + gh @ s0)
     np.testing.assert_allclose(sub.quadratic_1d(s, s0), want, rtol=1e-10)
     np.testing.assert_allclose(sub.value(s), want[0] + gh @ s, rtol=1e-10)
-
-
-@pytest.mark.parametrize("c_hi", [10.0, 1.5])
-def test_solve_from_normal_blocks_agrees_with_scipy_trf(c_hi):
-    # the grouped problem of test_grouped_rates_agree_with_scipy_trf, the solver given
-    # the blocks (two trials at a time) instead of the Jacobian; the intervals'
-    # covariance from the result's blocks is that of the dense Jacobian at the solution
-    a = np.array([1.0, 2.5, 0.7, 4.0, 1.5])
-    e = np.array([0.1, -0.2, 0.0, 0.3, 0.05])
-    group = np.array([0, 1, 1, 2, 2])
-    rates = np.array([0.8, 1.3, 2.1])
-    fun, jac, dense, cols = _grouped(a, e, rates, group, offset=0.02, noise=0.05, seed=5)
-    n = a.size
-    x0 = np.concatenate([np.tile([1.0, 0.0], n), [0.0], np.full(3, 0.5)])
-    lo = np.full(x0.size, -10.0)
-    hi = np.concatenate([np.full(2 * n + 1, 10.0), np.full(3, c_hi)])
-    groups = blocklsq.Groups(cols, 4)
-    chunked = _chunked(jac, fun, n, 2)
-    res = blocklsq.solve(fun, None, x0, lo, hi, n_trials=n, n_block=2, cols=cols,
-                         normal=lambda x, r: chunked(x, r, groups))
-    ref = optimize.least_squares(fun, x0, jac=dense, bounds=(lo, hi), method="trf",
-                                 x_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-12)
-    np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-6)
-    np.testing.assert_allclose(res.x, ref.x, atol=1e-5)
-    J = dense(res.x)
-    full = np.linalg.pinv(J.T @ J, rcond=1e-12)
-    np.testing.assert_allclose(blocklsq.normal_covariance(*res.normal, cols),
-                               full[-4:, -4:], rtol=1e-8, atol=1e-12)

@@ -152,6 +152,7 @@ class JointProblem:
             self.local[cols] = np.broadcast_to(np.arange(self.k), cols.shape)
         else:
             self.cols, self.K, self.local = None, self.k, np.arange(self.k)
+        self.groups = None if self.cols is None else blocklsq.Groups(self.cols, self.K)
 
     def unpack(self, x: np.ndarray) -> np.ndarray:
         """x (T·5 + K) → z (T, P) in the transformed space."""
@@ -213,13 +214,10 @@ class JointProblem:
         shared columns for all trials together), steps √eps·max(1, |z|), taken backwards
         at an upper bound. The trials are taken :data:`CHUNK_TRIALS` at a time, so the
         temporaries do not grow with the number of trials."""
-        z = self.unpack(x)                                    # (T, P)
         m = 2 * self.f.size
         jb, js = np.empty((self.T, m, self.nb)), np.empty((self.T, m, self.k))
-        for a in range(0, self.T, CHUNK_TRIALS):
-            rows = slice(a, a + CHUNK_TRIALS)
-            D = self._jac_rows(z[rows], rows)                 # (t, m, P)
-            jb[rows], js[rows] = D[..., : self.nb], D[..., self.nb:]
+        for rows, jb_rows, js_rows in self._jac_chunks(x):
+            jb[rows], js[rows] = jb_rows, js_rows
         return jb, js
 
     def normal(self, x: np.ndarray, r: np.ndarray) -> blocklsq.Normal:
@@ -227,15 +225,18 @@ class JointProblem:
         whose residuals (:meth:`fun`) are ``r`` (T, m): :meth:`jac`'s Jacobian made
         :data:`CHUNK_TRIALS` trials at a time and reduced at once, so that the Jacobian
         (about 40 kB a trial) is never held whole."""
-        z = self.unpack(x)
-        groups = None if self.cols is None else blocklsq.Groups(self.cols, self.K)
+        return blocklsq.normal_blocks(((rows, jb, js, r[rows])
+                                       for rows, jb, js in self._jac_chunks(x)),
+                                      self.T, self.groups)
 
-        def chunks():
-            for a in range(0, self.T, CHUNK_TRIALS):
-                rows = slice(a, a + CHUNK_TRIALS)
-                D = self._jac_rows(z[rows], rows)                 # (t, m, P)
-                yield rows, D[..., : self.nb], D[..., self.nb:], r[rows]
-        return blocklsq.normal_blocks(chunks(), self.T, groups)
+    def _jac_chunks(self, x: np.ndarray):
+        """(rows, Jb (t, m, 5), Js (t, m, k)) of :meth:`jac`, :data:`CHUNK_TRIALS` trials
+        at a time."""
+        z = self.unpack(x)                                    # (T, P)
+        for a in range(0, self.T, CHUNK_TRIALS):
+            rows = slice(a, a + CHUNK_TRIALS)
+            D = self._jac_rows(z[rows], rows)                 # (t, m, P)
+            yield rows, D[..., : self.nb], D[..., self.nb:]
 
     def _jac_rows(self, z: np.ndarray, rows: slice) -> np.ndarray:
         """The Jacobian of the trials ``rows`` (their parameters ``z``), (t, m, P).
