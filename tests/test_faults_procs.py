@@ -333,6 +333,12 @@ def test_a_signal_inside_a_finaliser_still_stops_the_command(sig, tmp_path):
 #: A command whose way out does not end (as a pool waited for forever did): SIGINT, or
 #: SIGTERM, reaches it while it writes an output; its way out then sleeps, before the
 #: output's temporary is removed.
+#: A command whose way out never ends. It waits in short sleeps: Python's C handler
+#: only notes a signal, and its Python handler runs at the next check between
+#: bytecodes. A signal that lands after the check that follows the print and before the
+#: sleep's system call starts (the test sends it as soon as it reads the line) does not
+#: interrupt that sleep: one sleep of 60 s then ran whole (65 s to the end, once in a
+#: loaded test run). The loop checks at every turn.
 STUCK = textwrap.dedent("""
     import sys, time
     from armfit.cli import entry
@@ -342,10 +348,12 @@ STUCK = textwrap.dedent("""
         tmp.write_text("partial")
         try:
             print("working", flush=True)
-            time.sleep(60)
+            for _ in range(600):
+                time.sleep(0.1)
         except KeyboardInterrupt as exc:
             print("stopping", flush=True)
-            time.sleep(60)
+            for _ in range(600):
+                time.sleep(0.1)
             entry.stop_line(exc)
 """)
 
