@@ -810,7 +810,10 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                                bands=models.bands, effects=_effects_of(adoption),
                                executor=workers.later, **per_subject)
     wu_path = config.path("wu.csv")
-    derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived")
+    # the responses only: W_max (eq. 6) uses no other value of the rows, and the values
+    # would more than double what the rows hold
+    derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived",
+                           values=())
     unc = api.fit_uncertainty(derived, models.nominal, cost=o.wu_cost, jobs=o.jobs,
                               executor=workers.executor, by_subject=adoption.by_subject)
     unc = replace(unc, spectra=None)   # the derived trial rows are let go
