@@ -41,6 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from armfit._order import unique
+
 #: p-value below which a trial's force counts as responding to its position. The
 #: statistic is conservative on open-loop data (docs/methods.md, measured by
 #: benchmarks/validate_estimators.py): a false alarm is rarer than this per trial, while
@@ -217,7 +219,7 @@ def _smooth_below(n: int) -> int:
 def _future_basis(k: int, blocks: int) -> np.ndarray:
     """(k, m) block averages over the future lags 1…k, log-spaced edges, unit norm each
     (m ≤ ``blocks``: edges that round to the same lag merge)."""
-    edges = np.unique(np.round(np.geomspace(1.0, k + 1.0, blocks + 1)).astype(int))
+    edges = unique(np.round(np.geomspace(1.0, k + 1.0, blocks + 1)).astype(int))
     basis = np.zeros((k, edges.size - 1))
     for i, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
         basis[a - 1:b - 1, i] = 1.0 / math.sqrt(b - a)

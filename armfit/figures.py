@@ -59,6 +59,7 @@ from matplotlib.ticker import (
 )
 
 from armfit import noise
+from armfit._order import median, unique
 from armfit.constants import AXES, GRID_HZ
 from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import atomic_path, check_output
@@ -289,7 +290,7 @@ def _turns_to(phase_deg: np.ndarray, ref_deg: np.ndarray) -> float:
     0 where they share no finite point."""
     d = np.asarray(ref_deg, dtype=float) - np.asarray(phase_deg, dtype=float)
     d = d[np.isfinite(d)]
-    return 360.0 * float(np.round(np.median(d) / 360.0)) if d.size else 0.0
+    return 360.0 * float(np.round(median(d) / 360.0)) if d.size else 0.0
 
 
 @dataclass(frozen=True)
@@ -836,7 +837,7 @@ def _bode_models(params: pd.DataFrame | None, axis: str, f: np.ndarray) -> list[
     for g, row in _params_for(params, axis):
         model, theta = model_from_row(row)
         fb = fit_band(row)
-        fd = f if fb is None else np.union1d(f, [x for x in fb if f[0] <= x <= f[-1]])
+        fd = f if fb is None else unique(np.concatenate([f, [x for x in fb if f[0] <= x <= f[-1]]]))
         h = model.response(fd, theta)
         out.append((g, row, fd, h, _phase_deg(h), fb))
     return out

@@ -79,6 +79,7 @@ from functools import lru_cache
 import numpy as np
 
 from armfit import _scipy, multilsq, noise
+from armfit._order import median, percentile, unique
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.data import sobol_points
 from armfit.errors import BadInputError, ConvergenceError, EffectDefinitionError, UsageError
@@ -564,7 +565,7 @@ def _subset(f: np.ndarray, n: int) -> np.ndarray:
     if f.size <= n:
         return np.arange(f.size)
     targets = np.geomspace(f[0], f[-1], n)
-    return np.unique(np.searchsorted(f, targets).clip(0, f.size - 1))
+    return unique(np.searchsorted(f, targets).clip(0, f.size - 1))
 
 
 # ---------------------------------------------------------------------------
@@ -879,7 +880,7 @@ def bootstrap_fit(base: FitResult, f_hz, H_trials, subjects: Sequence[str], *,
     subjects = np.asarray(subjects)
     if H_trials.ndim != 2 or H_trials.shape[0] != subjects.size:
         raise UsageError("bootstrap needs one subject label per trial response")
-    labels = np.unique(subjects)
+    labels = unique(subjects)
     members = [np.flatnonzero(subjects == s) for s in labels]
     rng = np.random.default_rng(seed)
     names = list(base.params)
@@ -901,7 +902,7 @@ def bootstrap_fit(base: FitResult, f_hz, H_trials, subjects: Sequence[str], *,
     if failed > max_failed * n_boot:
         raise ConvergenceError(f"bootstrap: {failed} of {n_boot} refits did not converge")
     arr = np.array(draws)
-    q_lo, q_hi = np.percentile(arr, [50 * (1 - level), 50 * (1 + level)], axis=0)
+    q_lo, q_hi = percentile(arr, [50 * (1 - level), 50 * (1 + level)], axis=0)
     if widen:
         # never narrower than base's interval (noise and band jackknife): resampling
         # subjects sees their spread, not the misfit every subject shares
@@ -1203,7 +1204,7 @@ def fit_trial(key: tuple[str, str, float, int | None], rows, *, cost: str = "com
     try:
         model = ClosedLoopModel.for_axis(axis, effects, held=held)
         f, h, se_db, se_deg = rows
-        if np.unique(f).size != f.size:
+        if unique(f).size != f.size:
             raise BadInputError("repeated frequencies in the trial's response",
                                 column="freq_hz")
         fit = fit_response(model, f, h, se_db=se_db, se_deg=se_deg, cost=cost, band=band,
@@ -1305,7 +1306,7 @@ def fit_trial_models(spectra, *, cost: str = "complex",
     medians = {}
     for axis in {t.axis for t in out}:
         errs = [_misfit(t.fit) for t in out if t.axis == axis and t.fit is not None]
-        medians[axis] = float(np.median(errs)) if errs else np.inf
+        medians[axis] = float(median(errs)) if errs else np.inf
     again = [i for i, (t, (key, _, kw)) in enumerate(zip(out, tasks, strict=True))
              if kw["x0"] is not None and _needs_global(
                  t, medians[t.axis], start_bounds[(key[0], float(key[2]))])]

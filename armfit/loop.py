@@ -52,6 +52,7 @@ import numpy as np
 import pandas as pd
 from scipy import linalg
 
+from armfit._order import median, percentile
 from armfit.errors import UsageError, cell
 from armfit.io.schema import is_missing
 from armfit.models.arm import ClosedLoopModel
@@ -1042,8 +1043,8 @@ def axis_summary(table) -> dict[str, dict]:
         i = int(np.argmin(k))
         lim = g.iloc[i]
         entry = {"k_max_min_N_per_m": float(k.min()),
-                 "k_max_median_N_per_m": float(np.median(k)),
-                 "k_max_p05_N_per_m": float(np.percentile(k, 5)),
+                 "k_max_median_N_per_m": float(median(k)),
+                 "k_max_p05_N_per_m": float(percentile(k, 5)),
                  "n_models": int(k.size),
                  "limiting_row": int(lim["row"]),
                  "limiting": describe(lim)}

@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from armfit._order import nanmedian
+
 __all__ = ["POOL_BINS", "SE_CAP_DB", "SE_CAP_DEG", "SE_FLOOR_DB", "SE_FLOOR_DEG",
            "normalised", "rms_norm", "standard_errors"]
 
@@ -82,25 +84,13 @@ def _moving_mean(x: np.ndarray, size: int) -> np.ndarray:
     return np.cumsum(np.concatenate([first, steps], axis=-1), axis=-1) / size
 
 
-def _row_nanmedian(x: np.ndarray) -> np.ndarray:
-    """``np.nanmedian(x, axis=-1, keepdims=True)``, the same numbers: the middle of each
-    row's sorted values that are not NaN, for an even count the two middle ones added and
-    halved as numpy does; NaN for a row without any. (numpy's own takes a masked-array
-    path for rows this short, several times slower.)"""
-    s = np.sort(x, axis=-1)                                   # NaN sorted last
-    n = np.count_nonzero(~np.isnan(x), axis=-1)[..., None]
-    lo = np.take_along_axis(s, np.maximum(n - 1, 0) // 2, axis=-1)
-    hi = np.take_along_axis(s, np.minimum(n // 2, x.shape[-1] - 1), axis=-1)
-    return np.where(n > 0, (lo + hi) / 2, np.nan)
-
-
 def _one(se: np.ndarray, cap: float, floor: float, pool: int) -> np.ndarray:
     """Steps 1–4 of the module docstring on standard errors (..., n_freq)."""
     se = np.array(se, float, ndmin=1)
     with np.errstate(invalid="ignore"):
         se = np.minimum(se, cap)                      # inf -> cap, NaN stays NaN
         ok = np.isfinite(se) & (se > 0)
-    fill = _row_nanmedian(np.where(ok, se, np.nan))
+    fill = nanmedian(np.where(ok, se, np.nan), axis=-1)[..., None]
     se = np.where(ok, se, fill)
     if pool > 1:
         var = _moving_mean(se * se, pool)

@@ -83,6 +83,7 @@ from typing import Generic, TypeVar
 import numpy as np
 
 from armfit import api
+from armfit._order import median
 from armfit.adopt import Adoption, adopt
 from armfit.api import compare_frame
 from armfit.constants import AXES, FORCE_LIMIT_N, GRID_HZ, PAPER_BANDS
@@ -1240,4 +1241,4 @@ def _warn_at_bound(which: str, model: api.ModelFit, warn: Warn | None) -> None:
 def _median(values) -> float:
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
-    return float(np.median(v)) if v.size else float("nan")
+    return float(median(v)) if v.size else float("nan")

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from armfit._order import median, nanmedian, nanpercentile, percentile, unique
 from armfit._version import __version__
 from armfit.constants import (
     AXES,
@@ -494,7 +495,7 @@ def usable_bins(sp: BinSpectra, grid: np.ndarray) -> tuple[int, int]:
         raise UsageError(f"no frequency bin of the spectra between {f[min(first, f.size - 1)]:g}"
                          f" Hz and {grid[-1]:g} Hz")
     p = sp.p_ff[first:last]
-    live = np.flatnonzero(p >= NEGLIGIBLE_FORCE_POWER * np.median(p))
+    live = np.flatnonzero(p >= NEGLIGIBLE_FORCE_POWER * median(p))
     if live.size:
         first, last = first + int(live[0]), first + int(live[-1]) + 1
     return first, last
@@ -1294,7 +1295,7 @@ def check_estimators(h1: GridResponse, h2: GridResponse, href: GridResponse | No
     ref_coh = None
     is_force_ref = reference is not None and reference.endswith("_N")
     if is_force_ref and ref_force_coherence is not None and flagged.any():
-        ref_coh = float(np.nanmedian(ref_force_coherence[flagged]))
+        ref_coh = float(nanmedian(ref_force_coherence[flagged]))
     cause = None
     if flagged.any():
         cause = ("closed_loop" if fires else "noisy_force"
@@ -1527,11 +1528,11 @@ def _nan_stat(x: np.ndarray, how: str, *, ddof: int = 0, q=None) -> np.ndarray:
     if how == "mean":
         out[cols] = np.where(ok[:, cols], sub, 0.0).sum(axis=0) / cnt[cols]
     elif how == "median":
-        out[cols] = np.nanmedian(sub, axis=0)
+        out[cols] = nanmedian(sub, axis=0)
     elif how == "std":
         out[cols] = np.nanstd(sub, axis=0, ddof=ddof)
     elif how == "percentile":
-        out[:, cols] = np.nanpercentile(sub, q, axis=0)
+        out[:, cols] = nanpercentile(sub, q, axis=0)
     return out
 
 
@@ -1553,7 +1554,7 @@ def aggregate(H: np.ndarray, how: str) -> np.ndarray:
     elif how == "mean":
         m_db, m_ph = db.mean(axis=-2), ph.mean(axis=-2)
     else:
-        m_db, m_ph = np.median(db, axis=-2), np.median(ph, axis=-2)
+        m_db, m_ph = median(db, axis=-2), median(ph, axis=-2)
     return 10.0 ** (m_db / 20.0) * np.exp(1j * m_ph)
 
 
@@ -1586,8 +1587,8 @@ def aggregate_spread(H: np.ndarray, how: str = "mean") -> dict[str, np.ndarray]:
     else:
         se_db = np.full(db.shape[1], np.nan)
         se_deg = np.full(db.shape[1], np.nan)
-    q_db = np.percentile(db, [25, 75], axis=0)
-    q_deg = np.percentile(deg, [25, 75], axis=0)
+    q_db = percentile(db, [25, 75], axis=0)
+    q_deg = percentile(deg, [25, 75], axis=0)
     return {"se_db": se_db, "se_deg": se_deg, "q25_db": q_db[0], "q75_db": q_db[1],
             "q25_deg": q_deg[0], "q75_deg": q_deg[1]}
 
@@ -1782,7 +1783,7 @@ def _aggregate_block(level: str, axis: str, grip: float, kind: str, out_axis: st
     spread = aggregate_spread(H, how)
     _, ph = _log_parts(H)
     if np.isfinite(ph).all():
-        phase = np.median(ph, axis=0) if how == "median" else ph.mean(axis=0)
+        phase = median(ph, axis=0) if how == "median" else ph.mean(axis=0)
     else:
         phase = _nan_stat(ph, how)
     se_db, se_deg = spread["se_db"], spread["se_deg"]
@@ -2577,7 +2578,7 @@ def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.nd
     grid, fcode = np.unique(freq, return_inverse=True)
     nr, nf = (int(codes.max()) + 1 if codes.size else 0), grid.size
     flat = codes * nf + fcode
-    if np.unique(flat).size != flat.size:
+    if unique(flat).size != flat.size:
         dup = int(np.flatnonzero(np.bincount(flat, minlength=nr * nf)[flat] > 1)[0])
         raise BadInputError("a frequency appears twice in one response", file=source,
                             column="freq_hz", row=dup + 1)
@@ -2602,7 +2603,7 @@ def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.nd
 def _concat(parts: list[Spectra], meta: Mapping, source: str) -> Spectra:
     """The responses of ``parts`` in order, on the union of their frequencies (each part
     is released as soon as it is copied)."""
-    grid = np.unique(np.concatenate([p.freq_hz for p in parts]))
+    grid = unique(np.concatenate([p.freq_hz for p in parts]))
     nr, nf = sum(len(p) for p in parts), grid.size
     h = np.empty((nr, nf), complex)
     values = {c: np.empty((nr, nf)) for c in parts[0].values}

@@ -42,6 +42,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from armfit import _scipy
+from armfit._order import median
 from armfit.constants import AXES, axis_band
 from armfit.errors import BadInputError, ConvergenceError, UsageError, cell
 from armfit.io.artifacts import read_wu_rows
@@ -313,7 +314,7 @@ def check_envelope(f_hz, wmax, weight: WuWeight, *, band: tuple[float, float] | 
     return EnvelopeCheck(
         coverage_pct=float(100.0 * np.mean(gap >= -tol)),
         coverage_between_pct=float(100.0 * np.mean(gapd >= -tol)),
-        tightness_median_db=float(np.median(gap)),
+        tightness_median_db=float(median(gap)),
         tightness_max_db=float(np.max(gap)),
         tightness_min_db=float(np.min(gap)),
         mean_gap_db=float(np.sum(_log_weights(f) * gap)),

@@ -70,19 +70,17 @@ any pool whose workers do not fork the script's process.
 
 from __future__ import annotations
 
-import collections
 import contextlib
-import itertools
-import multiprocessing
 import os
 import signal
 import sys
 import threading
 import weakref
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import CancelledError, Executor, Future, ProcessPoolExecutor
-from concurrent.futures import wait as _wait_futures
-from concurrent.futures.process import BrokenProcessPool
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:   # the pool's modules are imported with the first pool (armfit._pool)
+    from concurrent.futures import Executor, ProcessPoolExecutor
 
 __all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "RUN_FIGURES_PRELOAD", "cancel_pools",
            "child_environment", "executor_for", "giving_way", "ignore_sigint", "iter_tasks",
@@ -205,7 +203,8 @@ def _lifeline():
     global _LIFELINE
     with _LIFELINE_LOCK:
         if _LIFELINE is None or _LIFELINE[2] != os.getpid():
-            reader, writer = multiprocessing.Pipe(duplex=False)
+            from multiprocessing import Pipe
+            reader, writer = Pipe(duplex=False)
             _LIFELINE = (reader, writer, os.getpid())
         return _LIFELINE[0]
 
@@ -288,252 +287,14 @@ def start_method() -> str:
     -------
     str
     """
-    if sys.platform != "darwin" and "forkserver" in multiprocessing.get_all_start_methods():
+    from multiprocessing import get_all_start_methods
+    if sys.platform != "darwin" and "forkserver" in get_all_start_methods():
         return "forkserver"
     return "spawn"
 
 
 def _ready() -> None:
-    """The task that starts a worker (see :class:`_Pool`)."""
-
-
-#: Tasks :func:`_ready` sent a worker at most while a pool starts its workers.
-_START_TASKS = 8
-
-
-class _Pool(ProcessPoolExecutor):
-    """A ProcessPoolExecutor that starts all its workers at its first task and leaves the
-    record of open pools when shut down.
-
-    The workers are started by a thread of their own holding :data:`_STARTING`, while the
-    caller waits for it: a signal then reaches the caller (the main thread) in the wait,
-    and :func:`stop_workers` in its handler waits until every worker is started, so it
-    kills them all (a worker that is being started when the main process ends would
-    fail, and print the failure, for want of its queues).
-
-    The pool keeps its tasks' futures: when :func:`stop_workers` has killed its workers,
-    those not done fail at once (:meth:`_armfit_stopped`), whatever the pool's own thread
-    makes of the killed workers (a worker killed while it sent a result leaves that
-    thread waiting for the rest of it), and :meth:`shutdown` no longer waits.
-
-    Tasks that give way (:func:`giving_way`) wait in the pool's own queue and are handed
-    to the workers only while fewer tasks than workers are unfinished; every task's end
-    hands over the next. A task submitted to the pool itself is handed over at once, so
-    it runs before every task still waiting there.
-    """
-
-    def __init__(self, jobs: int, mp_context) -> None:
-        super().__init__(max_workers=jobs, mp_context=mp_context, initializer=worker_start,
-                         initargs=(_lifeline(),))
-        self._armfit_jobs = jobs
-        self._armfit_lock = threading.Lock()
-        self._armfit_shutting = threading.Lock()
-        self._armfit_started = False
-        self._armfit_killed = False
-        self._armfit_futures: weakref.WeakSet = weakref.WeakSet()
-        # the tasks that give way: (future, fn, args, kwargs) waiting, in order; the
-        # tasks handed to the workers and not done; no task added once shutting down
-        self._armfit_queue = threading.Lock()
-        self._armfit_waiting: collections.deque = collections.deque()
-        self._armfit_unfinished = 0
-        self._armfit_closing = False
-
-    def submit(self, fn, /, *args, **kwargs):
-        with self._armfit_queue:
-            self._armfit_unfinished += 1
-        return self._armfit_hand(fn, args, kwargs)
-
-    def _armfit_hand(self, fn, args, kwargs):
-        """Hand ``fn(*args, **kwargs)`` to the workers, counted as unfinished already."""
-        try:
-            if not self._armfit_started:
-                self._armfit_start()
-            if self._armfit_killed:
-                raise BrokenProcessPool("the worker processes were stopped")
-            fut = super().submit(fn, *args, **kwargs)
-        except BaseException:
-            with self._armfit_queue:
-                self._armfit_unfinished -= 1
-            raise
-        self._armfit_futures.add(fut)
-        fut.add_done_callback(self._armfit_done)
-        return fut
-
-    def _armfit_done(self, fut) -> None:
-        """A task handed to the workers has ended (or was cancelled): its place goes to
-        the next task that gives way."""
-        with self._armfit_queue:
-            self._armfit_unfinished -= 1
-        self._armfit_feed()
-
-    def _armfit_submit_later(self, fn, args, kwargs) -> Future:
-        """Queue ``fn(*args, **kwargs)`` as a task that gives way; its future."""
-        if self._armfit_killed:
-            raise BrokenProcessPool("the worker processes were stopped")
-        proxy: Future = Future()
-        with self._armfit_queue:
-            if self._armfit_closing:
-                raise RuntimeError("cannot schedule new futures after shutdown")
-            self._armfit_waiting.append((proxy, fn, args, kwargs))
-        self._armfit_feed()
-        return proxy
-
-    def _armfit_feed(self, every: bool = False) -> None:
-        """Hand the waiting tasks to the workers while fewer than ``jobs`` are unfinished
-        (``every``: all of them); a cancelled one is dropped, one the pool refuses fails."""
-        while True:
-            with self._armfit_queue:
-                if not self._armfit_waiting or (
-                        not every and self._armfit_unfinished >= self._armfit_jobs):
-                    return
-                proxy, fn, args, kwargs = self._armfit_waiting.popleft()
-                if not proxy.set_running_or_notify_cancel():
-                    continue
-                self._armfit_unfinished += 1
-            try:
-                fut = self._armfit_hand(fn, args, kwargs)
-            except BaseException as exc:
-                proxy.set_exception(exc)
-                continue
-            fut.add_done_callback(lambda f, proxy=proxy: _settle(proxy, f))
-
-    def _armfit_drop_waiting(self, exc: BaseException | None) -> None:
-        """Cancel the tasks still waiting (``exc`` None), or fail them with ``exc``."""
-        with self._armfit_queue:
-            waiting = list(self._armfit_waiting)
-            self._armfit_waiting.clear()
-        for proxy, *_ in waiting:
-            if exc is None:
-                proxy.cancel()
-            elif proxy.set_running_or_notify_cancel():
-                proxy.set_exception(exc)
-
-    def _armfit_stopped(self, grace: float = 1.0) -> None:
-        """Its workers were killed: every task not done fails (BrokenProcessPool). The
-        pool's own thread fails them as soon as it sees the workers gone; those it has
-        not failed within ``grace`` seconds (it waits for the rest of a result) fail
-        here."""
-        self._armfit_killed = True
-        self._armfit_drop_waiting(BrokenProcessPool("the worker processes were stopped"))
-        for _ in range(3):  # another thread may add a task meanwhile
-            try:
-                futures = list(self._armfit_futures)
-                break
-            except RuntimeError:
-                continue
-        else:  # pragma: no cover
-            futures = []
-        _wait_futures(futures, timeout=grace)
-        for fut in futures:
-            if not fut.done():
-                with contextlib.suppress(Exception):  # done meanwhile
-                    fut.set_exception(BrokenProcessPool("the worker processes were stopped"))
-
-    def _armfit_start(self) -> None:
-        with self._armfit_lock:
-            if self._armfit_started:
-                return
-            failed: list[BaseException] = []
-            starter = threading.Thread(target=self._armfit_start_all, args=(failed,),
-                                       name="armfit-pool-start", daemon=True)
-            starter.start()
-            starter.join()
-            if failed:
-                raise failed[0]
-            self._armfit_started = True
-
-    def _armfit_start_all(self, failed: list) -> None:
-        # SIGINT blocked in this thread, and so in the processes started from it (the
-        # fork server, the resource tracker): Ctrl-C at a terminal reaches them too, and
-        # the fork server ignores SIGINT only once it has imported its modules
-        if hasattr(signal, "pthread_sigmask"):
-            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
-            with _STARTING, child_environment():
-                if _FINAL:
-                    raise BrokenProcessPool("the worker processes were stopped")
-                # a task per worker: a submit starts a worker while none is idle. A
-                # worker that has already done its task (a loaded machine may pause
-                # this thread between two submits) takes the next one instead, so tasks
-                # are sent until every worker is started (at most _START_TASKS a worker)
-                futures = [super().submit(_ready)]   # refused once the pool is shut down
-                while len(self._processes or ()) < self._armfit_jobs \
-                        and len(futures) < _START_TASKS * self._armfit_jobs:
-                    futures.append(super().submit(_ready))
-                for fut in futures:
-                    fut.result()
-        except BaseException as exc:  # raised in the caller's thread
-            failed.append(exc)
-
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        """As :meth:`ProcessPoolExecutor.shutdown`; once :func:`stop_workers` has killed
-        the workers, without waiting (what remained of the pool may never end).
-
-        One call at a time: the thread that made the pool and :func:`cancel_pools` (a
-        failing run stopping a stage in the background) may shut it down together, and
-        two concurrent shutdowns of a ProcessPoolExecutor close its queues twice (EBADF).
-        The second call finds the pool shut down and returns.
-
-        The tasks that give way and still wait are cancelled with ``cancel_futures``,
-        else handed to the workers now, to run before the pool ends."""
-        with _OPEN_LOCK:
-            _OPEN.pop(self, None)
-        with self._armfit_queue:
-            self._armfit_closing = True
-        if cancel_futures or self._armfit_killed:
-            self._armfit_drop_waiting(None)
-        else:
-            self._armfit_feed(every=True)
-        with self._armfit_shutting:
-            super().shutdown(wait=wait and not self._armfit_killed,
-                             cancel_futures=cancel_futures)
-
-
-def _settle(proxy: Future, fut: Future) -> None:
-    """Give ``proxy`` (a task that gave way) the outcome of ``fut``, the task the workers
-    ran for it."""
-    if fut.cancelled():
-        proxy.set_exception(CancelledError())
-    elif fut.exception() is not None:
-        proxy.set_exception(fut.exception())
-    else:
-        proxy.set_result(fut.result())
-
-
-def _run_chunk(fn: Callable, chunk: Sequence[tuple]) -> list:
-    """Worker: ``[fn(*args) for args in chunk]`` (one task of :class:`_GivingWay.map`)."""
-    return [fn(*args) for args in chunk]
-
-
-def _flatten(results: Iterator[list]) -> Iterator:
-    """The items of each list of ``results`` in turn; closing it closes ``results``."""
-    try:
-        for chunk in results:
-            yield from chunk
-    finally:
-        results.close()
-
-
-class _GivingWay(Executor):
-    """The tasks of a pool of :func:`process_pool` that give way (:func:`giving_way`)."""
-
-    def __init__(self, pool: _Pool):
-        self.pool = pool
-
-    def submit(self, fn, /, *args, **kwargs) -> Future:
-        return self.pool._armfit_submit_later(fn, args, kwargs)
-
-    def map(self, fn, *iterables, timeout=None, chunksize=1):
-        """As :meth:`ProcessPoolExecutor.map`: ``chunksize`` calls per task."""
-        if chunksize < 1:
-            raise ValueError("chunksize must be >= 1.")
-        pairs = zip(*iterables, strict=False)   # as map: to the shortest
-        chunks = iter(lambda: tuple(itertools.islice(pairs, chunksize)), ())
-        results = super().map(_run_chunk, itertools.repeat(fn), chunks, timeout=timeout)
-        return _flatten(results)
-
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        """Nothing: the pool belongs to its maker, who shuts it down."""
+    """The task that starts a worker (see :class:`armfit._pool.Pool`)."""
 
 
 def giving_way(executor: Executor | None) -> Executor | None:
@@ -556,7 +317,10 @@ def giving_way(executor: Executor | None) -> Executor | None:
         waiting first. Any other executor, or None, is returned as it is. Where a task
         runs never changes its result.
     """
-    return _GivingWay(executor) if isinstance(executor, _Pool) else executor
+    pools = sys.modules.get("armfit._pool")    # not imported: no pool of process_pool
+    if pools is None or not isinstance(executor, pools.Pool):
+        return executor
+    return pools.GivingWay(executor)
 
 
 def _set_preload(ctx, preload: Sequence[str]) -> None:
@@ -585,7 +349,8 @@ def start_fork_server(preload: Sequence[str] = ()) -> None:
     """
     if start_method() != "forkserver" or _FINAL:
         return
-    _set_preload(multiprocessing.get_context("forkserver"), preload)
+    from multiprocessing import get_context
+    _set_preload(get_context("forkserver"), preload)
     starter = threading.Thread(target=_start_server, name="armfit-fork-server", daemon=True)
     starter.start()
     starter.join()
@@ -622,14 +387,26 @@ def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
     -------
     concurrent.futures.ProcessPoolExecutor
     """
-    ctx = multiprocessing.get_context(start_method())
+    from multiprocessing import get_context
+
+    from armfit._pool import Hooks, Pool
+    ctx = get_context(start_method())
     if ctx.get_start_method() == "forkserver":
         _set_preload(ctx, preload)
+    hooks = Hooks(initializer=worker_start, initargs=(_lifeline(),), ready=_ready,
+                  starting=_STARTING, stopped=lambda: _FINAL, environment=child_environment,
+                  forget=_forget)
     with child_environment():   # its queues start the resource tracker
-        pool = _Pool(max(1, int(jobs)), ctx)
+        pool = Pool(max(1, int(jobs)), ctx, hooks)
     with _OPEN_LOCK:
         _OPEN[pool] = threading.get_ident()
     return pool
+
+
+def _forget(pool) -> None:
+    """A pool of :func:`process_pool` is shut down: out of the record of open pools."""
+    with _OPEN_LOCK:
+        _OPEN.pop(pool, None)
 
 
 @contextlib.contextmanager
@@ -817,9 +594,8 @@ def stop_workers(final: bool = False) -> None:
                 p.join(timeout=2.0)
         with _OPEN_LOCK:
             pools = list(_OPEN)
-        for pool in pools:
-            if isinstance(pool, _Pool):
-                pool._armfit_stopped()
+        for pool in pools:     # each of process_pool (an armfit._pool.Pool)
+            pool._armfit_stopped()
     finally:
         if got:
             _STARTING.release()

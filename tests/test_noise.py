@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import re
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -58,25 +57,6 @@ def test_missing_standard_errors_take_the_median_and_tiny_ones_the_floor():
     sdb, sdeg = noise.standard_errors(np.full(12, 1e-4), np.full(12, 1e-3))
     np.testing.assert_allclose(sdb, 0.01)                # floors: 0.01 dB, 0.06 deg
     np.testing.assert_allclose(sdeg, 0.06)
-
-
-@pytest.mark.parametrize("n", [1, 2, 7, 8, 41, 130])
-def test_the_fill_median_is_numpys_nanmedian(n):
-    # the median that fills a missing standard error, against numpy's nanmedian (an
-    # independent computation) bit for bit: rows of odd and even counts of values, with
-    # NaN scattered, and a row of NaN only (NaN)
-    from armfit.noise import _row_nanmedian
-    rng = np.random.default_rng(n)
-    x = rng.lognormal(0.0, 1.0, (40, n))
-    x[rng.uniform(size=x.shape) < rng.uniform(0, 1, (40, 1))] = np.nan
-    x[0] = np.nan
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)   # numpy on the all-NaN row
-        want = np.nanmedian(x, axis=-1, keepdims=True)
-    got = _row_nanmedian(x)
-    assert got.shape == (40, 1)
-    assert np.array_equal(got, want, equal_nan=True)
-    assert np.isnan(got[0, 0])
 
 
 def test_rows_are_separate_responses():

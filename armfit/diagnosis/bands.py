@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from armfit import noise
+from armfit._order import median
 from armfit.diagnosis.tuning import MIN_RUN, T_FAIL
 from armfit.fitting import log_errors
 
@@ -107,7 +108,7 @@ def describe_residual(f_hz, r_db, r_deg, sig_db, sig_deg) -> str:
     parts = []
     if np.any(sig_db):
         peak = float(r_db[np.argmax(np.abs(r_db))])
-        where = "above" if np.median(r_db) > 0 else "below"
+        where = "above" if median(r_db) > 0 else "below"
         shape = _trend(f, r_db)
         mixed = np.any(r_db[sig_db] > 0) and np.any(r_db[sig_db] < 0)
         if mixed:
@@ -119,7 +120,7 @@ def describe_residual(f_hz, r_db, r_deg, sig_db, sig_deg) -> str:
         parts.append("magnitude fine")
     if np.any(sig_deg):
         peak = float(r_deg[np.argmax(np.abs(r_deg))])
-        word = "lags" if np.median(r_deg) < 0 else "leads"
+        word = "lags" if median(r_deg) < 0 else "leads"
         shape = _trend(f, r_deg)
         mixed = np.any(r_deg[sig_deg] > 0) and np.any(r_deg[sig_deg] < 0)
         if mixed:

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from armfit._order import nanmedian
 from armfit.constants import PARAM_NAMES
 from armfit.diagnosis.bands import (
     BandError,
@@ -166,7 +167,7 @@ def response_change(fit: JointFit, values: dict[str, float], f: np.ndarray
     null.update({n: np.full((T, 1), v) for n, v in values.items()})
     with np.errstate(all="ignore"):
         d_db, d_deg = residuals(model.response(f, theta), model.response(f, null))
-    return np.nanmedian(np.abs(d_db), axis=0), np.nanmedian(np.abs(d_deg), axis=0)
+    return nanmedian(np.abs(d_db), axis=0), nanmedian(np.abs(d_deg), axis=0)
 
 
 def practical(f, size_db, size_deg, se_db, se_deg, min_db: float, min_deg: float
@@ -178,9 +179,9 @@ def practical(f, size_db, size_deg, se_db, se_deg, min_db: float, min_deg: float
     the largest ratio of change to threshold)."""
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        thr_db = np.maximum(min_db, np.nanmedian(np.where(np.isfinite(se_db), se_db, np.nan),
+        thr_db = np.maximum(min_db, nanmedian(np.where(np.isfinite(se_db), se_db, np.nan),
                                                  axis=0))
-        thr_deg = np.maximum(min_deg, np.nanmedian(np.where(np.isfinite(se_deg), se_deg,
+        thr_deg = np.maximum(min_deg, nanmedian(np.where(np.isfinite(se_deg), se_deg,
                                                             np.nan), axis=0))
         r_db = np.nan_to_num(size_db / thr_db)
         r_deg = np.nan_to_num(size_deg / thr_deg)

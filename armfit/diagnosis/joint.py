@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from armfit import _scipy, blocklsq
+from armfit._order import median, unique
 from armfit.constants import DB_PER_NEPER, PARAM_NAMES, Z_975
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
@@ -425,7 +426,7 @@ def _misfit_limit(prob: JointProblem, res) -> tuple[np.ndarray, float]:
     limit above which it is stuck: :data:`OUTLIER` times the median trial's, and at
     least twice the number of its residuals."""
     per = (res.fun.reshape(prob.T, -1) ** 2).sum(axis=1)
-    return per, OUTLIER * max(float(np.median(per)), 2.0 * prob.f.size)
+    return per, OUTLIER * max(float(median(per)), 2.0 * prob.f.size)
 
 
 def _stuck(prob: JointProblem, res) -> np.ndarray:
@@ -463,8 +464,10 @@ def rescue_trials(prob: JointProblem, model: ClosedLoopModel, data: AxisData, se
     x0 = res.x.copy()
     zb = x0[: prob.T * prob.nb].reshape(prob.T, prob.nb)
     theta = prob.space.to_theta(prob.unpack(res.x))
-    good = np.setdiff1d(np.arange(prob.T), bad)
-    typical = np.exp(np.median(np.log(theta[good, : prob.nb]), axis=0)) if good.size else None
+    keep = np.ones(prob.T, bool)
+    keep[bad] = False
+    good = np.flatnonzero(keep)
+    typical = np.exp(median(np.log(theta[good, : prob.nb]), axis=0)) if good.size else None
     names = prob.space.names
     band = (float(prob.f[0]), float(prob.f[-1]))
 
@@ -531,7 +534,7 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
     and the per-subject values of the subset's subjects, from the short fit; the other
     subjects' from ``by_subject``)."""
     T = data.h.shape[0]
-    idx = np.unique(np.linspace(0, T - 1, min(T, START_SCREEN_TRIALS)).round().astype(int))
+    idx = unique(np.linspace(0, T - 1, min(T, START_SCREEN_TRIALS)).round().astype(int))
     sub = data.subset(idx)
     sprob = JointProblem(model, sub, sel, prob.varying)
     scored = []

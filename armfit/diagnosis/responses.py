@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from armfit import noise
+from armfit._order import nanmedian
 from armfit.constants import AXES, PARAM_NAMES
 from armfit.spectra import Spectra
 
@@ -167,5 +168,5 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
             ratio = 20 * np.log10(np.abs(H_c[:, sel]) / np.abs(H_on[:, sel]))
         if not np.isfinite(ratio).any():  # no signal on that axis (cells flagged no_signal)
             continue
-        out[other] = float(np.nanmedian(ratio))
+        out[other] = float(nanmedian(ratio))
     return out

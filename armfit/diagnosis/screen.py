@@ -7,6 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from armfit._order import unique
 from armfit.diagnosis.fit import fit_extend
 from armfit.diagnosis.joint import JointFit
 from armfit.diagnosis.responses import AxisData
@@ -50,7 +51,7 @@ def screen_candidate(data: AxisData, band: tuple[float, float], current: JointFi
     T = data.h.shape[0]
     if T <= SCREEN_SUBSET:
         return fit_extend(data, band, current, effect, by_subject=by_subject)
-    idx = np.unique(np.linspace(0, T - 1, SCREEN_SUBSET).round().astype(int))
+    idx = unique(np.linspace(0, T - 1, SCREEN_SUBSET).round().astype(int))
     sub, cur = _trial_subset(data, current, idx, band)
     return fit_extend(sub, band, cur, effect, quick=True, by_subject=by_subject)
 

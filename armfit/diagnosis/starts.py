@@ -7,6 +7,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from armfit._order import median
 from armfit.constants import PARAM_NAMES
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
@@ -82,4 +83,4 @@ def start_rows(model, data, band, effect_values, given: Sequence[np.ndarray]) ->
     and the median Levy row over trials (robust to a trial whose own guess failed)."""
     levy = levy_starts(model, data, band, effect_values, given[0])
     return best_rows(model, data, band, effect_values,
-                     [*given, levy, np.exp(np.median(np.log(levy), axis=0))])
+                     [*given, levy, np.exp(median(np.log(levy), axis=0))])

@@ -23,6 +23,7 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from armfit._order import unique
 from armfit.errors import UsageError
 from armfit.io.atomic import atomic_path
 from armfit.io.trials import AXES, Trial, TrialMeta
@@ -85,7 +86,7 @@ def write_trial(trial: Trial, path: str | os.PathLike, *, fmt: str | None = None
 
 
 def _write_parquet(cols: dict[str, np.ndarray], path: Path) -> None:
-    few = [k for k, v in cols.items() if np.unique(v).size <= _DICTIONARY_MAX_DISTINCT]
+    few = [k for k, v in cols.items() if unique(v).size <= _DICTIONARY_MAX_DISTINCT]
     many = [k for k in cols if k not in few]
     pq.write_table(pa.table(cols), path, compression="zstd", compression_level=9,
                    use_dictionary=few, use_byte_stream_split=many or False)

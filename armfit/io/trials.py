@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from armfit._order import median
 from armfit.constants import AXES, FORCE_LIMIT_N, GRID_HZ
 from armfit.errors import ArmfitError, BadInputError, NoInputError, UsageError, cell
 from armfit.io.atomic import atomic_path, check_output, resolved_path
@@ -835,7 +836,7 @@ def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
         raise BadInputError(f"non-monotonic time: {cell(t[i + 1])} s follows {cell(t[i])} s; "
                             "sample times must increase", file=file, column="time_s",
                             row=i + 2)
-    period = float(np.median(dt))
+    period = float(median(dt))
     off = np.flatnonzero(np.abs(dt - period) > JITTER_TOLERANCE * period)
     if off.size:
         i = int(off[0])
@@ -1156,7 +1157,7 @@ def _check_trial(trial: Trial, file: str, *, f_min_hz: float, force_limit_N: flo
     if trial.grip is not None:
         g = trial.grip[np.isfinite(trial.grip)]
         if g.size:
-            med = float(np.median(g))
+            med = float(median(g))
             tol = max(GRIP_TOLERANCE_N, GRIP_TOLERANCE_FRACTION * meta.grip_N)
             if abs(med - meta.grip_N) > tol:
                 warn(f"{file}, column 'grip_N': the measured grip ({med:.3g} N, median) "
