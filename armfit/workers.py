@@ -97,14 +97,16 @@ PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fittin
                             "armfit.uncertainty", "armfit.diagnosis.search", "scipy.optimize")
 #: The modules the tasks of each kind of pool run, the ``preload`` of its pools: what
 #: the fork server imports first for a command line's one pool (:func:`preload_own_only`,
-#: :func:`start_fork_server`). Each is in :data:`PRELOAD`. The diagnosis's workers call
-#: scipy too (a stuck trial's single-trial fit, the per-subject intervals' t quantiles):
-#: imported once by the server, not by each worker in the middle of a task.
+#: :func:`start_fork_server`). Each is in :data:`PRELOAD`. The fits' workers call scipy's
+#: optimiser: imported once by the server, not by each worker in the middle of a task.
+#: The diagnosis's workers need no scipy (their per-subject intervals' t quantiles are
+#: :func:`armfit._student.t_quantile`); the rare trial whose joint fit sticks is refitted
+#: alone with scipy's optimiser, imported by that worker then.
 POOL_PRELOAD: dict[str, tuple[str, ...]] = {
     "estimate": ("armfit.spectra", "armfit.io.trials"),
     "fit": ("armfit.fitting", "scipy.optimize"),
     "uncertainty": ("armfit.uncertainty", "scipy.optimize"),
-    "diagnosis": ("armfit.diagnosis.search", "scipy.optimize"),
+    "diagnosis": ("armfit.diagnosis.search",),
 }
 #: What ``run``'s one pool preloads when the run draws figures: every engine module and
 #: :mod:`armfit.figures` (matplotlib), imported once by the fork server rather than by

@@ -15,8 +15,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from armfit import _scipy, blocklsq
+from armfit import blocklsq
 from armfit._order import median, unique
+from armfit._student import t_quantile
 from armfit.constants import DB_PER_NEPER, PARAM_NAMES, Z_975
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
@@ -400,7 +401,7 @@ def _population(space: ParamSpace, name: str, by_subject: Mapping[str, Mapping[s
     z = space.to_z(full)[:, j]
     m = float(np.mean(z))
     n = z.size
-    half = (float(_scipy.stdtrit(n - 1, 0.975) * np.std(z, ddof=1) / np.sqrt(n))
+    half = (float(t_quantile(n - 1, 0.975) * np.std(z, ddof=1) / np.sqrt(n))
             if n > 1 else float("nan"))
     pts = np.tile(space.to_theta(space.zlo), (3, 1))
     zz = space.to_z(pts)
