@@ -56,20 +56,8 @@ def median(x, axis: int | None = None):
 
 def nanmedian(x, axis: int | None = None):
     """:func:`numpy.nanmedian` of real values, the same numbers: NaNs left out; NaN
-    (without numpy's warning) where every value is NaN.
-
-    Parameters
-    ----------
-    x : array_like
-        Real values (any unit; the result has the same).
-    axis : int, optional
-        The axis along which the median is taken; None: of all values.
-
-    Returns
-    -------
-    numpy.float64 or ndarray
-        The median; an array of the other axes' shape when ``axis`` is given.
-    """
+    (without numpy's warning) where every value is NaN. Parameters and result as
+    :func:`median`'s."""
     a = np.asarray(x, dtype=float)
     if axis is None:
         a, axis = a.ravel(), 0
@@ -105,6 +93,25 @@ def _interpolated(s: np.ndarray, n: np.ndarray, q) -> np.ndarray:
     return np.where(t >= 0.5, b - d * (1 - t), a + d * t)
 
 
+def _percentiles(x, q, axis: int | None, skip_nan: bool):
+    """The percentiles of :func:`percentile` (``skip_nan`` False) or of
+    :func:`nanpercentile` (True)."""
+    a = np.asarray(x, dtype=float)
+    if axis is None:
+        a, axis = a.ravel(), 0
+    a = np.moveaxis(a, axis, 0)
+    if a.shape[0] == 0:
+        if not skip_nan:
+            raise IndexError("percentile of no values")
+        return np.full(np.shape(q) + a.shape[1:], np.nan)[()]
+    s = np.sort(a, axis=0)                                    # NaN sorted last
+    if skip_nan:
+        n = np.count_nonzero(~np.isnan(a), axis=0)
+        return np.where(n > 0, _interpolated(s, n, q), np.nan)[()]
+    out = _interpolated(s, np.asarray(a.shape[0]), q)
+    return np.where(np.isnan(s[-1]), s[-1], out)[()]
+
+
 def percentile(x, q, axis: int | None = None):
     """:func:`numpy.percentile` of real values (its default linear method), the same
     numbers: NaN where any value is NaN.
@@ -123,45 +130,14 @@ def percentile(x, q, axis: int | None = None):
     numpy.float64 or ndarray
         Shape ``q``'s shape + the other axes' shape, as numpy's.
     """
-    a = np.asarray(x, dtype=float)
-    if axis is None:
-        a, axis = a.ravel(), 0
-    s = np.sort(np.moveaxis(a, axis, 0), axis=0)             # NaN sorted last
-    n = s.shape[0]
-    if n == 0:
-        raise IndexError("percentile of no values")
-    out = _interpolated(s, np.asarray(n), q)
-    return np.where(np.isnan(s[-1]), s[-1], out)[()]
+    return _percentiles(x, q, axis, skip_nan=False)
 
 
 def nanpercentile(x, q, axis: int | None = None):
     """:func:`numpy.nanpercentile` of real values (its default linear method), the same
     numbers: NaNs left out; NaN (without numpy's warning) where every value is NaN.
-
-    Parameters
-    ----------
-    x : array_like
-        Real values (any unit; the result has the same).
-    q : float or sequence of float
-        Percentiles, 0 to 100.
-    axis : int, optional
-        The axis along which they are taken; None: of all values.
-
-    Returns
-    -------
-    numpy.float64 or ndarray
-        Shape ``q``'s shape + the other axes' shape, as numpy's.
-    """
-    a = np.asarray(x, dtype=float)
-    if axis is None:
-        a, axis = a.ravel(), 0
-    a = np.moveaxis(a, axis, 0)
-    if a.shape[0] == 0:
-        return np.full(np.shape(q) + a.shape[1:], np.nan)[()]
-    s = np.sort(a, axis=0)                                    # NaN sorted last
-    n = np.count_nonzero(~np.isnan(a), axis=0)
-    out = _interpolated(s, n, q)
-    return np.where(n > 0, out, np.nan)[()]
+    Parameters and result as :func:`percentile`'s."""
+    return _percentiles(x, q, axis, skip_nan=True)
 
 
 def unique(x) -> np.ndarray:
