@@ -38,7 +38,7 @@ MAX_SERIES_DOF = 1000
 
 def _normal_quantile(p: float) -> float:
     """The standard normal quantile of ``p`` (0.5 < p < 1): Newton's method on
-    ``math.erfc`` from a logistic start, to the last bits."""
+    ``math.erfc`` from the rational approximation of A&S 26.2.23."""
     q = 1.0 - p
     z = math.sqrt(-2.0 * math.log(q))
     z -= (2.515517 + z * (0.802853 + z * 0.010328)) / (
@@ -57,18 +57,12 @@ def _two_sided(t: float, nu: int) -> tuple[float, float]:
     theta = math.atan(t / math.sqrt(nu))
     s, c1 = math.sin(theta), math.cos(theta)
     c = c1 * c1
-    if nu % 2:
-        total, term = 0.0, 1.0
-        for j in range(1, (nu - 1) // 2 + 1):   # (ν − 1)/2 terms of the cos series
-            total += term
-            term *= c * (2 * j) / (2 * j + 1)
-        a = 2.0 / math.pi * (theta + s * c1 * total)
-    else:
-        total, term = 0.0, 1.0
-        for j in range(1, nu // 2 + 1):
-            total += term
-            term *= c * (2 * j - 1) / (2 * j)
-        a = s * total
+    odd = nu % 2
+    total, term = 0.0, 1.0
+    for j in range(1, nu // 2 + 1):   # ν odd: (ν − 1)/2 terms; even: ν/2
+        total += term
+        term *= c * ((2 * j) / (2 * j + 1) if odd else (2 * j - 1) / (2 * j))
+    a = 2.0 / math.pi * (theta + s * c1 * total) if odd else s * total
     log_pdf = (math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) - 0.5 * math.log(nu * math.pi)
                - (nu + 1) / 2 * math.log1p(t * t / nu))
     return a, 2.0 * math.exp(log_pdf)
