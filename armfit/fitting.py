@@ -83,7 +83,7 @@ from armfit._order import median, percentile, unique
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.data import sobol_points
 from armfit.errors import BadInputError, ConvergenceError, EffectDefinitionError, UsageError
-from armfit.io.artifacts import params_frame
+from armfit.io.artifacts import RowTable, params_rows
 from armfit.io.schema import params_columns
 from armfit.models.arm import ClosedLoopModel, at_bound, laplace, union_param_names
 from armfit.models.effects import effects_by_axis, resolve_effects
@@ -934,6 +934,10 @@ class StudyFit:
     def table(self):
         """The params table (columns of :func:`armfit.io.schema.params_columns`;
         docs/formats.md, "Params CSV")."""
+        return self.row_table().to_frame()
+
+    def row_table(self) -> RowTable:
+        """:meth:`table` before it becomes a DataFrame."""
         rows = []
         for (axis, grip), fit in zip(self.keys, self.fits, strict=True):
             row = {"axis": axis, **fit.row()}
@@ -941,7 +945,7 @@ class StudyFit:
                 row["grip_N"] = grip
             rows.append(row)
         names = union_param_names([f.model for f in self.fits])
-        return params_frame(rows, names, grip=self.which == "grip")
+        return params_rows(rows, names, grip=self.which == "grip")
 
 
 def _check_method(rows, method: str | None, source: str | None) -> str | None:

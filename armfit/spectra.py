@@ -63,7 +63,7 @@ from armfit.constants import (
 )
 from armfit.errors import BadInputError, NoInputError, OutputError, UsageError, cell
 from armfit.feedback import FEEDBACK_ALPHA, FeedbackTest, chi2_sf, feedback_test
-from armfit.io.arrow import arrow_array
+from armfit.io.arrow import arrow_array, arrow_ints, arrow_numbers
 from armfit.io.atomic import atomic_path
 from armfit.io.numbers import parse_numbers
 from armfit.io.ranges import DEVICE_MASS_RANGE, FREQUENCY_RANGE, check_in_range
@@ -1964,15 +1964,18 @@ class Spectra:
                        flags=pick(self.flags), present=pick(self.present))
 
     def sorted(self, by: Sequence[str] = ("subject", "grip_N", "run")) -> Spectra:
-        """The rows ordered by the identity columns ``by`` (missing values last), as
-        pandas' ``groupby(by, sort=True, dropna=False)`` orders its groups."""
-        import pandas as pd
+        """The rows ordered by the identity columns ``by`` (missing values last, rows of
+        equal keys in their order), as pandas' ``groupby(by, sort=True, dropna=False)``
+        orders its groups: a stable sort of each row's (missing, value) pairs."""
         if len(self) == 0:
             return self
-        frame = pd.DataFrame({k: pd.array(list(self.keys[k]), dtype=_KEY_DTYPES.get(k))
-                              for k in by})
-        order = frame.sort_values(list(by), na_position="last", kind="stable").index
-        return self.take(order.to_numpy())
+
+        def pairs(values):
+            return [(1, 0) if v is None or v != v else (0, v) for v in values]
+
+        rows = list(zip(*(pairs(self.keys[k]) for k in by), strict=True))
+        order = sorted(range(len(rows)), key=rows.__getitem__)
+        return self.take(np.asarray(order, dtype=np.intp))
 
     def values_of(self, name: str) -> set:
         """The distinct values of the identity column ``name``, missing ones left out."""
@@ -2456,7 +2459,8 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
     ``wanted`` selects and the ``values`` (None: all); raises :class:`_NotByGroup` (or
     the error of a bad file) when the whole read must decide."""
     import pyarrow.parquet as pq
-    pf = pq.ParquetFile(p)
+    # the text columns as Parquet holds them, dictionary-encoded (no text per row)
+    pf = pq.ParquetFile(p, read_dictionary=list(SPECTRA_TEXT))
     schema = pf.schema_arrow
     if pf.num_row_groups == 0 or any(c not in schema.names for c in SPECTRA_COLUMNS):
         raise _NotByGroup
@@ -2496,67 +2500,105 @@ def _group_spectra(table, meta: Mapping, source: str, first_row: int) -> Spectra
     then decides, or names what is wrong; the same responses either way."""
     part = _arrow_spectra(table, meta, source)
     if part is None:
-        df = table.to_pandas()
+        df = _decoded(table).to_pandas()
         _check_axes(df, Path(source), first_row)
         part = Spectra.from_frame(df, meta=meta, source=source)
     return part
 
 
+def _decoded(table):
+    """``table`` with its dictionary-encoded columns as plain columns of their values
+    (pandas would make them categorical)."""
+    import pyarrow as pa
+    for i, f in enumerate(table.schema):
+        if pa.types.is_dictionary(f.type):
+            table = table.set_column(i, f.name, table.column(i).cast(f.type.value_type))
+    return table
+
+
 def _arrow_spectra(table, meta: Mapping, source: str | None) -> Spectra | None:
     """:meth:`Spectra.from_frame` of ``table.to_pandas()``, made from the Arrow columns
     without the long table, for a table laid out as armfit writes it: the text columns
-    as text, the numeric ones as numbers (``run`` and ``n`` whole, ``n`` never missing,
-    ``run`` never negative), every axis and output axis x, y or z, every frequency in
-    range, and each response's rows together, each frequency once. None otherwise (or
-    without rows): :meth:`Spectra.from_frame` then gives the responses, or its error.
-    Both end in :func:`_assemble`."""
+    as text (or dictionary-encoded text, as :func:`_read_by_group` reads them), the
+    numeric ones as numbers (``run`` and ``n`` whole, ``n`` never missing, ``run`` never
+    negative), every axis and output axis x, y or z, every frequency in range, and each
+    response's rows together, each frequency once. None otherwise (or without rows):
+    :meth:`Spectra.from_frame` then gives the responses, or its error. Both end in
+    :func:`_assemble`."""
     import pyarrow as pa
-    import pyarrow.compute as pc
     n_rows = table.num_rows
     if n_rows == 0 or table.column_names != list(SPECTRA_COLUMNS):
         return None
-    cols = {c: table.column(c).combine_chunks() for c in SPECTRA_COLUMNS}
+    cols = {c: _one_chunk(table.column(c)) for c in SPECTRA_COLUMNS}
     for c, col in cols.items():
-        t = col.type
+        t = col.type.value_type if pa.types.is_dictionary(col.type) and c in SPECTRA_TEXT \
+            else col.type
         ok = (pa.types.is_string(t) or pa.types.is_large_string(t) if c in SPECTRA_TEXT
               else pa.types.is_integer(t) if c in ("run", "n") else pa.types.is_floating(t))
         if not ok:
             return None
-    if cols["n"].null_count or (pc.min(cols["run"]).as_py() or 0) < 0:
+    if cols["n"].null_count or (arrow_ints(cols["run"], missing=0) < 0).any():
         return None
-    axes = pa.array(list(AXES))
+    text = {c: _text_codes(cols[c]) for c in SPECTRA_TEXT}
     for c in ("axis", "out_axis"):
-        if cols[c].null_count or not pc.all(pc.is_in(cols[c], value_set=axes)).as_py():
+        if cols[c].null_count or not set(text[c][1]) <= set(AXES):
             return None
-    freq = cols["freq_hz"].to_numpy(zero_copy_only=False)
+    freq = arrow_numbers(cols["freq_hz"])
     try:   # from_frame's check: it names the first bad cell
         check_in_range(freq, FREQUENCY_RANGE, file=source, column="freq_hz")
     except BadInputError:
         return None
+    grip, run = arrow_numbers(cols["grip_N"]), arrow_ints(cols["run"])
     # a response starts where any key differs from the row before (missing = missing)
     change = np.zeros(n_rows, bool)
     change[0] = True
     for c in SPECTRA_KEYS:
         if c == "grip_N":
-            v = cols[c].to_numpy(zero_copy_only=False)
-            change[1:] |= (v[1:] != v[:-1]) & ~(np.isnan(v[1:]) & np.isnan(v[:-1]))
+            change[1:] |= (grip[1:] != grip[:-1]) & ~(np.isnan(grip[1:]) & np.isnan(grip[:-1]))
         else:
-            v = (cols[c] if c == "run" else cols[c].dictionary_encode().indices)
-            v = v.fill_null(-1).to_numpy(zero_copy_only=False)
+            v = run if c == "run" else text[c][0]
             change[1:] |= v[1:] != v[:-1]
-    starts = pa.array(np.flatnonzero(change))
-    keys = {c: cols[c].take(starts).to_pylist() for c in (*SPECTRA_KEYS, "n")}
-    keys["grip_N"] = [np.nan if v is None or v != v else float(v) for v in keys["grip_N"]]
-    enc = cols["flags"].dictionary_encode()
+    first = np.flatnonzero(change)
+    keys = {c: [None if i < 0 else text[c][1][i] for i in text[c][0][first].tolist()]
+            for c in SPECTRA_KEYS if c in SPECTRA_TEXT}
+    keys["grip_N"] = grip[first].tolist()
+    keys["run"] = [None if v < 0 else v for v in run[first].tolist()]
+    keys["n"] = arrow_ints(cols["n"])[first].tolist()
     try:
-        sp = _assemble(np.cumsum(change) - 1, freq,
-                       lambda c: cols[c].to_numpy(zero_copy_only=False),
-                       enc.indices.fill_null(-1).to_numpy(zero_copy_only=False),
-                       enc.dictionary.to_pylist(), keys, meta, source)
+        sp = _assemble(np.cumsum(change) - 1, freq, lambda c: arrow_numbers(cols[c]),
+                       *text["flags"], keys, meta, source)
     except BadInputError:            # a frequency twice in a response: from_frame says so
         return None
     # a response in two places, which from_frame groups into one
     return sp if len(_response_keys(sp)) == len(sp) else None
+
+
+def _one_chunk(col):
+    """A column of a table as one Arrow array (a dictionary-encoded column's chunks on
+    one dictionary)."""
+    import pyarrow as pa
+    if col.num_chunks == 1:
+        return col.chunk(0)
+    if pa.types.is_dictionary(col.type):
+        col = col.unify_dictionaries()
+    return col.combine_chunks()
+
+
+def _text_codes(col) -> tuple[np.ndarray, list[str]]:
+    """A text column (plain or dictionary-encoded) as (each row's code, the distinct
+    texts): the code of a row is the index of its text, −1 where it is missing; equal
+    texts have equal codes."""
+    import pyarrow as pa
+    if not pa.types.is_dictionary(col.type):
+        col = col.dictionary_encode()
+    texts = col.dictionary.to_pylist()
+    codes = arrow_ints(col.indices)
+    first = {}
+    for i, t in enumerate(texts):
+        first.setdefault(t, i)
+    if len(first) < len(texts):         # a text twice in the dictionary: one code each
+        codes = np.append(np.array([first[t] for t in texts], np.int64), -1)[codes]
+    return codes, texts
 
 
 def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.ndarray],
@@ -2867,10 +2909,6 @@ def row_counts(parts: Iterable[Spectra]) -> dict[str, object]:
     return {"rows": sum(levels.values()),
             "levels": dict(sorted(levels.items(), key=lambda kv: -kv[1])),
             "flagged_trial_rows": flags}
-
-
-_KEY_DTYPES = {"subject": "string", "grip_N": "float64", "run": "Int64", "level": "string",
-               "axis": "string", "kind": "string", "out_axis": "string", "method": "string"}
 
 
 def _stack_blocks(blocks: list[dict[str, object]], meta: Mapping | None = None) -> Spectra:

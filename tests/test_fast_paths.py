@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
@@ -22,6 +23,7 @@ from conftest import fresh_json, modules_after
 from scipy import ndimage, signal
 from scipy.stats import qmc
 
+import armfit
 from armfit.data import sobol_points
 from armfit.errors import BadInputError
 from armfit.io.arrow import arrow_array
@@ -437,11 +439,21 @@ def test_estimate_loads_neither_pandas_nor_scipy(tmp_path):
     assert not loaded & {"pandas", "scipy", "matplotlib", "rich", "armfit.fitting"}
 
 
-def test_fit_nominal_loads_no_figures_and_no_scipy_stats(spectra, tmp_path):
-    loaded = modules_after(["-q", "fit-nominal", str(spectra), "-o", str(tmp_path / "n.csv")])
+def test_fit_nominal_loads_no_figures_no_scipy_stats_and_no_pandas(spectra, tmp_path):
+    # reading the medians, fitting them and writing the params file: no pandas (its
+    # import is a third of the command) and no pyarrow.compute
+    out = tmp_path / "n.csv"
+    loaded = modules_after(["-q", "fit-nominal", str(spectra), "-o", str(out)])
     assert "armfit.fitting" in loaded
     assert not loaded & {"matplotlib", "scipy.stats", "scipy.signal", "armfit.figures",
-                         "armfit.diagnosis.search", "armfit.loop"}
+                         "armfit.diagnosis.search", "armfit.loop", "pandas",
+                         "pyarrow.compute"}
+    # the reference: the same fits' DataFrame written by pandas, as the file was written
+    # before; and the model's table is that DataFrame
+    model = armfit.fit_nominal(spectra)
+    frame = model.table
+    assert isinstance(frame, pd.DataFrame) and len(frame) == len(model.fits) > 0
+    assert out.read_text() == frame.to_csv(index=False, float_format="%.10g")
 
 
 def test_diagnose_imports_no_optimiser_until_it_refits_a_trial_alone():
@@ -518,6 +530,7 @@ def test_paper_values_are_pandas_numbers_of_the_papers_tables(name):
 _PAGE_FAULTS = """
 import resource, sys
 import numpy as np
+import pandas as pd
 if sys.argv[1] == "tuned":
     from armfit.workers import tune_allocator
     assert tune_allocator()

@@ -506,3 +506,65 @@ def test_a_temporary_file_that_cannot_be_written_is_an_output_error(small_study,
                                           r"temporary file in .*No space left on device; "
                                           r"set TMPDIR"):
         armfit.estimate(small_study)
+
+
+@pytest.mark.parametrize("by", [("subject", "grip_N", "run"), ("axis", "level", "method"),
+                                ("grip_N",)])
+def test_sorted_orders_responses_as_pandas_sorts_them(spectra, by):
+    # the reference: pandas' stable sort_values of the keys, missing values last (the
+    # order of groupby(by, sort=True, dropna=False)); the rows shuffled and some keys
+    # made missing, with ties left in their order
+    from dataclasses import replace
+    sp = S.Spectra.read(spectra)
+    rng = np.random.default_rng(7)
+    sp = sp.take(rng.permutation(len(sp)))
+    keys = {k: np.array(v, dtype=object) for k, v in sp.keys.items()}
+    gone = rng.random(len(sp)) < 0.2
+    keys["subject"][gone] = None
+    keys["grip_N"][rng.random(len(sp)) < 0.2] = np.nan
+    runs = rng.integers(1, 4, len(sp))
+    keys["run"][:] = [None if g else int(r)
+                      for g, r in zip(rng.random(len(sp)) < 0.5, runs, strict=True)]
+    keys["method"][rng.random(len(sp)) < 0.2] = None
+    sp = replace(sp, keys=keys)
+    dtypes = {"subject": "string", "grip_N": "float64", "run": "Int64", "level": "string",
+              "axis": "string", "method": "string"}
+    frame = pd.DataFrame({k: pd.array(list(keys[k]), dtype=dtypes[k]) for k in by})
+    order = frame.sort_values(list(by), na_position="last", kind="stable").index.to_numpy()
+    got = sp.sorted(by)
+    for k in keys:
+        assert list(map(str, got.keys[k])) == list(map(str, keys[k][order])), k
+    assert np.array_equal(got.h, sp.h[order], equal_nan=True)
+
+
+def test_dictionary_columns_give_each_text_one_code():
+    # a dictionary holding a text twice (Parquet's dictionary of two pages), and rows
+    # without a text: equal texts get equal codes, a missing one -1
+    dictionary = pa.array(["b", "a", "b", "c"])
+    indices = pa.array([0, 1, 2, None, 3, 2, 0], type=pa.int32())
+    codes, texts = S._text_codes(pa.DictionaryArray.from_arrays(indices, dictionary))
+    got = [None if c < 0 else texts[c] for c in codes]
+    assert got == ["b", "a", "b", None, "c", "b", "b"]
+    assert codes[0] == codes[2] == codes[5] == codes[6] and codes[3] == -1
+    plain = S._text_codes(pa.array(["b", "a", "b", None, "c", "b", "b"]))
+    assert [None if c < 0 else plain[1][c] for c in plain[0]] == got
+
+
+def test_chunks_on_different_dictionaries_become_one_array():
+    a = pa.DictionaryArray.from_arrays(pa.array([0, 1, 0], pa.int32()), pa.array(["x", "y"]))
+    b = pa.DictionaryArray.from_arrays(pa.array([1, None], pa.int32()), pa.array(["z", "x"]))
+    one = S._one_chunk(pa.chunked_array([a, b]))
+    codes, texts = S._text_codes(one)
+    assert [None if c < 0 else texts[c] for c in codes] == ["x", "y", "x", "x", None]
+
+
+def test_a_group_read_with_dictionaries_gives_the_responses_of_from_frame(sample):
+    # the text columns read dictionary-encoded, as Spectra.read reads a group
+    table = pq.ParquetFile(sample["one group"],
+                           read_dictionary=list(S.SPECTRA_TEXT)).read_row_group(0)
+    assert pa.types.is_dictionary(table.schema.field("subject").type)
+    meta = json.loads(table.schema.metadata[SPECTRA_META_KEY])
+    got = S._arrow_spectra(table.select(list(S.SPECTRA_COLUMNS)), meta, "f")
+    assert got is not None
+    plain = pq.read_table(sample["one group"])
+    assert_same(got, S.Spectra.from_frame(plain.to_pandas(), meta=meta, source="f"))

@@ -102,3 +102,59 @@ def test_caption_names_the_fit_and_the_intervals():
         "95 % intervals from the Jacobian.")
     assert caption_for("nominal", ["bootstrap-200"]).endswith(
         "95 % intervals from a bootstrap over subjects, 200 resamples.")
+
+
+# ---------------------------------------------------------------------------
+# The params CSV written from rows, without pandas
+# ---------------------------------------------------------------------------
+
+_NAN = float("nan")
+
+
+@pytest.mark.parametrize("rows", [
+    # the shapes of the columns a fit writes: floats, whole numbers, text, bools, and a
+    # key a row lacks (an effect's parameter only one row's model has)
+    [{"axis": "x", "Ma": 0.2085168061234, "n_points": 100, "converged": True,
+      "effects": "", "held": "delay.delay_s"},
+     {"axis": "y", "Ma": 1e-12, "n_points": 7, "converged": np.bool_(False),
+      "effects": "delay;lag", "delay.delay_s": 0.0125}],
+    # missing values: NaN and None in numbers and text, a whole column empty
+    [{"axis": "z", "Ma": _NAN, "n_points": None, "effects": None, "held": None},
+     {"axis": "x", "Ma": -0.0, "n_points": 3.5, "effects": "a", "held": None}],
+    # numbers that need quoting or many digits, infinities, numpy scalars
+    [{"axis": 'x "1", y', "Ma": float("inf"), "n_points": np.int64(2 ** 40),
+      "effects": "line\nbreak", "converged": True},
+     {"axis": "", "Ma": np.float64(123456789012.5), "n_points": np.int32(-4),
+      "effects": "é;ß", "converged": False}],
+    [],
+])
+def test_params_rows_write_the_csv_pandas_writes(rows, tmp_path):
+    # the reference: DataFrame(rows, columns).to_csv(index=False, float_format="%.10g")
+    from armfit.io.artifacts import RowTable, write_params
+    columns = ("axis", "Ma", "n_points", "converged", "effects", "delay.delay_s", "held")
+    table = RowTable(tuple(rows), columns)
+    expected = pd.DataFrame(rows, columns=list(columns)).to_csv(index=False,
+                                                                float_format="%.10g")
+    assert table.csv_text() == expected
+    write_params(table, tmp_path / "p.csv")
+    assert (tmp_path / "p.csv").read_text() == expected
+
+
+def test_a_column_pandas_holds_as_objects_is_written_by_pandas(tmp_path):
+    # bools with a missing value (pandas: object column): the rows go through pandas
+    from armfit.io.artifacts import RowTable, write_params
+    rows = ({"axis": "x", "converged": True}, {"axis": "y", "converged": None},
+            {"axis": "z", "converged": 1.5})
+    table = RowTable(rows, ("axis", "converged"))
+    assert table.csv_text() is None
+    write_params(table, tmp_path / "p.csv")
+    assert (tmp_path / "p.csv").read_text() == table.to_frame().to_csv(index=False)
+
+
+@pytest.mark.parametrize("name", ["grip", "nominal"])
+@pytest.mark.parametrize("effects", ["", "delay"])
+def test_params_rows_of_the_papers_tables_write_the_csv_pandas_writes(name, effects):
+    from armfit.io.artifacts import RowTable
+    frame = _params_from_paper(name, effects)
+    table = RowTable(tuple(frame.to_dict("records")), tuple(frame.columns))
+    assert table.csv_text() == frame.to_csv(index=False, float_format="%.10g")

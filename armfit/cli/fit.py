@@ -91,12 +91,12 @@ def _run(which: str, spectra: str, output: str, cost: str, band, bootstrap: int,
     fit = api_fit_grip if which == "grip" else api_fit_nominal
     model = fit(data, cost=cost, bands=bands, effects=effect_objs, bootstrap=bootstrap,
                 seed=seed, method=method, max_nfev=max_nfev, on_fit=report)
-    df = model.table
     model.write(output, overwrite=overwrite, latex=latex)
-    message(f"wrote {output} ({len(df)} fits)")
+    message(f"wrote {output} ({len(model.fits)} fits)")
     if latex is not None:
         message(f"wrote {latex}")
     if as_json:
+        df = model.table
         emit_json({
             "command": f"fit-{which}", "spectra": spectra, "output": output,
             "latex": latex, "columns": list(df.columns),

@@ -102,3 +102,48 @@ def _repeated_text(values: list, counts: np.ndarray):
 
 
 __all__ = ["ARROW_KINDS", "arrow_array"]
+
+
+def arrow_numbers(arr, dtype=np.float64, missing=np.nan) -> np.ndarray:
+    """A pyarrow Array of a fixed-width float or integer type as a numpy array of
+    ``dtype``, its nulls ``missing``, read from its data and validity buffers:
+    ``Array.to_numpy`` and ``Array.fill_null`` import pandas.
+
+    Parameters
+    ----------
+    arr : pyarrow.Array
+        Floats or integers (a half-float array goes through ``to_numpy``).
+    dtype : numpy dtype
+        float64 (default) or an integer type for integer arrays.
+    missing : scalar
+        The value of a null (NaN by default).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``arr.fill_null(missing).to_numpy(zero_copy_only=False)`` as ``dtype``.
+    """
+    import pyarrow as pa
+    width = {8: "1", 16: "2", 32: "4", 64: "8"}.get(arr.type.bit_width)
+    kind = "f" if pa.types.is_floating(arr.type) else \
+        "i" if pa.types.is_signed_integer(arr.type) else "u"
+    if width is None or (kind == "f" and width == "1"):
+        return np.asarray(arr.fill_null(missing).to_numpy(zero_copy_only=False),
+                          dtype=dtype)
+    n, offset = len(arr), arr.offset
+    validity, data = arr.buffers()[:2]
+    if data is None:
+        return np.full(n, missing, dtype=dtype)
+    values = np.frombuffer(data, dtype=np.dtype(f"<{kind}{width}"),
+                           count=offset + n)[offset:].astype(dtype, copy=False)
+    if arr.null_count and validity is not None:
+        valid = np.unpackbits(np.frombuffer(validity, dtype=np.uint8), bitorder="little",
+                              count=offset + n)[offset:].astype(bool)
+        values = np.where(valid, values, missing)
+    return values
+
+
+def arrow_ints(arr, missing: int = -1) -> np.ndarray:
+    """A pyarrow Array of an integer type as int64, its nulls ``missing``
+    (:func:`arrow_numbers`)."""
+    return arrow_numbers(arr, np.int64, missing)

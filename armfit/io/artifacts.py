@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -40,10 +41,75 @@ def params_frame(rows: Iterable[Mapping], param_names, *, grip: bool) -> pd.Data
     """A params DataFrame from row dicts (one per fit), columns in file order
     (:func:`armfit.io.schema.params_columns`; the ``held`` column only when a row holds
     parameters)."""
+    return params_rows(rows, param_names, grip=grip).to_frame()
+
+
+def params_rows(rows: Iterable[Mapping], param_names, *, grip: bool) -> RowTable:
+    """The rows of :func:`params_frame` before they become a DataFrame."""
     rows = list(rows)
     held = any(r.get(PARAMS_HELD) for r in rows)
-    import pandas as pd
-    return pd.DataFrame(rows, columns=params_columns(param_names, grip=grip, held=held))
+    return RowTable(tuple(rows), tuple(params_columns(param_names, grip=grip, held=held)))
+
+
+@dataclass(frozen=True)
+class RowTable:
+    """A table as row dicts and its columns: what ``pandas.DataFrame(rows,
+    columns=columns)`` would hold (a key a row lacks is a missing value), written as CSV
+    without pandas.
+
+    pandas takes a third of a second to import; a command that fits one spectra file
+    and writes its parameters needs no more of it than this.
+    """
+
+    rows: tuple[Mapping, ...]
+    columns: tuple[str, ...]
+
+    def to_frame(self) -> pd.DataFrame:
+        """The DataFrame of these rows."""
+        import pandas as pd
+        return pd.DataFrame(list(self.rows), columns=list(self.columns))
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def csv_text(self) -> str | None:
+        """The CSV that ``to_frame().to_csv(index=False, float_format="%.10g")`` writes,
+        or None for a column pandas would hold as objects other than text (then the
+        caller writes the DataFrame): each column typed as pandas types it (all bool:
+        True/False; all whole numbers: as written; numbers with missing values or
+        fractions: 10 significant digits, a missing value empty; text: as is, a missing
+        value empty), quoted as the csv module quotes minimally."""
+        import csv
+        import io
+        cells = []
+        for col in self.columns:
+            fmt = _column_format([r.get(col) for r in self.rows])
+            if fmt is None:
+                return None
+            cells.append(fmt)
+        out = io.StringIO()
+        writer = csv.writer(out, lineterminator="\n")
+        writer.writerow(self.columns)
+        writer.writerows(zip(*cells, strict=True) if cells else ())
+        return out.getvalue()
+
+
+def _column_format(values: list) -> list[str] | None:
+    """The CSV cells of one column as pandas would write them (see
+    :meth:`RowTable.csv_text`), or None when pandas would hold it as non-text objects."""
+    missing = [v is None or (isinstance(v, float | np.floating) and v != v) for v in values]
+    if all(isinstance(v, bool | np.bool_) for v in values):
+        return ["True" if v else "False" for v in values]
+    numbers = [isinstance(v, int | float | np.integer | np.floating)
+               and not isinstance(v, bool | np.bool_) for v in values]
+    if all(n or m for n, m in zip(numbers, missing, strict=True)):
+        if all(isinstance(v, int | np.integer) for v in values):
+            return [str(int(v)) for v in values]
+        return ["" if m else CSV_FLOAT_FORMAT % float(v)
+                for v, m in zip(values, missing, strict=True)]
+    if all(isinstance(v, str) or m for v, m in zip(values, missing, strict=True)):
+        return ["" if m else v for v, m in zip(values, missing, strict=True)]
+    return None
 
 
 def write_table(df: pd.DataFrame, path: str | os.PathLike, *, overwrite: bool = False
@@ -69,8 +135,14 @@ def write_table(df: pd.DataFrame, path: str | os.PathLike, *, overwrite: bool = 
     OutputError
         ``path`` exists and not ``overwrite``.
     """
+    text = df.csv_text() if isinstance(df, RowTable) else None
+    if isinstance(df, RowTable) and text is None:
+        df = df.to_frame()
     with atomic_path(path, overwrite=overwrite) as tmp:
-        df.to_csv(tmp, index=False, float_format=CSV_FLOAT_FORMAT)
+        if text is None:
+            df.to_csv(tmp, index=False, float_format=CSV_FLOAT_FORMAT)
+        else:
+            Path(tmp).write_text(text, encoding="utf-8")
     return path
 
 
@@ -234,6 +306,7 @@ def _check_pairs(p: Path, ax: str, rows: np.ndarray, kinds: np.ndarray,
 
 
 __all__ = [
-    "params_frame", "write_table", "write_params", "write_wu_table", "WuRows",
+    "params_frame", "params_rows", "RowTable", "write_table", "write_params",
+    "write_wu_table", "WuRows",
     "wu_frame", "write_wu", "read_wu_rows",
 ]

@@ -24,11 +24,13 @@ import decimal
 import math
 import numbers
 import re
+import sys
 from collections.abc import Iterable
 
 import numpy as np
 
 from armfit.errors import BadInputError, cell
+from armfit.io.arrow import arrow_numbers
 
 #: A number as text (after its surrounding blanks are removed), case-insensitive.
 NUMBER_PATTERN = (r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?"
@@ -110,51 +112,34 @@ def parse_whole(value) -> int:
 
 
 def _arrow(values):
-    """``values`` as one pyarrow Array (a column of a table, a pandas Series, a numpy
-    array or a sequence of cells)."""
+    """``values`` as one pyarrow Array (a column of a table, a pandas Series or a sequence
+    of cells), or as a float64 numpy array if they are numbers already (an integer or
+    float numpy array, or a sequence of Python numbers): ``pyarrow.array`` imports pandas
+    (a third of a second), which a command reading one number of a file's metadata does
+    not otherwise need."""
     import pyarrow as pa
     if isinstance(values, pa.ChunkedArray):
         return values.combine_chunks() if values.num_chunks != 1 else values.chunk(0)
     if isinstance(values, pa.Array):
         return values
-    try:
-        import pandas as pd
-        if isinstance(values, pd.Series | pd.Index):
-            if pd.api.types.is_numeric_dtype(values.dtype) \
-                    and not pd.api.types.is_bool_dtype(values.dtype):
-                return pa.array(values.to_numpy(dtype=np.float64, na_value=np.nan))
-            values = values.to_numpy(dtype=object)
-    except ImportError:  # pragma: no cover - pandas is a dependency
-        pass
+    pd = sys.modules.get("pandas")   # not imported: ``values`` is no pandas object
+    if pd is not None and isinstance(values, pd.Series | pd.Index):
+        if pd.api.types.is_numeric_dtype(values.dtype) \
+                and not pd.api.types.is_bool_dtype(values.dtype):
+            return values.to_numpy(dtype=np.float64, na_value=np.nan)
+        values = values.to_numpy(dtype=object)
     arr = np.asarray(values) if not isinstance(values, np.ndarray) else values
     if arr.dtype.kind in "iuf":
-        return pa.array(arr.astype(np.float64, copy=False))
+        return arr.astype(np.float64)
     cells = [None if _missing(v) else v if isinstance(v, str) else _as_text(v)
              for v in (arr.tolist() if arr.dtype != object else arr)]
     return pa.array(cells, type=pa.large_string())
 
 
 def _numeric_numpy(arr) -> np.ndarray:
-    """A pyarrow Array of a float or integer type as float64 (nulls NaN), read from its
-    buffers: ``Array.to_numpy`` would import pandas (a third of a second), which a
-    command that reads trials and writes spectra does not otherwise need."""
-    import pyarrow as pa
-    width = {8: "1", 16: "2", 32: "4", 64: "8"}.get(arr.type.bit_width)
-    kind = "f" if pa.types.is_floating(arr.type) else \
-        "i" if pa.types.is_signed_integer(arr.type) else "u"
-    if width is None or (kind == "f" and width == "1"):
-        return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64)
-    n, offset = len(arr), arr.offset
-    validity, data = arr.buffers()[:2]
-    if data is None:
-        return np.full(n, np.nan)
-    values = np.frombuffer(data, dtype=np.dtype(f"<{kind}{width}"),
-                           count=offset + n)[offset:].astype(np.float64, copy=False)
-    if arr.null_count and validity is not None:
-        valid = np.unpackbits(np.frombuffer(validity, dtype=np.uint8), bitorder="little",
-                              count=offset + n)[offset:].astype(bool)
-        values = np.where(valid, values, np.nan)
-    return values
+    """A pyarrow Array of a float or integer type as float64 (nulls NaN)
+    (:func:`armfit.io.arrow.arrow_numbers`)."""
+    return arrow_numbers(arr, np.float64, np.nan)
 
 
 def _missing(v) -> bool:
@@ -245,6 +230,8 @@ def parse_numbers(values, *, file: str | None = None, column: str | None = None,
     if errors not in ("raise", "coerce"):
         raise ValueError(f"errors must be 'raise' or 'coerce', got {errors!r}")
     arr = _arrow(values)
+    if isinstance(arr, np.ndarray):
+        return arr
     t = arr.type
 
     def raise_at(i: int, v) -> None:
