@@ -2458,6 +2458,7 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
     """:meth:`Spectra.read` of ``p`` a row group at a time, keeping the responses
     ``wanted`` selects and the ``values`` (None: all); raises :class:`_NotByGroup` (or
     the error of a bad file) when the whole read must decide."""
+    import pyarrow as pa
     import pyarrow.parquet as pq
     # the text columns as Parquet holds them, dictionary-encoded (no text per row)
     pf = pq.ParquetFile(p, read_dictionary=list(SPECTRA_TEXT))
@@ -2465,13 +2466,21 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
     if pf.num_row_groups == 0 or any(c not in schema.names for c in SPECTRA_COLUMNS):
         raise _NotByGroup
     meta = _file_meta(schema.metadata, p)
+    # the value columns not wanted are not read where the file holds them as floats:
+    # from_frame takes any float there, so they cannot change the responses or errors
+    if values is not None and all(pa.types.is_floating(schema.field(c).type)
+                                  for c in SPECTRA_VALUES if c not in values):
+        columns = [c for c in SPECTRA_COLUMNS if c not in SPECTRA_VALUES or c in values]
+    else:
+        columns = list(SPECTRA_COLUMNS)
     parts: list[Spectra] = []
     seen: set[tuple] = set()
     first_row = 0
     empty = None
     for g in range(pf.num_row_groups):
-        table = pf.read_row_group(g, columns=list(SPECTRA_COLUMNS))
-        part = _group_spectra(table, meta, str(p), first_row)
+        table = pf.read_row_group(g, columns=columns)
+        part = _group_spectra(table, meta, str(p), first_row,
+                              lambda g=g: pf.read_row_group(g, columns=list(SPECTRA_COLUMNS)))
         first_row += table.num_rows
         del table
         keys = _response_keys(part)
@@ -2479,11 +2488,11 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
             raise _NotByGroup
         seen |= keys
         rows = _wanted_rows(part, wanted) if wanted else np.arange(len(part))
+        part = _only_values(part, values)   # before the rows are copied
         if empty is None:
-            empty = _only_values(part.take(rows[:0]), values)
+            empty = part.take(rows[:0])
         if rows.size:
-            parts.append(_only_values(part if rows.size == len(part) else part.take(rows),
-                                      values))
+            parts.append(part if rows.size == len(part) else part.take(rows))
         del part
         if g % _TRIM_EVERY == _TRIM_EVERY - 1:
             # Arrow's allocator (mimalloc) and the C library's keep the memory of the
@@ -2493,13 +2502,17 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
     return _concat(parts, meta, str(p)) if parts else empty
 
 
-def _group_spectra(table, meta: Mapping, source: str, first_row: int) -> Spectra:
-    """The responses of one row group (an Arrow table of every spectra column):
-    :func:`_arrow_spectra` where the group is laid out as armfit writes it, else
-    :meth:`Spectra.from_frame` of its long table (after :func:`_check_axes`), which
-    then decides, or names what is wrong; the same responses either way."""
+def _group_spectra(table, meta: Mapping, source: str, first_row: int,
+                   whole_group: Callable[[], object] | None = None) -> Spectra:
+    """The responses of one row group (an Arrow table of the spectra columns, every one
+    or all but some value columns): :func:`_arrow_spectra` where the group is laid out
+    as armfit writes it, else :meth:`Spectra.from_frame` of its long table of every
+    column (``whole_group()``, when ``table`` lacks some; after :func:`_check_axes`),
+    which then decides, or names what is wrong; the same responses either way."""
     part = _arrow_spectra(table, meta, source)
     if part is None:
+        if table.num_columns < len(SPECTRA_COLUMNS):
+            table = whole_group()
         df = _decoded(table).to_pandas()
         _check_axes(df, Path(source), first_row)
         part = Spectra.from_frame(df, meta=meta, source=source)
@@ -2527,9 +2540,11 @@ def _arrow_spectra(table, meta: Mapping, source: str | None) -> Spectra | None:
     :func:`_assemble`."""
     import pyarrow as pa
     n_rows = table.num_rows
-    if n_rows == 0 or table.column_names != list(SPECTRA_COLUMNS):
+    names = [c for c in table.column_names if c in SPECTRA_VALUES]
+    if n_rows == 0 or table.column_names != [c for c in SPECTRA_COLUMNS
+                                             if c not in SPECTRA_VALUES or c in names]:
         return None
-    cols = {c: _one_chunk(table.column(c)) for c in SPECTRA_COLUMNS}
+    cols = {c: _one_chunk(table.column(c)) for c in table.column_names}
     for c, col in cols.items():
         t = col.type.value_type if pa.types.is_dictionary(col.type) and c in SPECTRA_TEXT \
             else col.type
@@ -2566,7 +2581,7 @@ def _arrow_spectra(table, meta: Mapping, source: str | None) -> Spectra | None:
     keys["n"] = arrow_ints(cols["n"])[first].tolist()
     try:
         sp = _assemble(np.cumsum(change) - 1, freq, lambda c: arrow_numbers(cols[c]),
-                       *text["flags"], keys, meta, source)
+                       *text["flags"], keys, meta, source, names)
     except BadInputError:            # a frequency twice in a response: from_frame says so
         return None
     # a response in two places, which from_frame groups into one
@@ -2604,11 +2619,11 @@ def _text_codes(col) -> tuple[np.ndarray, list[str]]:
 def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.ndarray],
               flag_codes: np.ndarray, flag_texts: Sequence[str],
               keys: Mapping[str, Sequence], meta: Mapping | None,
-              source: str | None) -> Spectra:
+              source: str | None, values: Sequence[str] = SPECTRA_VALUES) -> Spectra:
     """The :class:`Spectra` of a long table's rows: ``codes`` the response of each row
     (0, 1, … in the order the responses first appear), ``freq`` its frequency (Hz),
-    ``column(name)`` the row values of ``re``, ``im`` and each of
-    :data:`armfit.io.schema.SPECTRA_VALUES` (NaN where missing), ``flag_codes`` each
+    ``column(name)`` the row values of ``re``, ``im`` and each of ``values`` (of
+    :data:`armfit.io.schema.SPECTRA_VALUES`; NaN where missing), ``flag_codes`` each
     row's index into ``flag_texts`` (−1: none), ``keys`` per response its key values
     (text or None, ``grip_N`` a float or NaN, ``run`` an int or None) and ``n``.
 
@@ -2629,17 +2644,17 @@ def _assemble(codes: np.ndarray, freq: np.ndarray, column: Callable[[str], np.nd
     h = np.full((nr, nf), np.nan, complex)
     h.real[codes, fcode] = column("re")
     h.imag[codes, fcode] = column("im")
-    values = {}
-    for c in SPECTRA_VALUES:
+    arrays = {}
+    for c in values:
         a = np.full((nr, nf), np.nan)
         a[codes, fcode] = column(c)
-        values[c] = a
+        arrays[c] = a
     flags = np.full((nr, nf), "", dtype=object)
     flags[codes, fcode] = np.array([*flag_texts, ""], dtype=object)[flag_codes]
     out = {c: np.array(keys[c], dtype=object) for c in (*SPECTRA_KEYS, "n")}
     missing_out = np.array([v is None for v in out["out_axis"]], bool)
     out["out_axis"][missing_out] = out["axis"][missing_out]
-    return Spectra(grid, out, h, values, flags, present, dict(meta or {}), source)
+    return Spectra(grid, out, h, arrays, flags, present, dict(meta or {}), source)
 
 
 def _concat(parts: list[Spectra], meta: Mapping, source: str) -> Spectra:

@@ -568,3 +568,45 @@ def test_a_group_read_with_dictionaries_gives_the_responses_of_from_frame(sample
     assert got is not None
     plain = pq.read_table(sample["one group"])
     assert_same(got, S.Spectra.from_frame(plain.to_pandas(), meta=meta, source="f"))
+
+
+@pytest.mark.parametrize("what", ["as written", "value text", "split", "negative run"])
+def test_values_left_out_are_not_read_and_the_rest_is_the_whole_reads(sample, tmp_path,
+                                                                      what, monkeypatch):
+    # the reference: the file read whole, its responses of level trial, their standard
+    # errors only. The other value columns are not read from the file when it holds
+    # them as floats; when a group is not laid out as armfit writes it, or another
+    # program wrote a value column as text, every column is read and from_frame decides
+    def edit(df):
+        if what == "value text":
+            df["mag_db"] = df["mag_db"].map(repr)
+        if what == "split":      # the first response's last 10 rows after the second's
+            order = [*range(90), *range(100, 200), *range(90, 100), *range(200, len(df))]
+            return df.iloc[order].reset_index(drop=True)
+        if what == "negative run":
+            df["run"] = pd.array([None] * len(df), dtype="Int64")
+            df.loc[7, "run"] = -1
+        return df
+
+    path = _edited(sample, tmp_path, edit)
+    ref = whole(path).select(level="trial")
+    read_columns = []
+    real = pq.ParquetFile.read_row_group
+
+    def read_row_group(self, i, columns=None, **kwargs):
+        read_columns.append(tuple(columns))
+        return real(self, i, columns=columns, **kwargs)
+
+    monkeypatch.setattr(pq.ParquetFile, "read_row_group", read_row_group)
+    got = S.Spectra.read(path, level="trial", values=("se_db", "se_deg"))
+    assert list(got.values) == ["se_db", "se_deg"]
+    for c in ("se_db", "se_deg"):
+        assert np.array_equal(got.values[c], ref.values[c], equal_nan=True)
+    assert np.array_equal(got.h, ref.h, equal_nan=True)
+    assert np.array_equal(got.flags, ref.flags) and got.keys.keys() == ref.keys.keys()
+    assert all(list(map(str, got.keys[k])) == list(map(str, ref.keys[k])) for k in got.keys)
+    fewer = tuple(c for c in S.SPECTRA_COLUMNS if c not in S.SPECTRA_VALUES
+                  or c in ("se_db", "se_deg"))
+    assert read_columns[0] == (tuple(S.SPECTRA_COLUMNS) if what == "value text" else fewer)
+    if what in ("split", "negative run"):      # the group read again, every column
+        assert tuple(S.SPECTRA_COLUMNS) in read_columns[1:]
