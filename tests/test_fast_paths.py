@@ -456,6 +456,14 @@ def test_fit_nominal_loads_no_figures_no_scipy_stats_and_no_pandas(spectra, tmp_
     assert out.read_text() == frame.to_csv(index=False, float_format="%.10g")
 
 
+def test_the_diagnose_and_compare_commands_import_rich_only_to_print():
+    # their module loads without rich (about a tenth of a second): the tables are drawn
+    # once the work is done, and the work's start-up does not wait for them
+    got = fresh_json("import sys, json\nimport armfit.cli.diagnose\n"
+                     "print(json.dumps(sorted(m for m in sys.modules if m.startswith('rich'))))")
+    assert got == []
+
+
 def test_diagnose_imports_no_optimiser_until_it_refits_a_trial_alone():
     # `armfit diagnose --help` and the diagnosis's modules (its joint fits are
     # armfit.blocklsq's) need neither scipy.optimize, scipy.special nor scipy.ndimage:

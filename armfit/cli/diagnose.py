@@ -3,10 +3,9 @@ which physical effect is missing."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import click
-from rich.markup import escape
-from rich.measure import Measurement
-from rich.table import Table
 
 from armfit.api import ModelFit
 from armfit.api import compare as api_compare
@@ -30,6 +29,9 @@ from armfit.errors import BadInputError, UsageError
 from armfit.io.atomic import check_output
 from armfit.models.effects import EFFECTS, get_effect
 from armfit.spectra import Spectra
+
+if TYPE_CHECKING:   # rich is imported when a table is printed, after the work is done
+    from rich.table import Table
 
 _BAND_HELP = ("Frequency band in Hz, for one axis (AXIS=LO:HI) or every axis (LO:HI); "
               "repeatable, later items win [default: the whole grid of the spectra "
@@ -61,6 +63,8 @@ def effects_command(as_json):
     if as_json:
         emit_json({"effects": rows})
         return
+    from rich.markup import escape
+    from rich.table import Table
     t = Table(title="armfit effect library", show_lines=True)
     for c in ("effect", "parameters", "what it is", "suspect it when"):
         t.add_column(c, overflow="fold")
@@ -107,6 +111,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
     title = f"model vs measurements ({level}); cells: RMS dB/deg/× noise"
     if band is None and level != "trial":
         title += "; overall: over each model's fit band"
+    from rich.measure import Measurement
     con = _console()
     t = _compare_table(title, rows, "/")
     if Measurement.get(con, con.options.update_width(10**6), t).maximum > con.width:
@@ -126,6 +131,7 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
 def _compare_table(title: str, rows, sep: str) -> Table:
     """The table of ``compare``: one row per comparison, one column per band of any row
     (a row's cell is empty for a band outside its own), cells ``dB{sep}deg{sep}× noise``."""
+    from rich.table import Table
     spans = sorted({(b.lo_hz, b.hi_hz) for r in rows for b in r.bands})
     t = Table(title=title)
     for c in ("axis", "grip N", "model", "overall",
@@ -229,6 +235,7 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_
 
 def _print_steps(results, doc, con) -> None:
     """One table per axis, one row per step, then the failing bands and the verdict."""
+    from rich.table import Table
     for d in results:
         t = Table(title=f"axis {d.axis}: {d.n_trials} trials, "
                         f"{d.band[0]:.3g}–{d.band[1]:.3g} Hz — stepwise search")
