@@ -2,8 +2,10 @@
 one spectra file, whole processes, paired run by run with `python -c "import numpy"`
 (the same interpreter), so that the ratio survives a loaded machine.
 
-Targets (on an idle machine): each command <= 0.4 s. The ratio to `import numpy`
-(about 0.1 s idle) is printed too: 0.4 s is about 3.5 x that.
+Targets: each command <= 0.4 s where `python -c "import numpy"` takes 0.07-0.077 s
+(`armfit --help` took 0.77-0.85 s there, 11 x `import numpy`): as a ratio measured in
+one run, <= 5.2 x `import numpy` (0.4 / 0.077), which is what the script checks. The
+absolute times are printed too; they move with the machine.
 
 Each command is also paired with its libraries' floor: a fresh process that imports
 every module outside armfit and the standard library that the command imports (found
@@ -31,6 +33,8 @@ from bench_startup import wall  # noqa: E402  (seconds from a command's start to
 ARMFIT = str(Path(sys.executable).with_name("armfit"))
 TRIAL = Path(__file__).resolve().parents[1] / "sample_data/study/sub-01_axis-x_grip-1N.parquet"
 ENTRY = "from armfit.cli.entry import main; main()"
+#: The target as a ratio to `import numpy` (see the module docstring).
+TARGET_RATIO = 0.4 / 0.077
 #: The libraries' floor: import the modules named on the command line, in order (an
 #: import that fails, as it failed in the command, is passed over).
 FLOOR = """
@@ -101,8 +105,10 @@ def main() -> None:
         t, floor = times[name], times[f"{name}: floor"]
         ratios = [a / b for a, b in zip(t, base, strict=True)]
         share = [a - b for a, b in zip(t, floor, strict=True)]
+        ratio = statistics.median(ratios)
         print(f"{name:>24}: median {statistics.median(t):.3f} s (min {min(t):.3f}), "
-              f"{statistics.median(ratios):.1f} x import numpy; target <= 0.4 s")
+              f"{ratio:.2f} x import numpy (median of the pairs; target <= "
+              f"{TARGET_RATIO:.1f} x: {'met' if ratio <= TARGET_RATIO else 'not met'})")
         print(f"{'its libraries alone':>24}: median {statistics.median(floor):.3f} s "
               f"(importing {', '.join(floors[name])}); armfit's own share "
               f"{statistics.median(share):.3f} s (median of the pairs)")
