@@ -1176,7 +1176,9 @@ def trial_groups(spectra, *, method: str | None = None, source: str | None = Non
     long table, or the path of a spectra file (only its measured trial rows are read, and
     let go once their arrays are taken). Raises BadInputError if there are none,
     UsageError if several estimators are present and ``method`` is not given."""
-    sp = _read_or_of(spectra, level="trial", kind="measured")
+    # of a file, only the values the fits use (the other seven would more than double
+    # what a study's trial rows hold)
+    sp = _read_or_of(spectra, level="trial", kind="measured", values=("se_db", "se_deg"))
     source = source if source is not None else sp.source
     tr = sp.select(kind="measured", level="trial")
     tr = tr.take(tr.key("out_axis") == tr.key("axis"))
@@ -1347,11 +1349,13 @@ def _grip_starts(spectra, cost, bands, effects, method, source
     return grip_fit_starts(study.keys, study.fits)
 
 
-def _read_or_of(spectra, *, level: str, kind: str) -> Spectra:
+def _read_or_of(spectra, *, level: str, kind: str,
+                values: Sequence[str] | None = None) -> Spectra:
     """The responses of level ``level`` and kind ``kind`` of the spectra file ``spectra``
-    (a path), or ``spectra`` itself (a Spectra or a long table) as a Spectra."""
+    (a path; with ``values`` only those of the values), or ``spectra`` itself (a Spectra
+    or a long table) as a Spectra."""
     if isinstance(spectra, str | os.PathLike):
-        return Spectra.read(spectra, level=level, kind=kind)
+        return Spectra.read(spectra, level=level, kind=kind, values=values)
     return Spectra.of(spectra)
 
 

@@ -2122,8 +2122,9 @@ class Spectra:
             ``Spectra.read(path).select(...)``; the rows left out are never held.
         values : str or sequence of str, optional
             Keep only these of :data:`armfit.io.schema.SPECTRA_VALUES` in :attr:`values`
-            (None: all); the responses, flags and the other values kept are the same,
-            and the values left out are never held for more than a row group.
+            (None: all); the responses, flags and the other values kept are the same.
+            The values left out are not read from the file where it holds them as
+            numbers (else never held for more than a row group).
 
         Returns
         -------
@@ -2535,9 +2536,10 @@ def _arrow_spectra(table, meta: Mapping, source: str | None) -> Spectra | None:
     as text (or dictionary-encoded text, as :func:`_read_by_group` reads them), the
     numeric ones as numbers (``run`` and ``n`` whole, ``n`` never missing, ``run`` never
     negative), every axis and output axis x, y or z, every frequency in range, and each
-    response's rows together, each frequency once. None otherwise (or without rows):
-    :meth:`Spectra.from_frame` then gives the responses, or its error. Both end in
-    :func:`_assemble`."""
+    response's rows together, each frequency once. The value columns may be only some
+    of :data:`armfit.io.schema.SPECTRA_VALUES` (a read that keeps only those): the
+    Spectra holds those. None otherwise (or without rows): :meth:`Spectra.from_frame`
+    then gives the responses, or its error. Both end in :func:`_assemble`."""
     import pyarrow as pa
     n_rows = table.num_rows
     names = [c for c in table.column_names if c in SPECTRA_VALUES]

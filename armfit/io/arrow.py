@@ -101,9 +101,6 @@ def _repeated_text(values: list, counts: np.ndarray):
                                   pa.py_buffer(data.tobytes())], null_count=nulls)
 
 
-__all__ = ["ARROW_KINDS", "arrow_array"]
-
-
 def arrow_numbers(arr, dtype=np.float64, missing=np.nan) -> np.ndarray:
     """A pyarrow Array of a fixed-width float or integer type as a numpy array of
     ``dtype``, its nulls ``missing``, read from its data and validity buffers:
@@ -147,3 +144,6 @@ def arrow_ints(arr, missing: int = -1) -> np.ndarray:
     """A pyarrow Array of an integer type as int64, its nulls ``missing``
     (:func:`arrow_numbers`)."""
     return arrow_numbers(arr, np.int64, missing)
+
+
+__all__ = ["ARROW_KINDS", "arrow_array", "arrow_ints", "arrow_numbers"]

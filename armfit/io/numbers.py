@@ -126,7 +126,7 @@ def _arrow(values):
     if pd is not None and isinstance(values, pd.Series | pd.Index):
         if pd.api.types.is_numeric_dtype(values.dtype) \
                 and not pd.api.types.is_bool_dtype(values.dtype):
-            return values.to_numpy(dtype=np.float64, na_value=np.nan)
+            return np.array(values.to_numpy(dtype=np.float64, na_value=np.nan))
         values = values.to_numpy(dtype=object)
     arr = np.asarray(values) if not isinstance(values, np.ndarray) else values
     if arr.dtype.kind in "iuf":
@@ -134,12 +134,6 @@ def _arrow(values):
     cells = [None if _missing(v) else v if isinstance(v, str) else _as_text(v)
              for v in (arr.tolist() if arr.dtype != object else arr)]
     return pa.array(cells, type=pa.large_string())
-
-
-def _numeric_numpy(arr) -> np.ndarray:
-    """A pyarrow Array of a float or integer type as float64 (nulls NaN)
-    (:func:`armfit.io.arrow.arrow_numbers`)."""
-    return arrow_numbers(arr, np.float64, np.nan)
 
 
 def _missing(v) -> bool:
@@ -244,7 +238,7 @@ def parse_numbers(values, *, file: str | None = None, column: str | None = None,
                             row=first_row + i)
 
     if pa.types.is_floating(t) or pa.types.is_integer(t):
-        return _numeric_numpy(arr)
+        return arrow_numbers(arr)
     if pa.types.is_decimal(t):   # through its text: the nearest float64, as written
         return np.asarray(arr.cast(pa.string()).cast(pa.float64())
                           .to_numpy(zero_copy_only=False), dtype=np.float64)
