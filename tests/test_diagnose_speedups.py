@@ -28,8 +28,9 @@ from armfit.diagnosis import joint, schedule, search
 from armfit.diagnosis.fit import start_array
 from armfit.diagnosis.responses import axis_data, param_row
 from armfit.diagnosis.schedule import TaskQueue
-from armfit.diagnosis.screen import keep_screened, rank_screened
+from armfit.diagnosis.screen import keep_screened, rank_screened, screen_candidate
 from armfit.diagnosis.tuning import FTOL_VARIANCE, SHARED_EFFECTS
+from armfit.errors import EffectDefinitionError
 from armfit.fitting import fit_response
 from armfit.loop import (
     WallSettings,
@@ -64,6 +65,15 @@ def study():
 # The search: each axis's next step as soon as its own fits are done
 # ---------------------------------------------------------------------------
 
+def _screen(s, e):
+    """The screening fit of ``e`` by its definition (:func:`screen_candidate` on the
+    axis's trials), a candidate whose own code breaks its fit as the search records it."""
+    try:
+        return screen_candidate(s.data, s.band, s.fits[-1], e, s.by_subject_now(e))
+    except EffectDefinitionError as exc:
+        return search.FailedCandidate(e.name, str(exc))
+
+
 def _step_by_step(spectra, params, max_steps: int = 3) -> list:
     """The stepwise search as it ran before the task queue: every step of every axis at
     once, each waiting for the slowest axis (the reference of the pipelined search)."""
@@ -79,8 +89,7 @@ def _step_by_step(spectra, params, max_steps: int = 3) -> list:
     while any(not s.done for s in searches):
         live = [s for s in searches if not s.done]
         stasks = [(s, e) for s in live for e in s.remaining()]
-        sfits = [search._screen_task((s.data, s.band, s.fits[-1], e, s.by_subject_now(e)))
-                 for s, e in stasks]
+        sfits = [_screen(s, e) for s, e in stasks]
         for (s, _), sc in zip(stasks, sfits, strict=True):
             if isinstance(sc, search.FailedCandidate):
                 s.fail(sc)
@@ -742,3 +751,23 @@ def test_adopted_tables_side_by_side_are_those_fitted_in_turn(study):
     kw = dict(cost="complex", bands=ad.bands, effects=ad.effects)
     assert grip.table.equals(api.fit_grip(spectra, **kw).table)
     assert nominal.table.equals(api.fit_nominal(spectra, **kw).table)
+
+
+def test_screening_tasks_carry_only_the_screened_trials(study):
+    # the trials a step's candidates are screened on are made once (screen_trials): a
+    # task holds those SCREEN_SUBSET trials, not the axis's; the screening fit on them is
+    # screen_candidate's, to the bit (the reference: screen_candidate on the axis)
+    from armfit.diagnosis.screen import screen_on, screen_trials
+    from armfit.diagnosis.tuning import SCREEN_SUBSET
+    spectra, params = study
+    data = axis_data(spectra, params, "x")
+    band = (float(data.f_hz[0]), float(data.f_hz[-1]))
+    base = search._base_task((data, band))
+    sub, cur, quick = screen_trials(data, band, base)
+    assert data.h.shape[0] == 4 > SCREEN_SUBSET == sub.h.shape[0] == cur.base.shape[0]
+    assert quick
+    effect = EFFECTS["delay"]
+    got = screen_on(sub, cur, quick, band, effect)
+    ref = screen_candidate(data, band, base, effect)
+    assert repr(got) == repr(ref)
+    assert np.array_equal(got.r_db, ref.r_db) and got.shared == ref.shared

@@ -14,7 +14,7 @@ from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.tuning import SCREEN_GAP, SCREEN_KEEP, SCREEN_SUBSET
 from armfit.models.effects import Effect
 
-__all__ = ["keep_screened", "rank_screened", "screen_candidate"]
+__all__ = ["keep_screened", "rank_screened", "screen_candidate", "screen_on", "screen_trials"]
 
 
 def keep_screened(screened: Sequence[tuple[Effect, JointFit]]) -> list[tuple[Effect, JointFit]]:
@@ -48,12 +48,28 @@ def screen_candidate(data: AxisData, band: tuple[float, float], current: JointFi
     one value per subject (an effect of the arm, :mod:`armfit.diagnosis.subjects`): on
     the subset, whose trials are of different subjects in the paper's design, one value
     per trial. Returns the subset's fit."""
+    return screen_on(*screen_trials(data, band, current), band, effect, by_subject)
+
+
+def screen_trials(data: AxisData, band: tuple[float, float], current: JointFit
+                  ) -> tuple[AxisData, JointFit, bool]:
+    """What every candidate of a step is screened on (:func:`screen_candidate`): the
+    :data:`SCREEN_SUBSET` trials spread over the axis and ``current``'s fit of them,
+    ``quick`` True; or all the trials and ``current`` when there are no more, ``quick``
+    False. The same for every candidate, so it is made once a step and the screening
+    fits are handed only these trials."""
     T = data.h.shape[0]
     if T <= SCREEN_SUBSET:
-        return fit_extend(data, band, current, effect, by_subject=by_subject)
+        return data, current, False
     idx = unique(np.linspace(0, T - 1, SCREEN_SUBSET).round().astype(int))
-    sub, cur = _trial_subset(data, current, idx, band)
-    return fit_extend(sub, band, cur, effect, quick=True, by_subject=by_subject)
+    return (*_trial_subset(data, current, idx, band), True)
+
+
+def screen_on(data: AxisData, current: JointFit, quick: bool, band: tuple[float, float],
+              effect: Effect, by_subject: bool = False) -> JointFit:
+    """The screening fit of ``effect`` on :func:`screen_trials`' trials ``data`` and fit
+    ``current`` (``quick``: a subset's)."""
+    return fit_extend(data, band, current, effect, quick=quick, by_subject=by_subject)
 
 
 def rank_screened(screened: list[tuple[Effect, JointFit]]) -> list[tuple[Effect, JointFit]]:

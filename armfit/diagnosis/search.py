@@ -35,7 +35,13 @@ from armfit.diagnosis.results import (
     short_params,
 )
 from armfit.diagnosis.schedule import TaskQueue, task_queue
-from armfit.diagnosis.screen import keep_screened, rank_screened, screen_candidate
+from armfit.diagnosis.screen import (
+    keep_screened,
+    rank_screened,
+    screen_candidate,
+    screen_on,
+    screen_trials,
+)
 from armfit.diagnosis.subjects import (
     SubjectTest,
     by_subject_search,
@@ -420,9 +426,9 @@ def _base_task(args):
 
 
 def _screen_task(args):
-    data, band, current, effect, by_subject = args
+    data, current, quick, band, effect, by_subject = args   # screen_trials' trials
     try:
-        return screen_candidate(data, band, current, effect, by_subject)
+        return screen_on(data, current, quick, band, effect, by_subject)
     except EffectDefinitionError as exc:     # the effect's own code broke the fit
         return FailedCandidate(effect.name, str(exc))
     finally:
@@ -603,9 +609,11 @@ class _AxisSteps:
         effects = s.remaining()
         step = next(self.steps)
         parts = _gather(len(effects), lambda sfits: self._screened(effects, sfits))
+        # the trials every candidate is screened on, made once: a task carries only them
+        trials = screen_trials(s.data, s.band, s.fits[-1])
         for e, then in zip(effects, parts, strict=True):
             self.tasks.add((_SCREEN, step, -len(e.params)), _screen_task,
-                           (s.data, s.band, s.fits[-1], e, s.by_subject_now(e)), then)
+                           (*trials, s.band, e, s.by_subject_now(e)), then)
 
     def _screened(self, effects: Sequence[Effect], sfits: Sequence) -> None:
         s = self.s
