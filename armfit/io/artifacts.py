@@ -69,9 +69,6 @@ class RowTable:
         import pandas as pd
         return pd.DataFrame(list(self.rows), columns=list(self.columns))
 
-    def __len__(self) -> int:
-        return len(self.rows)
-
     def csv_text(self) -> str | None:
         """The CSV that ``to_frame().to_csv(index=False, float_format="%.10g")`` writes,
         or None for a column pandas would hold as objects other than text (then the
@@ -112,14 +109,15 @@ def _column_format(values: list) -> list[str] | None:
     return None
 
 
-def write_table(df: pd.DataFrame, path: str | os.PathLike, *, overwrite: bool = False
+def write_table(df: pd.DataFrame | RowTable, path: str | os.PathLike, *, overwrite: bool = False
                 ) -> str | os.PathLike:
     """Write a DataFrame as CSV atomically (10 significant digits, no index).
 
     Parameters
     ----------
-    df : pandas.DataFrame
-        The table (a params, Wu, summary or W_max table).
+    df : pandas.DataFrame or RowTable
+        The table (a params, Wu, summary or W_max table); a :class:`RowTable` is written
+        without pandas where :meth:`RowTable.csv_text` can, the same bytes.
     path : str or os.PathLike
         Destination.
     overwrite : bool
@@ -135,9 +133,11 @@ def write_table(df: pd.DataFrame, path: str | os.PathLike, *, overwrite: bool = 
     OutputError
         ``path`` exists and not ``overwrite``.
     """
-    text = df.csv_text() if isinstance(df, RowTable) else None
-    if isinstance(df, RowTable) and text is None:
-        df = df.to_frame()
+    text = None
+    if isinstance(df, RowTable):   # written without pandas where it can be
+        text = df.csv_text()
+        if text is None:
+            df = df.to_frame()
     with atomic_path(path, overwrite=overwrite) as tmp:
         if text is None:
             df.to_csv(tmp, index=False, float_format=CSV_FLOAT_FORMAT)
