@@ -11,7 +11,9 @@ Costs (residuals r_n; the fitter minimises Σ r_n²):
                up to a constant (1 neper = 20/ln 10 dB ↔ 1 rad = 180/π deg).
 
 Parameters are searched as log(θ) (θ > 0) inside the physical bounds of
-:attr:`armfit.models.arm.ClosedLoopModel.params` with ``scipy.optimize.least_squares``.
+:attr:`armfit.models.arm.ClosedLoopModel.params` with ``scipy.optimize.least_squares``'s
+trust-region-reflective method (:func:`armfit._trf.bounded_least_squares`: the same iterates,
+without importing :mod:`scipy.optimize`).
 The global search needs no user starting values and no seed: (1) an analytic initial guess
 (Levy's linear fit of the arm impedance Z_ARM = 1/H − Mp s², exact for noise-free data);
 (2) the typical values of ClosedLoopModel.params and any warm start; (3) a fixed,
@@ -78,7 +80,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from armfit import _scipy, multilsq, noise
+from armfit import _scipy, _trf, multilsq, noise
 from armfit._order import median, percentile, unique
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.data import sobol_points
@@ -328,7 +330,8 @@ def solve_together(problems: Sequence[_Problem], z0: Sequence[np.ndarray],
     args=(idx,), bounds=(zlo, zhi), method="trf", x_scale=1.0, **opts)``. The results'
     rows are the starts in order (problem 0's first). ``mask`` (Σk_j, m): residuals of
     fit i multiplied by mask[i] (0 leaves a point out). Fewer than :data:`_MIN_TOGETHER`
-    fits are made one by one by scipy's solver (the same path, to rounding)."""
+    fits are made one by one by :func:`armfit._trf.bounded_least_squares` (scipy's path; the
+    same to rounding)."""
     owner = np.repeat(np.arange(len(problems)), [len(z) for z in z0])
 
     def each(x, rows, method):
@@ -356,21 +359,21 @@ def solve_together(problems: Sequence[_Problem], z0: Sequence[np.ndarray],
     return multilsq.solve_many(fun, jac, np.vstack(z0), space.zlo, space.zhi, **opts)
 
 
-#: Fewer local fits than this are solved one by one by scipy: vectorised over one or two
-#: fits, an iteration costs more than scipy's (measured 1.5× for one fit).
+#: Fewer local fits than this are solved one by one (:func:`armfit._trf.bounded_least_squares`,
+#: scipy's solver): vectorised over one or two fits, an iteration costs more than
+#: scipy's (measured 1.5× for one fit).
 _MIN_TOGETHER = 3
 
 
 def _one_by_one(fun, jac, z0: np.ndarray, space: ParamSpace, opts) -> multilsq.ManyResult:
     """:func:`solve_together`'s fits (its ``fun`` and ``jac`` of rows) made one after the
-    other by scipy's solver."""
+    other by :func:`armfit._trf.bounded_least_squares` (scipy's solver)."""
     res = []
     for i, z in enumerate(z0):
         row = np.array([i])
-        res.append(_scipy.least_squares(lambda x, r=row: fun(x[None], r)[0], z,
-                                        jac=lambda x, r=row: jac(x[None], r)[0],
-                                        bounds=(space.zlo, space.zhi), method="trf",
-                                        x_scale=1.0, **opts))
+        res.append(_trf.bounded_least_squares(lambda x, r=row: fun(x[None], r)[0], z,
+                                              jac=lambda x, r=row: jac(x[None], r)[0],
+                                              bounds=(space.zlo, space.zhi), **opts))
     return multilsq.ManyResult(*(np.array([getattr(r, k) for r in res])
                                  for k in ("x", "cost", "fun", "status", "nfev")))
 
@@ -692,9 +695,9 @@ def _search(prob: _Problem, x0: Mapping[str, float] | None, global_search: bool,
         z_starts = starts[:1]
 
     def polish(z0):
-        return _scipy.least_squares(prob.residuals, z0, jac=prob.jacobian_analytic, bounds=bounds,
-                                    method="trf", x_scale=1.0, max_nfev=budget,
-                                    ftol=_TOL, xtol=_TOL, gtol=_TOL)
+        return _trf.bounded_least_squares(prob.residuals, z0, jac=prob.jacobian_analytic,
+                                          bounds=bounds, max_nfev=budget, ftol=_TOL,
+                                          xtol=_TOL, gtol=_TOL)
 
     res = None
     others = [ends]          # every point the search reached (the polish's ends too)

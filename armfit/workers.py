@@ -89,22 +89,23 @@ __all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "RUN_FIGURES_PRELOAD"
            "start_method", "stop_workers", "worker_start", "tune_allocator",
            "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
 
-#: Every module whose functions armfit's tasks run (and the optimiser the fits call): the
+#: Every module whose functions armfit's tasks run (and the scipy modules they call): the
 #: fork server imports them once, with a pool's own ``preload``, so that the workers of
 #: every later pool of the process start with them loaded (see
 #: :func:`preload_own_only` for a process that starts one pool).
 PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fitting",
-                            "armfit.uncertainty", "armfit.diagnosis.search", "scipy.optimize")
+                            "armfit.uncertainty", "armfit.diagnosis.search", "scipy.special",
+                            "scipy.optimize")
 #: The modules the tasks of each kind of pool run, the ``preload`` of its pools: what
 #: the fork server imports first for a command line's one pool (:func:`preload_own_only`,
-#: :func:`start_fork_server`). Each is in :data:`PRELOAD`. The fits' workers call scipy's
-#: optimiser: imported once by the server, not by each worker in the middle of a task.
-#: The diagnosis's workers need no scipy (their per-subject intervals' t quantiles are
-#: :func:`armfit._student.t_quantile`); the rare trial whose joint fit sticks is refitted
-#: alone with scipy's optimiser, imported by that worker then.
+#: :func:`start_fork_server`). Each is in :data:`PRELOAD`. The fits' workers take t
+#: quantiles from :mod:`scipy.special` (their solver, :mod:`armfit._trf`, needs no
+#: scipy); the uncertainty's call scipy's optimiser: each imported once by the server,
+#: not by each worker in the middle of a task. The diagnosis's workers need no scipy
+#: (their per-subject intervals' t quantiles are :func:`armfit._student.t_quantile`).
 POOL_PRELOAD: dict[str, tuple[str, ...]] = {
     "estimate": ("armfit.spectra", "armfit.io.trials"),
-    "fit": ("armfit.fitting", "scipy.optimize"),
+    "fit": ("armfit.fitting", "scipy.special"),
     "uncertainty": ("armfit.uncertainty", "scipy.optimize"),
     "diagnosis": ("armfit.diagnosis.search",),
 }

@@ -139,18 +139,21 @@ def runner() -> CliRunner:
 def solver_stops_at_budget(monkeypatch):
     """Every least-squares solve reports that it ran out of evaluations (status 0), as
     scipy.optimize.least_squares does when max_nfev is reached: an injected solver result,
-    so the test does not depend on how many evaluations a scipy release needs."""
-    from armfit import _scipy
+    so the test does not depend on how many evaluations a scipy release needs. Both
+    solvers are patched: scipy's, and :func:`armfit._trf.bounded_least_squares` (its copy,
+    which the fits call)."""
+    from armfit import _scipy, _trf
 
-    real = _scipy.least_squares
+    def stopping(real):
+        def stopped(*args, **kwargs):
+            res = real(*args, **kwargs)
+            res.status, res.success = 0, False
+            res.message = "The maximum number of function evaluations is exceeded."
+            return res
+        return stopped
 
-    def stopped(*args, **kwargs):
-        res = real(*args, **kwargs)
-        res.status, res.success = 0, False
-        res.message = "The maximum number of function evaluations is exceeded."
-        return res
-
-    monkeypatch.setattr(_scipy, "least_squares", stopped)
+    monkeypatch.setattr(_scipy, "least_squares", stopping(_scipy.least_squares))
+    monkeypatch.setattr(_trf, "bounded_least_squares", stopping(_trf.bounded_least_squares))
 
 
 @pytest.fixture(scope="session")

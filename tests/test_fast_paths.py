@@ -439,15 +439,16 @@ def test_estimate_loads_neither_pandas_nor_scipy(tmp_path):
     assert not loaded & {"pandas", "scipy", "matplotlib", "rich", "armfit.fitting"}
 
 
-def test_fit_nominal_loads_no_figures_no_scipy_stats_and_no_pandas(spectra, tmp_path):
+def test_fit_nominal_loads_no_figures_no_scipy_optimize_and_no_pandas(spectra, tmp_path):
     # reading the medians, fitting them and writing the params file: no pandas (its
-    # import is a third of the command) and no pyarrow.compute
+    # import is a third of the command), no pyarrow.compute, and no scipy.optimize (the
+    # fits' solver is armfit._trf; importing scipy.optimize took half the command)
     out = tmp_path / "n.csv"
     loaded = modules_after(["-q", "fit-nominal", str(spectra), "-o", str(out)])
-    assert "armfit.fitting" in loaded
+    assert "armfit.fitting" in loaded and "armfit._trf" in loaded
     assert not loaded & {"matplotlib", "scipy.stats", "scipy.signal", "armfit.figures",
                          "armfit.diagnosis.search", "armfit.loop", "pandas",
-                         "pyarrow.compute"}
+                         "pyarrow.compute", "scipy.optimize", "scipy.linalg"}
     # the reference: the same fits' DataFrame written by pandas, as the file was written
     # before; and the model's table is that DataFrame
     model = armfit.fit_nominal(spectra)
@@ -467,8 +468,8 @@ def test_the_diagnose_and_compare_commands_import_rich_only_to_print():
 def test_diagnose_imports_no_optimiser_until_it_refits_a_trial_alone():
     # `armfit diagnose --help` and the diagnosis's modules (its joint fits are
     # armfit.blocklsq's) need neither scipy.optimize, scipy.special nor scipy.ndimage:
-    # importing them took about 1 s of the command's start-up. scipy.optimize is
-    # imported when a trial is refitted alone (armfit._scipy).
+    # importing them took about 1 s of the command's start-up. A trial refitted alone
+    # takes its solver from armfit._trf, which needs no scipy either.
     heavy = {"scipy.optimize", "scipy.ndimage", "scipy.special", "matplotlib"}
     loaded = modules_after(["diagnose", "--help"])
     assert "armfit.cli.diagnose" in loaded and not loaded & heavy
