@@ -1,10 +1,12 @@
-"""The scipy functions of the fits and the statistics, imported at their first call.
+"""The scipy functions of the uncertainty fits and the statistics, imported at their
+first call.
 
 Importing :mod:`scipy.optimize` takes about half a second and :mod:`scipy.special` a
 quarter (they import :mod:`scipy.linalg`, :mod:`scipy.sparse` and the array-API layer);
 the modules that use these functions are imported by commands that may never call them
-(``diagnose`` refits a trial on its own only when a joint fit cannot, ``--help`` none),
-so each is imported here when first called. The functions are scipy's, unchanged.
+(``diagnose`` takes no interval of a single-trial fit, ``--help`` calls nothing), so
+each is imported here when first called. The functions are scipy's, unchanged. (The
+arm fits' solver is :mod:`armfit._trf`, which needs no scipy.)
 """
 
 from __future__ import annotations
