@@ -439,6 +439,18 @@ def _spectra(spectra) -> Spectra:
 # Arm-model fits (Tables I and II)
 # ---------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class _ParamsFile:
+    """A params file whose base parameters are read (``starts``) and whose table is
+    read by :func:`armfit.models.params.read_params` when first asked for."""
+
+    path: Path
+    starts: _params.FitStarts
+
+    def to_frame(self) -> pd.DataFrame:
+        return _params.read_params(self.path)
+
+
 @dataclass(frozen=True, eq=False)
 class ModelFit(_HtmlTable):
     """Fitted arm models: one row per axis (nominal, Table II) or axis × grip (Table I).
@@ -471,7 +483,7 @@ class ModelFit(_HtmlTable):
 
     def __getattribute__(self, name: str):
         value = object.__getattribute__(self, name)
-        if name == "table" and isinstance(value, _RowTable):   # made on first use
+        if name == "table" and isinstance(value, _RowTable | _ParamsFile):  # on first use
             value = value.to_frame()
             object.__setattr__(self, "table", value)
         return value
@@ -482,6 +494,27 @@ class ModelFit(_HtmlTable):
         table = _params.read_params(path)
         return cls(table, "grip" if "grip_N" in table.columns else "nominal",
                    source=str(path))
+
+    @classmethod
+    def read_starts(cls, path: PathLike) -> ModelFit:
+        """:meth:`read`, for a caller that may need only the base parameters
+        (:attr:`start_rows`): a plain file of base-model fits is read without pandas
+        (:func:`armfit.models.params.fit_starts`), and its ``table`` is read by
+        :meth:`read`'s reader when first asked for (the same DataFrame). Any other file
+        is read by :meth:`read` at once (the same checks and messages)."""
+        starts = _params.fit_starts(path)
+        if starts is None:
+            return cls.read(path)
+        return cls(_ParamsFile(Path(path), starts), "grip" if starts.grip else "nominal",
+                   source=str(path))
+
+    @property
+    def start_rows(self):
+        """The rows the diagnosis starts its fits from: ``table``, or, while a model
+        read by :meth:`read_starts` has not made it, the file's base parameters
+        (:class:`armfit.models.params.FitStarts`)."""
+        value = object.__getattribute__(self, "table")
+        return value.starts if isinstance(value, _ParamsFile) else self.table
 
     @classmethod
     def of(cls, model) -> ModelFit:
@@ -1256,7 +1289,7 @@ def diagnose(spectra, model, *, band: _Band | None = None,
     """
     sp = _spectra(spectra)
     m = ModelFit.of(model)
-    results = _diagnosis.diagnose_axes(sp, m.table, band=band,
+    results = _diagnosis.diagnose_axes(sp, m.start_rows, band=band,
                             effects=None if effects is None else _effects(effects),
                             jobs=jobs, max_steps=max_steps, min_effect_db=min_effect_db,
                             min_effect_deg=min_effect_deg, share=share,

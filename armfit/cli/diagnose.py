@@ -199,10 +199,12 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_
         check_output(output, overwrite=overwrite, inputs=[spectra, model_path])
     if no_share and share:
         raise UsageError("give --share or --no-share, not both")
-    model = ModelFit.read(model_path)
+    # a plain file of base-model fits is read without pandas: the diagnosis needs only
+    # its base parameters
+    model = ModelFit.read_starts(model_path)
     # the trials' on-axis responses, and their cross-axis ones for the coupling
     data = Spectra.read(spectra, level="trial", kind=("measured", "cross"))
-    notes = comparison_notes(data, model.table, "trial", spectra_label=spectra,
+    notes = comparison_notes(data, model.start_rows, "trial", spectra_label=spectra,
                              params_label=model_path, action="diagnosed")
     for text in notes:
         message(f"note: {text}")

@@ -20,7 +20,7 @@ from armfit.diagnosis.bands import (
 )
 from armfit.diagnosis.fit import start_array
 from armfit.diagnosis.joint import joint_fit
-from armfit.diagnosis.responses import axis_data, param_row, select_rows
+from armfit.diagnosis.responses import axis_data, has_axis, param_row, select_rows
 from armfit.diagnosis.results import AxisDiagnosis
 from armfit.diagnosis.tuning import BANDS
 from armfit.errors import UsageError
@@ -28,7 +28,7 @@ from armfit.fitting import fit_response
 from armfit.io.schema import finite_or_none
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import Effect
-from armfit.models.params import fit_band, model_from_params
+from armfit.models.params import FitStarts, fit_band, model_from_params
 from armfit.spectra import Spectra
 
 __all__ = ["Comparison", "band_to_dict", "compare_models", "comparison_notes",
@@ -217,16 +217,18 @@ def comparison_notes(spectra, params, level: str, *, spectra_label: str | None =
     out = []
     for axis in AXES:
         rows = select_rows(spectra, level=level, kind="measured", axis=axis)
-        has_row = bool((params["axis"] == axis).any())
+        has_row = has_axis(params, axis)
         if len(rows) and not has_row:
             out.append(f"axis {axis}: {sl} holds {level}-level measurements but {pl} has "
                        f"no row for it; axis {axis} is not {action}")
         elif has_row and not len(rows):
             out.append(f"axis {axis}: {pl} has a row but {sl} holds no {level}-level "
                        f"measured responses of it; axis {axis} is not {action}")
-        if not (has_row and len(rows) and level == "mean" and "grip_N" in params.columns):
+        grips = params.grip if isinstance(params, FitStarts) else "grip_N" in params.columns
+        if not (has_row and len(rows) and level == "mean" and grips):
             continue
-        own = params.loc[params["axis"] == axis, "grip_N"].to_numpy(float)
+        own = (params.grips(axis) if isinstance(params, FitStarts)
+               else params.loc[params["axis"] == axis, "grip_N"].to_numpy(float))
         for grip in sorted(float(g) for g in rows.values_of("grip_N")):
             if not np.isclose(own, grip).any():
                 near = param_row(params, axis, grip)["grip_N"]

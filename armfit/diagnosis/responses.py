@@ -11,9 +11,10 @@ import numpy as np
 from armfit import noise
 from armfit._order import nanmedian
 from armfit.constants import AXES, PARAM_NAMES
+from armfit.models.params import FitStarts
 from armfit.spectra import Spectra
 
-__all__ = ["AxisData", "axis_data", "cross_coupling", "not_excitation", "param_row",
+__all__ = ["AxisData", "axis_data", "cross_coupling", "has_axis", "not_excitation", "param_row",
            "select_rows", "trial_responses"]
 
 
@@ -111,7 +112,27 @@ def not_excitation(rows: Spectra) -> np.ndarray | None:
     return out
 
 
+def has_axis(params, axis: str) -> bool:
+    """Whether ``params`` (a params DataFrame, or the
+    :class:`~armfit.models.params.FitStarts` of a file) has a row of ``axis``."""
+    if isinstance(params, FitStarts):
+        return params.has_axis(axis)
+    return bool((params["axis"] == axis).any())
+
+
 def param_row(params, axis: str, grip: float | None):
+    """The row of ``params`` (a DataFrame, or the
+    :class:`~armfit.models.params.FitStarts` of a file: then a dict) that a response of
+    ``axis`` at ``grip`` (N) is compared with or started from: the axis's row of that
+    grip, else of the nearest grip (the first of the axis without grips or ``grip``);
+    None when the axis has no row."""
+    if isinstance(params, FitStarts):
+        own = params.of_axis(axis)
+        if grip is not None and params.grip:
+            grips = np.array([r["grip_N"] for r in own], float)
+            same = np.flatnonzero(np.isclose(grips, grip))
+            return own[same[0]] if same.size else own[int(np.argmin(np.abs(grips - grip)))]
+        return own[0] if own else None
     rows = params[params["axis"] == axis]
     if grip is not None and "grip_N" in params.columns:
         by_grip = rows[np.isclose(rows["grip_N"].to_numpy(float), grip)]
@@ -127,7 +148,7 @@ def axis_data(spectra, params, axis: str) -> AxisData | None:
     (the row of the trial's grip for grip fits, the axis row for nominal fits).
     None when the spectra hold no trials of the axis or the params no row for it."""
     rows = select_rows(spectra, level="trial", kind="measured", axis=axis)
-    if len(rows) == 0 or not (params["axis"] == axis).any():
+    if len(rows) == 0 or not has_axis(params, axis):
         return None
     f, H, sdb, sdeg, labels = trial_responses(rows)
     # the row of each grip found once (as param_row finds it), not once per trial

@@ -24,7 +24,7 @@ from armfit.diagnosis.evidence import (
 )
 from armfit.diagnosis.fit import fit_base, fit_borrowed, fit_extend
 from armfit.diagnosis.joint import JointFit
-from armfit.diagnosis.responses import AxisData, axis_data, cross_coupling
+from armfit.diagnosis.responses import AxisData, axis_data, cross_coupling, has_axis
 from armfit.diagnosis.results import (
     AxisDiagnosis,
     Candidate,
@@ -514,7 +514,7 @@ def diagnose_axes(spectra, params, *,
     trial_rows = _trial_rows(spectra)
     searches: list[_Search] = []
     coupling: dict[str, dict[str, float]] = {}
-    axes = [axis for axis in axes if (params["axis"] == axis).any()]
+    axes = [axis for axis in axes if has_axis(params, axis)]
     if not axes:
         return []
     share = SHARED_EFFECTS if share is None else tuple(share)

@@ -12,7 +12,9 @@ values.
 
 from __future__ import annotations
 
+import csv
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -29,7 +31,13 @@ from armfit.io.ranges import (
     PhysicalRange,
     check_in_range,
 )
-from armfit.io.schema import PARAMS_BASE, PARAMS_HELD, PARAMS_OPTIONAL, PARAMS_STATS
+from armfit.io.schema import (
+    PARAMS_BASE,
+    PARAMS_HELD,
+    PARAMS_OPTIONAL,
+    PARAMS_STATS,
+    params_columns,
+)
 from armfit.models.arm import BASE_PARAMS, ClosedLoopModel, Param
 from armfit.models.effects import get_effect
 
@@ -213,6 +221,103 @@ def read_params(path: str | os.PathLike) -> pd.DataFrame:
         raise BadInputError(f"a fit without parameters ({who})", file=str(p),
                             column=PARAMS_BASE[0], row=row)
     return table.drop(columns="row")
+
+
+#: A number as armfit writes it (and as pandas and Python's ``float`` read alike).
+_NUMBER = re.compile(r"-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\Z")
+#: The columns of a file of base-model fits (fit-grip, fit-nominal) :func:`fit_starts`
+#: reads; a file with any other column is left to :func:`read_params`.
+_BASE_FIT_COLUMNS = frozenset(params_columns(PARAMS_BASE, grip=True, held=True))
+
+
+@dataclass(frozen=True)
+class FitStarts:
+    """The base parameters of a params file of base-model fits, one row per model, read
+    without pandas (:func:`fit_starts`): what the diagnosis starts its fits from.
+
+    Attributes
+    ----------
+    rows : tuple of dict
+        Per row: ``axis``, ``grip_N`` (grip fits), and ``Ma, k1, k2, b1, b2`` (SI), as
+        floats equal to those :func:`read_params` reads.
+    grip : bool
+        The file holds grip fits (a ``grip_N`` column).
+    """
+
+    rows: tuple[dict, ...]
+    grip: bool
+
+    def has_axis(self, axis: str) -> bool:
+        return any(r["axis"] == axis for r in self.rows)
+
+    def grips(self, axis: str) -> np.ndarray:
+        """The grips (N) of the axis's rows, in file order."""
+        return np.array([r["grip_N"] for r in self.rows if r["axis"] == axis], float)
+
+    def of_axis(self, axis: str) -> list[dict]:
+        return [r for r in self.rows if r["axis"] == axis]
+
+
+def fit_starts(path: str | os.PathLike) -> FitStarts | None:
+    """The base parameters of a params file of base-model fits, without pandas.
+
+    For a file that :func:`read_params` reads without complaint and whose cells are
+    plain: the columns armfit writes for base-model grip or nominal fits, axes written
+    x, y or z, no effect, every number written as a decimal number, each inside its
+    physical range, one row per model. Its values are those :func:`read_params` gives
+    (Python's ``float`` and pandas' parser read such numbers to the same bits).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The CSV.
+
+    Returns
+    -------
+    FitStarts or None
+        None for anything else (a missing or unreadable file, a file with effects,
+        another layout, a cell that is not plain, a value out of range): that file goes
+        to :func:`read_params`, which reads or refuses it with its messages.
+    """
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            lines = list(csv.reader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return None
+    if len(lines) < 2 or any(len(r) != len(lines[0]) for r in lines):
+        return None
+    header, body = lines[0], lines[1:]
+    cols = set(header)
+    grip = "grip_N" in cols
+    need = set(params_columns(PARAMS_BASE, grip=grip)) - set(PARAMS_OPTIONAL)
+    if len(cols) != len(header) or not need <= cols <= _BASE_FIT_COLUMNS:
+        return None
+    table = {c: [r[i] for r in body] for i, c in enumerate(header)}
+    if any(a not in AXES for a in table["axis"]) or any(table["effects"]):
+        return None
+    numbers = [c for c in header if c not in ("axis", "cost", "converged", "effects",
+                                              "at_bound", PARAMS_HELD)]
+    if any(not _NUMBER.match(v) for c in numbers for v in table[c]
+           if v or c in (*PARAMS_BASE, "mp_kg", "grip_N")):
+        return None
+    values = {c: np.array([float(v) for v in table[c]], float)
+              for c in (*PARAMS_BASE, "mp_kg", *(("grip_N",) if grip else ()))}
+    keys = list(zip(table["axis"], values["grip_N"] if grip else table["axis"], strict=True))
+    if len(set(keys)) != len(keys):
+        return None
+    try:
+        for q in BASE_PARAMS:
+            check_in_range(values[q.name], PhysicalRange(q.name, q.unit, q.lower, q.upper),
+                           file=None, column=q.name, tolerance=1e-9)
+        check_in_range(values["mp_kg"], DEVICE_MASS_RANGE, file=None, column="mp_kg")
+        if grip:
+            check_in_range(values["grip_N"], GRIP_FORCE_RANGE, file=None, column="grip_N")
+    except BadInputError:
+        return None
+    rows = tuple({"axis": a, **({"grip_N": float(values["grip_N"][i])} if grip else {}),
+                  **{n: float(values[n][i]) for n in PARAMS_BASE}}
+                 for i, a in enumerate(table["axis"]))
+    return FitStarts(rows, grip)
 
 
 def _read_csv(p: Path) -> pd.DataFrame:
@@ -457,6 +562,6 @@ def fit_band(row, f_hz=None) -> tuple[float, float] | None:
 
 __all__ = [
     "PAPER_PARAMS", "ParamRows", "paper_params", "read_param_rows", "check_param_rows",
-    "read_params",
+    "read_params", "FitStarts", "fit_starts",
     "param_bounds", "row_effects", "row_param_names", "model_from_params", "fit_band",
 ]
