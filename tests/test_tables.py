@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from armfit.data import paper_table
-from armfit.io.artifacts import params_frame
+from armfit.io.artifacts import params_rows
 from armfit.models.arm import PARAM_NAMES
 from armfit.tables import caption_for, csv_text, latex_table, paper_layout, sig4
 
@@ -33,7 +33,7 @@ def _params_from_paper(name: str, effects: str = "") -> pd.DataFrame:
             row["delay.delay_s_lo"], row["delay.delay_s_hi"] = 0.011, 0.014
         rows.append(row)
     names = list(PARAM_NAMES) + (["delay.delay_s"] if effects == "delay" else [])
-    return params_frame(rows, names, grip=name == "grip")
+    return params_rows(rows, names, grip=name == "grip").to_frame()
 
 
 @pytest.mark.parametrize(("value", "text"), [

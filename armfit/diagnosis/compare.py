@@ -20,7 +20,13 @@ from armfit.diagnosis.bands import (
 )
 from armfit.diagnosis.fit import start_array
 from armfit.diagnosis.joint import joint_fit
-from armfit.diagnosis.responses import axis_data, has_axis, param_row, select_rows
+from armfit.diagnosis.responses import (
+    axis_data,
+    axis_grips,
+    has_axis,
+    param_row,
+    select_rows,
+)
 from armfit.diagnosis.results import AxisDiagnosis
 from armfit.diagnosis.tuning import BANDS
 from armfit.errors import UsageError
@@ -28,7 +34,7 @@ from armfit.fitting import fit_response
 from armfit.io.schema import finite_or_none
 from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import Effect
-from armfit.models.params import FitStarts, fit_band, model_from_params
+from armfit.models.params import fit_band, model_from_params
 from armfit.spectra import Spectra
 
 __all__ = ["Comparison", "band_to_dict", "compare_models", "comparison_notes",
@@ -198,8 +204,8 @@ def comparison_notes(spectra, params, level: str, *, spectra_label: str | None =
     Parameters
     ----------
     spectra : Spectra or pandas.DataFrame
-    params : pandas.DataFrame
-        The params table compared.
+    params : pandas.DataFrame or armfit.models.params.FitStarts
+        The params table compared (or the base parameters of its file).
     level : {'mean', 'median', 'trial'}
     spectra_label, params_label : str, optional
         The files, named in the sentences.
@@ -224,11 +230,9 @@ def comparison_notes(spectra, params, level: str, *, spectra_label: str | None =
         elif has_row and not len(rows):
             out.append(f"axis {axis}: {pl} has a row but {sl} holds no {level}-level "
                        f"measured responses of it; axis {axis} is not {action}")
-        grips = params.grip if isinstance(params, FitStarts) else "grip_N" in params.columns
-        if not (has_row and len(rows) and level == "mean" and grips):
+        own = axis_grips(params, axis)
+        if not (has_row and len(rows) and level == "mean" and own is not None):
             continue
-        own = (params.grips(axis) if isinstance(params, FitStarts)
-               else params.loc[params["axis"] == axis, "grip_N"].to_numpy(float))
         for grip in sorted(float(g) for g in rows.values_of("grip_N")):
             if not np.isclose(own, grip).any():
                 near = param_row(params, axis, grip)["grip_N"]

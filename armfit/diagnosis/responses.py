@@ -14,7 +14,8 @@ from armfit.constants import AXES, PARAM_NAMES
 from armfit.models.params import FitStarts
 from armfit.spectra import Spectra
 
-__all__ = ["AxisData", "axis_data", "cross_coupling", "has_axis", "not_excitation", "param_row",
+__all__ = ["AxisData", "axis_data", "axis_grips", "cross_coupling", "has_axis",
+           "not_excitation", "param_row",
            "select_rows", "trial_responses"]
 
 
@@ -120,6 +121,17 @@ def has_axis(params, axis: str) -> bool:
     return bool((params["axis"] == axis).any())
 
 
+def axis_grips(params, axis: str) -> np.ndarray | None:
+    """The grips (N) of the rows of ``axis`` in ``params`` (a params DataFrame, or the
+    :class:`~armfit.models.params.FitStarts` of a file), in order; None when the rows
+    have no grip (nominal fits)."""
+    if isinstance(params, FitStarts):
+        return params.grips(axis) if params.grip else None
+    if "grip_N" not in params.columns:
+        return None
+    return params.loc[params["axis"] == axis, "grip_N"].to_numpy(float)
+
+
 def param_row(params, axis: str, grip: float | None):
     """The row of ``params`` (a DataFrame, or the
     :class:`~armfit.models.params.FitStarts` of a file: then a dict) that a response of
@@ -129,7 +141,7 @@ def param_row(params, axis: str, grip: float | None):
     if isinstance(params, FitStarts):
         own = params.of_axis(axis)
         if grip is not None and params.grip:
-            grips = np.array([r["grip_N"] for r in own], float)
+            grips = params.grips(axis)
             same = np.flatnonzero(np.isclose(grips, grip))
             return own[same[0]] if same.size else own[int(np.argmin(np.abs(grips - grip)))]
         return own[0] if own else None

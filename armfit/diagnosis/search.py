@@ -472,7 +472,8 @@ def diagnose_axes(spectra, params, *,
                   by_subject: bool = True) -> list[AxisDiagnosis]:
     """Diagnose every axis present in both ``spectra`` (a Spectra, a spectra DataFrame,
     or the path of a spectra file) and ``params`` (a params DataFrame, grip or nominal
-    fits) by a stepwise search. Of a file, the trial rows of one axis are read at a time
+    fits, or the :class:`~armfit.models.params.FitStarts` of such a file) by a stepwise
+    search. Of a file, the trial rows of one axis are read at a time
     (:meth:`armfit.spectra.Spectra.read`), and only the arrays the search uses and the
     axis's cross-axis coupling are kept (the memory of the rest is given back once every
     axis is read); the result is that of the file read whole. An axis's base fit is

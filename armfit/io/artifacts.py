@@ -37,15 +37,10 @@ if TYPE_CHECKING:
 # ---------------------------------------------------------------------------
 
 
-def params_frame(rows: Iterable[Mapping], param_names, *, grip: bool) -> pd.DataFrame:
-    """A params DataFrame from row dicts (one per fit), columns in file order
-    (:func:`armfit.io.schema.params_columns`; the ``held`` column only when a row holds
-    parameters)."""
-    return params_rows(rows, param_names, grip=grip).to_frame()
-
-
 def params_rows(rows: Iterable[Mapping], param_names, *, grip: bool) -> RowTable:
-    """The rows of :func:`params_frame` before they become a DataFrame."""
+    """A params table from row dicts (one per fit), columns in file order
+    (:func:`armfit.io.schema.params_columns`; the ``held`` column only when a row holds
+    parameters); :meth:`RowTable.to_frame` makes its DataFrame."""
     rows = list(rows)
     held = any(r.get(PARAMS_HELD) for r in rows)
     return RowTable(tuple(rows), tuple(params_columns(param_names, grip=grip, held=held)))
@@ -306,7 +301,7 @@ def _check_pairs(p: Path, ax: str, rows: np.ndarray, kinds: np.ndarray,
 
 
 __all__ = [
-    "params_frame", "params_rows", "RowTable", "write_table", "write_params",
+    "params_rows", "RowTable", "write_table", "write_params",
     "write_wu_table", "WuRows",
     "wu_frame", "write_wu", "read_wu_rows",
 ]
