@@ -50,6 +50,8 @@ class Hooks:
         A context manager: the environment the processes started in it inherit.
     forget : callable
         Called with the pool when it is shut down (leaves the record of open pools).
+    started : callable
+        Called once the pool's workers have started.
     """
 
     initializer: Callable[..., None]
@@ -59,6 +61,7 @@ class Hooks:
     stopped: Callable[[], bool]
     environment: Callable[[], AbstractContextManager[None]]
     forget: Callable[[Any], None]
+    started: Callable[[], None]
 
 
 class Pool(ProcessPoolExecutor):
@@ -202,6 +205,7 @@ class Pool(ProcessPoolExecutor):
             if failed:
                 raise failed[0]
             self._armfit_started = True
+            self._armfit_hooks.started()
 
     def _armfit_start_all(self, failed: list) -> None:
         # SIGINT blocked in this thread, and so in the processes started from it (the

@@ -86,6 +86,7 @@ __all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "RUN_FIGURES_PRELOAD"
            "child_environment", "executor_for", "giving_way", "ignore_sigint", "iter_tasks",
            "map_tasks",
            "preload_own_only", "read_ahead", "process_pool", "start_fork_server",
+           "fork_server_running",
            "start_method", "stop_workers", "worker_start", "tune_allocator",
            "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
 
@@ -126,6 +127,8 @@ _OPEN_LOCK = threading.RLock()
 _STARTING = threading.Lock()
 #: Set by ``stop_workers(final=True)``: no pool starts any more in this process.
 _FINAL = False
+#: Set once this process's fork server has started (:func:`fork_server_running`).
+_SERVER_UP = False
 
 
 #: The environment of every process armfit's pools start with ``python -c`` (fork
@@ -359,6 +362,27 @@ def start_fork_server(preload: Sequence[str] = ()) -> None:
     starter.join()
 
 
+def fork_server_running() -> bool:
+    """Whether this process's fork server has started (by :func:`start_fork_server`, or
+    with the workers of a pool of :func:`process_pool`): a new pool's workers are then
+    forked from it in milliseconds, its modules imported, instead of waiting for a new
+    server to import them. False where pools do not start their workers by a fork
+    server, and after ``stop_workers(final=True)``.
+
+    Returns
+    -------
+    bool
+    """
+    return _SERVER_UP and not _FINAL
+
+
+def _server_started() -> None:
+    """A pool's workers have started: by the fork server, where that is the start method."""
+    global _SERVER_UP
+    if start_method() == "forkserver":
+        _SERVER_UP = True
+
+
 def _start_server() -> None:
     from multiprocessing import forkserver, resource_tracker
     with contextlib.suppress(Exception), _STARTING, child_environment():
@@ -371,6 +395,7 @@ def _start_server() -> None:
         if hasattr(signal, "pthread_sigmask"):
             signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         forkserver.ensure_running()
+        _server_started()
 
 
 def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
@@ -398,7 +423,7 @@ def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
         _set_preload(ctx, preload)
     hooks = Hooks(initializer=worker_start, initargs=(_lifeline(),), ready=_ready,
                   starting=_STARTING, stopped=lambda: _FINAL, environment=child_environment,
-                  forget=_forget)
+                  forget=_forget, started=_server_started)
     with child_environment():   # its queues start the resource tracker
         pool = Pool(max(1, int(jobs)), ctx, hooks)
     with _OPEN_LOCK:

@@ -13,6 +13,8 @@ at its step limit and tries the axes' common values).
 
 from __future__ import annotations
 
+import operator
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -21,7 +23,7 @@ import numpy as np
 import pytest
 from scipy import linalg
 
-from armfit import api
+from armfit import api, workers
 from armfit.adopt import adopt
 from armfit.constants import PARAM_NAMES
 from armfit.diagnosis import joint, schedule, search
@@ -325,10 +327,11 @@ def test_task_queue_context_uses_a_given_executor_as_is():
         assert tasks.pool is None
 
 
-def test_task_queue_starts_its_pool_early_in_the_main_thread_only():
-    # in the main thread its own pool starts in a thread while tasks run here; in
-    # another thread (armfit run's diagnosis, which cancel_pools may stop) it starts at
-    # its first task, in the pool
+def test_task_queue_starts_its_pool_early_in_the_main_thread_only(monkeypatch):
+    # in the main thread, while no fork server runs, its own pool starts in a thread
+    # while tasks run here; in another thread (armfit run's diagnosis, which
+    # cancel_pools may stop) it starts at its first task, in the pool
+    monkeypatch.setattr(schedule, "fork_server_running", lambda: False)
     with schedule.task_queue(jobs=2) as tasks:
         assert tasks.starting is not None
         assert tasks.map(abs, [-1, -2, -3]) == [1, 2, 3]
@@ -343,6 +346,19 @@ def test_task_queue_starts_its_pool_early_in_the_main_thread_only():
     t.start()
     t.join()
     assert seen == [None, [4]]
+
+
+@pytest.mark.skipif(workers.start_method() != "forkserver", reason="no fork server here")
+def test_task_queue_hands_every_task_to_the_workers_once_the_fork_server_runs():
+    # with the server up (the command line starts it before it loads its own modules)
+    # the workers are forked in milliseconds: no task runs in this process, where a
+    # long one would hold back the continuations, and so the other axes' next tasks
+    workers.start_fork_server(workers.POOL_PRELOAD["diagnosis"])
+    assert workers.fork_server_running()
+    with schedule.task_queue(jobs=2) as tasks:
+        assert tasks.starting is None
+        pids = tasks.map(operator.call, [os.getpid] * 4)
+    assert len(pids) == 4 and os.getpid() not in pids
 
 
 # ---------------------------------------------------------------------------

@@ -17,7 +17,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
 
-from armfit.workers import POOL_PRELOAD, executor_for
+from armfit.workers import POOL_PRELOAD, executor_for, fork_server_running
 
 __all__ = ["TaskQueue", "task_queue"]
 
@@ -145,18 +145,23 @@ def task_queue(jobs: int, executor: Executor | None = None,
     worker processes when ``jobs`` > 1 (one pool for the block, ``jobs`` tasks at a
     time, shut down on leaving), else here (:func:`armfit.workers.executor_for`).
 
-    Called in the main thread (the command line's ``diagnose``), a pool of its own starts
-    its workers in a thread at once (a new fork server imports armfit's modules first:
-    about half a second) while the first tasks run here; that thread hands the ready
-    tasks to the workers as soon as they are up. Not in another thread: there
-    the diagnosis may be stopped by shutting its pool down
+    Called in the main thread while no fork server runs (a script's first pool), a pool
+    of its own starts its workers in a thread at once (the new fork server imports
+    armfit's modules first: about half a second) while the first tasks run here; that
+    thread hands the ready tasks to the workers as soon as they are up. Once a server
+    runs (:func:`armfit.workers.fork_server_running`: the command line's ``diagnose``
+    starts it before it loads its own modules) the workers are forked in milliseconds,
+    and every task goes to them: a long task run here would hold back the
+    continuations, and so the next tasks of the other axes, until it ended. Not in
+    another thread: there the diagnosis may be stopped by shutting its pool down
     (:func:`armfit.workers.cancel_pools`, as ``armfit run`` does after a failure), which
     it notices at its next task in the pool, not while it runs one here."""
     with executor_for(executor, jobs, preload=preload) as pool:
         if pool is None or pool is executor:
             yield TaskQueue(pool)
             return
-        if threading.current_thread() is not threading.main_thread():
+        if threading.current_thread() is not threading.main_thread() \
+                or fork_server_running():
             yield TaskQueue(pool, int(jobs))
             return
         queue = TaskQueue(pool, int(jobs))
