@@ -266,6 +266,34 @@ def test_broken_entry_point_names_the_package(runner, tmp_path, monkeypatch):
     sys.modules.pop("armfit_demo_effects", None)
 
 
+def test_a_builtin_is_found_by_name_without_the_installed_packages(tmp_path, monkeypatch):
+    # a broken package: listing the effects reports it, finding a built-in by name does
+    # not look through the packages (a worker handed a built-in effect saves the scan),
+    # and finds the library's own object; a name that is not a built-in does look
+    from armfit.models import library
+    _dist_info(tmp_path, _effect_src(name="ep-bad", stage="nowhere"))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    scans = []
+    real = effects_mod._entry_points
+    monkeypatch.setattr(effects_mod, "_entry_points", lambda: scans.append(1) or real())
+    reg = _fresh_registry(monkeypatch)
+    assert reg["delay"] is library.EFFECTS[0] and reg["device-mass"].name == "device-mass"
+    assert scans == []
+    with pytest.raises(EffectDefinitionError, match="stage must be one of"):
+        reg["no-such-effect"]
+    assert scans == [1]
+    sys.modules.pop("armfit_demo_effects", None)
+
+
+def test_a_pickled_builtin_effect_loads_no_package_metadata_in_a_fresh_process():
+    # what a worker process does with a task's effect: the built-in library is enough
+    code = ("import pickle, sys; e = pickle.loads(sys.stdin.buffer.read()); "
+            "print(e.name, 'importlib.metadata' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], input=pickle.dumps(EFFECTS["lowpass"]),
+                         capture_output=True, check=True, timeout=60)
+    assert out.stdout.decode().split() == ["lowpass", "False"]
+
+
 def test_at_bound_rule():
     # 1 % of the range in the search coordinate: log for b1 (0.05 … 1000 N·s/m)
     b1 = next(p for p in BASE_PARAMS if p.name == "b1")
