@@ -116,6 +116,9 @@ POOL_PRELOAD: dict[str, tuple[str, ...]] = {
 RUN_FIGURES_PRELOAD: tuple[str, ...] = (*PRELOAD, "armfit.figures")
 #: Set by :func:`preload_own_only`.
 _OWN_ONLY = False
+#: The fork server's last preload: its exit handler ends the server without tearing
+#: its interpreter down (:mod:`armfit._server_exit`).
+SERVER_EXIT = "armfit._server_exit"
 
 #: The pools :func:`process_pool` made that are not shut down yet, each with the ident of
 #: the thread that made it (see :func:`cancel_pools`). A record only: no pool is handed
@@ -331,9 +334,11 @@ def giving_way(executor: Executor | None) -> Executor | None:
 
 def _set_preload(ctx, preload: Sequence[str]) -> None:
     """What the fork server imports when it starts: ``preload`` after
-    :func:`preload_own_only`, else :data:`PRELOAD` and ``preload``."""
+    :func:`preload_own_only`, else :data:`PRELOAD` and ``preload``; then
+    :mod:`armfit._server_exit`, so that the server ends at once when this process has
+    ended."""
     modules = tuple(preload) if _OWN_ONLY and preload else (*PRELOAD, *preload)
-    ctx.set_forkserver_preload(list(dict.fromkeys(modules)))
+    ctx.set_forkserver_preload(list(dict.fromkeys((*modules, SERVER_EXIT))))
 
 
 def start_fork_server(preload: Sequence[str] = ()) -> None:

@@ -244,7 +244,8 @@ _FIRST_TASK = """
 if __name__ == "__main__":
     if sys.argv[1] == "own":
         workers.preload_own_only()
-    names = ["armfit.spectra", "armfit.fitting", "armfit.diagnosis.search", "scipy.optimize"]
+    names = ["armfit.spectra", "armfit.fitting", "armfit.diagnosis.search", "scipy.optimize",
+             "armfit._server_exit"]
     pool = workers.process_pool(2, ("armfit.spectra",))
     try:
         print(json.dumps(pool.submit(loaded, names).result()))
@@ -264,8 +265,34 @@ def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
 
     assert worker_modules("all") == ["armfit.spectra", "armfit.fitting",
                                      "armfit.diagnosis.search",
-                                     "scipy.optimize"]
-    assert worker_modules("own") == ["armfit.spectra"]
+                                     "scipy.optimize", "armfit._server_exit"]
+    assert worker_modules("own") == ["armfit.spectra", "armfit._server_exit"]
+
+
+def test_the_server_exit_module_acts_only_in_the_fork_servers_preload(tmp_path):
+    # imported anywhere else it registers nothing: the process's own exit status stands
+    import subprocess
+    res = subprocess.run([sys.executable, "-c", "import sys, armfit._server_exit; "
+                          "sys.stdout.write('kept'); sys.exit(3)"],
+                         capture_output=True, text=True, timeout=60)
+    assert (res.returncode, res.stdout) == (3, "kept")
+    # imported from a function ``main`` of multiprocessing/forkserver.py (as the server's
+    # preload imports it), the process then ends at its exit at once, with the status 0
+    # the server's own exit (SystemExit) has, after its buffered output is written
+    fake = tmp_path / "multiprocessing"
+    fake.mkdir()
+    (fake / "forkserver.py").write_text("def main():\n    import armfit._server_exit\n")
+    path = str(fake / "forkserver.py")
+    script = ("import importlib.util, sys\n"
+              f"spec = importlib.util.spec_from_file_location('fake_fs', {path!r})\n"
+              "mod = importlib.util.module_from_spec(spec)\n"
+              "spec.loader.exec_module(mod)\n"
+              "mod.main()\n"
+              "sys.stdout.write('flushed')\n"
+              "sys.exit(3)\n")
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=60)
+    assert (res.returncode, res.stdout) == (0, "flushed")
 
 
 @pytest.mark.parametrize("args, jobs", [
