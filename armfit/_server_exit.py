@@ -10,9 +10,10 @@ reads a command's output to its end, waited that long after ``armfit`` itself ha
 Imported by the server's preload (``multiprocessing.forkserver.main`` is on the call
 stack), this module registers an exit handler that runs first at the server's exit
 (handlers run last registered first): it flushes the standard streams and ends the
-process at once, with the status the server would have had. Imported anywhere else it
-does nothing. The workers are forked from the server and end by ``os._exit`` themselves:
-the handler never runs in them.
+process at once, with status 0, the status of the server's own exit (no process waits
+for the server's status). Imported anywhere else it does nothing. The workers are
+forked from the server and end by ``os._exit`` themselves: the handler never runs in
+them.
 """
 
 from __future__ import annotations

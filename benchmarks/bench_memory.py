@@ -33,6 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _bytecode import compile_armfit
+
 #: Subjects per study (9 axes x grips each): 81, 810 and 4,050 trials.
 SUBJECTS = {"81": 9, "810": 90, "4050": 450}
 #: Sampling interval of the memory poll, s.
@@ -148,6 +150,7 @@ def main() -> None:
     ap.add_argument("--trace", type=Path, default=None, metavar="STUDY",
                     help="one run on STUDY, printing the memory every 0.5 s")
     args = ap.parse_args()
+    compile_armfit()    # stale bytecode would be timed too
     print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
     if args.trace is not None:
         with tempfile.TemporaryDirectory() as tmp:

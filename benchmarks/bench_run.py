@@ -30,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _bytecode import compile_armfit
+
 
 def armfit(*args: str) -> subprocess.CompletedProcess:
     exe = Path(sys.executable).with_name("armfit")
@@ -96,6 +98,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2,
                     help="runs of each variant, alternated; the best of each is reported")
     args = ap.parse_args()
+    compile_armfit()    # stale bytecode would be timed too
     print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
     if args.against_null:
         if not args.effect:
