@@ -3,9 +3,10 @@ the server ends without tearing its interpreter down.
 
 The server exits when the process that started it has ended. Its interpreter then frees
 the modules it imported for its workers (numpy, armfit's engine, scipy's optimiser):
-60-130 ms on a 2-core machine, while the server still holds the standard output and
+35-130 ms on a 2-core machine, while the server still holds the standard output and
 error it inherited. A shell pipeline (``armfit estimate … | tee log``), or a program that
-reads a command's output to its end, waited that long after ``armfit`` itself had ended.
+reads a command's output to its end, waited that long after ``armfit`` itself had ended
+(``benchmarks/bench_pipe.py`` measures the wait).
 
 Imported by the server's preload (``multiprocessing.forkserver.main`` is on the call
 stack), this module registers an exit handler that runs first at the server's exit
