@@ -140,19 +140,18 @@ def param_row(params, axis: str, grip: float | None):
     None when the axis has no row."""
     if isinstance(params, FitStarts):
         own = params.of_axis(axis)
-        if grip is not None and params.grip:
-            grips = params.grips(axis)
-            same = np.flatnonzero(np.isclose(grips, grip))
-            return own[same[0]] if same.size else own[int(np.argmin(np.abs(grips - grip)))]
-        return own[0] if own else None
-    rows = params[params["axis"] == axis]
-    if grip is not None and "grip_N" in params.columns:
-        by_grip = rows[np.isclose(rows["grip_N"].to_numpy(float), grip)]
-        if len(by_grip):
-            return by_grip.iloc[0]
-        # nearest grip of the same axis
-        return rows.iloc[int(np.argmin(np.abs(rows["grip_N"].to_numpy(float) - grip)))]
-    return rows.iloc[0] if len(rows) else None
+        pick = own.__getitem__
+    else:
+        own = params[params["axis"] == axis]
+        pick = own.iloc.__getitem__
+    if not len(own):
+        return None
+    grips = axis_grips(params, axis)
+    if grip is None or grips is None:
+        return pick(0)
+    same = np.flatnonzero(np.isclose(grips, grip))
+    # the row of that grip, else of the nearest grip of the same axis
+    return pick(int(same[0]) if same.size else int(np.argmin(np.abs(grips - grip))))
 
 
 def axis_data(spectra, params, axis: str) -> AxisData | None:
