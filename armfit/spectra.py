@@ -2479,9 +2479,10 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
     first_row = 0
     empty = None
     for g in range(pf.num_row_groups):
-        table = pf.read_row_group(g, columns=columns)
+        table = pf.read_row_group(g, columns=columns, use_threads=False)
         part = _group_spectra(table, meta, str(p), first_row,
-                              lambda g=g: pf.read_row_group(g, columns=list(SPECTRA_COLUMNS)))
+                              lambda g=g: pf.read_row_group(g, columns=list(SPECTRA_COLUMNS),
+                                                                 use_threads=False))
         first_row += table.num_rows
         del table
         keys = _response_keys(part)

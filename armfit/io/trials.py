@@ -663,7 +663,8 @@ def _read_table(path: Path, names: list[str]) -> dict[str, np.ndarray]:
     if _trial_ext(path.name) == ".parquet":
         actual = {n.strip(): n for n in _parquet_names(path)}
         try:
-            table = _parquet_file(path).read(columns=[actual[n] for n in names])
+            table = _parquet_file(path).read(columns=[actual[n] for n in names],
+                                             use_threads=False)
         except (pa.ArrowException, OSError) as exc:
             raise BadInputError(f"unreadable or truncated Parquet file: {_first_line(exc)}",
                                 file=file) from None
@@ -1379,7 +1380,7 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
     present = set(rec.get("columns", DATASET_COLUMNS))
     names = [c for c in DATASET_COLUMNS if c in present and (grip or c != "grip_N")]
     try:
-        table = pf.read_row_group(idx, columns=names)
+        table = pf.read_row_group(idx, columns=names, use_threads=False)
     except (pa.ArrowException, OSError) as exc:
         raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
                             file=source.label) from None
@@ -1400,7 +1401,8 @@ def _read_dataset_trial(source: TrialSource, *, grip: bool = True) -> Trial:
                                 f"dataset has no '{DATASET_REFERENCE}' column; the dataset is "
                                 "damaged (write it again with armfit ingest)", file=source.path)
         try:
-            column = pf.read_row_group(idx, columns=[DATASET_REFERENCE]).column(0)
+            column = pf.read_row_group(idx, columns=[DATASET_REFERENCE],
+                                     use_threads=False).column(0)
         except (pa.ArrowException, OSError) as exc:
             raise BadInputError(f"unreadable or truncated dataset: {_first_line(exc)}",
                                 file=source.label) from None
