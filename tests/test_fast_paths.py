@@ -565,6 +565,46 @@ def test_tuned_allocator_reuses_the_pages_of_freed_arrays():
     assert plain > 20 * 1250 and tuned < plain / 5, (plain, tuned)
 
 
+_POOL_TRANSFERS = """
+import ctypes, sys
+from concurrent.futures import ProcessPoolExecutor
+import numpy as np
+from armfit.memory import release_memory
+from armfit.workers import MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES, tune_allocator
+
+def anon_mb():
+    with open("/proc/self/status") as fh:
+        return next(int(l.split()[1]) for l in fh if l.startswith("RssAnon")) / 1024
+
+if sys.argv[1] == "tuned":
+    assert tune_allocator()
+else:    # the same thresholds, each thread in an arena of its own (glibc's default)
+    mallopt = ctypes.CDLL(None).mallopt
+    assert mallopt(-3, MMAP_THRESHOLD_BYTES) and mallopt(-1, TRIM_THRESHOLD_BYTES)
+if __name__ == "__main__":
+    before = anon_mb()
+    with ProcessPoolExecutor(2) as ex:     # 30 tasks of 4 MB out and 4 MB back
+        sums = [float(r.sum()) for r in ex.map(np.negative, [np.ones(500_000)] * 30)]
+    assert sums == [-500_000.0] * 30
+    release_memory()
+    print(anon_mb() - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_tuned_allocator_gives_back_what_a_pools_threads_freed():
+    # the memory a process holds, after a pool's 30 round trips of 4 MB and
+    # release_memory, in two fresh processes: the threads that pickle the tasks and
+    # unpickle the results kept the freed memory in arenas of their own (about 30 MB);
+    # in the one arena tune_allocator leaves, release_memory gives it back
+    def kept_mb(mode: str) -> float:
+        res = subprocess.run([sys.executable, "-c", _POOL_TRANSFERS, mode], check=True,
+                             capture_output=True, text=True)
+        return float(res.stdout.strip())
+    threads, tuned = kept_mb("threads"), kept_mb("tuned")
+    assert threads > 10 and tuned < 5, (threads, tuned)
+
+
 # ---------------------------------------------------------------------------
 # The serial estimate reads the next trial while it estimates this one
 # ---------------------------------------------------------------------------
