@@ -2406,7 +2406,7 @@ def _read_whole(p: Path) -> Spectra:
     import pyarrow as pa
     import pyarrow.parquet as pq
     try:
-        table = pq.read_table(p)
+        table = pq.read_table(p, use_threads=False)
     except (pa.ArrowException, OSError) as exc:
         raise BadInputError(f"not a readable Parquet spectra file "
                             f"({str(exc).splitlines()[0]}); make one with "
@@ -2481,8 +2481,8 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
     for g in range(pf.num_row_groups):
         table = pf.read_row_group(g, columns=columns, use_threads=False)
         part = _group_spectra(table, meta, str(p), first_row,
-                              lambda g=g: pf.read_row_group(g, columns=list(SPECTRA_COLUMNS),
-                                                                 use_threads=False))
+                              lambda g=g: pf.read_row_group(
+                                  g, columns=list(SPECTRA_COLUMNS), use_threads=False))
         first_row += table.num_rows
         del table
         keys = _response_keys(part)
