@@ -536,6 +536,13 @@ def test_paper_values_are_pandas_numbers_of_the_papers_tables(name):
     assert got.tobytes() == df[cols].to_numpy(float).tobytes()
 
 
+def _script_number(script: str, mode: str) -> float:
+    """The number ``script`` prints, run with ``mode`` in a fresh interpreter."""
+    res = subprocess.run([sys.executable, "-c", script, mode], check=True,
+                         capture_output=True, text=True)
+    return float(res.stdout.strip())
+
+
 _PAGE_FAULTS = """
 import resource, sys
 import numpy as np
@@ -557,11 +564,7 @@ def test_tuned_allocator_reuses_the_pages_of_freed_arrays():
     # minor page faults of the same allocations in two fresh processes: with the default
     # settings each 5 MB array is mapped afresh (about 1,250 faults per array of 4 kB
     # pages); tuned, the pages are reused after the first arrays
-    def faults(mode: str) -> int:
-        res = subprocess.run([sys.executable, "-c", _PAGE_FAULTS, mode], check=True,
-                             capture_output=True, text=True)
-        return int(res.stdout.strip())
-    plain, tuned = faults("plain"), faults("tuned")
+    plain, tuned = _script_number(_PAGE_FAULTS, "plain"), _script_number(_PAGE_FAULTS, "tuned")
     assert plain > 20 * 1250 and tuned < plain / 5, (plain, tuned)
 
 
@@ -597,11 +600,8 @@ def test_tuned_allocator_gives_back_what_a_pools_threads_freed():
     # release_memory, in two fresh processes: the threads that pickle the tasks and
     # unpickle the results kept the freed memory in arenas of their own (about 30 MB);
     # in the one arena tune_allocator leaves, release_memory gives it back
-    def kept_mb(mode: str) -> float:
-        res = subprocess.run([sys.executable, "-c", _POOL_TRANSFERS, mode], check=True,
-                             capture_output=True, text=True)
-        return float(res.stdout.strip())
-    threads, tuned = kept_mb("threads"), kept_mb("tuned")
+    threads = _script_number(_POOL_TRANSFERS, "threads")
+    tuned = _script_number(_POOL_TRANSFERS, "tuned")
     assert threads > 10 and tuned < 5, (threads, tuned)
 
 
