@@ -423,6 +423,35 @@ def test_joint_normal_blocks_a_few_trials_at_a_time_are_those_of_the_whole_jacob
             np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-12 * np.abs(w).max())
 
 
+def test_start_rows_and_residuals_a_few_trials_at_a_time_are_those_of_all_at_once(
+        study, monkeypatch):
+    # independent computation: the same functions with every trial in one chunk; made
+    # 3 trials at a time (the study's trials in several chunks, the last one short),
+    # the best candidate rows, the weighted residuals and the fit's summary are the same
+    # to the bit
+    from armfit.diagnosis import starts
+    data, band = _z_data(study)
+    model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    base = start_array(data)
+    effect = {"delay.delay_s": 0.01}
+
+    def made(chunk: int):
+        monkeypatch.setattr(joint, "CHUNK_TRIALS", chunk)
+        monkeypatch.setattr(starts, "CHUNK_TRIALS", chunk)
+        rows = starts.best_rows(model, data, band, effect, [base, base * 1.3, base[0]])
+        prob = joint.JointProblem(model, data, sel)
+        x = prob.pack(base * 1.1, effect)
+        fit = joint.joint_fit(model, data, band, base, [effect], max_nfev=5)
+        return rows, prob.fun(x), fit
+    assert data.h.shape[0] > 3 and data.h.shape[0] % 3
+    (rows3, r3, fit3), (rows_all, r_all, fit_all) = made(3), made(10_000)
+    assert rows3.tobytes() == rows_all.tobytes()
+    assert r3.tobytes() == r_all.tobytes()
+    assert (fit3.rss, fit3.rho, fit3.n_res) == (fit_all.rss, fit_all.rho, fit_all.n_res)
+    assert fit3.r_db.tobytes() == fit_all.r_db.tobytes()
+
+
 def test_a_joint_fit_never_holds_its_whole_jacobian(study, monkeypatch):
     # the memory of a joint fit's solve (tracemalloc's peak, numpy's arrays included):
     # its blocks of JᵀJ are made a chunk of trials at a time, so it takes less than the

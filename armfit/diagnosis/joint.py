@@ -22,6 +22,7 @@ from armfit.constants import DB_PER_NEPER, PARAM_NAMES, Z_975
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.tuning import (
+    CHUNK_TRIALS,
     FTOL_VARIANCE,
     OUTLIER,
     REFINE_BEST,
@@ -36,12 +37,6 @@ from armfit.models.arm import ClosedLoopModel
 __all__ = ["CHUNK_TRIALS", "JointFit", "JointProblem", "joint_fit", "refine", "rescue_trials",
            "screen_starts", "trial_fit"]
 
-#: Trials whose residuals and Jacobian blocks :class:`JointProblem` evaluates in one go:
-#: enough to keep numpy's loops long, few enough that the temporaries (about 40 kB a
-#: trial for the Jacobian) stay small for any study. Up to this many trials an axis's
-#: values are those of one evaluation of all; beyond, they may differ from it in the
-#: last bits (numpy's vector loops round the tail of an array alike, not bit for bit).
-CHUNK_TRIALS = 64
 
 
 @dataclass(frozen=True)
@@ -194,14 +189,17 @@ class JointProblem:
 
     def fun(self, x: np.ndarray) -> np.ndarray:
         """The weighted residuals (dB, then deg, of each trial) at ``x``, (T·m,); a
-        residual that is not finite is replaced by a constant. Made in place: besides
-        the result, only the residuals in dB and deg are held."""
-        r_db, r_deg = self.split_res(x)
-        n = r_db.shape[1]
+        residual that is not finite is replaced by a constant. Made in place,
+        :data:`CHUNK_TRIALS` trials at a time: besides the result, only those trials'
+        residuals in dB and deg are held."""
+        n = self.h.shape[1]
         r = np.empty((self.T, 2 * n))
-        np.multiply(r_db, self.w_db, out=r[:, :n])
-        np.multiply(r_deg, self.w_deg, out=r[:, n:])
-        del r_db, r_deg
+        for a in range(0, self.T, CHUNK_TRIALS):     # as split_res, weighted as it goes
+            rows = slice(a, a + CHUNK_TRIALS)
+            with np.errstate(all="ignore"):
+                r_db, r_deg = residuals(self.h[rows], self.response(x, rows))
+            np.multiply(r_db, self.w_db[rows], out=r[rows, :n])
+            np.multiply(r_deg, self.w_deg[rows], out=r[rows, n:])
         bad = ~np.isfinite(r)
         if bad.any():
             r[bad] = 1e6 if self.unused is None else self.unused[bad]
@@ -376,15 +374,20 @@ def _result(prob: JointProblem, res: blocklsq.BlockResult) -> JointFit:
     for n in prob.varying:
         shared[n], s_lo[n], s_hi[n] = _population(prob.space, n, by_subject)
     shared = {n: shared[n] for n in prob.effect_names}
+    n = r_db.shape[1]
     zres = np.concatenate([r_db * prob.w_db, r_deg * prob.w_deg], axis=1)
-    zdb, zdeg = r_db * prob.w_db, r_deg * prob.w_deg
+    zdb, zdeg = zres[:, :n], zres[:, n:]
     if prob.unused is not None:     # the points left out count as nothing
         zdb, zdeg = np.nan_to_num(zdb), np.nan_to_num(zdeg)
     rho = (_lag1(zdb) + _lag1(zdeg)) / 2
-    n_res = int(zres.size if prob.unused is None else np.isfinite(zres).sum())
+    finite = np.isfinite(zres)
+    n_res = int(zres.size if prob.unused is None else finite.sum())
+    # the squares of the finite residuals in order (in place when all are finite)
+    sq = np.square(zres, out=zres).ravel() if finite.all() else np.square(zres[finite])
+    del zres, zdb, zdeg, finite
     return JointFit(prob.model, theta[:, : prob.nb], shared,
                     {n: s_lo[n] for n in shared}, {n: s_hi[n] for n in shared}, r_db, r_deg,
-                    float(np.sum(zres[np.isfinite(zres)] ** 2)), n_res, rho,
+                    float(np.sum(sq)), n_res, rho,
                     bool(res.status > 0), prob.varying,
                     prob.trial_subjects if prob.varying else (), by_subject, b_lo, b_hi)
 

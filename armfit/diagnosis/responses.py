@@ -4,7 +4,7 @@ cross-axis motion."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -187,13 +187,17 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
     out = {}
     axis, H_on = data.axis, data.h
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    lean = replace(Spectra.of(spectra), values={})   # the responses are all it uses
     for other in AXES:
         if other == axis:
             continue
-        rows = select_rows(spectra, level="trial", kind="cross", axis=axis, out_axis=other)
+        rows = select_rows(lean, level="trial", kind="cross", axis=axis, out_axis=other)
         if len(rows) == 0:
             continue
-        _, H_c, *_ = trial_responses(rows)
+        rows = rows.sorted(("subject", "grip_N", "run"))   # as trial_responses orders them
+        rows.common_grid("trials")
+        H_c = rows.h
+        del rows
         if H_c.shape != H_on.shape:
             continue
         with np.errstate(all="ignore"):

@@ -11,7 +11,7 @@ from armfit._order import median
 from armfit.constants import PARAM_NAMES
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
-from armfit.diagnosis.tuning import UNIT_DEG
+from armfit.diagnosis.tuning import CHUNK_TRIALS, UNIT_DEG
 from armfit.fitting import analytic_guess
 from armfit.models.arm import ClosedLoopModel
 
@@ -64,17 +64,22 @@ def best_rows(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
     sdb, sdeg = data.noise_se(sel)
     T = data.h.shape[0]
     rows = [np.broadcast_to(np.asarray(c, float), (T, len(PARAM_NAMES))) for c in candidates]
-    errs = []
-    for r in rows:
-        theta = {n: r[:, i:i + 1] for i, n in enumerate(PARAM_NAMES)}
-        theta.update({k: v for k, v in effect_values.items()})
-        if not model.effects:
-            theta = {n: theta[n] for n in PARAM_NAMES}
-        with np.errstate(all="ignore"):
-            r_db, r_deg = residuals(data.h[:, sel], model.response(f, theta))
-            e = np.nansum((r_db / sdb) ** 2 + (r_deg / sdeg) ** 2, axis=1)
-        errs.append(np.where(np.isfinite(e), e, np.inf))
-    pick = np.argmin(np.array(errs), axis=0)
+    errs = np.empty((len(rows), T))
+    # CHUNK_TRIALS trials at a time: each trial's error is its own, whatever its company,
+    # and the responses and residuals of all the trials are never held at once
+    for a in range(0, T, CHUNK_TRIALS):
+        t = slice(a, a + CHUNK_TRIALS)
+        h = data.h[t, sel]
+        for j, r in enumerate(rows):
+            theta = {n: r[t, i:i + 1] for i, n in enumerate(PARAM_NAMES)}
+            theta.update({k: v for k, v in effect_values.items()})
+            if not model.effects:
+                theta = {n: theta[n] for n in PARAM_NAMES}
+            with np.errstate(all="ignore"):
+                r_db, r_deg = residuals(h, model.response(f, theta))
+                e = np.nansum((r_db / sdb[t]) ** 2 + (r_deg / sdeg[t]) ** 2, axis=1)
+            errs[j, t] = np.where(np.isfinite(e), e, np.inf)
+    pick = np.argmin(errs, axis=0)
     return np.array([rows[k][i] for i, k in enumerate(pick)])
 
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 from armfit.constants import UNIT_SE_DEG
 
 __all__ = [
-    "BANDS", "DROP_POINTS", "FTOL_VARIANCE", "MAX_STEPS", "MIN_EFFECT_DB", "MIN_EFFECT_DEG",
+    "BANDS", "CHUNK_TRIALS", "DROP_POINTS", "FTOL_VARIANCE", "MAX_STEPS", "MIN_EFFECT_DB",
+    "MIN_EFFECT_DEG",
     "MIN_REDUCTION", "MIN_RUN", "NOISE_TOL", "OUTLIER", "QUICK_BEST", "QUICK_NFEV",
     "QUICK_SCREEN_NFEV", "REFINE_BEST", "SCREEN_GAP", "SCREEN_KEEP", "SCREEN_SUBSET",
     "SHARED_EFFECTS", "SIGNIFICANT_BIC", "START_GAP", "START_SCREEN_NFEV", "START_SCREEN_TRIALS",
@@ -115,3 +116,12 @@ SCREEN_SUBSET = 3
 #: gets no joint fit on all trials: it cannot win (the joint fits rank as the screening
 #: does when the gap is this large).
 SCREEN_GAP = 2.0
+
+#: Trials whose residuals and Jacobian blocks :class:`~armfit.diagnosis.joint.JointProblem`
+#: evaluates in one go, and whose candidate start rows
+#: :func:`~armfit.diagnosis.starts.best_rows` scores in one go: enough to keep numpy's
+#: loops long, few enough that the temporaries (about 40 kB a trial for the Jacobian)
+#: stay small for any study. Up to this many trials an axis's
+#: values are those of one evaluation of all; beyond, they may differ from it in the
+#: last bits (numpy's vector loops round the tail of an array alike, not bit for bit).
+CHUNK_TRIALS = 64
