@@ -374,9 +374,9 @@ def _result(prob: JointProblem, res: blocklsq.BlockResult) -> JointFit:
     for n in prob.varying:
         shared[n], s_lo[n], s_hi[n] = _population(prob.space, n, by_subject)
     shared = {n: shared[n] for n in prob.effect_names}
-    n = r_db.shape[1]
+    nf = r_db.shape[1]
     zres = np.concatenate([r_db * prob.w_db, r_deg * prob.w_deg], axis=1)
-    zdb, zdeg = zres[:, :n], zres[:, n:]
+    zdb, zdeg = zres[:, :nf], zres[:, nf:]
     if prob.unused is not None:     # the points left out count as nothing
         zdb, zdeg = np.nan_to_num(zdb), np.nan_to_num(zdeg)
     rho = (_lag1(zdb) + _lag1(zdeg)) / 2

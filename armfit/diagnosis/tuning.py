@@ -121,7 +121,7 @@ SCREEN_GAP = 2.0
 #: evaluates in one go, and whose candidate start rows
 #: :func:`~armfit.diagnosis.starts.best_rows` scores in one go: enough to keep numpy's
 #: loops long, few enough that the temporaries (about 40 kB a trial for the Jacobian)
-#: stay small for any study. Up to this many trials an axis's
-#: values are those of one evaluation of all; beyond, they may differ from it in the
-#: last bits (numpy's vector loops round the tail of an array alike, not bit for bit).
+#: stay small for any study. Up to this many trials an axis's values are those of one
+#: evaluation of all; beyond, they may differ from it in the last bits (numpy's vector
+#: loops round the tail of an array alike, not bit for bit).
 CHUNK_TRIALS = 64
