@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import compileall
 import importlib.util
+import os
 from pathlib import Path
 
 
@@ -27,3 +28,10 @@ def compile_armfit() -> Path:
     if not compileall.compile_dir(str(folder), quiet=1):
         raise SystemExit(f"armfit's modules in {folder} do not compile")
     return folder
+
+
+def start() -> None:
+    """What a timing benchmark does first: :func:`compile_armfit`, then print the load
+    average and the number of cores it runs with."""
+    compile_armfit()    # stale bytecode would be timed too
+    print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")

@@ -36,7 +36,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_estimate  # noqa: E402  (the datasets, made once and cached)
-from _bytecode import compile_armfit  # noqa: E402
+from _bytecode import start  # noqa: E402
 
 ARMFIT = str(Path(sys.executable).with_name("armfit"))
 
@@ -122,8 +122,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=Path(tempfile.gettempdir())
                     / "armfit_bench_81x75-100s.parquet")
     args = ap.parse_args()
-    compile_armfit()    # stale bytecode would be timed too
-    print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
+    start()
     bench_estimate.ensure(args.data)
     with tempfile.TemporaryDirectory(prefix="armfit-bench-floor-") as tmp:
         estimate_rows(args.data, Path(tmp), args.repeat, "81 trials")

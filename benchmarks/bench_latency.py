@@ -28,7 +28,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _bytecode import compile_armfit  # noqa: E402
+from _bytecode import start  # noqa: E402
 from bench_startup import wall  # noqa: E402  (seconds from a command's start to its exit)
 
 ARMFIT = str(Path(sys.executable).with_name("armfit"))
@@ -77,8 +77,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=10)
     args = ap.parse_args()
-    compile_armfit()    # stale bytecode would be timed too
-    print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
+    start()
     with tempfile.TemporaryDirectory(prefix="armfit-bench-latency-") as tmp:
         spectra = Path(tmp) / "one.parquet"
         runs = {

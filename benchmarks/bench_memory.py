@@ -33,7 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _bytecode import compile_armfit
+from _bytecode import start
 
 #: Subjects per study (9 axes x grips each): 81, 810 and 4,050 trials.
 SUBJECTS = {"81": 9, "810": 90, "4050": 450}
@@ -150,8 +150,7 @@ def main() -> None:
     ap.add_argument("--trace", type=Path, default=None, metavar="STUDY",
                     help="one run on STUDY, printing the memory every 0.5 s")
     args = ap.parse_args()
-    compile_armfit()    # stale bytecode would be timed too
-    print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
+    start()
     if args.trace is not None:
         with tempfile.TemporaryDirectory() as tmp:
             r = measure(run_cmd(args.trace, Path(tmp) / "out", args.jobs), trace=True)

@@ -25,7 +25,7 @@ import threading
 import time
 from pathlib import Path
 
-from _bytecode import compile_armfit
+from _bytecode import start
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -61,8 +61,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=8)
     args = ap.parse_args()
-    compile_armfit()    # stale bytecode would be timed too
-    print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
+    start()
     exe = str(Path(sys.executable).with_name("armfit"))
     with tempfile.TemporaryDirectory(prefix="armfit-bench-pipe-") as tmp:
         cmd = [exe, "estimate", str(ROOT / "sample_data" / "hidden"), "-o",

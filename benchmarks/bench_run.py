@@ -30,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _bytecode import compile_armfit
+from _bytecode import start
 
 
 def armfit(*args: str) -> subprocess.CompletedProcess:
@@ -98,8 +98,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2,
                     help="runs of each variant, alternated; the best of each is reported")
     args = ap.parse_args()
-    compile_armfit()    # stale bytecode would be timed too
-    print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
+    start()
     if args.against_null:
         if not args.effect:
             ap.error("--against-null needs --effect")

@@ -177,14 +177,20 @@ class JointProblem:
         values = {n: theta[:, i:i + 1] for i, n in enumerate(self.space.names)}
         return self.model.response(self.f, values)
 
-    def split_res(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (dB, deg) of every trial at ``x``, (T, n), :data:`CHUNK_TRIALS`
-        trials at a time (each trial's are its own, whatever its company)."""
-        r_db, r_deg = np.empty(self.h.shape), np.empty(self.h.shape)
+    def _chunk_res(self, x: np.ndarray):
+        """(rows, residuals in dB, in deg) at ``x``, :data:`CHUNK_TRIALS` trials at a
+        time (each trial's are its own, whatever its company)."""
         for a in range(0, self.T, CHUNK_TRIALS):
             rows = slice(a, a + CHUNK_TRIALS)
             with np.errstate(all="ignore"):
-                r_db[rows], r_deg[rows] = residuals(self.h[rows], self.response(x, rows))
+                yield (rows, *residuals(self.h[rows], self.response(x, rows)))
+
+    def split_res(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (dB, deg) of every trial at ``x``, (T, n), made
+        :data:`CHUNK_TRIALS` trials at a time."""
+        r_db, r_deg = np.empty(self.h.shape), np.empty(self.h.shape)
+        for rows, db, deg in self._chunk_res(x):
+            r_db[rows], r_deg[rows] = db, deg
         return r_db, r_deg
 
     def fun(self, x: np.ndarray) -> np.ndarray:
@@ -194,10 +200,7 @@ class JointProblem:
         residuals in dB and deg are held."""
         n = self.h.shape[1]
         r = np.empty((self.T, 2 * n))
-        for a in range(0, self.T, CHUNK_TRIALS):     # as split_res, weighted as it goes
-            rows = slice(a, a + CHUNK_TRIALS)
-            with np.errstate(all="ignore"):
-                r_db, r_deg = residuals(self.h[rows], self.response(x, rows))
+        for rows, r_db, r_deg in self._chunk_res(x):
             np.multiply(r_db, self.w_db[rows], out=r[rows, :n])
             np.multiply(r_deg, self.w_deg[rows], out=r[rows, n:])
         bad = ~np.isfinite(r)

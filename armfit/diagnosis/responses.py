@@ -76,12 +76,22 @@ def select_rows(spectra, *, level: str, kind: str, axis: str, grip: float | None
                                       out_axis=out_axis)
 
 
+#: The order of an axis's trials in the diagnosis's arrays.
+_TRIAL_ORDER = ("subject", "grip_N", "run")
+
+
+def _in_trial_order(rows: Spectra) -> tuple[Spectra, np.ndarray]:
+    """``rows`` in :data:`_TRIAL_ORDER`, and their one grid (Hz; raises if the trials
+    are on different grids)."""
+    rows = rows.sorted(_TRIAL_ORDER)
+    return rows, rows.common_grid("trials")
+
+
 def trial_responses(rows: Spectra) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           list]:
     """(f, H (T, n), se_db, se_deg, keys) of trial responses on one grid, in subject,
     grip, run order; keys are (subject, grip_N, run) per trial."""
-    rows = rows.sorted(("subject", "grip_N", "run"))
-    f = rows.common_grid("trials")
+    rows, f = _in_trial_order(rows)
     labels = list(zip(rows.key("subject"), rows.key("grip_N"), rows.key("run"), strict=True))
     return f, rows.h, rows.se_db, rows.se_deg, labels
 
@@ -98,7 +108,7 @@ def not_excitation(rows: Spectra) -> np.ndarray | None:
     :data:`EXCLUDED_GAP` points between two flagged ones of a trial; None when no point
     is flagged."""
     from armfit.spectra import NOT_EXCITATION
-    flags = rows.sorted(("subject", "grip_N", "run")).flags
+    flags = rows.sorted(_TRIAL_ORDER).flags
     if flags is None:
         return None
     out = np.array([[NOT_EXCITATION in str(c).split(",") for c in row] for row in flags],
@@ -194,9 +204,7 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
         rows = select_rows(lean, level="trial", kind="cross", axis=axis, out_axis=other)
         if len(rows) == 0:
             continue
-        rows = rows.sorted(("subject", "grip_N", "run"))   # as trial_responses orders them
-        rows.common_grid("trials")
-        H_c = rows.h
+        H_c = _in_trial_order(rows)[0].h
         del rows
         if H_c.shape != H_on.shape:
             continue
