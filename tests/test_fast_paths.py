@@ -605,6 +605,36 @@ def test_tuned_allocator_gives_back_what_a_pools_threads_freed():
     assert threads > 10 and tuned < 5, (threads, tuned)
 
 
+def test_arrows_freed_buffers_are_returned_once_enough_columns_were_read(
+        tmp_path, write_trial, make_columns, monkeypatch):
+    # Arrow's pool is emptied once RELEASE_ARROW_BYTES of float64 values were read since
+    # it last was, not after every trial: 13 raw trials of 7 columns (time, three forces,
+    # three positions) x 100,000 samples are 5.6 MB each, so the count since the last
+    # release first reaches 32 MiB (33,554,432 B) at the 6th trial (33.6 MB) and again
+    # at the 12th: two releases. Each trial read comes back whole all the same.
+    from armfit.io import trials as io_trials
+    released = []
+
+    class Pool:
+        def release_unused(self):
+            released.append(len(read) + 1)   # the trial being read
+
+    monkeypatch.setattr(pa, "default_memory_pool", Pool)
+    monkeypatch.setattr(io_trials, "_read_since_release", [0])
+    cols = make_columns("x", fs=1000.0, duration_s=100.0, seed=4, grip=False)
+    for a in "xyz":   # the random walk kept well inside the workspace
+        cols[f"pos_{a}_m"] = cols[f"pos_{a}_m"] / 10
+    assert len(cols) == 7 and cols["time_s"].size == 100_000
+    read = []
+    for k in range(13):
+        path = write_trial(tmp_path / f"sub-{k:02d}_axis-x_grip-1N.parquet", cols)
+        (src,), _ = io_trials.discover([path])
+        read.append(io_trials.read_trial(src))
+        np.testing.assert_array_equal(read[-1].f, cols["force_x_N"])
+    assert io_trials.RELEASE_ARROW_BYTES == 32 << 20
+    assert released == [6, 12]
+
+
 # ---------------------------------------------------------------------------
 # The serial estimate reads the next trial while it estimates this one
 # ---------------------------------------------------------------------------
