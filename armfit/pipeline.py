@@ -607,6 +607,10 @@ def _ingest(config: RunConfig, workers: _Workers) -> Ingested:
     except BaseException:
         estimating.close()
         raise
+    # what reading the trials kept (Arrow's pages, returned only every few trials) and
+    # the dataset writer's metadata of every row group, closed: given back before the
+    # stages that hold the study's responses
+    release_memory()
     skipped = tuple((s.file, s.reason) for s in ing.skipped)
     return Ingested(len(ing.trials), skipped, estimating, files=("trials.parquet",),
                     summary=f"{len(ing.trials)} trial(s)"
