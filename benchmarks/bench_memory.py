@@ -10,13 +10,14 @@ and its peak memory is measured as the largest sum of the resident memory (VmRSS
 every worker of every pool (and the resource tracker), sampled every 10 ms by walking
 /proc for the descendants of the main process (about 1 ms a walk). Pages shared between
 processes (the fork server's imports in its workers) are counted once per process, as a
-system monitor adds them up. Sampling can only miss a peak (the diagnosis's own pool
-lives for about 0.1 s on 81 trials), so the highest peak of the rounds is kept per
-study. Printed: the peak per study with the peak of the main process and of the
-largest other process, the ratios 810/81 (target <= 1.15) and 4,050/81 (target: flat,
-<= 1.15), and the size of trials.parquet against the input (target <= 1.0): the Parquet
-study as simulated, and the 81-trial study also written as CSV (`--format csv`) with
-trials.parquet of `armfit ingest` on it. The load average is printed before and after.
+system monitor adds them up. Sampling can only miss a peak (a stage's read of trial
+rows may last a few tens of milliseconds on 81 trials), so the highest peak of the
+rounds is kept per study. Printed: the peak per study with the peak of the main process
+and of the largest other process, the ratios 810/81 (target <= 1.15) and 4,050/81
+(target: flat, <= 1.15), and the size of trials.parquet against the input (target <=
+1.0): the Parquet study as simulated, and the 81-trial study also written as CSV
+(`--format csv`) with trials.parquet of `armfit ingest` on it. The load average is
+printed before and after.
 
     .venv/bin/python benchmarks/bench_memory.py [--big] [--repeat 2] [--dir /tmp/...]
     .venv/bin/python benchmarks/bench_memory.py --trace STUDY   # one run, RSS over time
