@@ -1358,8 +1358,8 @@ def _open_dataset(path: str, stamp: tuple[int, int, int]):
 
 
 #: Bytes of trial columns read (float64 values) between two returns of Arrow's freed
-#: buffers to the system (:func:`_release_arrow_memory`): about a dozen trials of 60 s at
-#: 1 kHz.
+#: buffers to the system (:func:`_release_arrow_memory`): about ten trials of 60 s at
+#: 1 kHz (seven columns).
 RELEASE_ARROW_BYTES = 32 << 20
 _read_since_release = [0]
 _release_lock = threading.Lock()
@@ -1373,8 +1373,8 @@ def _release_arrow_memory(nbytes: int) -> None:
     trial's; returned after every trial, they were taken back from the system at the
     next (the page faults made reading 81 trials of 50-100 s 1.5 times slower: 0.80 s
     against 0.52 s). Kept throughout, they stay bounded by the sizes of buffer met (the
-    same 176 MB after 81 and 810 trials), and returned every dozen trials or so, the
-    process holds no more (170 MB) and reads as fast."""
+    same 176 MB after 81 and 810 trials), and returned every 16 trials, the process
+    held no more (170 MB) and read as fast."""
     with _release_lock:
         _read_since_release[0] += nbytes
         if _read_since_release[0] < RELEASE_ARROW_BYTES:
