@@ -44,8 +44,8 @@ processes for the run (:func:`armfit.workers.process_pool`) and hands it to ever
 Work that runs alongside later stages is a future returned by the stage that starts it
 and passed to the stage that needs its result, which waits for it: the ingest stage
 starts the estimate (it runs in the pool while this process ingests), the fit-grip
-stage starts the diagnosis (in a thread of its own, with ``jobs`` worker processes of
-its own, alongside Table II), the fit-uncertainty stage starts the per-trial fits (in
+stage starts the diagnosis (in a thread of its own, its fits in the pool, alongside
+Table II's), the fit-uncertainty stage starts the per-trial fits (in
 the pool while this process fits Wu); the figures are drawn and written in the pool
 while the later stages go on, and the report stage waits for them. Given an
 ``executor`` (e.g. a dask cluster's), the stages run their tasks on it instead, and the
