@@ -123,7 +123,7 @@ _WALL = WallSettings()
 
 #: Stage names, in the order they are reported (``adopt`` only when an effect is adopted,
 #: ``figures`` and ``residuals`` only with figures on). With jobs > 1 the diagnosis runs
-#: in worker processes from the end of fit-grip on, alongside fit-nominal.
+#: in the run's worker processes from the end of fit-grip on, alongside fit-nominal.
 STAGES: tuple[str, ...] = ("ingest", "estimate", "fit-grip", "fit-nominal", "diagnose",
                            "adopt", "fit-uncertainty", "fit-trials", "stability",
                            "figures", "compare", "residuals", "drawing", "report")
@@ -266,7 +266,7 @@ def run_pipeline(inputs: Sequence[str | os.PathLike], outdir: str | os.PathLike,
     :class:`concurrent.futures.Executor`, used as is and never shut down; the figures are
     then drawn in this process, and after a failure the tasks it already runs finish
     first), else in one pool of ``options.jobs`` worker processes made for the run (none
-    with jobs 1); the diagnosis has ``options.jobs`` worker processes of its own.
+    with jobs 1), the diagnosis's among them.
 
     ``on_stage(stage)`` is called after each stage (e.g. to print its time); ``warn``
     receives data warnings (saturation); ``note`` the conversions of each column map,
