@@ -691,13 +691,12 @@ def _fit_summary(model: api.ModelFit, cost: str) -> str:
 
 
 def _diagnosis(path: Path, spectra: Spectra, grip: api.ModelFit, axes: Sequence[str],
-               workers: _Workers) -> api.Diagnosis:
+               executor: Executor | None) -> api.Diagnosis:
     """The diagnosis of ``axes`` started from the grip fits: the trial rows of the
-    spectra file ``path``, read an axis at a time, its fits on the run's executor (here
-    when it has none); the aggregates ``spectra`` are kept with it (all its plot
+    spectra file ``path``, read an axis at a time, its fits on the run's ``executor``
+    (here when it is None); the aggregates ``spectra`` are kept with it (all its plot
     needs)."""
-    axes_done = tuple(diagnose_axes(path, grip.table, axes=axes, jobs=1,
-                                    executor=workers.executor))
+    axes_done = tuple(diagnose_axes(path, grip.table, axes=axes, executor=executor))
     release_memory()
     return api.Diagnosis(axes_done, spectra, grip)
 
@@ -717,7 +716,7 @@ def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> Gri
     estimated.written()     # every later stage reads the file
     axes = [a for a in AXES if (grip.table["axis"] == a).any()]
     diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), spectra, grip,
-                               axes, workers)
+                               axes, workers.executor)
     return GripFits(grip, diagnosing, nominal, files=("grip_params.csv", "grip_params.tex"),
                     summary=_fit_summary(grip, config.options.cost))
 
