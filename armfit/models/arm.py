@@ -283,6 +283,13 @@ class ClosedLoopModel:
     # The parameter lists below are made once per model (every evaluation of the
     # response asks for them) and kept on the instance: a model is immutable.
 
+    def __getstate__(self) -> dict:
+        """The fields only: a pickled model (every fit's result a worker sends back, and
+        the per-trial fits of a study all kept) leaves out the parameter lists made
+        from them, which it makes again when asked (2.6 kB of the 4.5 kB a trial's fit
+        held without effects)."""
+        return {"mp": self.mp, "effects": self.effects, "held": self.held}
+
     @functools.cached_property
     def all_params(self) -> tuple[Param, ...]:
         """Every parameter, held ones included: base first, effect parameters qualified as
