@@ -74,7 +74,7 @@ never narrower than these.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
@@ -90,7 +90,7 @@ from armfit.io.schema import params_columns
 from armfit.models.arm import ClosedLoopModel, at_bound, laplace, union_param_names
 from armfit.models.effects import effects_by_axis, resolve_effects
 from armfit.spectra import Spectra, aggregate
-from armfit.workers import POOL_PRELOAD, iter_tasks, map_tasks
+from armfit.workers import POOL_PRELOAD, iter_tasks
 
 COSTS: tuple[str, ...] = ("complex", "paper")
 
@@ -1297,29 +1297,41 @@ def fit_trial_models(spectra, *, cost: str = "complex",
     def spec(key) -> tuple:
         return per_subject.get((key[0], str(key[1])), specs[key[0]])
 
-    tasks = [(key, rows, {**base, "band": bands[key[0]], "effects": spec(key)[0],
-                          "held": spec(key)[1],
-                          "x0": starts.get((key[0], float(key[2])))})
-             for key, rows in groups]
+    keys = [key for key, _ in groups]
+    # each trial's arrays are kept only while its fit may still need the global search
+    # (below); the tasks handed to the workers are let go as they are done
+    rows: list[tuple | None] = [r for _, r in groups]
+    del groups
+    kws = [{**base, "band": bands[key[0]], "effects": spec(key)[0], "held": spec(key)[1],
+            "x0": starts.get((key[0], float(key[2])))} for key in keys]
     # the parameters each start has at a bound (a bound shared with the start is no
     # reason for the global search)
     start_bounds = {k: at_bound(ClosedLoopModel.for_axis(k[0], specs[k[0]][0],
                                                          held=specs[k[0]][1]).params, v)
                     for k, v in starts.items()}
-    def run(items: list) -> list:
-        return map_tasks(_fit_trial_task, items, jobs,
-                         preload=POOL_PRELOAD["fit"], chunksize=4,
-                         executor=executor)
 
-    out = run(tasks)
+    def needs_global(i: int, tf: TrialFit, median: float) -> bool:
+        return kws[i]["x0"] is not None and _needs_global(
+            tf, median, start_bounds[(keys[i][0], float(keys[i][2]))])
+
+    def run(indices: list[int], **kw) -> Iterator[TrialFit]:
+        return iter_tasks(_fit_trial_task, [(keys[i], rows[i], {**kws[i], **kw})
+                                            for i in indices], jobs,
+                          preload=POOL_PRELOAD["fit"], chunksize=4, executor=executor)
+
+    out = []
+    for i, tf in enumerate(run(list(range(len(keys))))):
+        out.append(tf)
+        # a local fit that needs no global search with a median of 0 needs none with
+        # its axis's (the threshold only rises with it): its arrays are not needed again
+        if not needs_global(i, tf, 0.0):
+            rows[i] = None
     medians = {}
     for axis in {t.axis for t in out}:
         errs = [_misfit(t.fit) for t in out if t.axis == axis and t.fit is not None]
         medians[axis] = float(median(errs)) if errs else np.inf
-    again = [i for i, (t, (key, _, kw)) in enumerate(zip(out, tasks, strict=True))
-             if kw["x0"] is not None and _needs_global(
-                 t, medians[t.axis], start_bounds[(key[0], float(key[2]))])]
-    glob = run([(tasks[i][0], tasks[i][1], {**tasks[i][2], "x0": None}) for i in again])
+    again = [i for i, t in enumerate(out) if needs_global(i, t, medians[t.axis])]
+    glob = run(again, x0=None)
     for i, tf in zip(again, glob, strict=True):
         if _rank(tf) > _rank(out[i]):
             out[i] = tf

@@ -512,13 +512,22 @@ def iter_tasks(fn: Callable, tasks: Iterable, jobs: int = 1, preload: Sequence[s
         ``fn(t)``, in the order of ``tasks``. The first error of a task, in task order,
         is raised; pending tasks are then cancelled (also when the caller stops early
         and closes the generator).
+
+    Notes
+    -----
+    No task is held here once it has run (here) or been handed to the executor (which
+    lets it go when it is done): a caller that keeps no task of its own holds the
+    memory of those not yet done only.
     """
     tasks = list(tasks)
     if executor is None and (jobs <= 1 or len(tasks) <= 1):
-        yield from map(fn, tasks)
+        tasks.reverse()
+        while tasks:
+            yield fn(tasks.pop())
         return
     with executor_for(executor, jobs, tasks=len(tasks), preload=preload) as ex:
-        results = ex.map(fn, tasks, chunksize=chunksize)
+        results = ex.map(fn, tasks, chunksize=chunksize)   # every task submitted
+        del tasks
         try:
             yield from results
         finally:
