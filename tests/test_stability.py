@@ -125,6 +125,33 @@ def test_agrees_with_independent_computation(settings):
     np.testing.assert_allclose(got, indep, rtol=0.01)
 
 
+def test_a_loops_answer_does_not_depend_on_the_loops_analysed_with_it(monkeypatch):
+    """wall_stability analyses at most WALL_BATCH loops together (the memory of a study's
+    thousands of trial fits): with batches of 5, the 12 rows of Tables I and II and
+    the same rows with output delays of 0 to 2 ms (loops of other shapes, so batches mix
+    shapes) give each loop the K_max and frequency it gets analysed alone, to the bit;
+    the rows without delay agree with :func:`_independent_k_max` within 1 %."""
+    from armfit import loop
+    rows = list(paper_params("grip").iterrows()) + list(paper_params("nominal").iterrows())
+    plants = [plant_from_model(ClosedLoopModel.for_axis(r["axis"]),
+                               {n: float(r[n]) for n in NAMES}) for _, r in rows]
+    plants += [plant_from_model(ClosedLoopModel.for_axis(r["axis"], [get_effect("delay")]),
+                                {**{n: float(r[n]) for n in NAMES},
+                                 "delay.delay_s": 1e-3 * (i % 3)})
+               for i, (_, r) in enumerate(rows)]
+    st = WallSettings(1e-3, 2.0, 1)
+    alone = [wall_stability([p], st)[0] for p in plants]
+    monkeypatch.setattr(loop, "WALL_BATCH", 5)
+    together = wall_stability(plants, st)
+    assert [(r.k_max_N_per_m, r.f_unstable_hz) for r in together] == \
+        [(r.k_max_N_per_m, r.f_unstable_hz) for r in alone]
+    indep = [_independent_k_max(p.num, p.den, st.sample_time_s, st.damping_Ns_per_m,
+                                st.delay_samples) for p in plants[:len(rows)]]
+    assert len(rows) == 12
+    np.testing.assert_allclose([r.k_max_N_per_m for r in together[:len(rows)]], indep,
+                               rtol=0.01)
+
+
 def test_k_max_is_the_first_loss_and_refined_to_a_tenth_of_a_percent():
     """Stable at 0.999 K_max, unstable at 1.001 K_max (closed-loop eigenvalues)."""
     p = plant_from_model(*TABLE2["y"])
