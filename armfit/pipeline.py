@@ -803,9 +803,10 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                      adoption: Adoption) -> UncertaintyFit:
     """W_max and Wu (Table III) of the adopted nominal, apparatus effects removed: wu.csv,
     wu_summary.csv, wu_wmax.csv, wu.tex, from the derived trial rows of spectra.parquet
-    (read here, let go after). The per-trial fits start first and run in the worker
-    processes whenever the Wu fits leave one free (they give way: the stability stage
-    needs both, and the Wu fits are the longer chain)."""
+    (read here, let go after). The per-trial fits start once those rows are read (their
+    own read of the file's measured rows would otherwise overlap it) and run in the
+    worker processes whenever the Wu fits leave one free (they give way: the stability
+    stage needs both, and the Wu fits are the longer chain)."""
     o = config.options
     # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
     grip = models.grip
@@ -813,16 +814,17 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                              grip.fits)
     per_subject = {"subject_effects": adoption.subject_effects} if adoption.by_subject \
         else {}
+    # the responses only: W_max (eq. 6) uses no other value of the rows, and the values
+    # would more than double what the rows hold
+    derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived",
+                           values=())
+    # started once the derived rows are read: the two reads of the file do not overlap
     trial_fits = workers.start(_trial_fits, config, workers.drawings.pool,
                                config.path("spectra.parquet"), cost=o.cost,
                                jobs=o.jobs, source="spectra.parquet", starts=starts,
                                bands=models.bands, effects=_effects_of(adoption),
                                executor=workers.later, **per_subject)
     wu_path = config.path("wu.csv")
-    # the responses only: W_max (eq. 6) uses no other value of the rows, and the values
-    # would more than double what the rows hold
-    derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived",
-                           values=())
     unc = api.fit_uncertainty(derived, models.nominal, cost=o.wu_cost, jobs=o.jobs,
                               executor=workers.executor, by_subject=adoption.by_subject)
     unc = replace(unc, spectra=None)   # the derived trial rows are let go
