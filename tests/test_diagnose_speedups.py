@@ -235,8 +235,9 @@ def test_task_queue_start_ready_starts_tasks_before_run():
 
 
 def test_diagnosis_starts_an_axis_while_the_next_is_read(study, pipelined, monkeypatch):
-    # with an executor, the first axis's base fit is handed over before the next axis's
-    # trial rows are read (the result is the same)
+    # with an executor, the first axis's base fit is handed over as soon as its measured
+    # rows are read: before its cross rows (the coupling's) and the next axis's rows are
+    # read (the result is the same)
     spectra, params = study
     events = []
     reader = search._trial_rows
@@ -244,9 +245,9 @@ def test_diagnosis_starts_an_axis_while_the_next_is_read(study, pipelined, monke
     def recorded(sp):
         read = reader(sp)
 
-        def rows(axis):
-            events.append(("read", axis))
-            return read(axis)
+        def rows(axis, kind):
+            events.append(("read", axis, kind))
+            return read(axis, kind)
         return rows
 
     class Recording(ThreadPoolExecutor):
@@ -258,7 +259,8 @@ def test_diagnosis_starts_an_axis_while_the_next_is_read(study, pipelined, monke
     with Recording(max_workers=2) as ex:
         got = search.diagnose_axes(spectra, params, executor=ex)
     assert repr(got) == repr(pipelined)
-    assert events[:3] == [("read", "x"), ("submit", "_base_task"), ("read", "z")]
+    assert events[:4] == [("read", "x", "measured"), ("submit", "_base_task"),
+                          ("read", "x", "cross"), ("read", "z", "measured")]
 
 
 def test_task_queue_runs_tasks_here_while_the_pool_starts():
