@@ -17,6 +17,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
 
+from armfit.memory import release_memory
 from armfit.workers import POOL_PRELOAD, executor_for, fork_server_running
 
 __all__ = ["TaskQueue", "task_queue"]
@@ -108,6 +109,11 @@ class TaskQueue:
                              sorted(done, key=lambda f: self._running[f][0])]
                 for then, fut in ended:
                     then(fut.result())
+                # the tasks' arguments sent and results received are let go by now: a
+                # process that keeps what it frees (armfit.workers.tune_allocator) gives
+                # it back (`armfit run` of 4,050 trials: its main process peaked at
+                # 237-246 MB in the diagnosis, against 255 MB without)
+                release_memory()
         except BaseException:
             with self._lock:
                 for fut in self._running:
