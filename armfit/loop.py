@@ -495,7 +495,8 @@ def wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
     """K_max (N/m) and the frequency of the first instability for each plant.
 
     Stacked by shape: the closed-loop matrices of a group are built and tested together
-    (batched matrix exponentials and eigenvalues). See the module docstring.
+    (batched matrix exponentials and eigenvalues), at most :data:`WALL_BATCH` plants at a
+    time. See the module docstring.
     """
     T = settings.sample_time_s
     worst = max((loop_delay_samples(p, settings) for p in plants), default=0)
