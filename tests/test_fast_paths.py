@@ -620,7 +620,7 @@ def test_arrows_freed_buffers_are_returned_once_enough_columns_were_read(
             released.append(len(read) + 1)   # the trial being read
 
     monkeypatch.setattr(pa, "default_memory_pool", Pool)
-    monkeypatch.setattr(io_trials, "_read_since_release", [0])
+    monkeypatch.setattr(io_trials, "_read_since_release", 0)
     cols = make_columns("x", fs=1000.0, duration_s=100.0, seed=4, grip=False)
     for a in "xyz":   # the random walk kept well inside the workspace
         cols[f"pos_{a}_m"] = cols[f"pos_{a}_m"] / 10

@@ -1361,7 +1361,7 @@ def _open_dataset(path: str, stamp: tuple[int, int, int]):
 #: buffers to the system (:func:`_release_arrow_memory`): about ten trials of 60 s at
 #: 1 kHz (seven columns).
 RELEASE_ARROW_BYTES = 32 << 20
-_read_since_release = [0]
+_read_since_release = 0
 _release_lock = threading.Lock()
 
 
@@ -1375,11 +1375,12 @@ def _release_arrow_memory(nbytes: int) -> None:
     against 0.52 s). Kept throughout, they stay bounded by the sizes of buffer met (the
     same 176 MB after 81 and 810 trials), and returned every 16 trials, the process
     held no more (170 MB) and read as fast."""
+    global _read_since_release
     with _release_lock:
-        _read_since_release[0] += nbytes
-        if _read_since_release[0] < RELEASE_ARROW_BYTES:
+        _read_since_release += nbytes
+        if _read_since_release < RELEASE_ARROW_BYTES:
             return
-        _read_since_release[0] = 0
+        _read_since_release = 0
     import pyarrow as pa
     pa.default_memory_pool().release_unused()
 
