@@ -187,7 +187,8 @@ def stop_estimate(study: Path, folder: Path, moment: str, sig: int,
                   rng: random.Random) -> None:
     """Start ``armfit estimate -j 2`` on ``study``, send ``sig`` at ``moment`` and check
     the end: the stop line and code within STOP_LIMIT_S, no output, no temporary, no
-    child process left.
+    child process left, nothing left in its temporary folder (TMPDIR: the pools' own
+    folder included).
 
     Moments: "start" (importing, listing and reading the folder: 0-0.5 s after armfit's
     signal handlers are in place), "pool" (the fork server has just appeared), "mid"
@@ -196,9 +197,11 @@ def stop_estimate(study: Path, folder: Path, moment: str, sig: int,
     the process (a job scheduler)."""
     folder.mkdir(parents=True, exist_ok=True)
     out = folder / "s.parquet"
+    tmpdir = folder / "tmpdir"
+    tmpdir.mkdir()
     proc = subprocess.Popen([ARMFIT, "estimate", str(study), "-o", str(out), *BIG_ARGS],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True, env={**os.environ, "TMPDIR": str(tmpdir)})
     kids: set[int] = set()
 
     def seen(count) -> bool:
@@ -236,6 +239,7 @@ def stop_estimate(study: Path, folder: Path, moment: str, sig: int,
         assert wait_for(lambda: not any(running(k) for k in kids), timeout=5, step=0.02), \
             f"{moment}: child processes survive: {[k for k in kids if running(k)]}"
         assert not out.exists() and temps(folder) == []
+        assert list(tmpdir.iterdir()) == [], moment
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -494,6 +498,20 @@ def test_a_worker_that_died_while_sending_its_result_fails_its_task(tmp_path):
     res = subprocess.run([sys.executable, "-c", STUCK_POOL, str(tmp_path)],
                          capture_output=True, text=True, timeout=120)
     assert res.stdout == "BrokenProcessPool BrokenProcessPool shut down\n", res.stderr
+
+
+def test_a_parallel_run_leaves_nothing_in_the_temporary_folder(study, tmp_path):
+    """`run --jobs 2` (a worker pool, the fork server and its socket, the trials'
+    responses kept in a temporary file) ends with its temporary folder (TMPDIR) as it
+    found it: empty."""
+    tmpdir = tmp_path / "tmpdir"
+    tmpdir.mkdir()
+    res = subprocess.run([ARMFIT, "-q", "run", str(study), "-o", str(tmp_path / "out"),
+                          "--jobs", "2", "--no-figures"], capture_output=True, text=True,
+                         env={**os.environ, "TMPDIR": str(tmpdir)}, timeout=300)
+    assert res.returncode == EXIT_OK, res.stderr
+    assert (tmp_path / "out" / "report.md").is_file()
+    assert list(tmpdir.iterdir()) == []
 
 
 @needs_proc

@@ -114,6 +114,24 @@ def _remove_temporaries() -> None:
         pass
 
 
+def _remove_pool_folder() -> None:
+    """Remove the temporary folder ``multiprocessing`` made for this process
+    (``pymp-*`` in :func:`tempfile.gettempdir`, which holds the fork server's socket):
+    its own exit handler, which removes it, does not run when the process ends by
+    ``os._exit``. The fork server keeps the socket it listens on open; no process
+    connects to it any more."""
+    process = sys.modules.get("multiprocessing.process")
+    if process is None:
+        return      # no pool was started
+    try:
+        folder = process.current_process()._config.get("tempdir")
+        if folder:
+            import shutil
+            shutil.rmtree(folder, ignore_errors=True)
+    except Exception:  # pragma: no cover - interpreter state unknown
+        pass
+
+
 def _end_at_once() -> None:
     """End a stopping process now: kill the workers left (without waiting), remove the
     temporaries of its outputs, say the one line if not said yet, and exit with the
@@ -131,6 +149,7 @@ def _end_at_once() -> None:
             except Exception:  # pragma: no cover - already gone
                 pass
     _remove_temporaries()
+    _remove_pool_folder()
     try:
         _say_stop(_stop_code)
     except BaseException:  # pragma: no cover - the stream is gone
@@ -264,7 +283,8 @@ def _exit_now(exc: SystemExit) -> None:
     (:func:`multiprocessing.active_children`), except after a signal (they were killed,
     and the pools' threads may wait forever for them); the fork server and the resource
     tracker end by themselves when this process and its workers have (the tracker
-    removes the semaphores of the pools' queues then)."""
+    removes the semaphores of the pools' queues then); the temporary folder of the pools
+    is removed here (:func:`_remove_pool_folder`)."""
     import os
     global _finishing
     if _stopping and not exc.code:
@@ -294,6 +314,7 @@ def _exit_now(exc: SystemExit) -> None:
     if mp is not None and not _stopping:
         for child in mp.active_children():
             child.join()
+    _remove_pool_folder()
     os._exit(status)
 
 
