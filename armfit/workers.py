@@ -85,7 +85,8 @@ if TYPE_CHECKING:   # the pool's modules are imported with the first pool (armfi
 __all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "RUN_FIGURES_PRELOAD", "cancel_pools",
            "child_environment", "executor_for", "giving_way", "ignore_sigint", "iter_tasks",
            "map_tasks",
-           "preload_own_only", "read_ahead", "process_pool", "start_fork_server",
+           "prepare_pool_folder", "preload_own_only", "read_ahead", "process_pool",
+           "start_fork_server",
            "fork_server_running",
            "start_method", "stop_workers", "worker_start", "tune_allocator",
            "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
@@ -341,6 +342,54 @@ def giving_way(executor: Executor | None) -> Executor | None:
     return pools.GivingWay(executor)
 
 
+#: The longest path a Unix socket may have (its address less the final NUL byte).
+SOCKET_PATH_MAX = 107 if sys.platform.startswith("linux") else 103
+#: What multiprocessing adds to the path of its temporary folder's parent for the fork
+#: server's socket: ``/pymp-XXXXXXXX/listener-XXXXXXXX``.
+_SOCKET_SUFFIX = 33
+#: Short folders for the pools' temporary folder when that of TMPDIR is too long.
+SHORT_TEMP_FOLDERS = ("/tmp", "/var/tmp", "/usr/tmp")
+
+
+def prepare_pool_folder() -> str | None:
+    """Make this process's ``multiprocessing`` temporary folder (``pymp-*``, where the fork
+    server's socket lies) in a short folder when the path of TMPDIR's is too long for a
+    Unix socket.
+
+    The socket's path is the folder's plus 33 characters, and a socket's path may not
+    exceed :data:`SOCKET_PATH_MAX` bytes: with a longer TMPDIR (a deep scratch folder on
+    a cluster), the first pool failed with ``AF_UNIX path too long``. The folder is then
+    made in the first writable of :data:`SHORT_TEMP_FOLDERS` instead (only the socket
+    lies there), and removed when the process ends. Nothing is done when the folder
+    exists already or TMPDIR's path is short enough.
+
+    Returns
+    -------
+    str or None
+        The folder made, or None.
+    """
+    import shutil
+    import tempfile
+    from multiprocessing import process, util
+    config = process.current_process()._config
+    if config.get("tempdir") is not None:
+        return None
+    if len(os.fsencode(tempfile.gettempdir())) + _SOCKET_SUFFIX <= SOCKET_PATH_MAX:
+        return None
+    for short in SHORT_TEMP_FOLDERS:
+        if len(short) + _SOCKET_SUFFIX <= SOCKET_PATH_MAX and os.path.isdir(short) \
+                and os.access(short, os.W_OK | os.X_OK):
+            try:
+                folder = tempfile.mkdtemp(prefix="pymp-", dir=short)
+            except OSError:
+                continue
+            util.Finalize(None, shutil.rmtree, args=(folder,),
+                          kwargs={"ignore_errors": True}, exitpriority=-100)
+            config["tempdir"] = folder
+            return folder
+    return None
+
+
 def _set_preload(ctx, preload: Sequence[str]) -> None:
     """What the fork server imports when it starts: ``preload`` after
     :func:`preload_own_only`, else :data:`PRELOAD` and ``preload``; then
@@ -371,6 +420,7 @@ def start_fork_server(preload: Sequence[str] = ()) -> None:
         return
     from multiprocessing import get_context
     _set_preload(get_context("forkserver"), preload)
+    prepare_pool_folder()
     starter = threading.Thread(target=_start_server, name="armfit-fork-server", daemon=True)
     starter.start()
     starter.join()
@@ -435,6 +485,7 @@ def process_pool(jobs: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
     ctx = get_context(start_method())
     if ctx.get_start_method() == "forkserver":
         _set_preload(ctx, preload)
+        prepare_pool_folder()
     hooks = Hooks(initializer=worker_start, initargs=(_lifeline(),), ready=_ready,
                   starting=_STARTING, stopped=lambda: _FINAL, environment=child_environment,
                   forget=_forget, started=_server_started)

@@ -514,6 +514,24 @@ def test_a_parallel_run_leaves_nothing_in_the_temporary_folder(study, tmp_path):
     assert list(tmpdir.iterdir()) == []
 
 
+def test_a_parallel_run_works_with_a_temporary_folder_too_long_for_a_socket(study, tmp_path):
+    """A TMPDIR whose path, with the 33 characters multiprocessing adds for the fork
+    server's socket, is longer than a Unix socket's path may be (armfit.workers
+    .SOCKET_PATH_MAX): `run --jobs 2` works (the pools' folder goes to a short system
+    folder) and leaves TMPDIR empty, instead of failing with 'AF_UNIX path too long'."""
+    from armfit.workers import SOCKET_PATH_MAX
+    tmpdir = tmp_path / "t"
+    while len(os.fsencode(tmpdir)) + 33 <= SOCKET_PATH_MAX:
+        tmpdir = tmpdir / ("d" * 20)
+    tmpdir.mkdir(parents=True)
+    res = subprocess.run([ARMFIT, "-q", "run", str(study), "-o", str(tmp_path / "out"),
+                          "--jobs", "2", "--no-figures"], capture_output=True, text=True,
+                         env={**os.environ, "TMPDIR": str(tmpdir)}, timeout=300)
+    assert (res.returncode, res.stderr) == (EXIT_OK, "")
+    assert (tmp_path / "out" / "report.md").is_file()
+    assert list(tmpdir.iterdir()) == []
+
+
 @needs_proc
 def test_workers_end_when_the_main_process_is_killed(study, tmp_path):
     """`kill -9` of the main process of `run --jobs 2` alone: its workers see their

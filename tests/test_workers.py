@@ -422,6 +422,43 @@ def test_a_fork_server_started_early_serves_the_first_pool(tmp_path):
     assert _script_json(tmp_path, _EARLY_SERVER) == [True, ["armfit.spectra"]]
 
 
+_SHORT_FOLDER = """
+if __name__ == "__main__":
+    import os, tempfile
+    from multiprocessing import process
+    first = workers.prepare_pool_folder()
+    again = workers.prepare_pool_folder()           # made once
+    print(json.dumps([first, again, process.current_process()._config.get("tempdir"),
+                      len(os.fsencode(tempfile.gettempdir()))]))
+"""
+
+
+@pytest.mark.parametrize("depth", [0, 6])
+def test_the_pools_folder_is_made_short_enough_for_the_servers_socket(depth, tmp_path):
+    # with TMPDIR short enough, multiprocessing makes its folder there itself; with one
+    # too long for a socket's path (+33 characters), armfit makes it in a short system
+    # folder, once
+    import os
+    import subprocess
+    tmpdir = tmp_path.joinpath(*["d" * 20] * depth)
+    tmpdir.mkdir(parents=True, exist_ok=True)
+    script = tmp_path / "script.py"
+    script.write_text(_SCRIPT_HEAD + _SHORT_FOLDER)
+    res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         env={**os.environ, "TMPDIR": str(tmpdir)}, timeout=60, check=True)
+    import json
+    first, again, folder, base = json.loads(res.stdout)
+    assert again is None
+    if base + 33 <= workers.SOCKET_PATH_MAX:
+        assert first is None and folder is None
+    else:
+        assert first == folder
+        assert Path(folder).parent.as_posix() in workers.SHORT_TEMP_FOLDERS
+        assert len(os.fsencode(folder)) + 18 <= workers.SOCKET_PATH_MAX   # /listener-XXXXXXXX
+        assert not Path(folder).exists()                  # removed as the process ended
+    assert depth == 0 or base + 33 > workers.SOCKET_PATH_MAX
+
+
 def test_two_threads_shutting_a_pool_down_together_take_turns(monkeypatch):
     """The thread that made a pool and cancel_pools (a failing run stopping a background
     stage) may shut the pool down at once; ProcessPoolExecutor.shutdown run twice at the
