@@ -349,6 +349,7 @@ SOCKET_PATH_MAX = 107 if sys.platform.startswith("linux") else 103
 _SOCKET_SUFFIX = 33
 #: Short folders for the pools' temporary folder when that of TMPDIR is too long.
 SHORT_TEMP_FOLDERS = ("/tmp", "/var/tmp", "/usr/tmp")
+_POOL_FOLDER_LOCK = threading.Lock()
 
 
 def prepare_pool_folder() -> str | None:
@@ -368,14 +369,26 @@ def prepare_pool_folder() -> str | None:
     str or None
         The folder made, or None.
     """
+    import tempfile
+    from multiprocessing import process
+    config = process.current_process()._config
+    with _POOL_FOLDER_LOCK:     # two threads starting pools make one folder
+        if config.get("tempdir") is not None or \
+                len(os.fsencode(tempfile.gettempdir())) + _SOCKET_SUFFIX <= SOCKET_PATH_MAX:
+            return None
+        folder = _short_pool_folder()
+        if folder is not None:
+            config["tempdir"] = folder
+        return folder
+
+
+def _short_pool_folder() -> str | None:
+    """A new ``pymp-*`` folder in the first writable of :data:`SHORT_TEMP_FOLDERS`,
+    removed when the process ends (as :mod:`multiprocessing` removes its own); None when
+    none can take it."""
     import shutil
     import tempfile
-    from multiprocessing import process, util
-    config = process.current_process()._config
-    if config.get("tempdir") is not None:
-        return None
-    if len(os.fsencode(tempfile.gettempdir())) + _SOCKET_SUFFIX <= SOCKET_PATH_MAX:
-        return None
+    from multiprocessing import util
     for short in SHORT_TEMP_FOLDERS:
         if len(short) + _SOCKET_SUFFIX <= SOCKET_PATH_MAX and os.path.isdir(short) \
                 and os.access(short, os.W_OK | os.X_OK):
@@ -385,7 +398,6 @@ def prepare_pool_folder() -> str | None:
                 continue
             util.Finalize(None, shutil.rmtree, args=(folder,),
                           kwargs={"ignore_errors": True}, exitpriority=-100)
-            config["tempdir"] = folder
             return folder
     return None
 
