@@ -40,6 +40,7 @@ import os
 import re
 import shlex
 import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -264,6 +265,11 @@ def test_doc_examples(doc: Path, doc_runner: Runner, tmp_path: Path, monkeypatch
         if (ROOT / name).is_dir():
             (tmp_path / name).symlink_to(ROOT / name, target_is_directory=True)
     namespace: dict = {"__name__": "__docs__"}
+    # an example's tempfile.mkdtemp() folder is made in this test's own folder, removed
+    # with it (not left in the system's temporary folder at every run of the suite)
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     ran = 0
     for block in blocks_of(doc):
         if "skip" in block.tags or ("slow" in block.tags and not RUN_SLOW):
