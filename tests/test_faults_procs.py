@@ -15,13 +15,16 @@ same command's output when nothing went wrong.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import random
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import textwrap
 import time
 from pathlib import Path
@@ -197,8 +200,12 @@ def stop_estimate(study: Path, folder: Path, moment: str, sig: int,
     the process (a job scheduler)."""
     folder.mkdir(parents=True, exist_ok=True)
     out = folder / "s.parquet"
-    tmpdir = folder / "tmpdir"
-    tmpdir.mkdir()
+    with short_tmpdir() as tmpdir:
+        _stop_estimate(study, folder, out, tmpdir, moment, sig, rng)
+
+
+def _stop_estimate(study: Path, folder: Path, out: Path, tmpdir: Path, moment: str,
+                   sig: int, rng: random.Random) -> None:
     proc = subprocess.Popen([ARMFIT, "estimate", str(study), "-o", str(out), *BIG_ARGS],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             start_new_session=True, env={**os.environ, "TMPDIR": str(tmpdir)})
@@ -280,14 +287,17 @@ def handlers_installed(pid: int) -> bool:
 
 
 @needs_proc
-def test_a_signal_while_the_modules_are_imported(study, tmp_path):
+def test_a_signal_while_the_modules_are_imported(big_study, tmp_path):
     """From the moment armfit's handlers are in place, through the imports of the
     command modules (the handler runs in the middle of an import then) to the start of
-    the work: each signal gives its one line and code, nothing else."""
+    the work: each signal gives its one line and code, nothing else. (The study of
+    2,000 trials takes seconds to estimate: the last signal, 0.4 s on, still finds the
+    command at work on a fast machine; a small study could be done by then.)"""
     for i, delay in enumerate([0, 0.005, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.25, 0.4]):
         sig = (signal.SIGINT, signal.SIGTERM)[i % 2]
         out = tmp_path / f"s{i}.parquet"
-        proc = subprocess.Popen([ARMFIT, "estimate", str(study), "-o", str(out), "-j", "2"],
+        proc = subprocess.Popen([ARMFIT, "estimate", str(big_study), "-o", str(out),
+                                 *BIG_ARGS],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
             assert wait_for(functools.partial(handlers_installed, proc.pid), timeout=30,
@@ -500,18 +510,32 @@ def test_a_worker_that_died_while_sending_its_result_fails_its_task(tmp_path):
     assert res.stdout == "BrokenProcessPool BrokenProcessPool shut down\n", res.stderr
 
 
+@contextlib.contextmanager
+def short_tmpdir():
+    """A new, empty folder in the system's temporary folder, short enough that the pools'
+    own folder (and the fork server's socket) is made in it (armfit.workers
+    .SOCKET_PATH_MAX), removed afterwards."""
+    from armfit.workers import SOCKET_PATH_MAX
+    folder = Path(tempfile.mkdtemp(prefix="armfit-t-"))
+    try:
+        assert len(os.fsencode(folder)) + 33 <= SOCKET_PATH_MAX, folder
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def test_a_parallel_run_leaves_nothing_in_the_temporary_folder(study, tmp_path):
     """`run --jobs 2` (a worker pool, the fork server and its socket, the trials'
     responses kept in a temporary file) ends with its temporary folder (TMPDIR) as it
     found it: empty."""
-    tmpdir = tmp_path / "tmpdir"
-    tmpdir.mkdir()
-    res = subprocess.run([ARMFIT, "-q", "run", str(study), "-o", str(tmp_path / "out"),
-                          "--jobs", "2", "--no-figures"], capture_output=True, text=True,
-                         env={**os.environ, "TMPDIR": str(tmpdir)}, timeout=300)
-    assert res.returncode == EXIT_OK, res.stderr
-    assert (tmp_path / "out" / "report.md").is_file()
-    assert list(tmpdir.iterdir()) == []
+    with short_tmpdir() as tmpdir:
+        res = subprocess.run([ARMFIT, "-q", "run", str(study), "-o", str(tmp_path / "out"),
+                              "--jobs", "2", "--no-figures"], capture_output=True,
+                             text=True, env={**os.environ, "TMPDIR": str(tmpdir)},
+                             timeout=300)
+        assert res.returncode == EXIT_OK, res.stderr
+        assert (tmp_path / "out" / "report.md").is_file()
+        assert list(tmpdir.iterdir()) == []
 
 
 def test_a_parallel_run_works_with_a_temporary_folder_too_long_for_a_socket(study, tmp_path):
