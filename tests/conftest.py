@@ -249,14 +249,3 @@ def nominal(fault_root) -> Path:
 def grip(fault_root) -> Path:
     """The fault study's grip fits (``armfit fit-grip``)."""
     return fault_root / "grip.csv"
-
-
-def pytest_sessionfinish(session, exitstatus):
-    """The temporary folder of the worker pools this process started (``pymp-*``, the
-    fork server's socket): pytest-xdist's worker processes end without Python's exit
-    handlers, which would remove it, as the command line's do (armfit.cli.entry)."""
-    process = sys.modules.get("multiprocessing.process")
-    folder = process.current_process()._config.get("tempdir") if process else None
-    if folder:
-        import shutil
-        shutil.rmtree(folder, ignore_errors=True)

@@ -505,9 +505,18 @@ STUCK_POOL = textwrap.dedent("""
 
 def test_a_worker_that_died_while_sending_its_result_fails_its_task(tmp_path):
     (tmp_path / "partial_result.py").write_text(PARTIAL_RESULT)
-    res = subprocess.run([sys.executable, "-c", STUCK_POOL, str(tmp_path)],
-                         capture_output=True, text=True, timeout=120)
+    with short_tmpdir() as tmpdir:   # what the script, ended outright, leaves there
+        res = subprocess.run([sys.executable, "-c", STUCK_POOL, str(tmp_path)],
+                             capture_output=True, text=True, timeout=120,
+                             env={**os.environ, "TMPDIR": str(tmpdir)})
     assert res.stdout == "BrokenProcessPool BrokenProcessPool shut down\n", res.stderr
+
+
+@pytest.fixture
+def stack():
+    """A contextlib.ExitStack closed after the test."""
+    with contextlib.ExitStack() as s:
+        yield s
 
 
 @contextlib.contextmanager
@@ -557,12 +566,14 @@ def test_a_parallel_run_works_with_a_temporary_folder_too_long_for_a_socket(stud
 
 
 @needs_proc
-def test_workers_end_when_the_main_process_is_killed(study, tmp_path):
+def test_workers_end_when_the_main_process_is_killed(study, tmp_path, stack):
     """`kill -9` of the main process of `run --jobs 2` alone: its workers see their
     lifeline close and end, then the fork server and the resource tracker."""
+    tmpdir = stack.enter_context(short_tmpdir())   # what the killed process leaves there
     proc = subprocess.Popen([ARMFIT, "run", str(study), "-o", str(tmp_path / "out"),
                              "--jobs", "2"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+                            stderr=subprocess.DEVNULL, start_new_session=True,
+                            env={**os.environ, "TMPDIR": str(tmpdir)})
     kids: set[int] = set()
 
     def workers_up() -> bool:
