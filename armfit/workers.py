@@ -86,7 +86,7 @@ __all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "RUN_FIGURES_PRELOAD"
            "child_environment", "executor_for", "giving_way", "ignore_sigint", "iter_tasks",
            "map_tasks",
            "prepare_pool_folder", "preload_own_only", "read_ahead", "process_pool",
-           "start_fork_server",
+           "remove_pool_folder", "start_fork_server",
            "fork_server_running",
            "start_method", "stop_workers", "worker_start", "tune_allocator",
            "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
@@ -380,6 +380,19 @@ def prepare_pool_folder() -> str | None:
         if folder is not None:
             config["tempdir"] = folder
         return folder
+
+
+def remove_pool_folder() -> None:
+    """Remove this process's ``multiprocessing`` temporary folder (``pymp-*``, made in
+    TMPDIR or by :func:`prepare_pool_folder`), if one was made. Its own exit handler
+    removes it too, but not in a process that ends by ``os._exit`` (the command line).
+    The fork server keeps the socket it listens on open; no process connects to it any
+    more."""
+    process = sys.modules.get("multiprocessing.process")
+    folder = process.current_process()._config.get("tempdir") if process else None
+    if folder:
+        import shutil
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _short_pool_folder() -> str | None:

@@ -533,30 +533,27 @@ def short_tmpdir():
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def test_a_parallel_run_leaves_nothing_in_the_temporary_folder(study, tmp_path):
-    """`run --jobs 2` (a worker pool, the fork server and its socket, the trials'
-    responses kept in a temporary file) ends with its temporary folder (TMPDIR) as it
-    found it: empty."""
-    with short_tmpdir() as tmpdir:
-        res = subprocess.run([ARMFIT, "-q", "run", str(study), "-o", str(tmp_path / "out"),
-                              "--jobs", "2", "--no-figures"], capture_output=True,
-                             text=True, env={**os.environ, "TMPDIR": str(tmpdir)},
-                             timeout=300)
-        assert res.returncode == EXIT_OK, res.stderr
-        assert (tmp_path / "out" / "report.md").is_file()
-        assert list(tmpdir.iterdir()) == []
-
-
-def test_a_parallel_run_works_with_a_temporary_folder_too_long_for_a_socket(study, tmp_path):
-    """A TMPDIR whose path, with the 33 characters multiprocessing adds for the fork
-    server's socket, is longer than a Unix socket's path may be (armfit.workers
-    .SOCKET_PATH_MAX): `run --jobs 2` works (the pools' folder goes to a short system
-    folder) and leaves TMPDIR empty, instead of failing with 'AF_UNIX path too long'."""
+def _too_long_tmpdir(root: Path) -> Path:
+    """A new folder under ``root`` whose path, with the 33 characters multiprocessing
+    adds for the fork server's socket, is longer than a Unix socket's path may be
+    (armfit.workers.SOCKET_PATH_MAX)."""
     from armfit.workers import SOCKET_PATH_MAX
-    tmpdir = tmp_path / "t"
-    while len(os.fsencode(tmpdir)) + 33 <= SOCKET_PATH_MAX:
-        tmpdir = tmpdir / ("d" * 20)
-    tmpdir.mkdir(parents=True)
+    folder = root / "t"
+    while len(os.fsencode(folder)) + 33 <= SOCKET_PATH_MAX:
+        folder = folder / ("d" * 20)
+    folder.mkdir(parents=True)
+    return folder
+
+
+@pytest.mark.parametrize("length", ["short", "too long for a socket"])
+def test_a_parallel_run_leaves_its_temporary_folder_as_it_found_it(length, study, tmp_path,
+                                                                   stack):
+    """`run --jobs 2` (a worker pool, the fork server and its socket, the trials'
+    responses kept in a temporary file) ends with its temporary folder (TMPDIR) empty.
+    With a TMPDIR too long for the socket's path it works too (the pools' folder goes to
+    a short system folder), instead of failing with 'AF_UNIX path too long'."""
+    tmpdir = stack.enter_context(short_tmpdir()) if length == "short" \
+        else _too_long_tmpdir(tmp_path)
     res = subprocess.run([ARMFIT, "-q", "run", str(study), "-o", str(tmp_path / "out"),
                           "--jobs", "2", "--no-figures"], capture_output=True, text=True,
                          env={**os.environ, "TMPDIR": str(tmpdir)}, timeout=300)

@@ -115,19 +115,13 @@ def _remove_temporaries() -> None:
 
 
 def _remove_pool_folder() -> None:
-    """Remove the temporary folder ``multiprocessing`` made for this process
-    (``pymp-*`` in :func:`tempfile.gettempdir`, which holds the fork server's socket):
-    its own exit handler, which removes it, does not run when the process ends by
-    ``os._exit``. The fork server keeps the socket it listens on open; no process
-    connects to it any more."""
-    process = sys.modules.get("multiprocessing.process")
-    if process is None:
+    """Remove the pools' temporary folder (:func:`armfit.workers.remove_pool_folder`):
+    its own exit handler does not run when the process ends by ``os._exit``."""
+    remove = _loaded("armfit.workers", "remove_pool_folder")
+    if remove is None:
         return      # no pool was started
     try:
-        folder = process.current_process()._config.get("tempdir")
-        if folder:
-            import shutil
-            shutil.rmtree(folder, ignore_errors=True)
+        remove()
     except Exception:  # pragma: no cover - interpreter state unknown
         pass
 
