@@ -6,18 +6,14 @@ quarter (they import :mod:`scipy.linalg`, :mod:`scipy.sparse` and the array-API 
 the modules that use these functions are imported by commands that may never call them
 (``diagnose`` takes no interval of a single-trial fit, ``--help`` calls nothing), so
 each is imported here when first called. The functions are scipy's, unchanged. (The
-arm fits' solver is :mod:`armfit._trf`, which needs no scipy.)
+fits' least-squares solver is :mod:`armfit._trf`, which needs no scipy, and the Wu
+fits' SLSQP calls scipy's compiled kernel without :mod:`scipy.optimize`:
+:mod:`armfit._slsqp`, whose fallback :func:`minimize` is.)
 """
 
 from __future__ import annotations
 
-__all__ = ["least_squares", "minimize", "stdtrit"]
-
-
-def least_squares(*args, **kwargs):
-    """:func:`scipy.optimize.least_squares`."""
-    from scipy.optimize import least_squares as fn
-    return fn(*args, **kwargs)
+__all__ = ["minimize", "stdtrit"]
 
 
 def minimize(*args, **kwargs):

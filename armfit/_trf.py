@@ -1,18 +1,18 @@
-"""One bounded least-squares fit by the trust-region-reflective method, as scipy makes it.
+"""One least-squares fit by the trust-region-reflective method, as scipy makes it.
 
 :func:`bounded_least_squares` is :func:`scipy.optimize.least_squares` with
-``method="trf"``, ``x_scale=1.0``, the linear loss and the exact trust-region solver,
-for a problem with at least one finite bound: the same operations in the same order
-(scipy 1.17's ``scipy/optimize/_lsq/trf.py`` and ``common.py``), on arrays in the same
-memory order, so the same iterates to the bit wherever :func:`numpy.linalg.svd` and
-:func:`scipy.linalg.svd` agree (both are LAPACK's ``gesdd``; ``tests/test_trf.py``
-compares whole results with scipy's).
+``method="trf"``, a fixed ``x_scale`` or ``"jac"``, the linear loss and the exact
+trust-region solver: the same operations in the same order (scipy 1.17's
+``scipy/optimize/_lsq/trf.py`` and ``common.py``; its variant for a box with no finite
+bound too), on arrays in the same memory order, so the same iterates to the bit
+wherever :func:`numpy.linalg.svd` and :func:`scipy.linalg.svd` agree (both are LAPACK's
+``gesdd``; ``tests/test_trf.py`` and ``tests/test_slsqp.py`` compare whole results with
+scipy's).
 
 It exists for start-up time. Importing :mod:`scipy.optimize` costs about half a second
 (it imports :mod:`scipy.linalg`, :mod:`scipy.sparse` and formats the docstrings of its
 array-API functions), more than a ``fit-grip`` or ``fit-nominal`` of one spectra file
-spends fitting; its trust-region-reflective solver is a few hundred lines of numpy. A
-problem with no finite bound goes to scipy itself (its unbounded variant differs).
+spends fitting; its trust-region-reflective solver is a few hundred lines of numpy.
 
 The code below follows scipy's, distributed under the BSD 3-clause licence (the
 comment below).
@@ -115,9 +115,10 @@ class TrfResult:
 def bounded_least_squares(fun: Callable[[np.ndarray], np.ndarray],
                   x0: np.ndarray, jac: Callable[[np.ndarray], np.ndarray],
                   bounds: tuple[np.ndarray, np.ndarray], *, max_nfev: int | None = None,
-                  ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8):
+                  ftol: float = 1e-8, xtol: float = 1e-8, gtol: float = 1e-8,
+                  x_scale: float | str = 1.0):
     """Minimise ½‖fun(x)‖² over the box ``bounds``: :func:`scipy.optimize.least_squares`
-    (``method="trf"``, ``x_scale=1.0``) without importing :mod:`scipy.optimize`.
+    (``method="trf"``) without importing :mod:`scipy.optimize`.
 
     Parameters
     ----------
@@ -133,11 +134,13 @@ def bounded_least_squares(fun: Callable[[np.ndarray], np.ndarray],
         Budget of residual evaluations (default 100·n).
     ftol, xtol, gtol : float
         Termination tolerances, as scipy's (at least one above machine epsilon).
+    x_scale : float or "jac"
+        The variables' scale, as scipy's: one positive number for all, or ``"jac"``,
+        the inverse norms of the Jacobian's columns, never shrinking over the iterations.
 
     Returns
     -------
     TrfResult
-        Or scipy's ``OptimizeResult`` when no bound is finite (scipy solves those).
 
     Raises
     ------
@@ -151,11 +154,6 @@ def bounded_least_squares(fun: Callable[[np.ndarray], np.ndarray],
     lb, ub = (np.asarray(b, dtype=float) for b in bounds)
     lb = np.resize(lb, x0.shape[0]) if lb.ndim == 0 else lb
     ub = np.resize(ub, x0.shape[0]) if ub.ndim == 0 else ub
-    if np.all(lb == -np.inf) and np.all(ub == np.inf):
-        from armfit import _scipy
-        return _scipy.least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf",
-                                    x_scale=1.0, max_nfev=max_nfev, ftol=ftol, xtol=xtol,
-                                    gtol=gtol)
     if max_nfev is not None and max_nfev <= 0:
         raise ValueError("`max_nfev` must be None or positive integer.")
     if lb.shape != x0.shape or ub.shape != x0.shape:
@@ -186,8 +184,103 @@ def bounded_least_squares(fun: Callable[[np.ndarray], np.ndarray],
     if J0.shape != (f0.size, x0.size):
         raise ValueError("The return value of `jac` has wrong shape: expected "
                          f"{(f0.size, x0.size)}, actual {J0.shape}.")
-    x_scale = np.resize(np.asarray(1.0), x0.shape)
+    if not (isinstance(x_scale, str) and x_scale == "jac"):
+        x_scale = np.asarray(x_scale, dtype=float)
+        if not (np.all(np.isfinite(x_scale)) and np.all(x_scale > 0)):
+            raise ValueError("`x_scale` must be 'jac' or array_like with positive numbers.")
+        if x_scale.ndim == 0:
+            x_scale = np.resize(x_scale, x0.shape)
+        if x_scale.shape != x0.shape:
+            raise ValueError("Inconsistent shapes between `x_scale` and `x0`.")
+    if np.all(lb == -np.inf) and np.all(ub == np.inf):
+        return _trf_no_bounds(f_of, j_of, x0, f0, J0, ftol, xtol, gtol, max_nfev, x_scale)
     return _trf_bounds(f_of, j_of, x0, f0, J0, lb, ub, ftol, xtol, gtol, max_nfev, x_scale)
+
+
+def _svd(A):
+    """``scipy.linalg.svd(A, full_matrices=False)`` as (U, s, V) with V = (Vᵀ)ᵀ: LAPACK's
+    ``gesdd`` through numpy, U and Vᵀ in Fortran order as scipy returns them, so that the
+    products with them take BLAS's same path (and rounding) as scipy's."""
+    U, s, V = np.linalg.svd(A, full_matrices=False)
+    U, V = np.asfortranarray(U), np.asfortranarray(V)
+    return U, s, V.T
+
+
+def _trf_no_bounds(fun, jac, x0, f0, J0, ftol, xtol, gtol, max_nfev, x_scale):
+    """scipy's ``trf_no_bounds`` (linear loss, exact solver, no callback)."""
+    x = x0.copy()
+    f = f0
+    f_true = f.copy()
+    nfev = 1
+    J = J0
+    njev = 1
+    m, n = J.shape
+    cost = 0.5 * np.dot(f, f)
+    g = J.T.dot(f)
+    jac_scale = isinstance(x_scale, str) and x_scale == "jac"
+    if jac_scale:
+        scale, scale_inv = _jac_scale(J)
+    else:
+        scale, scale_inv = x_scale, 1 / x_scale
+    Delta = norm(x0 * scale_inv)
+    if Delta == 0:
+        Delta = 1.0
+    if max_nfev is None:
+        max_nfev = x0.size * 100
+    alpha = 0.0
+    termination_status = None
+    while True:
+        g_norm = norm(g, ord=np.inf)
+        if g_norm < gtol:
+            termination_status = 1
+        if termination_status is not None or nfev == max_nfev:
+            break
+        d = scale
+        g_h = d * g
+        J_h = J * d
+        U, s, V = _svd(J_h)
+        uf = U.T.dot(f)
+        actual_reduction = -1
+        while actual_reduction <= 0 and nfev < max_nfev:
+            step_h, alpha = _solve_lsq_trust_region(n, m, uf, s, V, Delta,
+                                                    initial_alpha=alpha)
+            predicted_reduction = -_evaluate_quadratic(J_h, g_h, step_h)
+            step = d * step_h
+            x_new = x + step
+            f_new = fun(x_new)
+            nfev += 1
+            step_h_norm = norm(step_h)
+            if not np.all(np.isfinite(f_new)):
+                Delta = 0.25 * step_h_norm
+                continue
+            cost_new = 0.5 * np.dot(f_new, f_new)
+            actual_reduction = cost - cost_new
+            Delta_new, ratio = _update_tr_radius(
+                Delta, actual_reduction, predicted_reduction, step_h_norm,
+                step_h_norm > 0.95 * Delta)
+            step_norm = norm(step)
+            termination_status = _check_termination(
+                actual_reduction, cost, step_norm, norm(x), ratio, ftol, xtol)
+            if termination_status is not None:
+                break
+            alpha *= Delta / Delta_new
+            Delta = Delta_new
+        if actual_reduction > 0:
+            x = x_new
+            f = f_new
+            f_true = f.copy()
+            cost = cost_new
+            J = jac(x)
+            njev += 1
+            g = J.T.dot(f)
+            if jac_scale:
+                scale, scale_inv = _jac_scale(J, scale_inv)
+    if termination_status is None:
+        termination_status = 0
+    return TrfResult(x=x, cost=cost, fun=f_true, jac=J, grad=g, optimality=g_norm,
+                     active_mask=np.zeros_like(x), nfev=nfev, njev=njev,
+                     status=termination_status, message=MESSAGES[termination_status],
+                     success=termination_status > 0)
 
 
 def _trf_bounds(fun, jac, x0, f0, J0, lb, ub, ftol, xtol, gtol, max_nfev, x_scale):
@@ -201,7 +294,11 @@ def _trf_bounds(fun, jac, x0, f0, J0, lb, ub, ftol, xtol, gtol, max_nfev, x_scal
     m, n = J.shape
     cost = 0.5 * np.dot(f, f)
     g = J.T.dot(f)
-    scale, scale_inv = x_scale, 1 / x_scale
+    jac_scale = isinstance(x_scale, str) and x_scale == "jac"
+    if jac_scale:
+        scale, scale_inv = _jac_scale(J)
+    else:
+        scale, scale_inv = x_scale, 1 / x_scale
     v, dv = _cl_scaling_vector(x, g, lb, ub)
     v[dv != 0] *= scale_inv[dv != 0]
     Delta = norm(x0 * scale_inv / v**0.5)
@@ -229,11 +326,7 @@ def _trf_bounds(fun, jac, x0, f0, J0, lb, ub, ftol, xtol, gtol, max_nfev, x_scal
         J_augmented[:m] = J * d
         J_h = J_augmented[:m]
         J_augmented[m:] = np.diag(diag_h**0.5)
-        U, s, V = np.linalg.svd(J_augmented, full_matrices=False)
-        # scipy.linalg.svd returns U and Vᵀ in Fortran order: the products below then
-        # take BLAS's same path (and rounding) as scipy's
-        U, V = np.asfortranarray(U), np.asfortranarray(V)
-        V = V.T
+        U, s, V = _svd(J_augmented)
         uf = U.T.dot(f_augmented)
         theta = max(0.995, 1 - g_norm)
         actual_reduction = -1
@@ -269,6 +362,8 @@ def _trf_bounds(fun, jac, x0, f0, J0, lb, ub, ftol, xtol, gtol, max_nfev, x_scal
             J = jac(x)
             njev += 1
             g = J.T.dot(f)
+            if jac_scale:
+                scale, scale_inv = _jac_scale(J, scale_inv)
     if termination_status is None:
         termination_status = 0
     active_mask = _find_active_constraints(x, lb, ub, rtol=xtol)
@@ -276,6 +371,17 @@ def _trf_bounds(fun, jac, x0, f0, J0, lb, ub, ftol, xtol, gtol, max_nfev, x_scal
                      active_mask=active_mask, nfev=nfev, njev=njev,
                      status=termination_status, message=MESSAGES[termination_status],
                      success=termination_status > 0)
+
+
+def _jac_scale(J, scale_inv_old=None):
+    """scipy's ``compute_jac_scale``: the variables' scale from the norms of the
+    Jacobian's columns (1 for a zero column at the start; never below the last)."""
+    scale_inv = np.sum(J**2, axis=0)**0.5
+    if scale_inv_old is None:
+        scale_inv[scale_inv == 0] = 1
+    else:
+        scale_inv = np.maximum(scale_inv, scale_inv_old)
+    return 1 / scale_inv, scale_inv
 
 
 def _select_step(x, J_h, diag_h, g_h, p, p_h, d, Delta, lb, ub, theta):

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from armfit import _scipy
+from armfit import _slsqp, _trf
 from armfit._order import median
 from armfit.constants import AXES, axis_band
 from armfit.errors import BadInputError, ConvergenceError, UsageError, cell
@@ -516,15 +516,13 @@ def _envelope_opt(sec: _Sections, tgt: _Target, theta0: np.ndarray, lo, hi
         _, J = value_jac(x)
         return np.column_stack([ones, J])
 
-    bounds = [(None, None)] + list(zip(lo, hi, strict=True))
+    bounds = (np.concatenate([[-np.inf], lo]), np.concatenate([[np.inf], hi]))
     theta = theta0
     ok = False
     for _ in range(3):  # restart from the last iterate when SLSQP stops early
         g0, _ = sec.value_jac(theta, jac=False)
         x0 = np.concatenate([[float(np.max(W - g0))], theta])
-        res = _scipy.minimize(fun, x0, jac=True, method="SLSQP", bounds=bounds,
-                              constraints=[{"type": "ineq", "fun": cons, "jac": cons_jac}],
-                              options={"maxiter": 150, "ftol": 1e-5})
+        res = _slsqp.minimize_slsqp(fun, x0, bounds, cons, cons_jac, maxiter=150, ftol=1e-5)
         if not np.all(np.isfinite(res.x)):
             break
         theta = np.clip(res.x[1:], lo, hi)
@@ -554,9 +552,9 @@ def _ls_fit(sec: _Sections, W: np.ndarray, wts: np.ndarray, theta0: np.ndarray, 
     x0 = np.concatenate([[dc0], theta0])
     lo_x = np.concatenate([[-np.inf], lo])
     hi_x = np.concatenate([[np.inf], hi])
-    res = _scipy.least_squares(resid, np.clip(x0, lo_x, hi_x), jac=jac, bounds=(lo_x, hi_x),
-                               method="trf", x_scale="jac", max_nfev=max_nfev,
-                               ftol=1e-10, xtol=1e-10)
+    res = _trf.bounded_least_squares(resid, np.clip(x0, lo_x, hi_x), jac=jac,
+                                     bounds=(lo_x, hi_x), x_scale="jac", max_nfev=max_nfev,
+                                     ftol=1e-10, xtol=1e-10)
     rms = float(np.sqrt(np.sum(res.fun ** 2) / np.sum(wts)))
     return res.x[1:], float(res.x[0]), bool(res.status > 0), rms
 
@@ -643,10 +641,11 @@ def _one_blas_thread():
     with _BLAS_LOCK:
         if _blas_users == 0:
             # the limit reaches only the libraries loaded when it is set: scipy's own
-            # BLAS, which its optimisers call, is loaded first (else a process's first
-            # fit, importing scipy.optimize, would run with BLAS's threads and end
+            # BLAS, which its SLSQP kernel calls, is loaded first (else a process's
+            # first fit, loading the kernel, would run with BLAS's threads and end
             # elsewhere than every later fit)
-            import scipy.optimize  # noqa: F401
+            if _slsqp.load_kernel() is None:
+                import scipy.optimize  # noqa: F401  (the fits' SLSQP is then scipy's)
             _blas_limits = threadpool_limits(limits=1, user_api="blas")
         _blas_users += 1
     try:

@@ -96,19 +96,20 @@ __all__ = ["CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD", "RUN_FIGURES_PRELOAD"
 #: every later pool of the process start with them loaded (see
 #: :func:`preload_own_only` for a process that starts one pool).
 PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fitting",
-                            "armfit.uncertainty", "armfit.diagnosis.search", "scipy.special",
-                            "scipy.optimize")
+                            "armfit.uncertainty", "armfit.diagnosis.search", "scipy.special")
 #: The modules the tasks of each kind of pool run, the ``preload`` of its pools: what
 #: the fork server imports first for a command line's one pool (:func:`preload_own_only`,
 #: :func:`start_fork_server`). Each is in :data:`PRELOAD`. The fits' workers take t
 #: quantiles from :mod:`scipy.special` (their solver, :mod:`armfit._trf`, needs no
-#: scipy); the uncertainty's call scipy's optimiser: each imported once by the server,
-#: not by each worker in the middle of a task. The diagnosis's workers need no scipy
-#: (their per-subject intervals' t quantiles are :func:`armfit._student.t_quantile`).
+#: scipy), imported once by the server, not by each worker in the middle of a task.
+#: The uncertainty's workers need no scipy module (their solvers are :mod:`armfit._trf`
+#: and scipy's SLSQP kernel, which :mod:`armfit._slsqp` loads in milliseconds), nor do
+#: the diagnosis's (their per-subject intervals' t quantiles are
+#: :func:`armfit._student.t_quantile`).
 POOL_PRELOAD: dict[str, tuple[str, ...]] = {
     "estimate": ("armfit.spectra", "armfit.io.trials"),
     "fit": ("armfit.fitting", "scipy.special"),
-    "uncertainty": ("armfit.uncertainty", "scipy.optimize"),
+    "uncertainty": ("armfit.uncertainty",),
     "diagnosis": ("armfit.diagnosis.search",),
 }
 #: What ``run``'s one pool preloads when the run draws figures: every engine module and

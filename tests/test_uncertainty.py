@@ -394,7 +394,7 @@ import json, sys
 import numpy as np
 from armfit.uncertainty import fit_wu
 f, w = np.load(sys.argv[1]), np.load(sys.argv[2])
-fresh = "scipy.optimize" not in sys.modules
+fresh = "scipy.optimize._slsqplib" not in sys.modules
 fits = [fit_wu(f, w, band=(0.01, 30.0)) for _ in range(2)]
 print(json.dumps({"fresh": fresh, "fits": [
     {"orders": {str(k): v for k, v in r.orders_tried.items()}, "gain": r.gain,
@@ -404,7 +404,7 @@ print(json.dumps({"fresh": fresh, "fits": [
 
 def test_a_process_s_first_wu_fit_is_its_later_fits(tmp_path):
     # The same W_max (Table III's X weight on the log grid) fitted twice in a fresh
-    # process that has not imported scipy's optimisers yet, and once here: the three
+    # process that has not loaded scipy's SLSQP kernel yet, and once here: the three
     # are the same. (The first fit of a process once imported scipy's own BLAS after
     # the one-thread limit was set, ran with BLAS's threads and ended at another
     # local minimum: orders' mean gaps differing from the fifth digit on.)
@@ -418,7 +418,7 @@ def test_a_process_s_first_wu_fit_is_its_later_fits(tmp_path):
                           str(tmp_path / "w.npy")], capture_output=True, text=True,
                          check=True)
     got = json.loads(out.stdout)
-    assert got["fresh"]   # the case this test is about: scipy.optimize not yet imported
+    assert got["fresh"]   # the case this test is about: SLSQP kernel not yet loaded
     here = fit_wu(F_LOG, w, band=BAND)
     want = {"orders": {str(k): v for k, v in here.orders_tried.items()}, "gain": here.gain,
             "poles": [[z.real, z.imag] for z in here.poles]}
