@@ -270,6 +270,52 @@ def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
     assert worker_modules("own") == ["armfit.spectra", "armfit._server_exit"]
 
 
+_BLAS_THREADS = """
+def blas_threads():
+    import numpy  # noqa: F401  (its BLAS loaded)
+    from threadpoolctl import threadpool_info
+    return sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+
+if __name__ == "__main__":
+    if sys.argv[1] == "entry":
+        workers.one_blas_thread()     # as the console entry point, before numpy loads
+    here = blas_threads()
+    pool = workers.process_pool(2, ())
+    try:
+        print(json.dumps({"here": here, "worker": pool.submit(blas_threads).result()}))
+    finally:
+        pool.shutdown()
+"""
+
+
+@pytest.mark.parametrize("environment, mode, here, worker", [
+    ({}, "script", None, [1]),           # a script's own BLAS as BLAS sets it
+    ({}, "entry", [1], [1]),             # the command line's process
+    ({"OPENBLAS_NUM_THREADS": "2"}, "entry", [2], [2]),   # the user's setting stands
+])
+def test_blas_runs_on_one_thread_in_workers_and_the_command_line(tmp_path, monkeypatch,
+                                                                 environment, mode, here,
+                                                                 worker):
+    # threadpoolctl's report of the BLAS libraries loaded (numpy's and scipy's OpenBLAS)
+    # in the process and in a worker of its pool: one thread each (their threads cost
+    # more than they save on armfit's small problems), unless the environment says
+    for name in workers.BLAS_ONE_THREAD:
+        monkeypatch.delenv(name, raising=False)
+    for name, value in environment.items():
+        monkeypatch.setenv(name, value)
+    got = _script_json(tmp_path, _BLAS_THREADS, mode)
+    assert got["worker"] == worker
+    if here is None:   # as in a plain Python process (BLAS's own default)
+        import json
+        import subprocess
+        plain = subprocess.run(
+            [sys.executable, "-c", "import json, numpy, threadpoolctl; print(json.dumps("
+             "sorted({i['num_threads'] for i in threadpoolctl.threadpool_info() "
+             "if i['user_api'] == 'blas'})))"], capture_output=True, text=True, check=True)
+        here = json.loads(plain.stdout)
+    assert got["here"] == here
+
+
 def test_the_server_exit_module_acts_only_in_the_fork_servers_preload(tmp_path):
     # imported anywhere else it registers nothing: the process's own exit status stands
     import subprocess
