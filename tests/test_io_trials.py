@@ -7,6 +7,7 @@ import pytest
 
 from armfit.errors import BadInputError, NoInputError, OutputError, UsageError
 from armfit.io.trials import (
+    check_grip,
     dataset_metadata,
     dataset_sources,
     discover,
@@ -148,6 +149,47 @@ def test_sampling_rate_rules():
     back[[10, 11]] = back[[11, 10]]  # row 12 (1-based) now earlier than row 11
     with pytest.raises(BadInputError, match=r"row 12: non-monotonic time"):
         sampling_rate(back, file="f.csv")
+
+
+@pytest.mark.parametrize("shift, row", [
+    (0.0049, None),   # intervals 0.49 % long and short: spread 0.98 %, each within 1 %
+    (0.008, None),    # 0.8 % long and short: spread 1.6 %, each still within 1 %
+    (0.012, 101),     # 1.2 % long: beyond 1 % of the median interval, at row 101
+])
+def test_uniform_time_is_judged_against_the_median_interval(shift, row):
+    # the rule: every interval within 1 % of the median interval (a sample moved by a
+    # fraction s of a period lengthens the interval before it and shortens the one
+    # after by s); judged the same whether the intervals spread over less than 1 % of
+    # the shortest or more
+    t = np.arange(1000) / 250.0
+    t[100] += shift * 0.004
+    if row is None:
+        assert sampling_rate(t) == 250.0
+    else:
+        with pytest.raises(BadInputError, match=rf"row {row}: non-uniform time: interval "
+                                                r"0\.004048 s vs period 0\.004 s"):
+            sampling_rate(t, file="f.csv")
+
+
+@pytest.mark.parametrize("value, row", [
+    (None, None),          # NaN samples (missing) among ordinary ones: kept
+    (np.inf, 7),
+    (-np.inf, 7),
+    (-2e100, 7),           # beyond any physical force (MAX_ABS_VALUE)
+])
+def test_grip_values_refused_only_when_infinite_or_absurd(value, row):
+    g = np.full(20, 2.0)
+    g[[2, 11]] = np.nan
+    if value is not None:
+        g[6] = value
+    if row is None:
+        np.testing.assert_array_equal(check_grip(g, "f.csv"), g)
+    else:
+        with pytest.raises(BadInputError, match=rf"column 'grip_N', row {row}: grip value"):
+            check_grip(g, "f.csv")
+    np.testing.assert_array_equal(check_grip(np.full(5, np.nan), "f.csv"),
+                                  np.full(5, np.nan))      # no grip recorded at all
+    assert check_grip(np.empty(0), "f.csv").size == 0
 
 
 def test_force_limit_warns_not_raises(tmp_path, write_trial, make_columns):
