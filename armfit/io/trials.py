@@ -855,6 +855,7 @@ def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
     if fs < MIN_SAMPLING_RATE_HZ:
         unit = ("is time in ms? time_s must be in seconds"
                 if fs * 1000.0 >= MIN_SAMPLING_RATE_HZ else "time_s must be in seconds")
+        period = float(median(dt))
         raise BadInputError(f"sampling rate {fs:g} Hz (a sample every {period:.6g} s) is "
                             f"below {MIN_SAMPLING_RATE_HZ:g} Hz, implausible for a haptic "
                             f"device: {unit}", file=file, column="time_s")
