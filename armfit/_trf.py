@@ -207,7 +207,9 @@ def _svd(A):
 
 
 def _trf_no_bounds(fun, jac, x0, f0, J0, ftol, xtol, gtol, max_nfev, x_scale):
-    """scipy's ``trf_no_bounds`` (linear loss, exact solver, no callback)."""
+    """scipy's ``trf_no_bounds`` (linear loss, exact solver, no callback). Its loop
+    repeats much of :func:`_trf_bounds`'s, as scipy's two functions do: each follows
+    its own to the operation, so that the iterates are scipy's bits."""
     x = x0.copy()
     f = f0
     f_true = f.copy()

@@ -167,32 +167,6 @@ def test_without_the_kernel_the_minimisation_is_scipys(monkeypatch):
     _assert_same_slsqp(ours, _scipy_slsqp(fun, x0, bounds, ineq, ineq_jac, 100, 1e-8))
 
 
-@pytest.mark.parametrize("seed", range(6))
-def test_trf_with_jacobian_scaling_follows_scipy(seed):
-    # a decay y = A exp(−k t) + c with parameters of very different sizes (the case
-    # x_scale="jac" is for), one bound active at the optimum for some seeds
-    rng = np.random.default_rng(seed)
-    t = np.linspace(0.0, 4.0, 60)
-    A, k, c = rng.uniform(50, 300), rng.uniform(0.3, 2.5), rng.uniform(-0.01, 0.01)
-    y = A * np.exp(-k * t) + c + 0.5 * rng.standard_normal(t.size)
-
-    def fun(x):
-        return x[0] * np.exp(-x[1] * t) + x[2] - y
-
-    def jac(x):
-        e = np.exp(-x[1] * t)
-        return np.column_stack([e, -x[0] * t * e, np.ones_like(e)])
-
-    bounds = (np.array([0.0, 0.0, -np.inf]), np.array([400.0, 1.5, np.inf]))
-    x0 = np.array([rng.uniform(1, 400), rng.uniform(0.1, 1.4), 0.0])
-    ours = _trf.bounded_least_squares(fun, x0, jac, bounds, x_scale="jac", ftol=1e-10,
-                                      xtol=1e-10)
-    theirs = scipy_least_squares(fun, x0, jac=jac, bounds=bounds, method="trf",
-                                 x_scale="jac", ftol=1e-10, xtol=1e-10)
-    for key in ("x", "cost", "fun", "jac", "grad", "optimality", "nfev", "njev", "status"):
-        assert np.array_equal(getattr(ours, key), theirs[key]), key
-
-
 def test_a_wu_fit_imports_no_scipy_optimize():
     # the reason the copies exist: a process that fits Wu (fit-uncertainty, a worker of
     # the run's pool) loads scipy's SLSQP kernel alone

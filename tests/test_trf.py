@@ -2,12 +2,12 @@
 importing scipy.optimize.
 
 The reference is an independent computation: scipy.optimize.least_squares itself
-(method "trf", x_scale 1), run on the same problem with the same start, bounds,
+(method "trf", x_scale 1 or "jac"), run on the same problem with the same start, bounds,
 tolerances and budget. The copy must give its result to the bit (every field: the end
 point, cost, residuals, Jacobian, gradient, optimality, active bounds, evaluations and
 status), on the fits armfit makes and on problems that take each branch of the method:
 reflections off a bound, rejected steps, residuals that are not finite, a rank-deficient
-Jacobian and a spent budget."""
+Jacobian, a spent budget, and a box with no finite bound (scipy's unbounded variant)."""
 
 from __future__ import annotations
 
@@ -37,11 +37,12 @@ def _assert_same(ours, theirs):
 T = np.linspace(0.0, 4.0, 60)
 
 
-def _decay(seed: int):
-    """A noisy decay y = A exp(−k t) + c: residuals and Jacobian of (A, k, c)."""
+def _decay(seed: int, amplitude: tuple[float, float] = (0.5, 3.0), noise: float = 0.01):
+    """A noisy decay y = A exp(−k t) + c, A drawn from ``amplitude``: residuals and
+    Jacobian of (A, k, c)."""
     rng = np.random.default_rng(seed)
-    A, k, c = rng.uniform(0.5, 3), rng.uniform(0.3, 2.5), rng.uniform(-1, 1)
-    y = A * np.exp(-k * T) + c + 0.01 * rng.standard_normal(T.size)
+    A, k, c = rng.uniform(*amplitude), rng.uniform(0.3, 2.5), rng.uniform(-1, 1)
+    y = A * np.exp(-k * T) + c + noise * rng.standard_normal(T.size)
 
     def fun(x):
         return x[0] * np.exp(-x[1] * T) + x[2] - y
@@ -84,6 +85,22 @@ def test_bounded_decays_follow_scipy_to_the_bit(opts, monkeypatch):
     else:
         assert 0 not in statuses
         assert any(reflected), "no step met a bound: the reflective path was not exercised"
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_jacobian_scaling_follows_scipy_to_the_bit(seed):
+    # x_scale="jac" (the Wu fits' least-squares starts): the variables scaled by the
+    # norms of the Jacobian's columns, here of very different sizes (A of 50-300
+    # against k and c of about 1), the upper bound of k active for some seeds
+    fun, jac, rng = _decay(seed, amplitude=(50.0, 300.0), noise=0.5)
+    bounds = (np.array([0.0, 0.0, -np.inf]), np.array([400.0, 1.5, np.inf]))
+    x0 = np.array([rng.uniform(1, 400), rng.uniform(0.1, 1.4), 0.0])
+    opts = {"ftol": 1e-10, "xtol": 1e-10}
+    ours = _trf.bounded_least_squares(fun, x0, jac, bounds, x_scale="jac", **opts)
+    theirs = scipy_least_squares(fun, x0, jac=jac, bounds=bounds, method="trf",
+                                 x_scale="jac", **opts)
+    _assert_same(ours, theirs)
+    assert ours.success
 
 
 def test_rejected_and_non_finite_steps_follow_scipy():

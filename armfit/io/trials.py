@@ -827,7 +827,9 @@ def sampling_rate(time_s: np.ndarray, *, file: str = "?") -> float:
         raise BadInputError("no data rows after the header", file=file)
     if t.size < 2:
         raise BadInputError("too short: 1 sample; a trial needs many samples", file=file)
-    if not np.isfinite(t.sum()):    # a finite sum: every sample is finite
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = t.sum()
+    if not np.isfinite(total):      # a finite sum: every sample is finite
         bad = np.flatnonzero(~np.isfinite(t))
         if bad.size:
             raise BadInputError(f"non-finite time {cell(t[bad[0]])}; expected a number",
