@@ -125,35 +125,16 @@ def load_kernel() -> Callable | None:
 
 
 def _find_kernel() -> Callable | None:
-    import sys
-    from importlib import machinery, util
-    from pathlib import Path
-
     import scipy
 
+    from armfit import _scipy
     try:
         release = tuple(int(p) for p in scipy.__version__.split(".")[:2])
     except ValueError:
         return None
     if release not in KNOWN_SCIPY:
         return None
-    name = "scipy.optimize._slsqplib"
-    if name in sys.modules:
-        return getattr(sys.modules[name], "slsqp", None)
-    folder = Path(scipy.__file__).parent / "optimize"
-    paths = [folder / f"_slsqplib{s}" for s in machinery.EXTENSION_SUFFIXES]
-    path = next((p for p in paths if p.is_file()), None)
-    if path is None:
-        return None
-    loader = machinery.ExtensionFileLoader(name, str(path))
-    spec = util.spec_from_file_location(name, str(path), loader=loader)
-    try:
-        module = util.module_from_spec(spec)
-        loader.exec_module(module)
-    except ImportError:
-        return None
-    sys.modules.setdefault(name, module)
-    return getattr(module, "slsqp", None)
+    return getattr(_scipy.compiled_module("scipy.optimize._slsqplib"), "slsqp", None)
 
 
 def minimize_slsqp(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0,

@@ -50,8 +50,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy import linalg
 
+from armfit import _scipy
 from armfit._order import median, percentile
 from armfit.errors import UsageError, cell
 from armfit.io.schema import is_missing
@@ -426,6 +426,28 @@ def _pencils(M0: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, 
     return A, E
 
 
+def _lapack_ggev(a: np.ndarray):
+    """LAPACK's generalised eigenvalue routine for ``a``'s type, the function
+    ``scipy.linalg.get_lapack_funcs(("ggev",), (a,))`` returns, from scipy's LAPACK
+    module loaded alone (:func:`armfit._scipy.compiled_module`): importing :mod:`scipy.linalg`
+    took about 0.13 s of every command's start-up that loads this module (``run``,
+    ``stability``)."""
+    prefix = {"f": "s", "d": "d", "F": "c", "D": "z"}.get(a.dtype.char)
+    lapack = _scipy.compiled_module("scipy.linalg._flapack") if prefix else None
+    fn = getattr(lapack, f"{prefix}ggev", None)
+    if fn is None:
+        from scipy import linalg
+        fn, = linalg.get_lapack_funcs(("ggev",), (a,))
+    return fn
+
+
+def _eigvals(a: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``scipy.linalg.eigvals(a, e)``: the pencil's eigenvalues where ggev itself
+    reported a failure."""
+    from scipy import linalg
+    return linalg.eigvals(a, e)
+
+
 def _crossing_gains_batch(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *,
                           tol: float = 1e-6, g_of: Callable | None = None
                           ) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -436,13 +458,13 @@ def _crossing_gains_batch(M0: np.ndarray, b: np.ndarray, c: np.ndarray, *,
     states alone)."""
     R, N, _ = M0.shape
     A, E = _pencils(M0, b, c)
-    ggev, = linalg.get_lapack_funcs(("ggev",), (A[0],))
+    ggev = _lapack_ggev(A[0])
     rows, thetas, unique, inverse = [], [], [], []
     offset = 0
     for r in range(R):
         with np.errstate(all="ignore"):
             ar, ai, beta, _, _, _, info = ggev(A[r], E[r], compute_vl=0, compute_vr=0)
-            ev = (ar + 1j * ai) / beta if info == 0 else linalg.eigvals(A[r], E[r])
+            ev = (ar + 1j * ai) / beta if info == 0 else _eigvals(A[r], E[r])
         ev = ev[np.isfinite(ev)]
         on = ev[np.abs(np.abs(ev) - 1.0) < tol]
         th = np.concatenate([np.abs(np.angle(on)), [0.0, np.pi]])

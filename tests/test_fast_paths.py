@@ -457,6 +457,28 @@ def test_fit_nominal_loads_no_figures_no_scipy_optimize_and_no_pandas(spectra, t
     assert out.read_text() == frame.to_csv(index=False, float_format="%.10g")
 
 
+def test_the_wall_crossings_take_lapack_ggev_without_importing_scipy_linalg():
+    # the stability stage's one LAPACK routine (ggev, the pencils' generalised
+    # eigenvalues) is the function scipy.linalg.get_lapack_funcs chooses, taken from
+    # scipy's LAPACK module loaded alone: importing scipy.linalg took about 0.13 s of
+    # `run`'s and `stability`'s start-up. Reference: scipy's own choice, and the gain
+    # of a loop whose crossing is known (M0 = 0.5, b = c = 1: the eigenvalue 0.5 + K
+    # reaches z = 1 at K = 0.5, and z = -1 only at K = -1.5 < 0)
+    from scipy import linalg
+
+    from armfit.loop import _lapack_ggev
+    for dtype in (float, complex):
+        a = np.eye(3, dtype=dtype)
+        assert _lapack_ggev(a) is linalg.get_lapack_funcs(("ggev",), (a,))[0]
+    got = fresh_json("import sys, json, numpy as np\n"
+                     "from armfit.loop import crossing_gains\n"
+                     "K, th = crossing_gains(np.array([[0.5]]), np.array([1.0]), "
+                     "np.array([1.0]))\n"
+                     "print(json.dumps([sorted(K.tolist()), 'scipy.linalg' in sys.modules]))")
+    np.testing.assert_allclose(np.unique(np.round(got[0], 12)), [0.5], rtol=1e-12)
+    assert got[1] is False
+
+
 def test_the_diagnose_and_compare_commands_import_rich_only_to_print():
     # their module loads without rich (about a tenth of a second): the tables are drawn
     # once the work is done, and the work's start-up does not wait for them
