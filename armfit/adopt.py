@@ -44,13 +44,15 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-
-import pandas as pd
+from typing import TYPE_CHECKING
 
 from armfit.constants import AXES, GRID_HZ, PAPER_BANDS
 from armfit.errors import UsageError
 from armfit.models.arm import APPARATUS_STAGES
 from armfit.models.effects import get_effect
+
+if TYPE_CHECKING:   # pandas is imported where a table is made (it takes ~0.15 s)
+    import pandas as pd
 
 #: Adoption policies (``armfit run --adopt``).
 POLICIES: tuple[str, ...] = ("auto", "none")
@@ -261,6 +263,7 @@ class Adoption:
         """One row per axis, subject and parameter of an effect whose values differ
         between subjects: ``axis, subject, effect, param, value, per_subject`` (False for
         a parameter of such an effect that the subjects share)."""
+        import pandas as pd
         rows = [{"axis": a.axis, "subject": subj, "effect": n.split(".", 1)[0],
                  "param": n.split(".", 1)[1], "value": v, "per_subject": n in a.varying}
                 for a in self.axes for subj, values in a.by_subject.items()
@@ -272,6 +275,7 @@ class Adoption:
         """One row per axis: :data:`ADOPTION_COLUMNS` (``held``: ``name=value`` items
         separated by ';'; ``declined``: the effects left out, ';'-separated, with the
         reasons in ``reason``)."""
+        import pandas as pd
         rows = [{
             "axis": a.axis, "adopted": a.adopted, "effects": ";".join(a.effects),
             "held": ";".join(f"{h.name}={h.value:.10g}" for h in a.held),

@@ -47,9 +47,9 @@ import math
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from armfit import _scipy
 from armfit._order import median, percentile
@@ -59,6 +59,9 @@ from armfit.models.arm import ClosedLoopModel
 from armfit.models.effects import EFFECTS, Effect
 from armfit.models.params import model_from_params
 from armfit.uncertainty import PAPER_BAND_HZ
+
+if TYPE_CHECKING:   # pandas is imported where a table is made (it takes ~0.15 s)
+    pass
 
 #: Defaults of the wall: a 1 kHz servo, no virtual damping, one sample of delay.
 DEFAULT_SAMPLE_TIME_S = 1.0e-3
@@ -990,6 +993,7 @@ def stability_table(params, settings: WallSettings, *, weights=None,
         :data:`STABILITY_COLUMNS`, then with weights :data:`CERTIFICATE_COLUMNS`. A row
         unstable at K = 0 gets K_max = 0 and a ``RuntimeWarning`` naming it.
     """
+    import pandas as pd
     models, res = _k_max_rows(params, settings, outside_loop)
     by_axis: dict[str, list] = {}
     if weights is not None and members is not None and len(members):

@@ -15,9 +15,7 @@ import math
 import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
-
-import pandas as pd
+from typing import TYPE_CHECKING, Protocol
 
 from armfit import api
 from armfit._version import __version__
@@ -28,6 +26,9 @@ from armfit.io.schema import finite_or_none
 from armfit.loop import WallSettings, certificate_status
 from armfit.spectra import EstimateConfig
 from armfit.tables import cell_names, param_names, sig4, unit_of
+
+if TYPE_CHECKING:   # pandas is imported where a table is made (it takes ~0.15 s)
+    import pandas as pd
 
 __all__ = ["FIGURE_CAPTIONS", "STABILITY_FIGURE", "RunRecord", "RunSettings", "Wall",
            "adoption_markdown", "md_table", "params_markdown", "report_markdown",

@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-
-import pandas as pd
+from typing import TYPE_CHECKING
 
 from armfit.models.arm import BASE_PARAMS
 from armfit.models.effects import get_effect
+
+if TYPE_CHECKING:   # pandas is imported where a table is made (it takes ~0.15 s)
+    import pandas as pd
 
 #: Column names of the paper's tables (as in armfit/data/*.csv) for the base parameters.
 PAPER_COLUMNS: dict[str, str] = {
@@ -71,6 +73,7 @@ def paper_layout(df: pd.DataFrame, *, ci: bool = False) -> pd.DataFrame:
     """The params in the paper's column names (``Ma_kg``, ``k1_N_per_m``, …; effect
     parameters keep ``<effect>.<param>``), ``grip_N`` only for grip fits; with ``ci``
     each value is followed by ``<col>_lo`` and ``<col>_hi``."""
+    import pandas as pd
     out = pd.DataFrame({"axis": df["axis"].astype(str)})
     if "grip_N" in df.columns:
         out["grip_N"] = df["grip_N"].astype(float)

@@ -42,6 +42,7 @@ import numpy as np
 from armfit._order import median
 from armfit.constants import AXES, FORCE_LIMIT_N, GRID_HZ
 from armfit.errors import ArmfitError, BadInputError, NoInputError, UsageError, cell
+from armfit.io.arrow import numpy_array
 from armfit.io.atomic import atomic_path, check_output, resolved_path
 from armfit.io.colmap import ColumnMap, Conversion, read_column_map
 from armfit.io.numbers import parse_number, parse_numbers, parse_whole
@@ -1511,13 +1512,14 @@ def write_dataset(trials: Iterable[Trial], path: str | os.PathLike, *,
             for i, trial in enumerate(trials):
                 n = trial.meta.n_samples
                 grip = trial.grip if trial.grip is not None else np.full(n, np.nan)
-                arrays = [pa.array(np.full(n, i, dtype=np.int32))]
-                arrays += [pa.array(np.ascontiguousarray(trial.force[:, j])) for j in range(3)]
-                arrays += [pa.array(np.ascontiguousarray(trial.pos[:, j])) for j in range(3)]
-                arrays.append(pa.array(np.asarray(grip, dtype=np.float64)))
+                # from the arrays' buffers: pyarrow.array would import pandas
+                arrays = [numpy_array(np.full(n, i, dtype=np.int32))]
+                arrays += [numpy_array(trial.force[:, j]) for j in range(3)]
+                arrays += [numpy_array(trial.pos[:, j]) for j in range(3)]
+                arrays.append(numpy_array(np.asarray(grip, dtype=np.float64)))
                 if reference:
-                    arrays.append(pa.array(np.full(n, np.nan) if trial.ref is None
-                                           else np.asarray(trial.ref, dtype=np.float64)))
+                    arrays.append(numpy_array(np.full(n, np.nan) if trial.ref is None
+                                              else np.asarray(trial.ref, dtype=np.float64)))
                 elif trial.ref is not None:
                     raise UsageError(f"{trial.meta.source}: the trial has a reference "
                                      f"({trial.meta.reference}) but the dataset is written "
