@@ -89,6 +89,7 @@ __all__ = ["BLAS_ONE_THREAD", "CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD",
            "remove_pool_folder", "start_fork_server",
            "fork_server_running",
            "start_method", "stop_workers", "worker_start", "tune_allocator", "one_blas_thread",
+           "system_arrow_pool", "ARROW_SYSTEM_POOL",
            "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES"]
 
 #: Every module whose functions armfit's tasks run (and the scipy modules they call): the
@@ -163,6 +164,18 @@ BLAS_ONE_THREAD: dict[str, str] = {
     "BLIS_NUM_THREADS": "1",
 }
 CHILD_ENVIRONMENT.update(BLAS_ONE_THREAD)
+
+#: Arrow's buffers from the C library's allocator rather than the mimalloc pyarrow
+#: bundles: in every process armfit's pools start (:data:`CHILD_ENVIRONMENT`) and in a
+#: command line's own process (:func:`system_arrow_pool`). After an ingest (trials read
+#: by Arrow's threads, written by a thread of their own) and
+#: :func:`armfit.memory.release_memory`, a process kept 6-12 MB of what mimalloc had
+#: freed and 0.2 MB from the C library's one arena (:func:`tune_allocator`), which
+#: ``release_memory`` gives back whole (``tests/test_fast_paths.py``): the peak of
+#: ``armfit run --jobs 2`` summed over its processes fell from 347 to 324 MB on 81 trials
+#: and from 434 to 394 MB on 4,050 (``benchmarks/bench_memory.py``; docs/methods.md).
+ARROW_SYSTEM_POOL: dict[str, str] = {"ARROW_DEFAULT_MEMORY_POOL": "system"}
+CHILD_ENVIRONMENT.update(ARROW_SYSTEM_POOL)
 
 _ENV_LOCK = threading.Lock()
 _ENV_USERS = 0
@@ -270,6 +283,15 @@ def one_blas_thread() -> None:
     environment already says how many (:data:`BLAS_ONE_THREAD`): the command line's
     console entry point calls it before numpy loads, which is when BLAS reads it."""
     for name, value in BLAS_ONE_THREAD.items():
+        os.environ.setdefault(name, value)
+
+
+def system_arrow_pool() -> None:
+    """Allocate Arrow's buffers with the C library's allocator in this process and the
+    processes it starts, unless the environment already names a pool
+    (:data:`ARROW_SYSTEM_POOL`): the command line's console entry point calls it before
+    pyarrow loads, which is when Arrow reads it."""
+    for name, value in ARROW_SYSTEM_POOL.items():
         os.environ.setdefault(name, value)
 
 

@@ -316,6 +316,48 @@ def test_blas_runs_on_one_thread_in_workers_and_the_command_line(tmp_path, monke
     assert got["here"] == here
 
 
+_ARROW_POOL = """
+def arrow_pool():
+    import pyarrow
+    return pyarrow.default_memory_pool().backend_name
+
+if __name__ == "__main__":
+    if sys.argv[1] == "entry":
+        workers.system_arrow_pool()   # as the console entry point, before pyarrow loads
+    here = arrow_pool()
+    pool = workers.process_pool(2, ())
+    try:
+        print(json.dumps({"here": here, "worker": pool.submit(arrow_pool).result()}))
+    finally:
+        pool.shutdown()
+"""
+
+
+@pytest.mark.parametrize("environment, mode, here, worker", [
+    ({}, "script", None, "system"),      # a script's own pool as pyarrow chooses it
+    ({}, "entry", "system", "system"),   # the command line's process
+    ({"ARROW_DEFAULT_MEMORY_POOL": "mimalloc"}, "entry", "mimalloc", "mimalloc"),
+])
+def test_arrow_allocates_from_the_c_library_in_workers_and_the_command_line(
+        tmp_path, monkeypatch, environment, mode, here, worker):
+    # pyarrow's own report of the pool its buffers come from: the C library's ("system",
+    # whose freed memory armfit.memory.release_memory gives back), in the command line's
+    # process and in a worker of any pool, unless the environment names one
+    monkeypatch.delenv("ARROW_DEFAULT_MEMORY_POOL", raising=False)
+    for name, value in environment.items():
+        monkeypatch.setenv(name, value)
+    got = _script_json(tmp_path, _ARROW_POOL, mode)
+    assert got["worker"] == worker
+    if here is None:   # as in a plain Python process (pyarrow's own default)
+        import subprocess
+        plain = subprocess.run(
+            [sys.executable, "-c", "import pyarrow; "
+             "print(pyarrow.default_memory_pool().backend_name)"],
+            capture_output=True, text=True, check=True)
+        here = plain.stdout.strip()
+    assert got["here"] == here
+
+
 def test_the_server_exit_module_acts_only_in_the_fork_servers_preload(tmp_path):
     # imported anywhere else it registers nothing: the process's own exit status stands
     import subprocess

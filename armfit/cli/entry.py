@@ -235,10 +235,16 @@ def main() -> None:
     install_signal_handlers()
     try:
         from armfit.cli import streams
-        from armfit.workers import one_blas_thread, preload_own_only, tune_allocator
+        from armfit.workers import (
+            one_blas_thread,
+            preload_own_only,
+            system_arrow_pool,
+            tune_allocator,
+        )
         streams.install()
         tune_allocator()
         one_blas_thread()    # before numpy loads
+        system_arrow_pool()  # before pyarrow loads
         preload_own_only()   # a command starts one pool: its workers load what it runs
         from armfit.cli.main import cli  # numpy, pandas, pyarrow, click, ...
     except KeyboardInterrupt as exc:  # signal while importing: one line, no traceback

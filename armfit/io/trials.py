@@ -1384,12 +1384,14 @@ def _release_arrow_memory(nbytes: int) -> None:
     """Note that a trial's columns (``nbytes`` of values) were read and copied out of its
     table, and return the pages of Arrow's freed buffers to the system once
     :data:`RELEASE_ARROW_BYTES` were read since the last return. Arrow's allocator
-    (mimalloc) keeps the pages of the buffers it freed and reuses them for the next
-    trial's; returned after every trial, they were taken back from the system at the
-    next (the page faults made reading 81 trials of 50-100 s 1.5 times slower: 0.80 s
-    against 0.52 s). Kept throughout, they stay bounded by the sizes of buffer met (the
-    same 176 MB after 81 and 810 trials), and returned every 16 trials, the process
-    held no more (170 MB) and read as fast."""
+    (the C library's in armfit's commands and workers,
+    :data:`armfit.workers.ARROW_SYSTEM_POOL`; else pyarrow's mimalloc) keeps the pages
+    of the buffers it freed and reuses them for the next trial's; returned after every
+    trial, they were taken back from the system at the next (the page faults made
+    reading 81 trials of 50-100 s 1.5 times slower: 0.80 s against 0.52 s). Kept
+    throughout, they stay bounded by the sizes of buffer met (the same 176 MB after 81
+    and 810 trials), and returned every 16 trials, the process held no more (170 MB) and
+    read as fast."""
     global _read_since_release
     with _release_lock:
         _read_since_release += nbytes
