@@ -270,21 +270,40 @@ def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
     assert worker_modules("own") == ["armfit.spectra", "armfit._server_exit"]
 
 
+def _here_and_in_a_worker(tmp_path: Path, probe: str, mode: str, setter: str):
+    """``probe()`` (the source of a module-level function of that name) in a fresh
+    Python process and in a worker of its first pool, as JSON {"here": ..., "worker":
+    ...}; with ``mode`` "entry" the process first calls ``workers.<setter>()``, as the
+    console entry point does before numpy and pyarrow load."""
+    text = probe + f"""
+if __name__ == "__main__":
+    if sys.argv[1] == "entry":
+        workers.{setter}()
+    here = probe()
+    pool = workers.process_pool(2, ())
+    try:
+        print(json.dumps({{"here": here, "worker": pool.submit(probe).result()}}))
+    finally:
+        pool.shutdown()
+"""
+    return _script_json(tmp_path, text, mode)
+
+
+def _plain_process(probe: str):
+    """``probe()`` in a plain Python process (no armfit), as JSON."""
+    import json
+    import subprocess
+    res = subprocess.run([sys.executable, "-c", f"import json\n{probe}\n"
+                          "print(json.dumps(probe()))"],
+                         capture_output=True, text=True, check=True)
+    return json.loads(res.stdout)
+
+
 _BLAS_THREADS = """
-def blas_threads():
+def probe():
     import numpy  # noqa: F401  (its BLAS loaded)
     from threadpoolctl import threadpool_info
     return sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
-
-if __name__ == "__main__":
-    if sys.argv[1] == "entry":
-        workers.one_blas_thread()     # as the console entry point, before numpy loads
-    here = blas_threads()
-    pool = workers.process_pool(2, ())
-    try:
-        print(json.dumps({"here": here, "worker": pool.submit(blas_threads).result()}))
-    finally:
-        pool.shutdown()
 """
 
 
@@ -303,33 +322,16 @@ def test_blas_runs_on_one_thread_in_workers_and_the_command_line(tmp_path, monke
         monkeypatch.delenv(name, raising=False)
     for name, value in environment.items():
         monkeypatch.setenv(name, value)
-    got = _script_json(tmp_path, _BLAS_THREADS, mode)
+    got = _here_and_in_a_worker(tmp_path, _BLAS_THREADS, mode, "one_blas_thread")
     assert got["worker"] == worker
-    if here is None:   # as in a plain Python process (BLAS's own default)
-        import json
-        import subprocess
-        plain = subprocess.run(
-            [sys.executable, "-c", "import json, numpy, threadpoolctl; print(json.dumps("
-             "sorted({i['num_threads'] for i in threadpoolctl.threadpool_info() "
-             "if i['user_api'] == 'blas'})))"], capture_output=True, text=True, check=True)
-        here = json.loads(plain.stdout)
-    assert got["here"] == here
+    # None: as in a plain Python process (BLAS's own default)
+    assert got["here"] == (_plain_process(_BLAS_THREADS) if here is None else here)
 
 
 _ARROW_POOL = """
-def arrow_pool():
+def probe():
     import pyarrow
     return pyarrow.default_memory_pool().backend_name
-
-if __name__ == "__main__":
-    if sys.argv[1] == "entry":
-        workers.system_arrow_pool()   # as the console entry point, before pyarrow loads
-    here = arrow_pool()
-    pool = workers.process_pool(2, ())
-    try:
-        print(json.dumps({"here": here, "worker": pool.submit(arrow_pool).result()}))
-    finally:
-        pool.shutdown()
 """
 
 
@@ -346,16 +348,10 @@ def test_arrow_allocates_from_the_c_library_in_workers_and_the_command_line(
     monkeypatch.delenv("ARROW_DEFAULT_MEMORY_POOL", raising=False)
     for name, value in environment.items():
         monkeypatch.setenv(name, value)
-    got = _script_json(tmp_path, _ARROW_POOL, mode)
+    got = _here_and_in_a_worker(tmp_path, _ARROW_POOL, mode, "system_arrow_pool")
     assert got["worker"] == worker
-    if here is None:   # as in a plain Python process (pyarrow's own default)
-        import subprocess
-        plain = subprocess.run(
-            [sys.executable, "-c", "import pyarrow; "
-             "print(pyarrow.default_memory_pool().backend_name)"],
-            capture_output=True, text=True, check=True)
-        here = plain.stdout.strip()
-    assert got["here"] == here
+    # None: as in a plain Python process (pyarrow's own default)
+    assert got["here"] == (_plain_process(_ARROW_POOL) if here is None else here)
 
 
 def test_the_server_exit_module_acts_only_in_the_fork_servers_preload(tmp_path):
