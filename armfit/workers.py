@@ -76,7 +76,7 @@ import signal
 import sys
 import threading
 import weakref
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:   # the pool's modules are imported with the first pool (armfit._pool)
@@ -142,7 +142,8 @@ _SERVER_UP = False
 #: module path (PYTHONSAFEPATH, Python >= 3.11), the resource tracker does not warn
 #: about the queues' semaphores it removes after the workers were killed (removing them
 #: is its purpose; the notice would be a second line after the one line of a stopped
-#: command), and BLAS runs on one thread in each (:data:`BLAS_ONE_THREAD`). A variable
+#: command), BLAS runs on one thread in each (:data:`BLAS_ONE_THREAD`) and Arrow takes
+#: its buffers from the C library's allocator (:data:`ARROW_SYSTEM_POOL`). A variable
 #: already set keeps its value.
 CHILD_ENVIRONMENT: dict[str, str] = {
     "PYTHONSAFEPATH": "1",
@@ -282,8 +283,7 @@ def one_blas_thread() -> None:
     """Run BLAS on one thread in this process and the processes it starts, unless the
     environment already says how many (:data:`BLAS_ONE_THREAD`): the command line's
     console entry point calls it before numpy loads, which is when BLAS reads it."""
-    for name, value in BLAS_ONE_THREAD.items():
-        os.environ.setdefault(name, value)
+    _set_unset(BLAS_ONE_THREAD)
 
 
 def system_arrow_pool() -> None:
@@ -291,7 +291,12 @@ def system_arrow_pool() -> None:
     processes it starts, unless the environment already names a pool
     (:data:`ARROW_SYSTEM_POOL`): the command line's console entry point calls it before
     pyarrow loads, which is when Arrow reads it."""
-    for name, value in ARROW_SYSTEM_POOL.items():
+    _set_unset(ARROW_SYSTEM_POOL)
+
+
+def _set_unset(values: Mapping[str, str]) -> None:
+    """Set each environment variable of ``values`` that is not set already."""
+    for name, value in values.items():
         os.environ.setdefault(name, value)
 
 

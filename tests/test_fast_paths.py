@@ -611,16 +611,20 @@ def test_tuned_allocator_reuses_the_pages_of_freed_arrays():
     assert plain > 20 * 1250 and tuned < plain / 5, (plain, tuned)
 
 
-_POOL_TRANSFERS = """
+#: The resident anonymous memory of the script's process, MB (the scripts below).
+_ANON_MB = """
+def anon_mb():
+    with open("/proc/self/status") as fh:
+        return next(int(l.split()[1]) for l in fh if l.startswith("RssAnon")) / 1024
+"""
+
+
+_POOL_TRANSFERS = _ANON_MB + """
 import ctypes, sys
 from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 from armfit.memory import release_memory
 from armfit.workers import MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES, tune_allocator
-
-def anon_mb():
-    with open("/proc/self/status") as fh:
-        return next(int(l.split()[1]) for l in fh if l.startswith("RssAnon")) / 1024
 
 if sys.argv[1] == "tuned":
     assert tune_allocator()
@@ -648,16 +652,12 @@ def test_tuned_allocator_gives_back_what_a_pools_threads_freed():
     assert threads > 10 and tuned < 5, (threads, tuned)
 
 
-_INGEST_HELD = """
+_INGEST_HELD = _ANON_MB + """
 import os, sys
 os.environ["ARROW_DEFAULT_MEMORY_POOL"] = sys.argv[1]    # before pyarrow loads
 from armfit.io import trials as io_trials
 from armfit.memory import release_memory
 from armfit.workers import tune_allocator
-
-def anon_mb():
-    with open("/proc/self/status") as fh:
-        return next(int(l.split()[1]) for l in fh if l.startswith("RssAnon")) / 1024
 
 assert tune_allocator()
 sources, _ = io_trials.discover([sys.argv[2]])
