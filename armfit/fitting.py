@@ -406,13 +406,30 @@ def analytic_guess(f_hz: np.ndarray, h: np.ndarray, mp: float) -> list[dict[str,
     frequency counts alike. Returns the physically valid candidates (possibly none);
     exact for the noise-free response of eq. 4.
     """
+    return levy_candidates(*levy_rows(f_hz, h, mp))
+
+
+def levy_rows(f_hz: np.ndarray, h: np.ndarray, mp: float) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted rows of :func:`analytic_guess`'s linear system, one per frequency:
+    (A (..., n, 6), b (..., n)), complex, for responses ``h`` (..., n) in m/N at ``f_hz``
+    (n,). Each row depends only on its own frequency, so the rows of a band are those of
+    the whole grid at the band's frequencies, and several responses are made at once."""
     s = laplace(f_hz)
     z = 1.0 / h - mp * s * s
-    a = np.stack([s**3, s**2, s, np.ones_like(s), -z * s, -z], axis=1)
+    shape = np.shape(z)
+    a = np.stack([np.broadcast_to(s**3, shape), np.broadcast_to(s**2, shape),
+                  np.broadcast_to(s, shape), np.broadcast_to(np.ones_like(s), shape),
+                  -z * s, -z], axis=-1)
     b = z * s * s
     w = 1.0 / np.abs(b)
-    a_ri = np.concatenate([(a * w[:, None]).real, (a * w[:, None]).imag])
-    b_ri = np.concatenate([(b * w).real, (b * w).imag])
+    return a * w[..., None], b * w
+
+
+def levy_candidates(a_w: np.ndarray, b_w: np.ndarray) -> list[dict[str, float]]:
+    """:func:`analytic_guess`'s candidates from its weighted rows (:func:`levy_rows`,
+    (n, 6) and (n,)): the least-squares solution of the real and imaginary parts."""
+    a_ri = np.concatenate([a_w.real, a_w.imag])
+    b_ri = np.concatenate([b_w.real, b_w.imag])
     if not (np.all(np.isfinite(a_ri)) and np.all(np.isfinite(b_ri))):
         return []
     coef, *_ = np.linalg.lstsq(a_ri, b_ri, rcond=None)

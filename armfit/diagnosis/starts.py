@@ -12,7 +12,7 @@ from armfit.constants import PARAM_NAMES
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.tuning import CHUNK_TRIALS, UNIT_DEG
-from armfit.fitting import analytic_guess
+from armfit.fitting import levy_candidates, levy_rows
 from armfit.models.arm import ClosedLoopModel
 
 __all__ = ["best_rows", "levy_starts", "start_rows"]
@@ -29,27 +29,32 @@ def levy_starts(model: ClosedLoopModel, data: AxisData, band: tuple[float, float
     f = data.f_hz[sel]
     out = np.array(fallback, float, copy=True)
     base_model = ClosedLoopModel(mp=model.mp)
-    bounds = [(p.lower, p.upper) for p in base_model.params]
+    lower, upper = (np.array([p.lower for p in base_model.params]),
+                    np.array([p.upper for p in base_model.params]))
+    # the linear fit is sensitive to the noisy lowest frequencies: also try it above
+    # 0.3 Hz and above 1 Hz, judge every candidate on the whole band
+    cuts = [f >= lo_f for lo_f in (0.0, 0.3, 1.0) if np.sum(f >= lo_f) > 10]
+    with np.errstate(all="ignore"):
+        # every trial's response without the effects, and the rows of its linear system,
+        # at once (each value is that trial's own)
+        hbs = model.remove_effects(f, data.h[:, sel], effect_values) if effect_values \
+            else data.h[:, sel]
+        a_w, b_w = levy_rows(f, hbs, model.mp)
     for i in range(data.h.shape[0]):
+        hb = hbs[i]
         with np.errstate(all="ignore"):
-            hb = model.remove_effects(f, data.h[i, sel], effect_values) if effect_values \
-                else data.h[i, sel]
             if not np.all(np.isfinite(hb)):
                 continue
-            best = None
-            # the linear fit is sensitive to the noisy lowest frequencies: also try it
-            # above 0.3 Hz and above 1 Hz, judge every candidate on the whole band
-            cands = [c for lo_f in (0.0, 0.3, 1.0) if np.sum(f >= lo_f) > 10
-                     for c in analytic_guess(f[f >= lo_f], hb[f >= lo_f], model.mp)]
-            for cand in cands:
-                row = np.array([np.clip(cand[n], lo, hi)
-                                for n, (lo, hi) in zip(PARAM_NAMES, bounds, strict=True)])
-                r_db, r_deg = residuals(hb, base_model.response(f, row))
-                err = float(np.nanmean(r_db ** 2 + (r_deg / UNIT_DEG) ** 2))
-                if np.isfinite(err) and (best is None or err < best[0]):
-                    best = (err, row)
-        if best is not None:
-            out[i] = best[1]
+            cands = [c for cut in cuts for c in levy_candidates(a_w[i, cut], b_w[i, cut])]
+            if not cands:
+                continue
+            rows = np.clip([[c[n] for n in PARAM_NAMES] for c in cands], lower, upper)
+            r_db, r_deg = residuals(hb, base_model.response(
+                f, {n: rows[:, j:j + 1] for j, n in enumerate(PARAM_NAMES)}))
+            err = np.nanmean(r_db ** 2 + (r_deg / UNIT_DEG) ** 2, axis=1)
+        ok = np.flatnonzero(np.isfinite(err))
+        if ok.size:     # the first of the closest, as the candidates come
+            out[i] = rows[ok[np.argmin(err[ok])]]
     return out
 
 
