@@ -13,6 +13,7 @@ at its step limit and tries the axes' common values).
 
 from __future__ import annotations
 
+import contextlib
 import operator
 import os
 import threading
@@ -363,6 +364,34 @@ def test_task_queue_hands_every_task_to_the_workers_once_the_fork_server_runs():
     assert len(pids) == 4 and os.getpid() not in pids
 
 
+def test_task_queue_keeps_one_task_waiting_beyond_its_own_workers(monkeypatch):
+    # a pool of the queue's own (2 workers here) is handed one task more than it has
+    # workers, so that a worker ending a task finds the next one waiting: at most 3 of
+    # the tasks handed over are unfinished at once, and every result comes back
+    unfinished, most = [], []
+
+    class Counting(ThreadPoolExecutor):
+        def submit(self, fn, *args, **kwargs):
+            fut = super().submit(fn, *args, **kwargs)
+            unfinished.append(fut)
+            most.append(sum(not f.done() for f in unfinished))
+            return fut
+
+    @contextlib.contextmanager
+    def own_pool(executor, jobs, preload=()):
+        with Counting(max_workers=jobs) as pool:
+            yield pool
+
+    monkeypatch.setattr(schedule, "executor_for", own_pool)
+    monkeypatch.setattr(schedule, "fork_server_running", lambda: True)
+    release = threading.Event()
+    with schedule.task_queue(jobs=2) as tasks:
+        threading.Timer(0.2, release.set).start()
+        out = tasks.map(lambda i: release.wait(10) and i, range(6))
+    assert out == list(range(6))
+    assert max(most) == 2 + schedule.AHEAD == 3
+
+
 # ---------------------------------------------------------------------------
 # Joint fits: repeated starts, single-trial fits
 # ---------------------------------------------------------------------------
@@ -399,6 +428,59 @@ def test_joint_jacobian_is_that_of_the_residuals(study):
                                        atol=1e-7 * scale)
             cols = (np.arange(prob.k) if prob.cols is None else prob.cols[i]) + T * nb
             np.testing.assert_allclose(js[i], want[i][:, cols], rtol=1e-4, atol=1e-6 * scale)
+
+
+def _levy_one_by_one(model, data, band, effect_values, fallback):
+    """levy_starts written out as armfit did it before: trial by trial, each band cut's
+    Levy fit on its own frequencies, each candidate's response on its own."""
+    from armfit.diagnosis.bands import residuals
+    from armfit.diagnosis.tuning import UNIT_DEG
+    from armfit.fitting import analytic_guess
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    f = data.f_hz[sel]
+    out = np.array(fallback, float, copy=True)
+    base_model = ClosedLoopModel(mp=model.mp)
+    bounds = [(p.lower, p.upper) for p in base_model.params]
+    for i in range(data.h.shape[0]):
+        with np.errstate(all="ignore"):
+            hb = model.remove_effects(f, data.h[i, sel], effect_values) if effect_values \
+                else data.h[i, sel]
+            if not np.all(np.isfinite(hb)):
+                continue
+            best = None
+            cands = [c for lo_f in (0.0, 0.3, 1.0) if np.sum(f >= lo_f) > 10
+                     for c in analytic_guess(f[f >= lo_f], hb[f >= lo_f], model.mp)]
+            for cand in cands:
+                row = np.array([np.clip(cand[n], lo, hi)
+                                for n, (lo, hi) in zip(PARAM_NAMES, bounds, strict=True)])
+                r_db, r_deg = residuals(hb, base_model.response(f, row))
+                err = float(np.nanmean(r_db ** 2 + (r_deg / UNIT_DEG) ** 2))
+                if np.isfinite(err) and (best is None or err < best[0]):
+                    best = (err, row)
+        if best is not None:
+            out[i] = best[1]
+    return out
+
+
+def test_levy_starts_of_all_trials_at_once_are_those_trial_by_trial(study):
+    # bit for bit: the base model, and the delay and the lowpass removed at several
+    # values (one so large that some trials' responses without it are not finite, and
+    # another where no candidate is physical and the fallback row stays)
+    from armfit.diagnosis.starts import levy_starts
+    data, band = _z_data(study)
+    fallback = start_array(data)
+    cases = [(ClosedLoopModel.for_axis("z"), {})]
+    for name, values in (("delay", (0.0, 0.012, 0.05)), ("lowpass", (20.0, 2.0, 0.2))):
+        model = ClosedLoopModel.for_axis("z", [EFFECTS[name]])
+        param = f"{name}.{EFFECTS[name].params[0].name}"
+        cases += [(model, {param: v}) for v in values]
+    kept = 0
+    for model, values in cases:
+        got = levy_starts(model, data, band, values, fallback)
+        want = _levy_one_by_one(model, data, band, values, fallback)
+        assert np.array_equal(got, want), values
+        kept += int(np.sum(np.all(got == fallback, axis=1)))
+    assert kept        # some trial kept its fallback row: that branch was taken too
 
 
 def test_joint_normal_blocks_a_few_trials_at_a_time_are_those_of_the_whole_jacobian(
