@@ -462,12 +462,14 @@ def _levy_one_by_one(model, data, band, effect_values, fallback):
     return out
 
 
-def test_levy_starts_of_all_trials_at_once_are_those_trial_by_trial(study):
+def test_levy_starts_of_many_trials_at_once_are_those_trial_by_trial(study, monkeypatch):
     # bit for bit: the base model, and the delay and the lowpass removed at several
     # values (one so large that some trials' responses without it are not finite, and
-    # another where no candidate is physical and the fallback row stays)
-    from armfit.diagnosis.starts import levy_starts
+    # another where no candidate is physical and the fallback row stays); the trials
+    # taken 3 at a time (several chunks, the last one short) and all at once
+    from armfit.diagnosis import starts
     data, band = _z_data(study)
+    assert data.h.shape[0] > 3 and data.h.shape[0] % 3
     fallback = start_array(data)
     cases = [(ClosedLoopModel.for_axis("z"), {})]
     for name, values in (("delay", (0.0, 0.012, 0.05)), ("lowpass", (20.0, 2.0, 0.2))):
@@ -475,11 +477,13 @@ def test_levy_starts_of_all_trials_at_once_are_those_trial_by_trial(study):
         param = f"{name}.{EFFECTS[name].params[0].name}"
         cases += [(model, {param: v}) for v in values]
     kept = 0
-    for model, values in cases:
-        got = levy_starts(model, data, band, values, fallback)
-        want = _levy_one_by_one(model, data, band, values, fallback)
-        assert np.array_equal(got, want), values
-        kept += int(np.sum(np.all(got == fallback, axis=1)))
+    for chunk in (3, 10_000):
+        monkeypatch.setattr(starts, "CHUNK_TRIALS", chunk)
+        for model, values in cases:
+            got = starts.levy_starts(model, data, band, values, fallback)
+            want = _levy_one_by_one(model, data, band, values, fallback)
+            assert np.array_equal(got, want), (chunk, values)
+            kept += int(np.sum(np.all(got == fallback, axis=1)))
     assert kept        # some trial kept its fallback row: that branch was taken too
 
 

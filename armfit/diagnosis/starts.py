@@ -34,28 +34,40 @@ def levy_starts(model: ClosedLoopModel, data: AxisData, band: tuple[float, float
     # the linear fit is sensitive to the noisy lowest frequencies: also try it above
     # 0.3 Hz and above 1 Hz, judge every candidate on the whole band
     cuts = [f >= lo_f for lo_f in (0.0, 0.3, 1.0) if np.sum(f >= lo_f) > 10]
-    with np.errstate(all="ignore"):
-        # every trial's response without the effects, and the rows of its linear system,
-        # at once (each value is that trial's own)
-        hbs = model.remove_effects(f, data.h[:, sel], effect_values) if effect_values \
-            else data.h[:, sel]
-        a_w, b_w = levy_rows(f, hbs, model.mp)
-    for i in range(data.h.shape[0]):
-        hb = hbs[i]
+    for a in range(0, data.h.shape[0], CHUNK_TRIALS):
+        chunk = slice(a, a + CHUNK_TRIALS)
         with np.errstate(all="ignore"):
-            if not np.all(np.isfinite(hb)):
-                continue
-            cands = [c for cut in cuts for c in levy_candidates(a_w[i, cut], b_w[i, cut])]
-            if not cands:
-                continue
-            rows = np.clip([[c[n] for n in PARAM_NAMES] for c in cands], lower, upper)
-            r_db, r_deg = residuals(hb, base_model.response(
-                f, {n: rows[:, j:j + 1] for j, n in enumerate(PARAM_NAMES)}))
-            err = np.nanmean(r_db ** 2 + (r_deg / UNIT_DEG) ** 2, axis=1)
-        ok = np.flatnonzero(np.isfinite(err))
-        if ok.size:     # the first of the closest, as the candidates come
-            out[i] = rows[ok[np.argmin(err[ok])]]
+            # the responses without the effects, and the rows of their linear systems,
+            # of CHUNK_TRIALS trials at once (each value is that trial's own; the
+            # temporaries do not grow with the number of trials)
+            hbs = model.remove_effects(f, data.h[chunk, sel], effect_values) \
+                if effect_values else data.h[chunk, sel]
+            a_w, b_w = levy_rows(f, hbs, model.mp)
+        for i, hb in enumerate(hbs):
+            best = _levy_best(base_model, f, hb, a_w[i], b_w[i], cuts, lower, upper)
+            if best is not None:
+                out[a + i] = best
     return out
+
+
+def _levy_best(base_model: ClosedLoopModel, f: np.ndarray, hb: np.ndarray, a_w: np.ndarray,
+               b_w: np.ndarray, cuts: Sequence[np.ndarray], lower: np.ndarray,
+               upper: np.ndarray) -> np.ndarray | None:
+    """One trial's row of :func:`levy_starts` (None: no physical candidate): the Levy
+    candidates of each band cut (rows ``a_w``, ``b_w`` of :func:`levy_rows`), clipped to
+    the bounds, judged at once on the whole band; the first of the closest."""
+    with np.errstate(all="ignore"):
+        if not np.all(np.isfinite(hb)):
+            return None
+        cands = [c for cut in cuts for c in levy_candidates(a_w[cut], b_w[cut])]
+        if not cands:
+            return None
+        rows = np.clip([[c[n] for n in PARAM_NAMES] for c in cands], lower, upper)
+        r_db, r_deg = residuals(hb, base_model.response(
+            f, {n: rows[:, j:j + 1] for j, n in enumerate(PARAM_NAMES)}))
+        err = np.nanmean(r_db ** 2 + (r_deg / UNIT_DEG) ** 2, axis=1)
+    ok = np.flatnonzero(np.isfinite(err))
+    return rows[ok[np.argmin(err[ok])]] if ok.size else None
 
 
 def best_rows(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
