@@ -18,11 +18,14 @@ distributed = pytest.importorskip("distributed")
 
 
 @pytest.fixture(scope="module")
-def cluster():
+def cluster(tmp_path_factory):
     """Two worker processes (processes=True: tasks and results are pickled to and from
-    other interpreters, as on a cluster of machines)."""
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=":0") as c:
+    other interpreters, as on a cluster of machines); their scratch space in the test's
+    own temporary folder, not dask's default in the system's."""
+    import dask
+    with dask.config.set({"temporary-directory": str(tmp_path_factory.mktemp("dask"))}), \
+            distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                     dashboard_address=":0") as c:
         yield c
 
 
