@@ -228,12 +228,15 @@ class _Problem:
     def theta_dict(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         return {n: theta[..., i] for i, n in enumerate(self.space.names)}
 
-    def residuals_batch(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)
-                        ) -> np.ndarray:
-        """Residuals for a batch of points z (k, p) → (k, m)."""
+    def residuals_batch(self, z: np.ndarray, idx: np.ndarray | slice = slice(None),
+                        z_base: np.ndarray | None = None) -> np.ndarray:
+        """Residuals for a batch of points z (k, p) → (k, m). ``z_base`` (k, n): Z_ARM +
+        Mp s² of each point's base parameters, when known
+        (:meth:`~armfit.models.arm.ClosedLoopModel.response_at_base`; the same values)."""
         theta = self.space.to_theta(z)
         values = {n: v[:, None] for n, v in self.theta_dict(theta).items()}
-        hm = self.model.response(self.f[idx], values)
+        hm = self.model.response(self.f[idx], values) if z_base is None \
+            else self.model.response_at_base(self.f[idx], values, z_base)
         return self._weighted(hm, idx)
 
     def residuals(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
@@ -242,16 +245,20 @@ class _Problem:
         return self._weighted(hm, idx)
 
     def jacobian_batch(self, z: np.ndarray, idx: np.ndarray | slice = slice(None),
-                       first: int = 0) -> np.ndarray:
+                       first: int = 0, z_base: np.ndarray | None = None) -> np.ndarray:
         """∂r/∂z by central differences (step 1e-6 in z) at a batch of points z (k, p) →
         (k, m, p − first): the columns of the parameters from ``first`` on, all their
-        2k(p − first) points in one batch."""
+        2k(p − first) points in one batch. ``z_base`` (k, n): Z_ARM + Mp s² at each
+        point, when only effect parameters are stepped (``first`` past the base ones):
+        the stepped points share it."""
         step = 1e-6
         k, p = z.shape
         q = p - first
         e = step * np.eye(p)[first:]
         pts = np.concatenate([z[:, None, :] + e, z[:, None, :] - e], axis=1)  # (k, 2q, p)
-        r = self.residuals_batch(pts.reshape(2 * k * q, p), idx).reshape(k, 2 * q, -1)
+        r = self.residuals_batch(pts.reshape(2 * k * q, p), idx,
+                                 None if z_base is None else np.repeat(z_base, 2 * q, axis=0)
+                                 ).reshape(k, 2 * q, -1)
         return np.swapaxes(r[:, :q] - r[:, q:], 1, 2) / (2 * step)
 
     def jacobian_analytic(self, z: np.ndarray, idx: np.ndarray | slice = slice(None)
@@ -277,7 +284,8 @@ class _Problem:
         values = {n: v[:, None] for n, v in self.theta_dict(theta).items()}
         f, h = self.f[idx], self.h[idx]
         with np.errstate(all="ignore"):
-            hm, dlog = self.model.response_and_base_log_derivatives(f, values)  # (k, n)
+            hm, dlog, z_base = self.model.response_and_base_log_derivatives(
+                f, values, with_base=True)                                   # (k, n)
             dz = np.where(self.space.log[:nb], theta[:, :nb],
                           self.space.upper[:nb] - self.space.lower[:nb]).T[:, :, None]
             d_db = DB_PER_NEPER * dlog.real * dz                             # (5, k, n)
@@ -292,7 +300,8 @@ class _Problem:
         jb = np.moveaxis(np.where(ok & np.isfinite(db), db, 0.0), 0, -1)    # (k, m, 5)
         if p == nb:
             return jb
-        return np.concatenate([jb, self.jacobian_batch(z, idx, first=nb)], axis=-1)
+        return np.concatenate([jb, self.jacobian_batch(z, idx, first=nb, z_base=z_base)],
+                              axis=-1)
 
     def solve_many(self, z0: np.ndarray, idx: np.ndarray | slice = slice(None), *,
                    mask: np.ndarray | None = None, **opts) -> multilsq.ManyResult:

@@ -195,6 +195,26 @@ def test_every_effect_vanishes_at_its_null_point(name):
             assert p.lower <= st[p.name] <= p.upper
 
 
+def test_the_response_from_a_known_base_impedance_is_the_response():
+    # to the bit, every library effect at once (each stage: arm, device, output): the
+    # base impedance Z_ARM + Mp s² of two rows of arm parameters, then the effects' values
+    # stepped with the arm parameters fixed (three steps per row), as the joint fits'
+    # forward differences evaluate them
+    m = ClosedLoopModel.for_axis("y", [EFFECTS[n] for n in sorted(EFFECTS)])
+    theta = m.start_points(X1)[-1]
+    rows = {n: np.array([[v], [1.3 * v]]) for n, v in theta.items()}
+    h, _, z_base = m.response_and_base_log_derivatives(F, rows, with_base=True)
+    assert np.array_equal(h, m.response(F, rows))
+    # eq. 4: Z_ARM + Mp s² = 1/H_CL of the arm parameters alone
+    np.testing.assert_allclose(z_base, 1.0 / h_cl(F, **{n: rows[n] for n in X1}, mp=m.mp),
+                               rtol=1e-12)
+    effect_names = [n for n in m.param_names if "." in n]
+    stepped = {n: np.stack([rows[n]] * 3) for n in rows}           # (3, 2, 1)
+    for i, n in enumerate(effect_names):
+        stepped[n] = stepped[n] * (1.0 + 1e-3 * np.arange(1, 4))[:, None, None] ** (i + 1)
+    assert np.array_equal(m.response_at_base(F, stepped, z_base), m.response(F, stepped))
+
+
 @pytest.mark.parametrize("name", [None, *sorted(EFFECTS)])
 def test_base_log_derivatives_are_those_of_the_response(name):
     # ∂ ln H/∂θ of the five arm parameters, analytic, against central differences of

@@ -263,10 +263,12 @@ class JointProblem:
         fill = 1e6 if self.unused is None else self.unused[rows]
         with np.errstate(all="ignore"):
             # the response at z and the base derivatives there, then at the k steps
-            h0, dlog = self.model.response_and_base_log_derivatives(
-                self.f, {n: v[0] for n, v in values.items()})           # (t, n), (5, t, n)
-            hm = h0[None] if not k else np.concatenate([h0[None], self.model.response(
-                self.f, {n: v[1:] for n, v in values.items()})])
+            h0, dlog, z_base = self.model.response_and_base_log_derivatives(
+                self.f, {n: v[0] for n, v in values.items()}, with_base=True)
+            # (t, n), (5, t, n), (t, n); the steps change only effect parameters: their
+            # responses share the base impedance
+            hm = h0[None] if not k else np.concatenate([h0[None], self.model.response_at_base(
+                self.f, {n: v[1:] for n, v in values.items()}, z_base)])
             r_db, r_deg = residuals(self.h[None, rows], hm)
             R = np.concatenate([r_db * w_db, r_deg * w_deg], axis=-1)
             dz = np.where(self.space.log[:nb], theta[0, :, :nb],

@@ -373,26 +373,38 @@ class ClosedLoopModel:
                                        _z_arm_at(s, **base) + self.mp * s * s)
         return factor / z
 
-    def response_and_base_log_derivatives(self, f_hz, theta
-                                          ) -> tuple[np.ndarray, np.ndarray]:
+    def response_at_base(self, f_hz, theta, z_base: np.ndarray) -> np.ndarray:
+        """:meth:`response` (the same values) where Z_ARM + Mp s² of ``theta``'s base
+        parameters is ``z_base`` (N/m, as :meth:`response_and_base_log_derivatives` gives
+        it) already: only the effects' terms are made, e.g. for effect values stepped
+        with the base parameters fixed."""
+        _, eff = self._split(theta)
+        factor, z = self._effect_terms(laplace(f_hz), eff, STAGE_NAMES, z_base)
+        return factor / z
+
+    def response_and_base_log_derivatives(self, f_hz, theta, with_base: bool = False
+                                          ) -> tuple[np.ndarray, ...]:
         """:meth:`response` H (the same values) and ∂ ln H/∂θ for each base parameter θ
         (Ma, k1, k2, b1, b2 in their units), analytically: H = R/Z with Z = Z_ARM + Mp s²
         + ΔZ, R and ΔZ the effects' terms (independent of the base parameters), so
         ∂ ln H/∂θ = −(∂Z_ARM/∂θ)/Z, and with Z_ARM = N/D (eq. 3), N = C1 (Ma s² + C2),
         D = Ma s² + C1 + C2, ∂Z_ARM/∂θ = (∂N/∂θ − Z_ARM ∂D/∂θ)/D. The derivatives are
         (5, ...) complex, the parameters first, then the broadcast shape of ``theta``'s
-        values and the frequencies."""
+        values and the frequencies. ``with_base``: also Z_ARM + Mp s² (N/m), for
+        :meth:`response_at_base`."""
         base, eff = self._split(theta)
         s = laplace(f_hz)
         c1, c2, ms2, den = _z_arm_terms(s, **base)
         z_arm = c1 * (ms2 + c2) / den
-        factor, z = self._effect_terms(s, eff, STAGE_NAMES, z_arm + self.mp * s * s)
+        z_base = z_arm + self.mp * s * s
+        factor, z = self._effect_terms(s, eff, STAGE_NAMES, z_base)
         scale = -1.0 / (den * z)
         d_k1 = (ms2 + c2 - z_arm) * scale        # (∂N/∂k1 − Z_ARM ∂D/∂k1) · (−1/(D Z))
         d_k2 = (c1 - z_arm) * scale              # the same for k2
         # ∂/∂Ma = s² ∂/∂k2, ∂/∂b1 = s ∂/∂k1, ∂/∂b2 = s ∂/∂k2
-        return factor / z, np.stack(np.broadcast_arrays(s * s * d_k2, d_k1, d_k2,
-                                                        s * d_k1, s * d_k2))
+        out = (factor / z, np.stack(np.broadcast_arrays(s * s * d_k2, d_k1, d_k2,
+                                                       s * d_k1, s * d_k2)))
+        return (*out, z_base) if with_base else out
 
     def _effect_terms(self, s, eff: Sequence[Mapping[str, float]], stages: Sequence[str],
                       z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
