@@ -154,13 +154,13 @@ class _Quadratic:
         """(a, b, c) of q(s0 + t·s) = a t² + b t + c."""
         g, c = self.g_h, self.c_h
         js = self.jdot(s)
-        a = 0.5 * (float(np.sum(js * js)) + float(s @ (c * s)))
+        a = 0.5 * (float((js * js).sum()) + float(s @ (c * s)))
         b = float(g @ s)
         cc = 0.0
         if s0 is not None:
             j0 = self.jdot(s0)
-            b += float(np.sum(js * j0)) + float(s0 @ (c * s))
-            cc = 0.5 * (float(np.sum(j0 * j0)) + float(s0 @ (c * s0))) + float(g @ s0)
+            b += float((js * j0).sum()) + float(s0 @ (c * s))
+            cc = 0.5 * (float((j0 * j0).sum()) + float(s0 @ (c * s0))) + float(g @ s0)
         return a, b, cc
 
     def value(self, p: np.ndarray) -> float:
@@ -196,10 +196,10 @@ class _Scaled(_Quadratic):
         """pᵀ(J_hᵀJ_h)q from the blocks."""
         pb, ps = self._split(p)
         qb, qs = self._split(q)
-        out = float(np.sum(pb * np.einsum("tpq,tq->tp", self.A, qb)))
+        out = float((pb * np.einsum("tpq,tq->tp", self.A, qb)).sum())
         if self.k:
-            out += float(np.sum(pb * np.einsum("tpk,tk->tp", self.B, self._local(qs))))
-            out += float(np.sum(qb * np.einsum("tpk,tk->tp", self.B, self._local(ps))))
+            out += float((pb * np.einsum("tpk,tk->tp", self.B, self._local(qs))).sum())
+            out += float((qb * np.einsum("tpk,tk->tp", self.B, self._local(ps))).sum())
             out += float(ps @ self.C @ qs)
         return out
 
@@ -251,14 +251,14 @@ class _Scaled(_Quadratic):
         solver, with a solve in place of the SVD). ``alpha``: the previous α, the
         first guess. Returns (p_h, α)."""
         gb, gs = -self.gb, -self.gs
-        g_norm = float(np.sqrt(np.sum(gb * gb) + gs @ gs))
+        g_norm = float(np.sqrt((gb * gb).sum() + gs @ gs))
         if g_norm == 0.0:
             return np.zeros(self.T * self.nb + self.k), 0.0
         diag = np.concatenate([np.diagonal(self.A, axis1=1, axis2=2).ravel(),
                                np.diag(self.C) if self.k else np.zeros(0)])
         floor = 1e-12 * max(float(diag.max(initial=0.0)), 1e-300)
         pb, ps = self.solve(floor, gb, gs)
-        norm = float(np.sqrt(np.sum(pb * pb) + ps @ ps))
+        norm = float(np.sqrt((pb * pb).sum() + ps @ ps))
         if np.isfinite(norm) and norm <= delta:
             return np.concatenate([pb.ravel(), ps]), 0.0
         lo, hi = 0.0, g_norm / delta
@@ -268,12 +268,12 @@ class _Scaled(_Quadratic):
             if not lo < alpha < hi:
                 alpha = max(1e-3 * hi, np.sqrt(lo * hi))
             pb, ps = self.solve(alpha, gb, gs)
-            norm = float(np.sqrt(np.sum(pb * pb) + ps @ ps))
+            norm = float(np.sqrt((pb * pb).sum() + ps @ ps))
             phi = norm - delta
             if phi < 0:
                 hi = alpha
             qb, qs = self.solve(alpha, pb, ps)
-            phi_prime = -float(np.sum(pb * qb) + ps @ qs) / norm
+            phi_prime = -float((pb * qb).sum() + ps @ qs) / norm
             ratio = phi / phi_prime
             lo = max(lo, alpha - ratio)
             alpha -= (phi + delta) * ratio / delta
@@ -289,7 +289,7 @@ def _to_bound(x, s, lower, upper) -> tuple[float, np.ndarray]:
     nz = s != 0
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
         steps[nz] = np.maximum((lower - x)[nz] / s[nz], (upper - x)[nz] / s[nz])
-    t = float(np.min(steps))
+    t = float(steps.min())
     return t, np.equal(steps, t) * np.sign(s).astype(int)
 
 
@@ -318,7 +318,7 @@ def _select_step(x, sub: _Quadratic, d, p_h, delta, lower, upper, theta):
     and diagonal), ``d`` the scaling, ``p_h`` the trust-region step (scaled), ``theta``
     the step-back factor from a bound. Returns (step, step_h, predicted reduction)."""
     p = d * p_h
-    if np.all((x + p >= lower) & (x + p <= upper)):
+    if ((x + p >= lower) & (x + p <= upper)).all():
         return p, p_h, -sub.value(p_h)
     stride, hits = _to_bound(x, p, lower, upper)
     r_h = p_h.copy()
@@ -420,7 +420,7 @@ def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: n
         A, B, C, gb, gs = blocks
         g = np.concatenate([gb.ravel(), gs])
         v, dv = _cl_scaling(x, g, lower, upper)
-        g_norm = float(np.max(np.abs(g * v), initial=0.0))
+        g_norm = float(np.abs(g * v).max(initial=0.0))
         if g_norm < gtol:
             status = 1
         if status or nfev >= max_nfev:
