@@ -1220,7 +1220,14 @@ def trial_groups(spectra, *, method: str | None = None, source: str | None = Non
         tr.key("axis"), tr.key("subject"), tr.key("grip_N"), tr.key("run"), strict=True)]
     order = sorted(range(len(tr)), key=lambda i: (*keys[i][:3], -1 if keys[i][3] is None
                                                   else keys[i][3]))
-    return [(keys[i], tr.row(i)) for i in order]
+    # a response on every frequency of the grid is a view of the read's arrays, not a
+    # copy of them (the same values): the read's arrays and copies of them are never held
+    # at once (33 against 17 MB for the 4,050 trials of a study on 100 frequencies)
+    whole = tr.present.all(axis=1)
+
+    def row(i: int) -> tuple:
+        return (tr.freq_hz, tr.h[i], tr.se_db[i], tr.se_deg[i]) if whole[i] else tr.row(i)
+    return [(keys[i], row(i)) for i in order]
 
 
 def fit_trial(key: tuple[str, str, float, int | None], rows, *, cost: str = "complex",

@@ -228,6 +228,28 @@ def test_trial_groups_of_a_file_are_those_of_its_spectra(sample):
                    for a, b in zip(rows1, rows2, strict=True))
 
 
+def test_trial_groups_hold_whole_grid_responses_as_views_of_one_read(sample):
+    # a response on every frequency is a view of the read's arrays (one copy of the
+    # study's responses, not two), a response lacking a frequency its own copy at the
+    # frequencies it has; the values are those of Spectra.row either way
+    sp = S.Spectra.read(sample["one group"], level="trial", kind="measured",
+                        values=("se_db", "se_deg"))
+    present = sp.present.copy()
+    present[3, 5] = False       # one trial's response without its sixth frequency
+    sp = S.Spectra(sp.freq_hz, sp.keys, sp.h, sp.values, sp.flags, present, sp.meta,
+                   sp.source)
+    index = {(str(a), str(s), float(g), r): i for i, (a, s, g, r) in enumerate(zip(
+        sp.key("axis"), sp.key("subject"), sp.key("grip_N"), sp.key("run"), strict=True))}
+    groups = trial_groups(sp)
+    assert len(groups) == len(sp) == 36
+    for key, rows in groups:
+        i = index[key]
+        assert all(np.array_equal(a, b, equal_nan=True)
+                   for a, b in zip(rows, sp.row(i), strict=True))
+        assert np.shares_memory(rows[1], sp.h) == (i != 3)
+        assert rows[0].size == sp.freq_hz.size - (i == 3)
+
+
 def test_take_of_every_row_is_the_spectra_itself(sample):
     sp = S.Spectra.read(sample["one group"])
     assert sp.take(np.arange(len(sp))) is sp
