@@ -109,9 +109,7 @@ class TaskQueue:
                              sorted(done, key=lambda f: self._running[f][0])]
                 for then, fut in ended:
                     then(fut.result())
-                if not (self.starting is not None and self.starting.is_alive()):
-                    with self._lock:    # the workers' next tasks first, then the memory
-                        self._submit()
+                self.start_ready()     # the workers' next tasks first, then the memory
                 # the tasks' arguments sent and results received are let go by now: a
                 # process that keeps what it frees (armfit.workers.tune_allocator) gives
                 # it back (`armfit run` of 4,050 trials: its main process peaked at
