@@ -2790,7 +2790,12 @@ def write_parts(parts: Iterable[Spectra], meta: Mapping, path, *,
             for part in parts:
                 if writer is None:
                     schema = _file_schema(part, meta)
-                    writer = pq.ParquetWriter(tmp, schema, compression="zstd")
+                    # the metadata goes in once, as key-value metadata: Arrow's copy of
+                    # the schema (store_schema) would hold it again, base64-encoded,
+                    # and every reader that opens the file would decode both
+                    writer = pq.ParquetWriter(tmp, schema.remove_metadata(),
+                                              compression="zstd", store_schema=False)
+                    writer.add_key_value_metadata(schema.metadata)
                 writer.write_table(_arrow_table(part, schema))
                 # Arrow's allocator (mimalloc) would keep each group's buffers: give
                 # them back, so a file of many groups needs no more memory than one

@@ -80,6 +80,37 @@ def test_reading_by_row_group_gives_the_whole_table(sample, layout):
     assert_same(S.Spectra.read(path), whole(path))
 
 
+def test_the_file_holds_its_metadata_once_and_reads_as_one_with_arrows_schema(sample,
+                                                                             tmp_path):
+    """The footer keeps armfit's JSON under its own key only: no ``ARROW:schema``, whose
+    base64 copy of the schema repeated it. A file written with that copy (as pyarrow
+    writes by default, and armfit wrote before) reads to the same responses."""
+    path = sample["7 a group"]
+    kv = pq.read_metadata(path).metadata
+    assert set(kv) == {SPECTRA_META_KEY, b"pandas"}
+    assert json.loads(kv[SPECTRA_META_KEY])["method"] == "h1"
+    # the same table written with Arrow's schema copy: its metadata there is twice in
+    # the footer, and Arrow reads the text columns back as large_string
+    table = pq.read_table(path)
+    schema = table.schema.with_metadata(kv).set(
+        0, pa.field("level", pa.large_string()))
+    old = tmp_path / "with_arrow_schema.parquet"
+    pq.write_table(table.cast(schema), old, row_group_size=7 * 100)
+    old_kv = pq.read_metadata(old).metadata
+    assert b"ARROW:schema" in old_kv and len(old_kv[b"ARROW:schema"]) > len(
+        kv[SPECTRA_META_KEY])
+    assert pq.read_schema(old).field("level").type == pa.large_string()
+    got = S.Spectra.read(old)
+    assert_same(got, replace_source(S.Spectra.read(path), str(old)))
+    # pandas reads the two files to the same frame
+    pd.testing.assert_frame_equal(pd.read_parquet(old), pd.read_parquet(path))
+
+
+def replace_source(sp: S.Spectra, source: str) -> S.Spectra:
+    from dataclasses import replace
+    return replace(sp, source=source)
+
+
 @pytest.mark.parametrize("wanted", [
     {"level": "trial"},
     {"level": ("mean", "median")},
