@@ -107,7 +107,6 @@ class _Search:
         self.max_steps, self.min_db, self.min_deg = max_steps, min_db, min_deg
         self.sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
         self.f = data.f_hz[self.sel]
-        self.se_db, self.se_deg = data.noise_se(self.sel)
         self.fits: list[JointFit] = []
         self.added: list[Effect] = []
         self.steps: list[Step] = []
@@ -124,6 +123,12 @@ class _Search:
         self.untested: Effect | None = None
         self.rivals: list[CandidateFit] = []
         self.winner: tuple | None = None
+
+    def noise(self) -> tuple[np.ndarray, np.ndarray]:
+        """The noise model's standard errors (dB, deg) of every trial on the band, (T, n):
+        made from :attr:`data` when needed, not held for the search's length (on 1,350
+        trials of 100 frequencies, 2.2 MB an axis besides the data's own)."""
+        return self.data.noise_se(self.sel)
 
     def n_params(self, fit: JointFit) -> int:
         return fit.n_free
@@ -167,10 +172,11 @@ class _Search:
     def evaluate(self, eff: Effect, fit: JointFit, cur: JointFit,
                  test: SubjectTest | None = None) -> CandidateFit:
         """The evidence for ``fit`` (``cur``'s model plus ``eff``) against ``cur``."""
-        score, lr, reduction = delta_bic(cur, fit, self.se_db, self.se_deg)
-        err = band_error(self.f, fit.r_db, fit.r_deg, self.se_db, self.se_deg, *self.band)
+        se_db, se_deg = self.noise()
+        score, lr, reduction = delta_bic(cur, fit, se_db, se_deg)
+        err = band_error(self.f, fit.r_db, fit.r_deg, se_db, se_deg, *self.band)
         size_db, size_deg = effect_size(fit, eff, self.f)
-        prac, _ = practical(self.f, size_db, size_deg, self.se_db, self.se_deg,
+        prac, _ = practical(self.f, size_db, size_deg, se_db, se_deg,
                             self.min_db, self.min_deg)
         stat = bool(score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION)
         return CandidateFit(eff, fit, score, stat and prac, err, reduction, lr,
@@ -272,7 +278,7 @@ class _Search:
         self._check_stop()
 
     def _adequacy(self, fit: JointFit) -> Adequacy:
-        return adequacy(self.f, fit, self.se_db, self.se_deg, self.band, self.n_params(fit),
+        return adequacy(self.f, fit, *self.noise(), self.band, self.n_params(fit),
                         self.min_db, self.min_deg)
 
     def _append(self, eff: Effect, fit: JointFit, ad: Adequacy, score: float,
@@ -294,6 +300,7 @@ class _Search:
         base = self.fits[0]
         fail_ranges = [(fb.lo_hz, fb.hi_hz) for fb in self.adequacies[0].failing]
         be = self.adequacies[0].overall
+        se_db, se_deg = self.noise()
         return Candidate(
             effect=eff.name, params=short_params(fit.shared, eff.name),
             params_lo=short_params(fit.shared_lo, eff.name),
@@ -303,10 +310,8 @@ class _Search:
             rms_norm_before=be.rms_norm, rms_norm_after=err.rms_norm,
             failing_before=band_errors(self.f, base, self.data, self.sel, fail_ranges),
             failing_after=band_errors(self.f, fit, self.data, self.sel, fail_ranges),
-            failing_bias_before=union_bias(self.f, base, self.se_db, self.se_deg,
-                                            fail_ranges),
-            failing_bias_after=union_bias(self.f, fit, self.se_db, self.se_deg,
-                                           fail_ranges),
+            failing_bias_before=union_bias(self.f, base, se_db, se_deg, fail_ranges),
+            failing_bias_after=union_bias(self.f, fit, se_db, se_deg, fail_ranges),
             lr=float(c.lr), score=float(c.score), rss_reduction=float(c.rss_reduction),
             significant=bool(c.significant))
 
@@ -335,10 +340,11 @@ class _Search:
         if fit.rss >= cur.rss:
             return
         if new:
-            score, _, reduction = delta_bic(cur, fit, self.se_db, self.se_deg,
+            se_db, se_deg = self.noise()
+            score, _, reduction = delta_bic(cur, fit, se_db, se_deg,
                                             k=sum(len(e.params) for e in new))
-            prac = all(practical(self.f, *effect_size(fit, e, self.f), self.se_db,
-                                 self.se_deg, self.min_db, self.min_deg)[0] for e in new)
+            prac = all(practical(self.f, *effect_size(fit, e, self.f), se_db, se_deg,
+                                 self.min_db, self.min_deg)[0] for e in new)
             if not (score > SIGNIFICANT_BIC and reduction >= MIN_REDUCTION and prac):
                 return
         ad = self._adequacy(fit)
