@@ -38,7 +38,7 @@ import numpy as np
 from armfit._order import nanmedian
 
 __all__ = ["POOL_BINS", "SE_CAP_DB", "SE_CAP_DEG", "SE_FLOOR_DB", "SE_FLOOR_DEG",
-           "normalised", "rms_norm", "standard_errors"]
+           "normalised", "rms_norm", "rms_of_normalised", "standard_errors"]
 
 #: Neighbouring bins over which a response's noise variance is pooled (step 3).
 POOL_BINS = 9
@@ -173,7 +173,31 @@ def rms_norm(r_db, r_deg, se_db, se_deg) -> float:
     or standard error is not finite carries no information and is left out (it is not
     counted as a zero residual).
     """
-    z_db, z_deg = normalised(r_db, r_deg, se_db, se_deg)
-    z = np.concatenate([np.ravel(z_db), np.ravel(z_deg)])
-    z = z[np.isfinite(z)]
-    return float(np.sqrt(np.mean(z * z))) if z.size else float("nan")
+    return rms_of_normalised(*normalised(r_db, r_deg, se_db, se_deg))
+
+
+def rms_of_normalised(z_db, z_deg) -> float:
+    """:func:`rms_norm` of residuals already normalised (:func:`normalised`).
+
+    Parameters
+    ----------
+    z_db, z_deg : array_like
+        Normalised residuals of magnitude and phase.
+
+    Returns
+    -------
+    float
+        √(mean of z² over every finite entry of both, pooled); NaN when none is finite.
+    """
+    parts = [np.asarray(a, float) for a in (z_db, z_deg)]
+    finite = [np.isfinite(a) for a in parts]
+    counts = [int(m.sum()) for m in finite]
+    if not sum(counts):
+        return float("nan")
+    # the finite values of both, in row-major order, copied into one array a part at a
+    # time (not both whole, then joined, then selected), then squared in place
+    z = np.empty(sum(counts))
+    z[:counts[0]] = parts[0][finite[0]]
+    z[counts[0]:] = parts[1][finite[1]]
+    np.multiply(z, z, out=z)
+    return float(np.sqrt(np.mean(z)))

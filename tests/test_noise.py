@@ -77,6 +77,24 @@ def test_rms_norm_pools_magnitude_and_phase():
     assert got == pytest.approx(math.sqrt((1 + 1 + 25) / 3))
 
 
+def test_rms_of_normalised_is_the_pooled_rms_of_the_finite_values_to_the_bit():
+    """The same number as the definition written out (join both, keep the finite values
+    in row-major order, mean of the squares), bit for bit, also for arrays laid out
+    column-major as a band's boolean selection makes them, with NaN and inf entries."""
+    rng = np.random.default_rng(7)
+    z_db = rng.normal(size=(40, 100))[:, rng.random(100) < 0.6]   # column-major copy
+    z_deg = 3.0 * rng.normal(size=(40, 100))[:, rng.random(100) < 0.6]
+    assert not z_db.flags["C_CONTIGUOUS"]
+    z_db[3, 4], z_deg[0, 1], z_deg[5, 2] = np.nan, np.inf, -np.nan
+    z = np.concatenate([z_db.ravel(), z_deg.ravel()])
+    z = z[np.isfinite(z)]
+    assert z.size == z_db.size + z_deg.size - 3
+    assert noise.rms_of_normalised(z_db, z_deg) == float(np.sqrt(np.mean(z * z)))
+    # rms_norm is it of the normalised residuals; nothing finite: NaN
+    assert noise.rms_norm(z_db, z_deg, 1.0, 1.0) == noise.rms_of_normalised(z_db, z_deg)
+    assert math.isnan(noise.rms_of_normalised([np.nan], [np.inf]))
+
+
 # ---------------------------------------------------------------------------
 # One number everywhere: params files, compare (API and compare.csv), the residual
 # figure's legend and the report, on the sample studies

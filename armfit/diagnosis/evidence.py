@@ -138,10 +138,12 @@ def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray
     over = tuple(b for b in bands if np.isfinite(b.rms_norm) and b.rms_norm > NOISE_TOL
                  and not (np.isfinite(b.bias_norm) and b.bias_norm <= 1.0))
     z = np.concatenate([zdb.ravel(), zdeg.ravel()])
+    del zdb, zdeg
     n_res = int(np.isfinite(z).sum())
     nu = max(n_res - n_params, 1)
+    np.multiply(z, z, out=z)    # the squares in place: no second array of 2 T n values
     return Adequacy(adequate=not fails and not over, overall=overall, bands=bands,
-                    over=over, failing=tuple(fails), cost=float(np.nansum(z * z)),
+                    over=over, failing=tuple(fails), cost=float(np.nansum(z)),
                     cost_expected=float(nu), cost_sd=float(np.sqrt(2.0 * nu)))
 
 
