@@ -28,6 +28,8 @@ from armfit import api, workers
 from armfit.adopt import adopt
 from armfit.constants import PARAM_NAMES
 from armfit.diagnosis import joint, schedule, search
+from armfit.diagnosis.bands import band_error
+from armfit.diagnosis.evidence import adequacy
 from armfit.diagnosis.fit import start_array
 from armfit.diagnosis.responses import axis_data, param_row
 from armfit.diagnosis.schedule import TaskQueue
@@ -927,8 +929,6 @@ def test_band_errors_and_adequacy_letting_copies_go_early_are_the_same_to_the_bi
     1,350 trials its transient memory fell from 15 to 9 MB): every band's errors and the
     adequacy's cost are those of the computation written out, bit for bit, with NaN and
     inf residuals and standard errors among them."""
-    from armfit.diagnosis.bands import band_error
-    from armfit.diagnosis.evidence import adequacy
     rng = np.random.default_rng(3)
     T, n = 60, 100
     f = np.geomspace(0.1, 30.0, n)

@@ -11,6 +11,7 @@ trials read straight from the raw files of the sample study.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -101,14 +102,9 @@ def test_the_file_holds_its_metadata_once_and_reads_as_one_with_arrows_schema(sa
         kv[SPECTRA_META_KEY])
     assert pq.read_schema(old).field("level").type == pa.large_string()
     got = S.Spectra.read(old)
-    assert_same(got, replace_source(S.Spectra.read(path), str(old)))
+    assert_same(got, replace(S.Spectra.read(path), source=str(old)))
     # pandas reads the two files to the same frame
     pd.testing.assert_frame_equal(pd.read_parquet(old), pd.read_parquet(path))
-
-
-def replace_source(sp: S.Spectra, source: str) -> S.Spectra:
-    from dataclasses import replace
-    return replace(sp, source=source)
 
 
 @pytest.mark.parametrize("wanted", [
