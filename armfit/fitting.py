@@ -1400,10 +1400,12 @@ def _grip_starts(spectra, cost, bands, effects, method, source
 def _read_or_of(spectra, *, level: str, kind: str,
                 values: Sequence[str] | None = None) -> Spectra:
     """The responses of level ``level`` and kind ``kind`` of the spectra file ``spectra``
-    (a path; with ``values`` only those of the values), or ``spectra`` itself (a Spectra
-    or a long table) as a Spectra."""
+    (a path; with ``values`` only those of the values, and without the metadata's
+    per-trial records), or ``spectra`` itself (a Spectra or a long table) as a
+    Spectra."""
     if isinstance(spectra, str | os.PathLike):
-        return Spectra.read(spectra, level=level, kind=kind, values=values)
+        return Spectra.read(spectra, level=level, kind=kind, values=values,
+                            estimators=False)
     return Spectra.of(spectra)
 
 

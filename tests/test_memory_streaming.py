@@ -27,7 +27,7 @@ from armfit.diagnosis.joint import JointProblem
 from armfit.diagnosis.responses import axis_data
 from armfit.errors import BadInputError
 from armfit.fitting import trial_groups
-from armfit.io.schema import SPECTRA_META_KEY, SPECTRA_VALUES
+from armfit.io.schema import SPECTRA_ESTIMATORS_KEY, SPECTRA_META_KEY, SPECTRA_VALUES
 from armfit.io.trials import dataset_sources, discover, read_trial, write_dataset
 from armfit.models.arm import ClosedLoopModel
 
@@ -51,7 +51,10 @@ def sample(tmp_path_factory) -> dict[str, Path]:
 def whole(path: Path) -> S.Spectra:
     """The file read in one piece by pyarrow, made a Spectra from its long table."""
     table = pq.read_table(path)
-    meta = json.loads(table.schema.metadata[SPECTRA_META_KEY])
+    kv = table.schema.metadata
+    meta = json.loads(kv[SPECTRA_META_KEY])
+    if SPECTRA_ESTIMATORS_KEY in kv:     # the per-trial records, under their own key
+        meta["estimators"] = json.loads(kv[SPECTRA_ESTIMATORS_KEY])
     return S.Spectra.from_frame(table.to_pandas(), meta=meta, source=str(path))
 
 
@@ -88,7 +91,7 @@ def test_the_file_holds_its_metadata_once_and_reads_as_one_with_arrows_schema(sa
     writes by default, and armfit wrote before) reads to the same responses."""
     path = sample["7 a group"]
     kv = pq.read_metadata(path).metadata
-    assert set(kv) == {SPECTRA_META_KEY, b"pandas"}
+    assert set(kv) == {SPECTRA_META_KEY, SPECTRA_ESTIMATORS_KEY, b"pandas"}
     assert json.loads(kv[SPECTRA_META_KEY])["method"] == "h1"
     # the same table written with Arrow's schema copy: its metadata there is twice in
     # the footer, and Arrow reads the text columns back as large_string
@@ -105,6 +108,47 @@ def test_the_file_holds_its_metadata_once_and_reads_as_one_with_arrows_schema(sa
     assert_same(got, replace(S.Spectra.read(path), source=str(old)))
     # pandas reads the two files to the same frame
     pd.testing.assert_frame_equal(pd.read_parquet(old), pd.read_parquet(path))
+
+
+def test_the_per_trial_records_are_apart_and_a_read_without_them_never_parses_them(
+        sample, tmp_path, monkeypatch):
+    """The metadata's per-trial records (``estimators``: one per trial of the sample
+    study's 36) are under a key of their own, so a read that leaves them out
+    (``estimators=False``) never parses them; everything else it reads is the same. A
+    file of the former layout, the records inside armfit's JSON, reads to the same
+    metadata either way."""
+    path = sample["7 a group"]
+    kv = pq.read_metadata(path).metadata
+    assert "estimators" not in json.loads(kv[SPECTRA_META_KEY])
+    records = json.loads(kv[SPECTRA_ESTIMATORS_KEY])
+    assert len(records) == 36 and {"subject", "axis", "grip_N", "run"} <= set(records[0])
+    full = S.Spectra.read(path)
+    assert full.meta["estimators"] == records
+    # the former layout: the same table, the records inside armfit's JSON
+    table = pq.read_table(path)
+    old_meta = {**json.loads(kv[SPECTRA_META_KEY]), "estimators": records}
+    old = tmp_path / "records_inside.parquet"
+    pq.write_table(table.replace_schema_metadata(
+        {SPECTRA_META_KEY: json.dumps(old_meta).encode(), b"pandas": kv[b"pandas"]}),
+        old, row_group_size=7 * 100)
+    assert_same(S.Spectra.read(old), replace(full, source=str(old)))
+    parsed = []
+    real_loads = json.loads
+
+    def loads(text, *args, **kwargs):
+        parsed.append(bytes(text))
+        return real_loads(text, *args, **kwargs)
+
+    monkeypatch.setattr(json, "loads", loads)
+    for p in (path, old):
+        lean = S.Spectra.read(p, level="trial", kind="measured", estimators=False)
+        assert "estimators" not in lean.meta
+        kept = {k: v for k, v in full.meta.items() if k != "estimators"}
+        assert lean.meta == kept
+        assert_same(lean, replace(full.select(level="trial", kind="measured"),
+                                  meta=kept, source=str(p)))
+    assert kv[SPECTRA_ESTIMATORS_KEY] not in parsed
+    assert kv[SPECTRA_META_KEY] in parsed
 
 
 @pytest.mark.parametrize("wanted", [

@@ -96,7 +96,8 @@ def compare_command(spectra, model_path, level, effect_names, band, as_json):
     Example: ``armfit compare spectra.parquet --model nominal_params.csv --effect delay``
     """
     model = ModelFit.read(model_path)
-    data = Spectra.read(spectra, kind="measured")   # all a comparison uses
+    # all a comparison uses
+    data = Spectra.read(spectra, kind="measured", estimators=False)
     result = api_compare(data, model, level=level, band=band,
                          effects=_effects(effect_names))
     level, rows = result.level, result.rows
@@ -203,7 +204,8 @@ def diagnose_command(spectra, model_path, band, effect_names, output, jobs, max_
     # its base parameters
     model = ModelFit.read_starts(model_path)
     # the trials' on-axis responses, and their cross-axis ones for the coupling
-    data = Spectra.read(spectra, level="trial", kind=("measured", "cross"))
+    data = Spectra.read(spectra, level="trial", kind=("measured", "cross"),
+                        estimators=False)
     notes = comparison_notes(data, model.start_rows, "trial", spectra_label=spectra,
                              params_label=model_path, action="diagnosed")
     for text in notes:

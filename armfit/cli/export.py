@@ -38,8 +38,9 @@ def _read_spectra(path: str, nominal: bool) -> Spectra:
     """What an export of a nominal file (medians and derived trials) or of a grip file
     (means) uses of the spectra file: its cross responses are never read."""
     if nominal:
-        return Spectra.read(path, level=("median", "trial"), kind=("measured", "derived"))
-    return Spectra.read(path, level="mean", kind="measured")
+        return Spectra.read(path, level=("median", "trial"), kind=("measured", "derived"),
+                            estimators=False)
+    return Spectra.read(path, level="mean", kind="measured", estimators=False)
 
 
 @click.command("export")

@@ -77,7 +77,7 @@ def _run(which: str, spectra: str, output: str, cost: str, band, bootstrap: int,
         check_output(latex, overwrite=overwrite, inputs=[spectra, output])
     # the measured aggregates (and the trials only for the bootstrap's resamples)
     data = Spectra.read(spectra, kind="measured",
-                        level=None if bootstrap else ("mean", "median"))
+                        level=None if bootstrap else ("mean", "median"), estimators=False)
 
     def report(axis, grip, fit):
         where = f"{axis}" + (f" {grip:g} N" if grip is not None else "")

@@ -120,7 +120,8 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
     for path in outputs:
         check_output(path, overwrite=overwrite, inputs=inputs)
 
-    data = Spectra.read(spectra, level="trial", kind="derived")   # all W_max uses
+    # all W_max uses
+    data = Spectra.read(spectra, level="trial", kind="derived", estimators=False)
     params = ModelFit.read(nominal)
     given = {}
     if check_weights:

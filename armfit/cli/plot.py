@@ -86,7 +86,8 @@ def command() -> None:
 def bode_command(spectra, model_path, axis, spread, no_trials, output, overwrite):
     """Measured dynamics X/F per axis with the model fits (the paper's Fig. 5)."""
     _prepare(output, overwrite, [spectra, model_path])
-    df = Spectra.read(spectra, level=("trial", "mean"), kind="measured")
+    df = Spectra.read(spectra, level=("trial", "mean"), kind="measured",
+                      estimators=False)
     params = read_params(model_path) if model_path else None
     try:
         fig = figures.bode_figure(df, params, axis=axis, band=spread, trials=not no_trials)
@@ -112,7 +113,7 @@ def bode_command(spectra, model_path, axis, spread, no_trials, output, overwrite
 def residual_command(spectra, model_path, model2_path, axis, band, output, overwrite):
     """Normalised residual (measurement - model)/SE with the noise and failing bands."""
     _prepare(output, overwrite, [spectra, model_path, model2_path])
-    df = Spectra.read(spectra, kind="measured")
+    df = Spectra.read(spectra, kind="measured", estimators=False)
     params = read_params(model_path)
     params2 = read_params(model2_path) if model2_path else None
     axes = [axis] if axis else [a for a in AXES if (params["axis"] == a).any()
@@ -144,7 +145,7 @@ def residual_command(spectra, model_path, model2_path, axis, band, output, overw
 def uncertainty_command(spectra, nominal_path, weights_path, axis, output, overwrite):
     """Derived arm dynamics with the nominal H_ARM, W_max and |Wu| (the paper's Fig. 6)."""
     _prepare(output, overwrite, [spectra, nominal_path, weights_path])
-    df = Spectra.read(spectra, level="trial", kind="derived")
+    df = Spectra.read(spectra, level="trial", kind="derived", estimators=False)
     nominal = read_params(nominal_path)
     weights = read_wu(weights_path) if weights_path else None
     try:

@@ -226,7 +226,9 @@ def fit_trials_command(spectra, output, cost, band, effects, method, max_nfev, j
     bands = bands_by_axis(band, PAPER_BANDS)
     effect_objs = effect_items(effects)
     check_output(output, overwrite=overwrite, inputs=[spectra])
-    data = Spectra.read(spectra, level=("trial", "mean"), kind="measured")  # trials, starts
+    # the trials, and the starts of their fits
+    data = Spectra.read(spectra, level=("trial", "mean"), kind="measured",
+                        estimators=False)
 
     def report(tf):
         who = f"{tf.axis} subject {tf.subject} {tf.grip_N:g} N" + (

@@ -576,7 +576,8 @@ def _trial_rows(spectra) -> Callable[[str, str], Spectra]:
     if isinstance(spectra, str | os.PathLike):
         def read(axis: str, kind: str) -> Spectra:
             return Spectra.read(spectra, level="trial", kind=kind, axis=axis,
-                                values=("se_db", "se_deg") if kind == "measured" else ())
+                                values=("se_db", "se_deg") if kind == "measured" else (),
+                                estimators=False)
         return read
     sp = Spectra.of(spectra)
     return lambda axis, kind: sp

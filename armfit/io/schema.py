@@ -69,6 +69,11 @@ COUNTED_FLAGS: tuple[str, ...] = ("low_coherence", "saturation", "drift", "not_e
 #: Key of armfit's metadata (JSON) in the Parquet file's key-value metadata.
 SPECTRA_META_KEY = b"armfit"
 
+#: Key of the metadata's per-trial records (``estimators``: JSON, a list) in the Parquet
+#: file's key-value metadata: apart, so that a read that does not keep them never parses
+#: them (files written before hold them in :data:`SPECTRA_META_KEY`'s JSON).
+SPECTRA_ESTIMATORS_KEY = b"armfit.estimators"
+
 # ---------------------------------------------------------------------------
 # Fitted parameters (written by `armfit fit-grip` / `fit-nominal`): CSV.
 # ---------------------------------------------------------------------------
@@ -203,8 +208,8 @@ def finite_or_none(v):
 
 __all__ = [
     "SPECTRA_COLUMNS", "SPECTRA_KEYS", "SPECTRA_VALUES", "SPECTRA_TEXT", "FLAGS",
-    "COUNTED_FLAGS", "SPECTRA_META_KEY", "PARAMS_BASE", "PARAMS_STATS",
-    "PARAMS_OPTIONAL", "PARAMS_HELD", "params_columns", "WU_COLUMNS",
+    "COUNTED_FLAGS", "SPECTRA_META_KEY", "SPECTRA_ESTIMATORS_KEY", "PARAMS_BASE",
+    "PARAMS_STATS", "PARAMS_OPTIONAL", "PARAMS_HELD", "params_columns", "WU_COLUMNS",
     "WU_SUMMARY_COLUMNS", "WU_POINTS_COLUMNS", "wu_sidecar_paths", "COMPARE_COLUMNS",
     "CSV_FLOAT_FORMAT", "json_default", "is_missing", "finite_or_none",
 ]
