@@ -34,7 +34,7 @@ import numpy as np
 
 from armfit.constants import AXES
 from armfit.diagnosis.tuning import MAX_STEPS, MIN_EFFECT_DB, MIN_EFFECT_DEG
-from armfit.errors import BadInputError, ConvergenceError, UsageError
+from armfit.errors import BadInputError, UsageError
 from armfit.io.artifacts import RowTable as _RowTable
 from armfit.io.atomic import atomic_outputs, atomic_path, write_text_atomic
 from armfit.io.rawwrite import trial_filename, write_trial
@@ -1017,11 +1017,7 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
                                            band=band, smooth_oct=smooth_oct, method=method,
                                            given=check, jobs=jobs, executor=executor,
                                            source=nom.source, by_subject=by_subject)
-    bad = [r.axis for r in results if not r.result.converged]
-    if bad and cost == "paper":
-        raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "
-                               f"{', '.join(bad)}; nothing written (try {{opt}})",
-                               option="order=")
+    _uncertainty.require_converged(results, cost)
     notes = _uncertainty.weight_axis_notes(sp, nom.table, spectra_label=sp.source,
                                            params_label=nom.source)
     return Uncertainty(tuple(results), cost, smooth_oct, sp, nom, tuple(notes),

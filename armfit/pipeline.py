@@ -83,6 +83,7 @@ from typing import Generic, TypeVar
 import numpy as np
 
 from armfit import api
+from armfit import uncertainty as wu
 from armfit._order import median
 from armfit.adopt import Adoption, adopt
 from armfit.api import compare_frame
@@ -807,10 +808,11 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                      adoption: Adoption) -> UncertaintyFit:
     """W_max and Wu (Table III) of the adopted nominal, apparatus effects removed: wu.csv,
     wu_summary.csv, wu_wmax.csv, wu.tex, from the derived trial rows of spectra.parquet
-    (read here, let go after). The per-trial fits start once those rows are read (their
-    own read of the file's measured rows would otherwise overlap it) and run in the
-    worker processes whenever the Wu fits leave one free (they give way: the stability
-    stage needs both, and the Wu fits are the longer chain)."""
+    (read here, let go once W_max is made: the Wu fits need W_max only). The per-trial
+    fits start then (their own read of the file's measured rows would otherwise overlap
+    the derived rows) and run in the worker processes whenever the Wu fits leave one
+    free (they give way: the stability stage needs both, and the Wu fits are the longer
+    chain). The result is :func:`armfit.api.fit_uncertainty`'s, without the spectra."""
     o = config.options
     # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
     grip = models.grip
@@ -822,18 +824,27 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
     # would more than double what the rows hold
     derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived",
                            values=(), estimators=False)
-    # started once the derived rows are read: the two reads of the file do not overlap
+    nominal, by_subject = models.nominal, adoption.by_subject
+    # W_max (eq. 6) and the notes are all that is made of the derived rows, and then
+    # they are let go: the Wu fits and the trial fits' read never hold them (13 MB at
+    # 4,050 trials)
+    targets = wu.wmax_targets(derived, nominal.table, source=nominal.source,
+                              by_subject=by_subject)
+    notes = wu.weight_axis_notes(derived, nominal.table, spectra_label=derived.source,
+                                 params_label=nominal.source)
+    del derived
+    release_memory()
     trial_fits = workers.start(_trial_fits, config, workers.drawings.pool,
                                config.path("spectra.parquet"), cost=o.cost,
                                jobs=o.jobs, source="spectra.parquet", starts=starts,
                                bands=models.bands, effects=_effects_of(adoption),
                                executor=workers.later, **per_subject)
+    results = wu.fit_targets(targets, cost=o.wu_cost, jobs=o.jobs,
+                             executor=workers.executor)
+    wu.require_converged(results, o.wu_cost)
+    unc = api.Uncertainty(tuple(results), o.wu_cost, None, None, nominal, tuple(notes),
+                          dict(by_subject or {}))
     wu_path = config.path("wu.csv")
-    unc = api.fit_uncertainty(derived, models.nominal, cost=o.wu_cost, jobs=o.jobs,
-                              executor=workers.executor, by_subject=adoption.by_subject)
-    unc = replace(unc, spectra=None)   # the derived trial rows are let go
-    del derived
-    release_memory()
     unc.write(wu_path, latex=config.path("wu.tex"))
     return UncertaintyFit(unc, trial_fits,
                           files=("wu.csv", *(p.name for p in wu_sidecar_paths(wu_path)),

@@ -865,6 +865,120 @@ def _fit_wu_axes(tasks, jobs: int, executor) -> list[WuResult]:
         return fit()
 
 
+@dataclass(frozen=True, eq=False)
+class WmaxTarget:
+    """One axis's W_max (eq. 6), all its Wu fit (eq. 7) needs (:func:`wmax_targets`):
+    the grid ``f_hz`` (Hz), the trials behind it, W_max raw and the fit's target
+    (smoothed when asked), and the band (Hz) of the fit."""
+
+    axis: str
+    f_hz: np.ndarray
+    n_trials: int
+    wmax_raw: np.ndarray
+    target: np.ndarray
+    band: tuple[float, float]
+
+
+def wmax_targets(spectra, params, *,
+                 band: tuple[float, float] | Mapping[str, tuple[float, float]] | None = None,
+                 smooth_oct: float | None = None, method: str | None = None,
+                 source: str | None = None,
+                 by_subject: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None
+                 ) -> list[WmaxTarget]:
+    """W_max (eq. 6) of each axis with derived trial spectra and a nominal row: the first
+    half of :func:`fit_weights` (its arguments, which see), made from the spectra alone.
+    What it returns no longer refers to ``spectra``: a caller may let the trial rows go
+    before the Wu fits (:func:`fit_targets`) run.
+
+    Returns
+    -------
+    list of WmaxTarget
+        One per axis, in x, y, z order.
+    """
+    if "grip_N" in params.columns:
+        raise BadInputError("has a grip_N column (grip-dependent fits); give the "
+                            "parameters file of fit-nominal", file=source, column="grip_N")
+    trial_rows = Spectra.of(spectra).select(level="trial", kind="derived")
+    have_spec = trial_rows.values_of("axis")
+    have_par = set(params["axis"].astype(str))
+    wanted = [a for a in AXES if a in have_spec and a in have_par]
+    if not wanted:
+        raise BadInputError(f"no axis has both derived trial spectra (axes: "
+                            f"{', '.join(sorted(have_spec)) or 'none'}) and a nominal "
+                            f"row (axes: {', '.join(sorted(have_par)) or 'none'})",
+                            file=source, column="axis")
+    out = []
+    for axis in wanted:
+        rows = params[params["axis"].astype(str) == axis]
+        if len(rows) > 1:
+            first, second = (int(i) for i in np.flatnonzero(params["axis"].astype(str)
+                                                              == axis)[:2] + 1)
+            raise BadInputError(f"axis {axis} has a second row (rows {first} and {second}); "
+                                "a nominal params file has one row per axis",
+                                file=source, column="axis", row=second)
+        f, H, labels = derived_trials(trial_rows, axis, method=method)
+        H = arm_trials_by_subject(rows.iloc[0], f, H, labels, (by_subject or {}).get(axis),
+                                  derived_mass_kg(spectra, axis))
+        Hn = nominal_arm_response(rows.iloc[0], f)
+        lo, hi = axis_band(band, axis) or PAPER_BAND_HZ
+        finite = f[np.isfinite(H).any(axis=0) & (f > 0)]
+        if finite.size < 2:
+            raise BadInputError(f"axis {axis}: derived spectra hold fewer than 2 finite "
+                                "frequencies", column="re")
+        b = (max(lo, float(finite[0])), min(hi, float(finite[-1])))
+        if not b[0] < b[1]:
+            raise UsageError(f"axis {axis}: band {lo:g}:{hi:g} Hz holds no spectra "
+                             f"(they cover {finite[0]:g}-{finite[-1]:g} Hz)")
+        raw = w_max(H, Hn)
+        target = raw if smooth_oct is None else w_max(H, Hn, f_hz=f, smooth_oct=smooth_oct)
+        out.append(WmaxTarget(axis, f, H.shape[0], raw, target, b))
+    return out
+
+
+def fit_targets(targets: Sequence[WmaxTarget], *, cost: str = "envelope",
+                n_pairs: int | None = None, smoothed: bool = False,
+                given: Mapping[str, Mapping[str, WuWeight]] | None = None,
+                jobs: int = 1, executor=None) -> list[AxisUncertainty]:
+    """Wu (eq. 7) fitted to each of ``targets`` (:func:`wmax_targets`), and the checks
+    of the fitted and ``given`` weights against W_max: the second half of
+    :func:`fit_weights` (its arguments, which see; ``smoothed``: the targets are W_max
+    smoothed, checked besides the raw W_max).
+
+    Returns
+    -------
+    list of AxisUncertainty
+        One per target, in their order.
+    """
+    tasks = [(t.f_hz, t.target, {"n_pairs": n_pairs, "cost": cost, "band": t.band})
+             for t in targets]
+    fits = _fit_wu_axes(tasks, jobs, executor)
+    out = []
+    for t, res in zip(targets, fits, strict=True):
+        targets_by = {"wmax": t.wmax_raw} if not smoothed else {
+            "wmax": t.wmax_raw, "wmax_smoothed": t.target}
+        weights = {"fitted": res.weight}
+        for label, by_axis in (given or {}).items():
+            if t.axis in by_axis:
+                weights[label] = by_axis[t.axis]
+        checks = {(label, tname): check_envelope(t.f_hz, tw, w, band=t.band)
+                  for label, w in weights.items() for tname, tw in targets_by.items()}
+        out.append(AxisUncertainty(t.axis, t.f_hz, t.wmax_raw, t.target, t.band,
+                                   t.n_trials, res, checks))
+    return out
+
+
+def require_converged(results: Sequence[AxisUncertainty], cost: str) -> None:
+    """The one convergence policy of ``fit-uncertainty`` and ``run``: with cost 'paper',
+    raise ConvergenceError naming the axes whose dB least-squares fit of Wu did not
+    converge; the envelope fit holds its guarantee whether or not its shape optimiser
+    converged."""
+    bad = [r.axis for r in results if not r.result.converged]
+    if bad and cost == "paper":
+        raise ConvergenceError(f"the dB least-squares fit of Wu did not converge for axis "
+                               f"{', '.join(bad)}; nothing written (try {{opt}})",
+                               option="order=")
+
+
 def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None = None,
                     band: tuple[float, float] | Mapping[str, tuple[float, float]] | None = None,
                     smooth_oct: float | None = None,
@@ -890,59 +1004,14 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
     out (:func:`weight_axis_notes` says which). ``by_subject``: {axis: {subject:
     {``effect.param``: value}}} effect values per subject (the adopted model's), each
     trial's apparatus effects removed with its subject's (:func:`arm_trials_by_subject`).
-    Returns one :class:`AxisUncertainty` per axis, in x, y, z order.
+    Returns one :class:`AxisUncertainty` per axis, in x, y, z order:
+    :func:`fit_targets` of :func:`wmax_targets`.
     """
-    if "grip_N" in params.columns:
-        raise BadInputError("has a grip_N column (grip-dependent fits); give the "
-                            "parameters file of fit-nominal", file=source, column="grip_N")
-    trial_rows = Spectra.of(spectra).select(level="trial", kind="derived")
-    have_spec = trial_rows.values_of("axis")
-    have_par = set(params["axis"].astype(str))
-    wanted = [a for a in AXES if a in have_spec and a in have_par]
-    if not wanted:
-        raise BadInputError(f"no axis has both derived trial spectra (axes: "
-                            f"{', '.join(sorted(have_spec)) or 'none'}) and a nominal "
-                            f"row (axes: {', '.join(sorted(have_par)) or 'none'})",
-                            file=source, column="axis")
-    prepared = []
-    for axis in wanted:
-        rows = params[params["axis"].astype(str) == axis]
-        if len(rows) > 1:
-            first, second = (int(i) for i in np.flatnonzero(params["axis"].astype(str)
-                                                              == axis)[:2] + 1)
-            raise BadInputError(f"axis {axis} has a second row (rows {first} and {second}); "
-                                "a nominal params file has one row per axis",
-                                file=source, column="axis", row=second)
-        f, H, labels = derived_trials(trial_rows, axis, method=method)
-        H = arm_trials_by_subject(rows.iloc[0], f, H, labels, (by_subject or {}).get(axis),
-                                  derived_mass_kg(spectra, axis))
-        Hn = nominal_arm_response(rows.iloc[0], f)
-        lo, hi = axis_band(band, axis) or PAPER_BAND_HZ
-        finite = f[np.isfinite(H).any(axis=0) & (f > 0)]
-        if finite.size < 2:
-            raise BadInputError(f"axis {axis}: derived spectra hold fewer than 2 finite "
-                                "frequencies", column="re")
-        b = (max(lo, float(finite[0])), min(hi, float(finite[-1])))
-        if not b[0] < b[1]:
-            raise UsageError(f"axis {axis}: band {lo:g}:{hi:g} Hz holds no spectra "
-                             f"(they cover {finite[0]:g}-{finite[-1]:g} Hz)")
-        raw = w_max(H, Hn)
-        target = raw if smooth_oct is None else w_max(H, Hn, f_hz=f, smooth_oct=smooth_oct)
-        prepared.append((axis, f, H.shape[0], raw, target, b))
-    tasks = [(f, target, {"n_pairs": n_pairs, "cost": cost, "band": b})
-             for _, f, _, _, target, b in prepared]
-    fits = _fit_wu_axes(tasks, jobs, executor)
-    out = []
-    for (axis, f, n_trials, raw, target, b), res in zip(prepared, fits, strict=True):
-        targets = {"wmax": raw} if smooth_oct is None else {"wmax": raw, "wmax_smoothed": target}
-        weights = {"fitted": res.weight}
-        for label, by_axis in (given or {}).items():
-            if axis in by_axis:
-                weights[label] = by_axis[axis]
-        checks = {(label, tname): check_envelope(f, tw, w, band=b)
-                  for label, w in weights.items() for tname, tw in targets.items()}
-        out.append(AxisUncertainty(axis, f, raw, target, b, n_trials, res, checks))
-    return out
+    targets = wmax_targets(spectra, params, band=band, smooth_oct=smooth_oct,
+                           method=method, source=source, by_subject=by_subject)
+    return fit_targets(targets, cost=cost, n_pairs=n_pairs,
+                       smoothed=smooth_oct is not None, given=given, jobs=jobs,
+                       executor=executor)
 
 
 def weight_axis_notes(spectra, params, *, spectra_label: str | None = None,
@@ -1106,7 +1175,8 @@ __all__ = [
     "wu_response", "smooth_fractional_octave", "relative_error", "w_max",
     "EnvelopeCheck", "check_envelope", "WuResult", "fit_wu", "nominal_arm_response",
     "arm_trials", "arm_trials_by_subject", "derived_trials", "label_subject",
-    "AxisUncertainty", "fit_weights",
+    "AxisUncertainty", "WmaxTarget", "wmax_targets", "fit_targets", "require_converged",
+    "fit_weights",
     "derived_mass_kg", "weight_axis_notes", "summary_table", "points_table",
     "read_weights_and_bands",
 ]

@@ -10,7 +10,9 @@ trials read straight from the raw files of the sample study.
 
 from __future__ import annotations
 
+import gc
 import json
+import weakref
 from dataclasses import replace
 from pathlib import Path
 
@@ -225,6 +227,31 @@ def test_the_run_reads_its_spectra_by_row_group(tmp_path, monkeypatch):
     # 228 responses (see above) in groups of 16
     assert pq.ParquetFile(tmp_path / "out" / "spectra.parquet").num_row_groups == 15
     assert sizes and max(sizes) <= 16 * nf
+
+
+def test_the_run_lets_the_derived_rows_go_before_the_trial_fits_read_theirs(tmp_path,
+                                                                            monkeypatch):
+    """fit-uncertainty makes W_max of the derived trial rows and lets them go before the
+    per-trial fits read the measured trial rows and while the Wu fits run: no derived
+    rows read from the file are alive when the trial fits' read starts."""
+    real = S.Spectra.read.__func__
+    derived: list[weakref.ref] = []
+    alive_at_trial_read: list[int] = []
+
+    def read(cls, path, **kwargs):
+        if kwargs.get("level") == "trial" and kwargs.get("kind") == "measured" \
+                and kwargs.get("axis") is None:     # the trial fits' read
+            gc.collect()
+            alive_at_trial_read.append(sum(r() is not None for r in derived))
+        out = real(cls, path, **kwargs)
+        if kwargs.get("level") == "trial" and kwargs.get("kind") == "derived":
+            derived.append(weakref.ref(out))
+        return out
+
+    monkeypatch.setattr(S.Spectra, "read", classmethod(read))
+    result = armfit.run(STUDY, tmp_path / "out", figures=False, jobs=2)
+    assert result.trials == 36
+    assert len(derived) == 1 and alive_at_trial_read == [0]
 
 
 def test_a_response_split_over_row_groups_is_read_as_one(sample, tmp_path):
