@@ -81,21 +81,32 @@ def _moving_mean(x: np.ndarray, size: int) -> np.ndarray:
     # one point in and one out per step, as scipy's running sum
     first = np.cumsum(pad[..., :size], axis=-1)[..., -1:]
     steps = pad[..., size:size + n - 1] - pad[..., :n - 1]
-    return np.cumsum(np.concatenate([first, steps], axis=-1), axis=-1) / size
+    del pad
+    out = np.concatenate([first, steps], axis=-1)
+    del steps
+    # in place: the same sums and quotient as np.cumsum(...) / size, one array held
+    np.cumsum(out, axis=-1, out=out)
+    out /= size
+    return out
 
 
 def _one(se: np.ndarray, cap: float, floor: float, pool: int) -> np.ndarray:
     """Steps 1–4 of the module docstring on standard errors (..., n_freq)."""
+    # one array of the responses' size changed in place step by step (the same values
+    # as a new array a step: on 1,350 trials of 100 bins the steps held 8 MB at once)
     se = np.array(se, float, ndmin=1)
     with np.errstate(invalid="ignore"):
-        se = np.minimum(se, cap)                      # inf -> cap, NaN stays NaN
+        np.minimum(se, cap, out=se)                   # inf -> cap, NaN stays NaN
         ok = np.isfinite(se) & (se > 0)
     fill = nanmedian(np.where(ok, se, np.nan), axis=-1)[..., None]
-    se = np.where(ok, se, fill)
+    np.copyto(se, fill, where=~ok)
+    del ok, fill
     if pool > 1:
-        var = _moving_mean(se * se, pool)
-        se = np.sqrt(var)
-    return np.maximum(se, floor)   # NaN (no valid se in the row) stays NaN
+        np.multiply(se, se, out=se)
+        se = _moving_mean(se, pool)
+        np.sqrt(se, out=se)
+    np.maximum(se, floor, out=se)   # NaN (no valid se in the row) stays NaN
+    return se
 
 
 def standard_errors(se_db, se_deg, *, pool: int = POOL_BINS

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +67,43 @@ def test_rows_are_separate_responses():
     np.testing.assert_allclose(sdb[0], 0.1)
     assert np.isnan(sdb[1]).all()
     assert math.isnan(noise.rms_norm(np.ones(10), np.ones(10), sdb[1], sdb[1]))
+
+
+def test_standard_errors_made_in_place_are_the_former_steps_to_the_bit():
+    """The noise model's steps done in one array of the responses' size give the same
+    bits as the steps each making a new array (the former code, written out here with
+    scipy's moving mean, which armfit's own equals to the bit: test_fast_paths.py), on
+    rows with infinite, missing, zero and negative errors and one row without any."""
+    from scipy.ndimage import uniform_filter1d
+    rng = np.random.default_rng(7)
+    se = rng.gamma(2.0, 0.4, (40, 100)) * rng.choice([1, 10, 100], (40, 100))
+    se[rng.random(se.shape) < 0.05] = np.inf
+    se[rng.random(se.shape) < 0.05] = np.nan
+    se[rng.random(se.shape) < 0.03] = 0.0
+    se[rng.random(se.shape) < 0.03] = -1.0
+    se[7] = np.nan
+
+    def former(x, cap, floor, pool=noise.POOL_BINS):
+        x = np.array(x, float, ndmin=1)
+        with np.errstate(invalid="ignore"):
+            x = np.minimum(x, cap)
+            ok = np.isfinite(x) & (x > 0)
+        fill = np.nanmedian(np.where(ok, x, np.nan), axis=-1)[..., None]
+        x = np.where(ok, x, fill)
+        x = np.sqrt(uniform_filter1d(x * x, pool, axis=-1, mode="nearest"))
+        return np.maximum(x, floor)
+
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)   # numpy's all-NaN row
+        want = (former(se, noise.SE_CAP_DB, noise.SE_FLOOR_DB),
+                former(se * 20, noise.SE_CAP_DEG, noise.SE_FLOOR_DEG))
+    got = noise.standard_errors(se, se * 20)
+    for g, w in zip(got, want, strict=True):
+        assert np.array_equal(g, w, equal_nan=True)
+        assert np.isnan(g[7]).all() and np.isfinite(g[:7]).all()
+    # one response (1-D) as well
+    one = noise.standard_errors(se[0], se[0] * 20)
+    assert np.array_equal(one[0], want[0][0]) and np.array_equal(one[1], want[1][0])
 
 
 def test_rms_norm_pools_magnitude_and_phase():

@@ -64,10 +64,10 @@ class AxisData:
         grid points ``sel`` (computed on the whole grid, then restricted); NaN at the
         points :attr:`excluded` (no evidence: a NaN normalised residual is left out of
         every statistic, and a joint fit gives such a point no weight)."""
-        sdb, sdeg = noise.standard_errors(self.se_db, self.se_deg)
+        sdb, sdeg = noise.standard_errors(self.se_db, self.se_deg)   # arrays of its own
         if self.excluded is not None:
-            sdb = np.where(self.excluded, np.nan, sdb)
-            sdeg = np.where(self.excluded, np.nan, sdeg)
+            sdb[self.excluded] = np.nan
+            sdeg[self.excluded] = np.nan
         return sdb[:, sel], sdeg[:, sel]
 
 
