@@ -2485,8 +2485,8 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
                    estimators: bool = True) -> Spectra:
     """:meth:`Spectra.read` of ``p`` a row group at a time, keeping the responses
     ``wanted`` selects, the ``values`` (None: all) and the metadata's per-trial records
-    when ``estimators``; raises :class:`_NotByGroup` (or
-    the error of a bad file) when the whole read must decide."""
+    when ``estimators``; raises :class:`_NotByGroup` (or the error of a bad file) when
+    the whole read must decide."""
     import pyarrow as pa
     import pyarrow.parquet as pq
     # the text columns as Parquet holds them, dictionary-encoded (no text per row)
