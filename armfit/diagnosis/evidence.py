@@ -20,7 +20,6 @@ from armfit.diagnosis.bands import (
     trial_statistics,
 )
 from armfit.diagnosis.joint import JointFit
-from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.tuning import (
     BANDS,
     DROP_POINTS,
@@ -83,8 +82,9 @@ def union_bias(f, fit: JointFit, se_db, se_deg, ranges) -> float:
     return float(np.sqrt(np.mean(m ** 2)))
 
 
-def band_errors(f, fit: JointFit, data: AxisData, sel, bands) -> tuple[BandError, ...]:
-    se_db, se_deg = data.noise_se(sel)
+def band_errors(f, fit: JointFit, se_db, se_deg, bands) -> tuple[BandError, ...]:
+    """:func:`band_error` of ``fit`` in each (lo, hi) of ``bands`` (Hz), with the noise
+    model's standard errors ``se_db``, ``se_deg`` on ``f``."""
     return tuple(band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, lo, hi) for lo, hi in bands)
 
 
