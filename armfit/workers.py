@@ -80,11 +80,11 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:   # the pool's modules are imported with the first pool (armfit._pool)
-    from concurrent.futures import Executor, ProcessPoolExecutor
+    from concurrent.futures import Executor, Future, ProcessPoolExecutor
 
 __all__ = ["BLAS_ONE_THREAD", "CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD",
            "RUN_FIGURES_PRELOAD", "cancel_pools", "child_environment", "executor_for",
-           "giving_way", "ignore_sigint", "iter_tasks", "map_tasks",
+           "giving_way", "ignore_sigint", "iter_tasks", "let_go_sent", "map_tasks",
            "prepare_pool_folder", "preload_own_only", "read_ahead", "process_pool",
            "remove_pool_folder", "start_fork_server",
            "fork_server_running",
@@ -393,6 +393,32 @@ def giving_way(executor: Executor | None) -> Executor | None:
     if pools is None or not isinstance(executor, pools.Pool):
         return executor
     return pools.GivingWay(executor)
+
+
+def let_go_sent(executor: Executor | None) -> Future | None:
+    """Let this process free the last task it sent to ``executor``'s workers.
+
+    A pool of :func:`process_pool` keeps the pickled bytes of the last task it sent
+    until it sends another (:meth:`armfit._pool.Pool.let_go_sent` sends one that does
+    nothing). A caller that has just handed over a task of large arguments and will
+    now wait, or compute, calls this. Any other executor, or None: nothing.
+
+    Parameters
+    ----------
+    executor : concurrent.futures.Executor or None
+        The executor the task went to (a :func:`giving_way` executor: its pool's).
+
+    Returns
+    -------
+    concurrent.futures.Future or None
+        The empty task's; None when nothing was sent.
+    """
+    pools = sys.modules.get("armfit._pool")    # not imported: no pool of process_pool
+    if pools is None:
+        return None
+    if isinstance(executor, pools.GivingWay):
+        executor = executor.pool
+    return executor.let_go_sent() if isinstance(executor, pools.Pool) else None
 
 
 #: The longest path a Unix socket may have (its address less the final NUL byte).

@@ -266,6 +266,29 @@ def test_diagnosis_starts_an_axis_while_the_next_is_read(study, pipelined, monke
                           ("read", "x", "cross"), ("read", "z", "measured")]
 
 
+def test_task_queue_lets_go_of_a_large_task_it_handed_over_last(monkeypatch):
+    # after each handing-over whose last task was added as large (an axis's trials),
+    # the pool is asked to let go of that task's pickled bytes (workers.let_go_sent);
+    # not after one that ended on a small task (sending that one let the large go)
+    asked = []
+    monkeypatch.setattr(schedule, "let_go_sent", asked.append)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        tasks = TaskQueue(pool)
+        tasks.add(0, str, "base", lambda r: None, large=True)
+        tasks.start_ready()
+        assert asked == [pool]
+        tasks.add(1, str, "large", lambda r: None, large=True)
+        tasks.add(2, str, "small", lambda r: None)
+        tasks.start_ready()
+        assert asked == [pool]
+        assert tasks.map(str, ["a", "b"], large=True) == ["a", "b"]
+        assert asked == [pool, pool]
+    here = TaskQueue(None)       # no pool: nothing sent, nothing to let go
+    here.add(0, str, "x", lambda r: None, large=True)
+    here.run()
+    assert asked == [pool, pool]
+
+
 def test_task_queue_runs_tasks_here_while_the_pool_starts():
     # while the thread starting the pool runs, ready tasks run in this thread; once it
     # has ended, on the pool
@@ -950,3 +973,55 @@ def test_band_errors_and_adequacy_letting_copies_go_early_are_the_same_to_the_bi
     assert ad.cost == float(np.nansum(z * z))
     assert ad.overall.rms_norm == _band_error_written_out(f, r_db, r_deg, se_db, se_deg,
                                                           0.1, 30.0)[2]
+
+
+def test_adequacy_on_views_of_the_band_is_that_of_copies_written_out_to_the_bit():
+    """The search judges a fit against views of the band's noise (a slice of the grid,
+    not a copy), and the adequacy makes the normalised residuals once, the NaN set to
+    0 in place: the Adequacy is the one of the former steps — copies by the band's
+    mask, a copy with NaN as 0 for each statistic — bit for bit, with a failing band
+    and NaN among the residuals and errors."""
+    from armfit.diagnosis.bands import failing_bands, trial_statistics
+    from armfit.diagnosis.evidence import Adequacy
+    from armfit.diagnosis.tuning import BANDS, MIN_EFFECT_DB, MIN_EFFECT_DEG, MIN_RUN
+    rng = np.random.default_rng(8)
+    T, n = 40, 100
+    f = np.geomspace(0.1, 30.0, n)
+    band = (0.2, 12.0)
+    sel = (f >= band[0]) & (f <= band[1])
+    cols = search._columns(sel)
+    assert isinstance(cols, slice) and np.array_equal(np.arange(n)[cols],
+                                                      np.flatnonzero(sel))
+    m = int(sel.sum())
+    fb = f[sel]
+    r_db, r_deg = 0.3 * rng.normal(size=(T, m)), 2.0 * rng.normal(size=(T, m))
+    r_db[:, 30:40] += 0.8          # a bias of the model over ten points: a failing band
+    r_db[3, 5], r_deg[9, 60] = np.nan, np.nan
+    se_db, se_deg = 0.05 + 0.2 * rng.random((T, n)), 0.5 + rng.random((T, n))
+    se_db[6, np.flatnonzero(sel)[20]] = np.nan
+    fit = joint.JointFit(ClosedLoopModel.for_axis("x"), np.zeros((T, 5)), {}, {}, {},
+                         r_db, r_deg, 0.0, 2 * T * m, 0.0, True)
+    got = adequacy(fb, fit, se_db[:, cols], se_deg[:, cols], band, 5 * T)
+    # the former steps, written out on copies by the mask
+    sdb, sdeg = se_db[:, sel], se_deg[:, sel]
+    zdb, zdeg = r_db / sdb, r_deg / sdeg
+    with np.errstate(all="ignore"):
+        t_db, t_deg = trial_statistics(np.nan_to_num(zdb), np.nan_to_num(zdeg))
+    m_db, m_deg = r_db.mean(axis=0), r_deg.mean(axis=0)
+    fails = failing_bands(fb, t_db, t_deg, m_db, m_deg,
+                          size_db=np.where(np.abs(m_db) > MIN_EFFECT_DB,
+                                           np.nan_to_num(zdb).mean(axis=0), 0.0),
+                          size_deg=np.where(np.abs(m_deg) > MIN_EFFECT_DEG,
+                                            np.nan_to_num(zdeg).mean(axis=0), 0.0))
+    overall = band_error(fb, r_db, r_deg, sdb, sdeg, *band)
+    bands = tuple(b for b in (band_error(fb, r_db, r_deg, sdb, sdeg, max(lo, band[0]),
+                                         min(hi, band[1]))
+                              for lo, hi in BANDS if hi > band[0] and lo < band[1])
+                  if b.n_points >= MIN_RUN)
+    over = tuple(b for b in bands if b.rms_norm > 1.5 and not b.bias_norm <= 1.0)
+    z = np.concatenate([zdb.ravel(), zdeg.ravel()])
+    nu = max(int(np.isfinite(z).sum()) - 5 * T, 1)
+    ref = Adequacy(not fails and not over, overall, bands, over, tuple(fails),
+                   float(np.nansum(z * z)), float(nu), float(np.sqrt(2.0 * nu)))
+    assert fails and not got.adequate
+    assert repr(got) == repr(ref)

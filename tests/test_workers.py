@@ -800,3 +800,37 @@ def test_giving_way_leaves_other_executors_as_they_are():
     assert workers.giving_way(None) is None
     with ThreadPoolExecutor(max_workers=1) as given:
         assert workers.giving_way(given) is given
+
+
+def _nbytes(a: np.ndarray) -> int:
+    return a.nbytes
+
+
+def test_a_pool_lets_go_of_the_last_task_it_sent():
+    # the thread that sends a pool's tasks (the feeder of its multiprocessing.Queue)
+    # keeps the pickled bytes of the last task it sent until it sends another: here 8 MiB
+    # of a task whose result has come back, traced in this process (tracemalloc sees
+    # every thread's allocations). workers.let_go_sent sends an empty task; once it has
+    # run, the bytes are freed
+    import tracemalloc
+    payload = np.ones(1 << 20)
+    pool = workers.process_pool(1)
+    try:
+        assert pool.submit(int).result(timeout=60) == 0    # started, before the trace
+        tracemalloc.start()
+        try:
+            assert pool.submit(_nbytes, payload).result(timeout=60) == payload.nbytes
+            held = tracemalloc.get_traced_memory()[0]
+            empty = workers.let_go_sent(workers.giving_way(pool))  # the pool's own
+            assert empty.result(timeout=60) is None
+            after = tracemalloc.get_traced_memory()[0]
+        finally:
+            tracemalloc.stop()
+    finally:
+        pool.shutdown()
+    assert held >= payload.nbytes
+    assert after < payload.nbytes / 8
+    # nothing to let go of: no pool of armfit's own, or one shut down
+    assert workers.let_go_sent(None) is None and workers.let_go_sent(pool) is None
+    with ThreadPoolExecutor(max_workers=1) as given:
+        assert workers.let_go_sent(given) is None

@@ -117,15 +117,6 @@ def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray
     residual exceeds both one trial's noise and the practical floor ``min_db`` (dB) or
     ``min_deg`` (deg): a bias of a few hundredths of a dB is detectable with many
     trials but is no failure of the model."""
-    zdb, zdeg = fit.r_db / se_db, fit.r_deg / se_deg
-    with np.errstate(all="ignore"):
-        t_db, t_deg = trial_statistics(np.nan_to_num(zdb), np.nan_to_num(zdeg))
-    m_db, m_deg = fit.r_db.mean(axis=0), fit.r_deg.mean(axis=0)
-    fails = failing_bands(f, t_db, t_deg, m_db, m_deg,
-                          size_db=np.where(np.abs(m_db) > min_db,
-                                           np.nan_to_num(zdb).mean(axis=0), 0.0),
-                          size_deg=np.where(np.abs(m_deg) > min_deg,
-                                            np.nan_to_num(zdeg).mean(axis=0), 0.0))
     overall = band_error(f, fit.r_db, fit.r_deg, se_db, se_deg, band[0], band[1])
     bands = tuple(b for b in (band_error(f, fit.r_db, fit.r_deg, se_db, se_deg,
                                          max(lo, band[0]), min(hi, band[1]))
@@ -137,13 +128,26 @@ def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray
     # excess is noise that the standard errors underestimate, not a model error
     over = tuple(b for b in bands if np.isfinite(b.rms_norm) and b.rms_norm > NOISE_TOL
                  and not (np.isfinite(b.bias_norm) and b.bias_norm <= 1.0))
+    # the normalised residuals, made once: first the cost (of every finite one), then,
+    # in place, with NaN as 0 (np.nan_to_num), the t statistics and the mean sizes
+    zdb, zdeg = fit.r_db / se_db, fit.r_deg / se_deg
     z = np.concatenate([zdb.ravel(), zdeg.ravel()])
-    del zdb, zdeg
     n_res = int(np.isfinite(z).sum())
     nu = max(n_res - n_params, 1)
     np.multiply(z, z, out=z)    # the squares in place: no second array of 2 T n values
+    cost = float(np.nansum(z))
+    del z
+    np.nan_to_num(zdb, copy=False)
+    np.nan_to_num(zdeg, copy=False)
+    with np.errstate(all="ignore"):
+        t_db, t_deg = trial_statistics(zdb, zdeg)
+    m_db, m_deg = fit.r_db.mean(axis=0), fit.r_deg.mean(axis=0)
+    fails = failing_bands(f, t_db, t_deg, m_db, m_deg,
+                          size_db=np.where(np.abs(m_db) > min_db, zdb.mean(axis=0), 0.0),
+                          size_deg=np.where(np.abs(m_deg) > min_deg, zdeg.mean(axis=0),
+                                            0.0))
     return Adequacy(adequate=not fails and not over, overall=overall, bands=bands,
-                    over=over, failing=tuple(fails), cost=float(np.nansum(z)),
+                    over=over, failing=tuple(fails), cost=cost,
                     cost_expected=float(nu), cost_sd=float(np.sqrt(2.0 * nu)))
 
 

@@ -44,6 +44,12 @@ class AxisData:
     subjects: tuple[str, ...] = ()
     excluded: np.ndarray | None = None
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays (what a task carrying these trials pickles, about)."""
+        return sum(a.nbytes for a in (self.f_hz, self.h, self.se_db, self.se_deg,
+                                      self.excluded) if a is not None)
+
     def subset(self, idx: np.ndarray) -> AxisData:
         """The trials ``idx`` (an index array) of this axis."""
         return AxisData(self.axis, self.f_hz, self.h[idx], self.se_db[idx],

@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, wait
 
 from armfit.memory import release_memory
-from armfit.workers import POOL_PRELOAD, executor_for, fork_server_running
+from armfit.workers import POOL_PRELOAD, executor_for, fork_server_running, let_go_sent
 
 __all__ = ["TaskQueue", "task_queue"]
 
@@ -38,6 +38,12 @@ class TaskQueue:
     ready tasks to the pool (:meth:`hand_over`) without waiting for the task running
     here to end. The first error of a task (or continuation) is raised after the tasks
     not yet started are cancelled.
+
+    A task added as ``large`` (arguments of megabytes: an axis's trials) that is the
+    last one a :meth:`_submit` hands to the pool is followed by
+    :func:`armfit.workers.let_go_sent`: a pool of armfit's own would otherwise keep
+    its pickled bytes while this process awaits and judges the results (on 4,050
+    trials, 5 MB during the evidence of the last axis's base fit).
     """
 
     def __init__(self, pool: Executor | None = None, capacity: int | None = None,
@@ -51,10 +57,13 @@ class TaskQueue:
         # the queue is changed by this thread and, once, by the thread ``starting``
         self._lock = threading.Lock()
 
-    def add(self, priority: tuple | int, fn: Callable, args, then: Callable) -> None:
-        """Queue ``fn(args)``; ``then(result)`` is called with its result."""
+    def add(self, priority: tuple | int, fn: Callable, args, then: Callable, *,
+            large: bool = False) -> None:
+        """Queue ``fn(args)``; ``then(result)`` is called with its result. ``large``:
+        its arguments take megabytes (see the class)."""
         with self._lock:
-            heapq.heappush(self._ready, (priority, next(self._order), fn, args, then))
+            heapq.heappush(self._ready, (priority, next(self._order), fn, args, then,
+                                         large))
 
     def hand_over(self) -> None:
         """Hand the ready tasks to the pool, up to ``capacity`` running: called by the
@@ -77,6 +86,7 @@ class TaskQueue:
 
     def _submit(self) -> None:
         """Submit ready tasks, up to ``capacity`` running (the lock held)."""
+        large = False
         while self._ready and (self.capacity is None or len(self._running) < self.capacity):
             item = heapq.heappop(self._ready)
             try:
@@ -85,6 +95,9 @@ class TaskQueue:
                 heapq.heappush(self._ready, item)
                 raise
             self._running[fut] = (item[1], item[4])
+            large = item[5]
+        if large:
+            let_go_sent(self.pool)
 
     def run(self) -> None:
         """Run every queued task and those their continuations add."""
@@ -96,7 +109,7 @@ class TaskQueue:
                     here = self.pool is None or (self._ready and self.starting is not None
                                                  and self.starting.is_alive())
                     if here:
-                        _, _, fn, args, then = heapq.heappop(self._ready)
+                        _, _, fn, args, then, _ = heapq.heappop(self._ready)
                     else:
                         self._submit()
                         running = list(self._running)
@@ -123,13 +136,14 @@ class TaskQueue:
                 self._ready.clear()
             raise
 
-    def map(self, fn: Callable, items: Iterable, priority: tuple | int = 0) -> list:
+    def map(self, fn: Callable, items: Iterable, priority: tuple | int = 0, *,
+            large: bool = False) -> list:
         """``[fn(a) for a in items]``, the tasks run as :meth:`run` runs them (with any
-        already queued)."""
+        already queued); ``large`` as :meth:`add`'s, for every item."""
         items = list(items)
         out: list = [None] * len(items)
         for i, a in enumerate(items):
-            self.add(priority, fn, a, lambda r, i=i: out.__setitem__(i, r))
+            self.add(priority, fn, a, lambda r, i=i: out.__setitem__(i, r), large=large)
         self.run()
         return out
 

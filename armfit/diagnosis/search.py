@@ -98,6 +98,16 @@ class CandidateFit:
                                                               self.effect.name)))
 
 
+def _columns(sel: np.ndarray) -> slice | np.ndarray:
+    """The points ``sel`` (a boolean mask) as an index of the last axis: a slice where
+    they are contiguous (a band of the sorted grid always is), whose indexing gives
+    views, not copies; else ``sel`` itself."""
+    idx = np.flatnonzero(sel)
+    if idx.size and idx[-1] - idx[0] + 1 == idx.size:
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return sel
+
+
 class _Search:
     """The state of the stepwise search on one axis (see :func:`diagnose_axes`)."""
 
@@ -107,6 +117,7 @@ class _Search:
         self.max_steps, self.min_db, self.min_deg = max_steps, min_db, min_deg
         self.sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
         self.f = data.f_hz[self.sel]
+        self.cols = _columns(self.sel)
         self.fits: list[JointFit] = []
         self.added: list[Effect] = []
         self.steps: list[Step] = []
@@ -127,8 +138,9 @@ class _Search:
     def noise(self) -> tuple[np.ndarray, np.ndarray]:
         """The noise model's standard errors (dB, deg) of every trial on the band, (T, n):
         made from :attr:`data` when needed, not held for the search's length (on 1,350
-        trials of 100 frequencies, 2.2 MB an axis besides the data's own)."""
-        return self.data.noise_se(self.sel)
+        trials of 100 frequencies, 2.2 MB an axis besides the data's own); views of the
+        band, not copies of it (every statistic is taken of arrays computed from them)."""
+        return self.data.noise_se(self.cols)
 
     def n_params(self, fit: JointFit) -> int:
         return fit.n_free
@@ -549,7 +561,8 @@ def diagnose_axes(spectra, params, *,
             for s in searches:
                 s.effects = list(library)
         tasks.run()
-        _borrow_step(searches, tasks.map, share)
+        large = any(_large(s.data) for s in searches)
+        _borrow_step(searches, lambda fn, items: tasks.map(fn, items, large=large), share)
     out = []
     for s in searches:
         d = s.result()
@@ -582,6 +595,15 @@ def _trial_rows(spectra) -> Callable[[str, str], Spectra]:
     sp = Spectra.of(spectra)
     return lambda axis, kind: sp
 
+
+
+#: A task carrying trials of at least this many bytes of arrays is handed over as large
+#: (:class:`armfit.diagnosis.schedule.TaskQueue`): on 1,350 trials an axis's take 4.3 MB.
+LARGE_TASK_BYTES = 1 << 20
+
+
+def _large(data: AxisData) -> bool:
+    return data.nbytes >= LARGE_TASK_BYTES
 
 
 #: Priorities of the search's tasks (lower first): a candidate's joint fit on all trials
@@ -618,7 +640,8 @@ class _AxisSteps:
         self.s, self.tasks, self.steps = search, tasks, steps
 
     def begin(self) -> None:
-        self.tasks.add((_BASE,), _base_task, (self.s.data, self.s.band), self._based)
+        self.tasks.add((_BASE,), _base_task, (self.s.data, self.s.band), self._based,
+                       large=_large(self.s.data))
 
     def _based(self, base: JointFit) -> None:
         self.s.start(base)
@@ -635,7 +658,8 @@ class _AxisSteps:
         trials = screen_trials(s.data, s.band, s.fits[-1])
         for e, then in zip(effects, parts, strict=True):
             self.tasks.add((_SCREEN, step, -len(e.params)), _screen_task,
-                           (*trials, s.band, e, s.by_subject_now(e)), then)
+                           (*trials, s.band, e, s.by_subject_now(e)), then,
+                           large=_large(trials[0]))
 
     def _screened(self, effects: Sequence[Effect], sfits: Sequence) -> None:
         s = self.s
@@ -649,7 +673,8 @@ class _AxisSteps:
         for (e, sc), then in zip(kept, parts, strict=True):
             extra = ((s.min_db, s.min_deg),) if s.by_subject_now(e) else ()
             self.tasks.add((_EXTEND,), _extend_task,
-                           (s.data, s.band, s.fits[-1], e, sc, *extra), then)
+                           (s.data, s.band, s.fits[-1], e, sc, *extra), then,
+                           large=_large(s.data))
 
     def _take(self, screened, kept, fits) -> None:
         s = self.s
@@ -665,7 +690,7 @@ class _AxisSteps:
         if s.untested is not None:
             self.tasks.add((_EXTEND,), _subject_task,
                            (s.data, s.band, s.fits[-1], s.untested, s.min_db, s.min_deg),
-                           self._tested)
+                           self._tested, large=_large(s.data))
             return
         self._step()
 
@@ -678,7 +703,8 @@ class _AxisSteps:
         parts = _gather(len(rivals), lambda results: self._settled(rivals, results))
         for c, then in zip(rivals, parts, strict=True):
             self.tasks.add((_EXTEND,), _subject_task,
-                           (s.data, s.band, c.fit, c.effect, s.min_db, s.min_deg), then)
+                           (s.data, s.band, c.fit, c.effect, s.min_db, s.min_deg), then,
+                           large=_large(s.data))
 
     def _settled(self, rivals, results) -> None:
         self.s.settle(rivals, results)
