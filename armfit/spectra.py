@@ -71,12 +71,15 @@ from armfit.io.schema import (
     COUNTED_FLAGS,
     CSV_FLOAT_FORMAT,
     SPECTRA_COLUMNS,
+    SPECTRA_ESTIMATORS_JSON_KEY,
     SPECTRA_ESTIMATORS_KEY,
     SPECTRA_KEYS,
     SPECTRA_META_KEY,
     SPECTRA_TEXT,
     SPECTRA_VALUES,
     json_default,
+    pack_records,
+    unpack_records,
 )
 from armfit.io.trials import (
     Trial,
@@ -2382,7 +2385,10 @@ class Spectra:
 def _file_meta(kv: Mapping | None, p: Path, estimators: bool = True) -> dict:
     """armfit's metadata of a spectra file (``{}`` if absent or not JSON), its device
     masses checked against their range; with ``estimators`` False, without the per-trial
-    records (``estimators``: those under their own key are not parsed)."""
+    records (``estimators``: those under their own key are not unpacked or parsed). The
+    records are read from :data:`SPECTRA_ESTIMATORS_KEY` (compressed), else from
+    :data:`SPECTRA_ESTIMATORS_JSON_KEY` or armfit's JSON (files written before); a value
+    that does not unpack or parse is ignored, as armfit's JSON is."""
     import json
     kv = kv or {}
     try:
@@ -2392,9 +2398,11 @@ def _file_meta(kv: Mapping | None, p: Path, estimators: bool = True) -> dict:
     if isinstance(meta, dict):
         if not estimators:
             meta.pop("estimators", None)
-        elif SPECTRA_ESTIMATORS_KEY in kv:
+        elif SPECTRA_ESTIMATORS_KEY in kv or SPECTRA_ESTIMATORS_JSON_KEY in kv:
             try:
-                meta["estimators"] = json.loads(kv[SPECTRA_ESTIMATORS_KEY])
+                meta["estimators"] = json.loads(
+                    unpack_records(kv[SPECTRA_ESTIMATORS_KEY])
+                    if SPECTRA_ESTIMATORS_KEY in kv else kv[SPECTRA_ESTIMATORS_JSON_KEY])
             except ValueError:
                 pass
     masses = meta.get("mp_kg") if isinstance(meta, dict) else None
@@ -2899,7 +2907,8 @@ def _file_schema(part: Spectra, meta: Mapping):
     records = meta.pop("estimators", None)
     kv[SPECTRA_META_KEY] = json.dumps(meta, default=json_default).encode()
     if records is not None:
-        kv[SPECTRA_ESTIMATORS_KEY] = json.dumps(records, default=json_default).encode()
+        kv[SPECTRA_ESTIMATORS_KEY] = pack_records(
+            json.dumps(records, default=json_default).encode())
     return schema.with_metadata(kv)
 
 

@@ -10,9 +10,11 @@ trials read straight from the raw files of the sample study.
 
 from __future__ import annotations
 
+import base64
 import gc
 import json
 import weakref
+import zlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -29,7 +31,12 @@ from armfit.diagnosis.joint import JointProblem
 from armfit.diagnosis.responses import axis_data
 from armfit.errors import BadInputError
 from armfit.fitting import trial_groups
-from armfit.io.schema import SPECTRA_ESTIMATORS_KEY, SPECTRA_META_KEY, SPECTRA_VALUES
+from armfit.io.schema import (
+    SPECTRA_ESTIMATORS_JSON_KEY,
+    SPECTRA_ESTIMATORS_KEY,
+    SPECTRA_META_KEY,
+    SPECTRA_VALUES,
+)
 from armfit.io.trials import dataset_sources, discover, read_trial, write_dataset
 from armfit.models.arm import ClosedLoopModel
 
@@ -55,8 +62,9 @@ def whole(path: Path) -> S.Spectra:
     table = pq.read_table(path)
     kv = table.schema.metadata
     meta = json.loads(kv[SPECTRA_META_KEY])
-    if SPECTRA_ESTIMATORS_KEY in kv:     # the per-trial records, under their own key
-        meta["estimators"] = json.loads(kv[SPECTRA_ESTIMATORS_KEY])
+    if SPECTRA_ESTIMATORS_KEY in kv:     # the per-trial records: JSON, zlib, base64
+        meta["estimators"] = json.loads(zlib.decompress(base64.b64decode(
+            kv[SPECTRA_ESTIMATORS_KEY])))
     return S.Spectra.from_frame(table.to_pandas(), meta=meta, source=str(path))
 
 
@@ -112,44 +120,61 @@ def test_the_file_holds_its_metadata_once_and_reads_as_one_with_arrows_schema(sa
     pd.testing.assert_frame_equal(pd.read_parquet(old), pd.read_parquet(path))
 
 
-def test_the_per_trial_records_are_apart_and_a_read_without_them_never_parses_them(
+def test_the_per_trial_records_are_apart_compressed_and_a_read_without_them_never_parses_them(
         sample, tmp_path, monkeypatch):
     """The metadata's per-trial records (``estimators``: one per trial of the sample
-    study's 36) are under a key of their own, so a read that leaves them out
-    (``estimators=False``) never parses them; everything else it reads is the same. A
-    file of the former layout, the records inside armfit's JSON, reads to the same
-    metadata either way."""
+    study's 36) are under a key of their own, their JSON compressed by zlib in base64
+    (Python's own zlib and base64 unpack it), so a read that leaves them out
+    (``estimators=False``) never unpacks or parses them; everything else it reads is the
+    same. Files of the two former layouts — the JSON as it is under
+    ``armfit.estimators``, or inside armfit's JSON — read to the same metadata either
+    way."""
     path = sample["7 a group"]
     kv = pq.read_metadata(path).metadata
     assert "estimators" not in json.loads(kv[SPECTRA_META_KEY])
-    records = json.loads(kv[SPECTRA_ESTIMATORS_KEY])
+    text = zlib.decompress(base64.b64decode(kv[SPECTRA_ESTIMATORS_KEY]))
+    records = json.loads(text)
     assert len(records) == 36 and {"subject", "axis", "grip_N", "run"} <= set(records[0])
+    assert len(kv[SPECTRA_ESTIMATORS_KEY]) < len(text) / 4
     full = S.Spectra.read(path)
     assert full.meta["estimators"] == records
-    # the former layout: the same table, the records inside armfit's JSON
     table = pq.read_table(path)
     old_meta = {**json.loads(kv[SPECTRA_META_KEY]), "estimators": records}
-    old = tmp_path / "records_inside.parquet"
-    pq.write_table(table.replace_schema_metadata(
-        {SPECTRA_META_KEY: json.dumps(old_meta).encode(), b"pandas": kv[b"pandas"]}),
-        old, row_group_size=7 * 100)
-    assert_same(S.Spectra.read(old), replace(full, source=str(old)))
-    parsed = []
-    real_loads = json.loads
+    plain = json.dumps(records).encode()
+    former = {
+        # the records inside armfit's JSON
+        "inside": {SPECTRA_META_KEY: json.dumps(old_meta).encode()},
+        # the records' JSON as it is, under a key of its own
+        "plain": {SPECTRA_META_KEY: kv[SPECTRA_META_KEY], SPECTRA_ESTIMATORS_JSON_KEY: plain},
+    }
+    olds = []
+    for name, meta_kv in former.items():
+        old = tmp_path / f"records_{name}.parquet"
+        pq.write_table(table.replace_schema_metadata({**meta_kv, b"pandas": kv[b"pandas"]}),
+                       old, row_group_size=7 * 100)
+        assert_same(S.Spectra.read(old), replace(full, source=str(old)))
+        olds.append(old)
+    parsed, unpacked = [], []
+    real_loads, real_decompress = json.loads, zlib.decompress
 
     def loads(text, *args, **kwargs):
         parsed.append(bytes(text))
         return real_loads(text, *args, **kwargs)
 
+    def decompress(data, *args, **kwargs):
+        unpacked.append(data)
+        return real_decompress(data, *args, **kwargs)
+
     monkeypatch.setattr(json, "loads", loads)
-    for p in (path, old):
+    monkeypatch.setattr(zlib, "decompress", decompress)
+    for p in (path, *olds):
         lean = S.Spectra.read(p, level="trial", kind="measured", estimators=False)
         assert "estimators" not in lean.meta
         kept = {k: v for k, v in full.meta.items() if k != "estimators"}
         assert lean.meta == kept
         assert_same(lean, replace(full.select(level="trial", kind="measured"),
                                   meta=kept, source=str(p)))
-    assert kv[SPECTRA_ESTIMATORS_KEY] not in parsed
+    assert not unpacked and plain not in parsed
     assert kv[SPECTRA_META_KEY] in parsed
 
 

@@ -98,7 +98,7 @@ EXPECTED: dict[str, str] = {
     "run/report.md":
         "a102f11d95d46ddf21149b88f6ab49170039a3691c212b2e391327c3de05e409",
     "run/spectra.parquet":
-        "9718e983b9235dc0cafb684e66f06f178a983b384a6ad50b672cde31f0129cb8",
+        "ffcc023bbeae47cfe70a5191c972d844bb5a0c3abd0907f6f84c2aa294e8707a",
     "run/stability.csv":
         "2212753ac4ebe213e5c782cbeaf69217018ef1f2a92af072997d3153d73a90f3",
     "run/trial_params.csv":
