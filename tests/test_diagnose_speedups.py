@@ -28,7 +28,7 @@ from armfit import api, workers
 from armfit.adopt import adopt
 from armfit.constants import PARAM_NAMES
 from armfit.diagnosis import joint, schedule, search
-from armfit.diagnosis.bands import band_error
+from armfit.diagnosis.bands import band_columns, band_error
 from armfit.diagnosis.evidence import adequacy
 from armfit.diagnosis.fit import start_array
 from armfit.diagnosis.responses import axis_data, param_row
@@ -980,18 +980,16 @@ def test_adequacy_on_views_of_the_band_is_that_of_copies_written_out_to_the_bit(
     not a copy), and the adequacy makes the normalised residuals once, the NaN set to
     0 in place: the Adequacy is the one of the former steps — copies by the band's
     mask, a copy with NaN as 0 for each statistic — bit for bit, with a failing band
-    and NaN among the residuals and errors."""
-    from armfit.diagnosis.bands import failing_bands, trial_statistics
-    from armfit.diagnosis.evidence import Adequacy
-    from armfit.diagnosis.tuning import BANDS, MIN_EFFECT_DB, MIN_EFFECT_DEG, MIN_RUN
+    and NaN among the residuals and errors; and with an infinite residual."""
     rng = np.random.default_rng(8)
     T, n = 40, 100
     f = np.geomspace(0.1, 30.0, n)
     band = (0.2, 12.0)
     sel = (f >= band[0]) & (f <= band[1])
-    cols = search._columns(sel)
+    cols, count = band_columns(f, *band)
     assert isinstance(cols, slice) and np.array_equal(np.arange(n)[cols],
                                                       np.flatnonzero(sel))
+    assert count == sel.sum()
     m = int(sel.sum())
     fb = f[sel]
     r_db, r_deg = 0.3 * rng.normal(size=(T, m)), 2.0 * rng.normal(size=(T, m))
@@ -999,10 +997,24 @@ def test_adequacy_on_views_of_the_band_is_that_of_copies_written_out_to_the_bit(
     r_db[3, 5], r_deg[9, 60] = np.nan, np.nan
     se_db, se_deg = 0.05 + 0.2 * rng.random((T, n)), 0.5 + rng.random((T, n))
     se_db[6, np.flatnonzero(sel)[20]] = np.nan
+    got = _former_adequacy_and_adequacy(fb, r_db, r_deg, se_db, se_deg, sel, cols, band)
+    assert got[1].failing and not got[1].adequate and np.isfinite(got[1].cost)
+    assert repr(got[0]) == repr(got[1])
+    r_deg[11, 7] = np.inf          # an infinite residual: the cost is infinite
+    got = _former_adequacy_and_adequacy(fb, r_db, r_deg, se_db, se_deg, sel, cols, band)
+    assert got[1].cost == np.inf and repr(got[0]) == repr(got[1])
+
+
+def _former_adequacy_and_adequacy(fb, r_db, r_deg, se_db, se_deg, sel, cols, band):
+    """(the adequacy by the former steps, on copies by ``sel``; adequacy on views by
+    ``cols``) of residuals on the band ``fb``."""
+    from armfit.diagnosis.bands import failing_bands, trial_statistics
+    from armfit.diagnosis.evidence import Adequacy
+    from armfit.diagnosis.tuning import BANDS, MIN_EFFECT_DB, MIN_EFFECT_DEG, MIN_RUN
+    T, m = r_db.shape
     fit = joint.JointFit(ClosedLoopModel.for_axis("x"), np.zeros((T, 5)), {}, {}, {},
                          r_db, r_deg, 0.0, 2 * T * m, 0.0, True)
     got = adequacy(fb, fit, se_db[:, cols], se_deg[:, cols], band, 5 * T)
-    # the former steps, written out on copies by the mask
     sdb, sdeg = se_db[:, sel], se_deg[:, sel]
     zdb, zdeg = r_db / sdb, r_deg / sdeg
     with np.errstate(all="ignore"):
@@ -1023,5 +1035,4 @@ def test_adequacy_on_views_of_the_band_is_that_of_copies_written_out_to_the_bit(
     nu = max(int(np.isfinite(z).sum()) - 5 * T, 1)
     ref = Adequacy(not fails and not over, overall, bands, over, tuple(fails),
                    float(np.nansum(z * z)), float(nu), float(np.sqrt(2.0 * nu)))
-    assert fails and not got.adequate
-    assert repr(got) == repr(ref)
+    return ref, got

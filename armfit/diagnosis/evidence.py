@@ -128,17 +128,19 @@ def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray
     # excess is noise that the standard errors underestimate, not a model error
     over = tuple(b for b in bands if np.isfinite(b.rms_norm) and b.rms_norm > NOISE_TOL
                  and not (np.isfinite(b.bias_norm) and b.bias_norm <= 1.0))
-    # the normalised residuals, made once: first the cost (of every finite one), then,
-    # in place, with NaN as 0 (np.nan_to_num), the t statistics and the mean sizes
-    zdb, zdeg = fit.r_db / se_db, fit.r_deg / se_deg
-    z = np.concatenate([zdb.ravel(), zdeg.ravel()])
+    # the normalised residuals of magnitude and phase, made once into one array (zdb,
+    # zdeg: its halves): the finite ones counted; then, in place, NaN as 0 and ±inf as
+    # the largest floats (np.nan_to_num) for the t statistics and the mean sizes; then
+    # squared in place for the cost, whose sum is np.nansum's of the squares (NaN adds
+    # 0, ±inf squares to inf either way)
+    shape = np.shape(fit.r_db)
+    z = np.empty(2 * fit.r_db.size)
+    zdb, zdeg = z[:fit.r_db.size].reshape(shape), z[fit.r_db.size:].reshape(shape)
+    np.divide(fit.r_db, se_db, out=zdb)
+    np.divide(fit.r_deg, se_deg, out=zdeg)
     n_res = int(np.isfinite(z).sum())
     nu = max(n_res - n_params, 1)
-    np.multiply(z, z, out=z)    # the squares in place: no second array of 2 T n values
-    cost = float(np.nansum(z))
-    del z
-    np.nan_to_num(zdb, copy=False)
-    np.nan_to_num(zdeg, copy=False)
+    np.nan_to_num(z, copy=False)
     with np.errstate(all="ignore"):
         t_db, t_deg = trial_statistics(zdb, zdeg)
     m_db, m_deg = fit.r_db.mean(axis=0), fit.r_deg.mean(axis=0)
@@ -146,8 +148,11 @@ def adequacy(f: np.ndarray, fit: JointFit, se_db: np.ndarray, se_deg: np.ndarray
                           size_db=np.where(np.abs(m_db) > min_db, zdb.mean(axis=0), 0.0),
                           size_deg=np.where(np.abs(m_deg) > min_deg, zdeg.mean(axis=0),
                                             0.0))
+    del zdb, zdeg
+    with np.errstate(over="ignore"):    # the largest float squared: inf
+        np.multiply(z, z, out=z)
     return Adequacy(adequate=not fails and not over, overall=overall, bands=bands,
-                    over=over, failing=tuple(fails), cost=cost,
+                    over=over, failing=tuple(fails), cost=float(np.sum(z)),
                     cost_expected=float(nu), cost_sd=float(np.sqrt(2.0 * nu)))
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from armfit.constants import AXES, Z_975, axis_band
-from armfit.diagnosis.bands import BandError, _runs, band_error
+from armfit.diagnosis.bands import BandError, _runs, band_columns, band_error
 from armfit.diagnosis.evidence import (
     Adequacy,
     adequacy,
@@ -98,16 +98,6 @@ class CandidateFit:
                                                               self.effect.name)))
 
 
-def _columns(sel: np.ndarray) -> slice | np.ndarray:
-    """The points ``sel`` (a boolean mask) as an index of the last axis: a slice where
-    they are contiguous (a band of the sorted grid always is), whose indexing gives
-    views, not copies; else ``sel`` itself."""
-    idx = np.flatnonzero(sel)
-    if idx.size and idx[-1] - idx[0] + 1 == idx.size:
-        return slice(int(idx[0]), int(idx[-1]) + 1)
-    return sel
-
-
 class _Search:
     """The state of the stepwise search on one axis (see :func:`diagnose_axes`)."""
 
@@ -117,7 +107,7 @@ class _Search:
         self.max_steps, self.min_db, self.min_deg = max_steps, min_db, min_deg
         self.sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
         self.f = data.f_hz[self.sel]
-        self.cols = _columns(self.sel)
+        self.cols = band_columns(data.f_hz, *band)[0]     # a slice: views of the band
         self.fits: list[JointFit] = []
         self.added: list[Effect] = []
         self.steps: list[Step] = []
