@@ -289,6 +289,27 @@ def test_task_queue_lets_go_of_a_large_task_it_handed_over_last(monkeypatch):
     assert asked == [pool, pool]
 
 
+def test_an_axis_of_large_data_gives_memory_back_before_its_evidence(monkeypatch):
+    # an axis whose trials take 1 MiB or more (search.LARGE_TASK_BYTES: 400 trials of
+    # 100 frequencies take 400 * 100 * 32 bytes, 1.28 MB) gives the memory freed so far
+    # back before the evidence of a result is made; a small axis (40 trials) does not
+    from types import SimpleNamespace
+
+    from armfit.diagnosis.responses import AxisData
+    calls = []
+    monkeypatch.setattr(search, "release_memory", lambda: calls.append("release"))
+    n = 100
+    for T, expected in ((400, ["release", "start"]), (40, ["start"])):
+        data = AxisData("x", np.geomspace(0.1, 30.0, n), np.ones((T, n), complex),
+                        np.ones((T, n)), np.ones((T, n)), ({},) * T)
+        assert (data.nbytes >= search.LARGE_TASK_BYTES) == (T == 400)
+        axis = SimpleNamespace(data=data, done=True,
+                               start=lambda base: calls.append("start"))
+        calls.clear()
+        search._AxisSteps(axis, TaskQueue(), iter(range(3)))._based(None)
+        assert calls == expected
+
+
 def test_task_queue_runs_tasks_here_while_the_pool_starts():
     # while the thread starting the pool runs, ready tasks run in this thread; once it
     # has ended, on the pool

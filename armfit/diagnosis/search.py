@@ -628,12 +628,24 @@ class _AxisSteps:
 
     def __init__(self, search: _Search, tasks: TaskQueue, steps: Iterator[int]):
         self.s, self.tasks, self.steps = search, tasks, steps
+        self.large = _large(search.data)
 
     def begin(self) -> None:
         self.tasks.add((_BASE,), _base_task, (self.s.data, self.s.band), self._based,
-                       large=_large(self.s.data))
+                       large=self.large)
+
+    def _judging(self) -> None:
+        """Before the evidence of this axis's fits is made: the memory freed since the
+        last results were handed on goes back to the system (an axis of large data
+        only). The results just received leave freed blocks too small for the evidence's
+        arrays; given back, the evidence reuses their pages instead of growing the
+        process (on 4,050 trials the main process's top during the evidence of the last
+        axis's base fit fell from 175-180 MB to 168-170 MB)."""
+        if self.large:
+            release_memory()
 
     def _based(self, base: JointFit) -> None:
+        self._judging()
         self.s.start(base)
         self._step()
 
@@ -664,9 +676,10 @@ class _AxisSteps:
             extra = ((s.min_db, s.min_deg),) if s.by_subject_now(e) else ()
             self.tasks.add((_EXTEND,), _extend_task,
                            (s.data, s.band, s.fits[-1], e, sc, *extra), then,
-                           large=_large(s.data))
+                           large=self.large)
 
     def _take(self, screened, kept, fits) -> None:
+        self._judging()
         s = self.s
         for fit in fits:
             if isinstance(fit, FailedCandidate):
@@ -680,11 +693,12 @@ class _AxisSteps:
         if s.untested is not None:
             self.tasks.add((_EXTEND,), _subject_task,
                            (s.data, s.band, s.fits[-1], s.untested, s.min_db, s.min_deg),
-                           self._tested, large=_large(s.data))
+                           self._tested, large=self.large)
             return
         self._step()
 
     def _tested(self, result) -> None:
+        self._judging()
         s = self.s
         rivals = s.tested(result)
         if not rivals:
@@ -694,9 +708,10 @@ class _AxisSteps:
         for c, then in zip(rivals, parts, strict=True):
             self.tasks.add((_EXTEND,), _subject_task,
                            (s.data, s.band, c.fit, c.effect, s.min_db, s.min_deg), then,
-                           large=_large(s.data))
+                           large=self.large)
 
     def _settled(self, rivals, results) -> None:
+        self._judging()
         self.s.settle(rivals, results)
         self._step()
 
