@@ -869,7 +869,7 @@ def _fit_wu_axes(tasks, jobs: int, executor) -> list[WuResult]:
 class WmaxTarget:
     """One axis's W_max (eq. 6), all its Wu fit (eq. 7) needs (:func:`wmax_targets`):
     the grid ``f_hz`` (Hz), the trials behind it, W_max raw and the fit's target
-    (smoothed when asked), and the band (Hz) of the fit."""
+    (``smoothed``: W_max smoothed, else the raw W_max), and the band (Hz) of the fit."""
 
     axis: str
     f_hz: np.ndarray
@@ -877,6 +877,7 @@ class WmaxTarget:
     wmax_raw: np.ndarray
     target: np.ndarray
     band: tuple[float, float]
+    smoothed: bool = False
 
 
 def wmax_targets(spectra, params, *,
@@ -931,18 +932,18 @@ def wmax_targets(spectra, params, *,
                              f"(they cover {finite[0]:g}-{finite[-1]:g} Hz)")
         raw = w_max(H, Hn)
         target = raw if smooth_oct is None else w_max(H, Hn, f_hz=f, smooth_oct=smooth_oct)
-        out.append(WmaxTarget(axis, f, H.shape[0], raw, target, b))
+        out.append(WmaxTarget(axis, f, H.shape[0], raw, target, b, smooth_oct is not None))
     return out
 
 
 def fit_targets(targets: Sequence[WmaxTarget], *, cost: str = "envelope",
-                n_pairs: int | None = None, smoothed: bool = False,
+                n_pairs: int | None = None,
                 given: Mapping[str, Mapping[str, WuWeight]] | None = None,
                 jobs: int = 1, executor=None) -> list[AxisUncertainty]:
     """Wu (eq. 7) fitted to each of ``targets`` (:func:`wmax_targets`), and the checks
-    of the fitted and ``given`` weights against W_max: the second half of
-    :func:`fit_weights` (its arguments, which see; ``smoothed``: the targets are W_max
-    smoothed, checked besides the raw W_max).
+    of the fitted and ``given`` weights against W_max (and against the smoothed W_max
+    of a smoothed target): the second half of :func:`fit_weights` (its arguments, which
+    see).
 
     Returns
     -------
@@ -954,7 +955,7 @@ def fit_targets(targets: Sequence[WmaxTarget], *, cost: str = "envelope",
     fits = _fit_wu_axes(tasks, jobs, executor)
     out = []
     for t, res in zip(targets, fits, strict=True):
-        targets_by = {"wmax": t.wmax_raw} if not smoothed else {
+        targets_by = {"wmax": t.wmax_raw} if not t.smoothed else {
             "wmax": t.wmax_raw, "wmax_smoothed": t.target}
         weights = {"fitted": res.weight}
         for label, by_axis in (given or {}).items():
@@ -1009,8 +1010,7 @@ def fit_weights(spectra, params, *, cost: str = "envelope", n_pairs: int | None 
     """
     targets = wmax_targets(spectra, params, band=band, smooth_oct=smooth_oct,
                            method=method, source=source, by_subject=by_subject)
-    return fit_targets(targets, cost=cost, n_pairs=n_pairs,
-                       smoothed=smooth_oct is not None, given=given, jobs=jobs,
+    return fit_targets(targets, cost=cost, n_pairs=n_pairs, given=given, jobs=jobs,
                        executor=executor)
 
 

@@ -105,9 +105,10 @@ class _Search:
                  by_subject: bool = True):
         self.data, self.band, self.effects = data, band, list(effects)
         self.max_steps, self.min_db, self.min_deg = max_steps, min_db, min_deg
-        self.sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
-        self.f = data.f_hz[self.sel]
-        self.cols = band_columns(data.f_hz, *band)[0]     # a slice: views of the band
+        # the band's grid points: a slice (a band of the sorted grid), so that indexing
+        # gives views of the band, not copies
+        self.cols = band_columns(data.f_hz, *band)[0]
+        self.f = data.f_hz[self.cols]
         self.fits: list[JointFit] = []
         self.added: list[Effect] = []
         self.steps: list[Step] = []
@@ -395,10 +396,10 @@ class _Search:
             errors[i] = min(errors[i], errors[i - 1])
         ex = self.data.excluded
         n_ex, ex_hz = 0, ()
-        if ex is not None and ex[:, self.sel].any():
-            n_ex = int(ex[:, self.sel].any(axis=1).sum())
+        if ex is not None and ex[:, self.cols].any():
+            n_ex = int(ex[:, self.cols].any(axis=1).sum())
             ex_hz = tuple((float(self.f[a]), float(self.f[b - 1]))
-                          for a, b in _runs(ex[:, self.sel].any(axis=0), 1))
+                          for a, b in _runs(ex[:, self.cols].any(axis=0), 1))
         verdict = verdict_text(self.adequacies[0], ad, missing, errors, self.stop)
         if n_ex:
             verdict += (f"; {n_ex} of {self.data.h.shape[0]} trial(s) left out of the "
