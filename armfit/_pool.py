@@ -14,6 +14,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import itertools
+import os
 import signal
 import threading
 import weakref
@@ -23,12 +24,18 @@ from concurrent.futures import wait as _wait_futures
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from multiprocessing import reduction
+from multiprocessing.connection import Connection
 from typing import Any
 
-__all__ = ["GivingWay", "Hooks", "Pool"]
+__all__ = ["GivingWay", "Hooks", "Pool", "WholeReads", "whole_reads"]
 
 #: Tasks ``Hooks.ready`` sent a worker at most while a pool starts its workers.
 _START_TASKS = 8
+
+#: A message through a pool's pipes of at least this many bytes is read into one buffer
+#: of its size (:class:`WholeReads`); a shorter one as :mod:`multiprocessing` reads it.
+WHOLE_READ_BYTES = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -88,6 +95,10 @@ class Pool(ProcessPoolExecutor):
     def __init__(self, jobs: int, mp_context, hooks: Hooks) -> None:
         super().__init__(max_workers=jobs, mp_context=mp_context,
                          initializer=hooks.initializer, initargs=hooks.initargs)
+        # the tasks the workers receive and the results this process receives: read
+        # whole (the workers' ends are made from these when they start)
+        for reader in (self._call_queue._reader, self._result_queue._reader):
+            whole_reads(reader)
         self._armfit_hooks = hooks
         self._armfit_jobs = jobs
         self._armfit_lock = threading.Lock()
@@ -271,6 +282,84 @@ class Pool(ProcessPoolExecutor):
         with self._armfit_shutting:
             super().shutdown(wait=wait and not self._armfit_killed,
                              cancel_futures=cancel_futures)
+
+
+class WholeReads(Connection):
+    """The reading end of a pool's pipe, reading each message of
+    :data:`WHOLE_READ_BYTES` or more into one buffer of the message's size.
+
+    :class:`multiprocessing.connection.Connection` reads a message into an
+    :class:`io.BytesIO` a pipe's worth (64 KiB) at a time: the buffer grows by an eighth
+    at a time and is moved as it grows, past the block each read allocated. In a process
+    that keeps what it frees (:func:`armfit.workers.tune_allocator`) three pickled
+    messages of 8 MiB so grew the C library's heap by 2.8 times a message, against 2.0
+    read whole: the message's buffer and the object unpickled from it
+    (``tests/test_fast_paths.py``). In ``armfit run`` of 4,050 trials each base fit of
+    the diagnosis (2.2 MB: the residuals of an axis's 1,350 trials) arrives while the
+    next axis's rows are read; the main process's peak (``VmHWM``) fell from 183-185 MB
+    to 176-177 MB (two runs each).
+
+    Pickled to another process (a worker's end of the pool's queues) it stays a
+    ``WholeReads``."""
+
+    def _recv(self, size, read=None):
+        if size < WHOLE_READ_BYTES:
+            return super()._recv(size)
+        buf = bytearray(size)
+        with memoryview(buf) as view:
+            got = 0
+            while got < size:
+                n = os.readv(self._handle, [view[got:]])
+                if n == 0:
+                    if got == 0:
+                        raise EOFError
+                    raise OSError("got end of file during message")
+                got += n
+        return _Message(buf)
+
+
+class _Message:
+    """A message :class:`WholeReads` received, as :class:`multiprocessing.connection.Connection`
+    uses what its ``_recv`` returns (an :class:`io.BytesIO` written to its end)."""
+
+    def __init__(self, buf: bytearray):
+        self._buf = buf
+
+    def getbuffer(self) -> memoryview:
+        return memoryview(self._buf)
+
+    def getvalue(self) -> bytes:
+        return bytes(self._buf)
+
+    def tell(self) -> int:
+        return len(self._buf)
+
+    def seek(self, pos: int, whence: int = 0) -> int:
+        return pos
+
+    def readinto(self, out) -> int:
+        with memoryview(out) as m, m.cast("B") as b:
+            b[:len(self._buf)] = self._buf
+        return len(self._buf)
+
+
+def whole_reads(conn) -> None:
+    """Make ``conn``, the reading end of a pipe, a :class:`WholeReads` (nothing unless it
+    is a :class:`multiprocessing.connection.Connection`: on Windows a pipe is another
+    class)."""
+    if type(conn) is Connection and conn.readable:
+        conn.__class__ = WholeReads
+
+
+def _reduce_whole(conn: WholeReads):
+    return _rebuild_whole, (reduction.DupFd(conn.fileno()), conn.readable, conn.writable)
+
+
+def _rebuild_whole(df, readable: bool, writable: bool) -> WholeReads:
+    return WholeReads(df.detach(), readable, writable)
+
+
+reduction.register(WholeReads, _reduce_whole)
 
 
 def _settle(proxy: Future, fut: Future) -> None:

@@ -834,3 +834,63 @@ def test_a_pool_lets_go_of_the_last_task_it_sent():
     assert workers.let_go_sent(None) is None and workers.let_go_sent(pool) is None
     with ThreadPoolExecutor(max_workers=1) as given:
         assert workers.let_go_sent(given) is None
+
+
+def _connection_classes(_: int) -> list[str]:
+    """In a worker: the classes of the pipe ends it holds (its pool's queues')."""
+    import gc
+    from multiprocessing.connection import Connection
+    return sorted({type(o).__name__ for o in gc.get_objects() if isinstance(o, Connection)})
+
+
+def _echo(a: np.ndarray) -> np.ndarray:
+    return a
+
+
+def test_a_pools_tasks_and_results_are_read_whole_and_come_through_unchanged():
+    # the pool's reading ends are WholeReads: its result queue's here, its call queue's
+    # in the workers (pickled to them as WholeReads); what goes through is what was sent,
+    # below, at and above WHOLE_READ_BYTES
+    from armfit._pool import WHOLE_READ_BYTES, WholeReads
+    pool = workers.process_pool(2)
+    try:
+        assert type(pool._result_queue._reader) is WholeReads
+        assert "WholeReads" in pool.submit(_connection_classes, 0).result(timeout=60)
+        rng = np.random.default_rng(5)
+        arrays = [rng.standard_normal(n) for n in
+                  (3, WHOLE_READ_BYTES // 8 - 40, WHOLE_READ_BYTES // 8, 1 << 20)]
+        for a, back in zip(arrays, pool.map(_echo, arrays), strict=True):
+            assert back.tobytes() == a.tobytes()
+    finally:
+        pool.shutdown()
+
+
+def test_a_message_read_whole_is_the_message_for_every_way_of_receiving_it():
+    # recv, recv_bytes and recv_bytes_into (at an offset, into an array of 8-byte items)
+    # give what was sent, a message of many pipe reads (1 MB through 64 KiB) as a short one
+    from multiprocessing.connection import Pipe
+
+    from armfit._pool import WholeReads, whole_reads
+    reader, writer = Pipe(duplex=False)
+    whole_reads(reader)
+    assert type(reader) is WholeReads
+    data = bytes(range(256)) * 4000
+    obj = {"a": np.arange(200_000.0), "b": "x"}
+    sender = threading.Thread(target=lambda: [writer.send_bytes(data), writer.send(obj),
+                                              writer.send_bytes(data), writer.send_bytes(b"ab"),
+                                              writer.close()])
+    sender.start()
+    try:
+        assert reader.recv_bytes() == data
+        got = reader.recv()
+        assert got["b"] == "x" and got["a"].tobytes() == obj["a"].tobytes()
+        into = np.zeros(len(data) // 8 + 2)
+        assert reader.recv_bytes_into(into, 8) == len(data)
+        assert into.tobytes()[8:8 + len(data)] == data and not into[0] and not into[-1]
+        assert reader.recv_bytes() == b"ab"
+        with pytest.raises(EOFError):
+            reader.recv_bytes()
+    finally:
+        sender.join()
+        reader.close()
+
