@@ -170,9 +170,8 @@ def bench() -> None:
         wu = read_wu(path)
     kinds = {
         "bode": lambda: figures.bode_figure(spectra, grip),
-        "residual": lambda: figures.residual_figure(spectra, nominal, bands={
-            a: figures.significant_bands(r.freq_hz, np.vstack([r.z_db, r.z_deg]))
-            for a in "xyz" for r in [figures.normalised_residuals(spectra, nominal, a)]}),
+        # as `armfit plot residual` draws it without --band: the failing spans shaded
+        "residual": lambda: figures.residual_figure(spectra, nominal),
         "uncertainty": lambda: figures.uncertainty_figure(spectra, nominal, wu),
         "literature": lambda: figures.literature_figure(grip.iloc[0]),
     }
