@@ -18,7 +18,13 @@ The commands are run in rounds, one of each per round in turn, --repeat rounds. 
 ratio is taken within a round (the two commands saw the same load) and the median of
 the rounds' ratios is the figure; the best time of each command is printed beside it.
 The load average is printed at the start and the end (a shared machine inflates and
-scatters the times: compare the ratios).
+scatters the times: compare the ratios), and so is what two cores give together: one
+CPU-bound process (a pure-Python loop) timed alone and two of them started at once, in
+rounds, twice the time alone over the time of the pair (2.0 where each core is a core of
+its own; less where the two share a physical core or a host's other guests take their
+turn). `run -j2` runs two workers beside its own process while the floor is one process:
+on a machine whose two cores give 1.6 times one core's work, the run's ratio to the floor
+is higher than on one whose two give 2.0, with the same code.
 
     .venv/bin/python benchmarks/bench_floor.py [--repeat 3] [--scale] [--figures]
 """
@@ -58,6 +64,25 @@ for path in files:
                 if np.isfinite(x).all():
                     rfft(x, n=next_fast_len(x.size, real=True))
 """
+
+
+SPIN = "x = 0\nfor i in range(6_000_000):\n    x += i\n"
+
+
+def two_core_capacity(rounds: int = 3) -> float:
+    """Twice the wall time of one CPU-bound process alone over that of two started at
+    once (the median of ``rounds``): how many cores' work the machine gives two
+    processes, 2.0 at best."""
+    cmd = [sys.executable, "-c", SPIN]
+    ratios = []
+    for _ in range(rounds):
+        alone = wall(cmd)
+        t0 = time.perf_counter()
+        pair = [subprocess.Popen(cmd) for _ in range(2)]
+        for p in pair:
+            p.wait()
+        ratios.append(2 * alone / (time.perf_counter() - t0))
+    return statistics.median(ratios)
 
 
 def wall(cmd: list[str]) -> float:
@@ -123,6 +148,8 @@ def main() -> None:
                     / "armfit_bench_81x75-100s.parquet")
     args = ap.parse_args()
     start()
+    print(f"two cores give {two_core_capacity():.2f} x one core's work (two CPU-bound "
+          "processes at once against one; 2.00 at best)")
     bench_estimate.ensure(args.data)
     with tempfile.TemporaryDirectory(prefix="armfit-bench-floor-") as tmp:
         estimate_rows(args.data, Path(tmp), args.repeat, "81 trials")
@@ -131,7 +158,8 @@ def main() -> None:
             bench_estimate.ensure(large, subjects=90, duration_s=(75.0, 75.0))
             estimate_rows(large, Path(tmp), max(1, args.repeat - 1), "810 trials")
         run_rows(Path(tmp), args.repeat, args.figures)
-    print(f"load average {os.getloadavg()[0]:.2f} (1 min)")
+    print(f"load average {os.getloadavg()[0]:.2f} (1 min); two cores give "
+          f"{two_core_capacity():.2f} x one core's work")
 
 
 if __name__ == "__main__":
