@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from armfit import _shared
 from armfit._order import median, nanmedian, nanpercentile, percentile, unique
 from armfit._version import __version__
 from armfit.constants import (
@@ -3351,7 +3352,10 @@ class EstimateAlongside:
     after the reader's own.
 
     The reader's read warnings are its own; the result's ``warnings`` hold the
-    estimates'.
+    estimates'. On armfit's own process pool, a trial's samples reach the worker through
+    a shared-memory block of this process rather than the pool's pipe
+    (:class:`armfit._shared.Blocks`: about a tenth of the CPU time of `armfit run`
+    -j2 on 81 trials went into the pipe); the values are the same.
     """
 
     def __init__(self, stream: TrialStream, config: EstimateConfig, *,
@@ -3359,6 +3363,7 @@ class EstimateAlongside:
         self.config = config
         self.kept = _Kept(stream, config, skip_bad=skip_bad, admit=False)
         self.executor = executor
+        self.blocks = _shared.for_executor(executor)
         self.window = 2 * max(1, jobs)
         # in input order, not yet taken: a Future, a result, or a skip of the reader's
         self.order: collections.deque = collections.deque()
@@ -3402,7 +3407,14 @@ class EstimateAlongside:
         else:
             while len(self.pending) >= self.window:
                 self.pending.popleft().exception()   # waits; its outcome is taken in order
+            block = None
+            if self.blocks is not None:
+                samples = [trial.force, trial.pos, *([] if trial.ref is None else [trial.ref])]
+                shared, block = self.blocks.put(samples)
+                task = (source.label, trial.meta, shared)
             fut = self.executor.submit(_estimate_given, task, self.config)
+            if block is not None:
+                fut.add_done_callback(lambda _, block=block: self.blocks.release(block))
             self.pending.append(fut)
             self.order.append(fut)
         self._take(wait=False)
@@ -3420,17 +3432,27 @@ class EstimateAlongside:
             self.close()
 
     def close(self) -> None:
-        """Cancel the estimates not started (after a failure)."""
+        """Cancel the estimates not started (after a failure) and remove the
+        shared-memory blocks."""
         for fut in self.pending:
             fut.cancel()
         self.pending.clear()
         self.order.clear()
+        if self.blocks is not None:
+            self.blocks.close()
 
 
 def _estimate_given(task, config: EstimateConfig):
     """Worker: estimate a trial read and validated by another reader (``task``: its
-    label and :class:`Trial`); :func:`_estimate_source`'s result."""
-    label, trial = task
+    label and :class:`Trial`, or its label, :class:`TrialMeta` and its force, position
+    and reference samples in shared memory, :class:`armfit._shared.Shared`);
+    :func:`_estimate_source`'s result."""
+    if len(task) == 3:
+        label, meta, shared = task
+        force, pos, *ref = shared.take()
+        trial = Trial(meta, force, pos, ref=ref[0] if ref else None)
+    else:
+        label, trial = task
     read = ("read", trial, [], drift_flags(trial.pos, trial.meta.fs, config))
     return _estimate_read(label, read, config)
 

@@ -925,6 +925,56 @@ def test_estimate_alongside_ingest_is_the_estimate_of_the_same_files(csv_study, 
         assert len(ref.trials) == 3 and pool.in_flight == [1, 2, 2]
 
 
+@pytest.mark.skipif(not Path("/dev/shm").is_dir(), reason="POSIX shared memory in /dev/shm")
+@pytest.mark.parametrize("spoilt", [False, True])
+def test_trials_reach_the_pools_workers_through_shared_blocks_removed_after(
+        tmp_path, make_columns, write_trial, monkeypatch, spoilt):
+    # trials with a reference column (three arrays a trial) estimated alongside ingest on
+    # a process pool: each trial's samples go through a shared-memory block (recorded
+    # here) and the spectra file is, byte for byte, estimate_study's of the same files
+    # read by itself (the reference). Every block is gone once the result is taken, and
+    # also when a bad trial ends the ingest (spoilt, without skip_bad)
+    from armfit import _shared
+    from armfit.spectra import EstimateConfig, estimate_study
+    from armfit.workers import process_pool
+    study = tmp_path / "study"
+    study.mkdir()
+    for i, grip in enumerate((1, 2, 3)):
+        cols = make_columns("x", fs=200.0, duration_s=25.0, seed=i)
+        cols["ref_x_N"] = cols["force_x_N"] + 0.25            # the commanded force, N
+        if spoilt and i == 1:
+            cols["force_x_N"][40] = np.nan                     # a gap: a bad trial
+        write_trial(study / f"sub-01_axis-x_grip-{grip}N.parquet", cols)
+    names: list[str] = []
+    put = _shared.Blocks.put
+
+    def recorded(self, arrays):
+        shared, block = put(self, arrays)
+        names.append(shared.name)
+        assert len(shared.layout) == 3                          # force, pos, reference
+        return shared, block
+
+    monkeypatch.setattr(_shared.Blocks, "put", recorded)
+    config = EstimateConfig(fmin=0.5)
+    pool = process_pool(2)
+    try:
+        if spoilt:
+            with pytest.raises(BadInputError):
+                _alongside_ingest(study, tmp_path, config, skip_bad=False, executor=pool)
+        else:
+            got = _alongside_ingest(study, tmp_path, config, skip_bad=False, executor=pool)
+    finally:
+        pool.shutdown()
+    assert names and not any((Path("/dev/shm") / n.lstrip("/")).exists() for n in names)
+    if spoilt:
+        return
+    assert len(names) == 3
+    ref = estimate_study([study], config, jobs=1)
+    got.write(tmp_path / "got.parquet")
+    ref.write(tmp_path / "ref.parquet")
+    assert (tmp_path / "got.parquet").read_bytes() == (tmp_path / "ref.parquet").read_bytes()
+
+
 def _alongside_ingest(study, tmp_path, config, *, skip_bad, executor=None, jobs=2):
     """ingest of ``study`` with each trial handed to an EstimateAlongside: its result."""
     from armfit.io.trials import ingest
@@ -935,9 +985,14 @@ def _alongside_ingest(study, tmp_path, config, *, skip_bad, executor=None, jobs=
         along["estimate"] = EstimateAlongside(stream, config, skip_bad=skip_bad, jobs=jobs,
                                               executor=executor)
 
-    ingest([study], tmp_path / "trials.parquet", skip_bad=skip_bad, f_min_hz=config.fmin,
-           force_limit_N=config.force_limit_N, on_open=opened,
-           on_trial=lambda source, trial: along["estimate"].add(source, trial))
+    try:
+        ingest([study], tmp_path / "trials.parquet", skip_bad=skip_bad, f_min_hz=config.fmin,
+               force_limit_N=config.force_limit_N, on_open=opened,
+               on_trial=lambda source, trial: along["estimate"].add(source, trial))
+    except BaseException:
+        if "estimate" in along:     # as armfit run's ingest stage does
+            along["estimate"].close()
+        raise
     return along["estimate"].result()
 
 
