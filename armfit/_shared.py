@@ -15,8 +15,9 @@ a few hundred bytes), and the worker copies them out (:meth:`Shared.take`) and c
 the block at once; the block is free again when the task is done
 (:meth:`Blocks.release`). The same 81 trials then took 0.02 s of the sender's time and
 about 0.1 s of the receiver's. In `armfit run -j2`, whose processes are busy anyway,
-the gain shows at scale: 810 trials of 60 s took 22-27.5 s against 26.7-28.7 s through
-the pipe. The copies hold the same values, bit for bit: nothing computed changes.
+the gain is smaller: 810 trials of 60 s took 0.93 times as long as through the pipe
+(median of 7 alternated pairs). The copies hold the same values, bit for bit: nothing
+computed changes.
 
 The blocks are :class:`multiprocessing.shared_memory.SharedMemory` segments: removed
 by :meth:`Blocks.close`, and registered with multiprocessing's resource tracker, which
