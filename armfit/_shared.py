@@ -21,15 +21,19 @@ computed changes.
 
 The blocks are :class:`multiprocessing.shared_memory.SharedMemory` segments: removed
 by :meth:`Blocks.close`, and registered with multiprocessing's resource tracker, which
-removes those of a process killed before it could. Used only on POSIX systems, with
-armfit's own process pools (:func:`for_executor`); another executor (a pool of threads,
-a dask cluster whose workers may run on other machines) gets the arrays through its own
+removes those of a process killed before it could. Their pages are reserved when they
+are made: where the shared memory is full (a container's /dev/shm is 64 MiB by default)
+a task carries its arrays through the pipe as before. Used only on Linux, with armfit's
+own process pools (:func:`for_executor`); another executor (a pool of threads, a dask
+cluster whose workers may run on other machines) gets the arrays through its own
 channel.
 """
 
 from __future__ import annotations
 
+import errno
 import os
+import sys
 import threading
 import weakref
 from collections.abc import Sequence
@@ -40,6 +44,8 @@ import numpy as np
 __all__ = ["Blocks", "Shared", "for_executor"]
 
 _MIB = 1 << 20
+#: Where Linux keeps POSIX shared memory (a tmpfs, 64 MiB in a default Docker container).
+SHM_FOLDER = "/dev/shm"
 
 
 @dataclass(frozen=True)
@@ -79,13 +85,15 @@ class Blocks:
         # the interpreter ends), not with the resource tracker's warning
         weakref.finalize(self, _remove_all, self._all)
 
-    def put(self, arrays: Sequence[np.ndarray]) -> tuple[Shared, object]:
+    def put(self, arrays: Sequence[np.ndarray]) -> tuple[Shared, object] | None:
         """Copy ``arrays`` into a free block, the smallest large enough (a new one, of
         whole MiB, when none is free or large enough; a free block too small is removed
         first, so that their number stays that of the tasks in flight). Returns what the
-        task carries and the block, to hand to :meth:`release` once the task is done."""
-        from multiprocessing import shared_memory
-
+        task carries and the block, to hand to :meth:`release` once the task is done;
+        None when the shared memory has no room for a new block (the task then carries
+        the arrays themselves): its pages are reserved when the block is made, so that a
+        full tmpfs is an error here rather than a crash (SIGBUS) when the block is
+        written."""
         arrays = [np.asarray(a) for a in arrays]
         offsets, size = [], 0
         for a in arrays:
@@ -105,7 +113,9 @@ class Blocks:
         if block is None:
             # whole MiB: trials of a study differ in length, and a block replaced by a
             # larger one costs a page fault per page of the new block at its first use
-            block = shared_memory.SharedMemory(create=True, size=-(-max(size, 1) // _MIB) * _MIB)
+            block = _new_block(-(-max(size, 1) // _MIB) * _MIB)
+            if block is None:
+                return None
             with self._lock:
                 self._all[block.name] = block
         orders = ["F" if a.flags.f_contiguous and not a.flags.c_contiguous else "C"
@@ -139,32 +149,53 @@ class Blocks:
         with self._lock:
             if self._all.pop(block.name, None) is None:
                 return
-        try:
-            block.close()
-        except BufferError:     # pragma: no cover - an array still views it
-            pass
-        try:
-            block.unlink()
-        except FileNotFoundError:   # pragma: no cover - removed by the tracker
-            pass
+        _discard(block)
+
+
+def _new_block(size: int):
+    """A new shared-memory block of ``size`` bytes whose pages are reserved, or None
+    when the shared memory has no room for them."""
+    from multiprocessing import shared_memory
+
+    block = shared_memory.SharedMemory(create=True, size=size)
+    fd = os.open(os.path.join(SHM_FOLDER, block.name.lstrip("/")), os.O_RDWR)
+    try:
+        os.posix_fallocate(fd, 0, size)
+    except OSError as exc:
+        _discard(block)
+        if exc.errno in (errno.ENOSPC, errno.ENOMEM, errno.EFBIG):
+            return None
+        raise
+    finally:
+        os.close(fd)
+    return block
+
+
+def _discard(block) -> None:
+    """Close and remove ``block``."""
+    try:
+        block.close()
+    except BufferError:     # pragma: no cover - an array still views it
+        pass
+    try:
+        block.unlink()
+    except FileNotFoundError:   # pragma: no cover - removed by the tracker
+        pass
 
 
 def _remove_all(blocks: dict) -> None:
     """Close and remove the blocks of a :class:`Blocks` no longer referenced."""
     for block in list(blocks.values()):
-        try:
-            block.close()
-            block.unlink()
-        except (BufferError, FileNotFoundError):   # pragma: no cover
-            pass
+        _discard(block)
     blocks.clear()
 
 
 def for_executor(executor) -> Blocks | None:
     """:class:`Blocks` for tasks handed to ``executor`` when it is one of armfit's own
-    process pools on a POSIX system (its workers run on this machine and attach the
-    blocks); None otherwise."""
-    pools = __import__("sys").modules.get("armfit._pool")
-    if os.name != "posix" or pools is None or not isinstance(executor, pools.Pool):
+    process pools on Linux (its workers run on this machine and attach the blocks, kept
+    in :data:`SHM_FOLDER`); None otherwise."""
+    pools = sys.modules.get("armfit._pool")
+    if (not sys.platform.startswith("linux") or not os.path.isdir(SHM_FOLDER)
+            or pools is None or not isinstance(executor, pools.Pool)):
         return None
     return Blocks()

@@ -3407,14 +3407,13 @@ class EstimateAlongside:
         else:
             while len(self.pending) >= self.window:
                 self.pending.popleft().exception()   # waits; its outcome is taken in order
-            block = None
-            if self.blocks is not None:
-                samples = [trial.force, trial.pos, *([] if trial.ref is None else [trial.ref])]
-                shared, block = self.blocks.put(samples)
-                task = (source.label, trial.meta, shared)
+            put = None if self.blocks is None else self.blocks.put(
+                [trial.force, trial.pos, *([] if trial.ref is None else [trial.ref])])
+            if put is not None:     # else no room in the shared memory: through the pipe
+                task = (source.label, trial.meta, put[0])
             fut = self.executor.submit(_estimate_given, task, self.config)
-            if block is not None:
-                fut.add_done_callback(lambda _, block=block: self.blocks.release(block))
+            if put is not None:
+                fut.add_done_callback(lambda _, block=put[1]: self.blocks.release(block))
             self.pending.append(fut)
             self.order.append(fut)
         self._take(wait=False)

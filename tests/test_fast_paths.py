@@ -10,6 +10,7 @@ checks run a fresh interpreter and read its ``sys.modules`` after the command.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -926,14 +927,18 @@ def test_estimate_alongside_ingest_is_the_estimate_of_the_same_files(csv_study, 
 
 
 @pytest.mark.skipif(not Path("/dev/shm").is_dir(), reason="POSIX shared memory in /dev/shm")
-@pytest.mark.parametrize("spoilt", [False, True])
+@pytest.mark.parametrize("case", ["shared", "spoilt", "full"])
 def test_trials_reach_the_pools_workers_through_shared_blocks_removed_after(
-        tmp_path, make_columns, write_trial, monkeypatch, spoilt):
+        tmp_path, make_columns, write_trial, monkeypatch, case):
     # trials with a reference column (three arrays a trial) estimated alongside ingest on
     # a process pool: each trial's samples go through a shared-memory block (recorded
     # here) and the spectra file is, byte for byte, estimate_study's of the same files
     # read by itself (the reference). Every block is gone once the result is taken, and
-    # also when a bad trial ends the ingest (spoilt, without skip_bad)
+    # also when a bad trial ends the ingest (spoilt, without skip_bad). With no room in
+    # the shared memory (full: no block can be reserved) the trials go through the pipe,
+    # with the same result
+    import errno
+
     from armfit import _shared
     from armfit.spectra import EstimateConfig, estimate_study
     from armfit.workers import process_pool
@@ -942,33 +947,40 @@ def test_trials_reach_the_pools_workers_through_shared_blocks_removed_after(
     for i, grip in enumerate((1, 2, 3)):
         cols = make_columns("x", fs=200.0, duration_s=25.0, seed=i)
         cols["ref_x_N"] = cols["force_x_N"] + 0.25            # the commanded force, N
-        if spoilt and i == 1:
+        if case == "spoilt" and i == 1:
             cols["force_x_N"][40] = np.nan                     # a gap: a bad trial
         write_trial(study / f"sub-01_axis-x_grip-{grip}N.parquet", cols)
     names: list[str] = []
     put = _shared.Blocks.put
 
     def recorded(self, arrays):
-        shared, block = put(self, arrays)
-        names.append(shared.name)
-        assert len(shared.layout) == 3                          # force, pos, reference
-        return shared, block
+        got = put(self, arrays)
+        if got is not None:
+            names.append(got[0].name)
+            assert len(got[0].layout) == 3                      # force, pos, reference
+        return got
+
+    def full(fd, offset, size):
+        raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(_shared.Blocks, "put", recorded)
+    if case == "full":
+        monkeypatch.setattr(os, "posix_fallocate", full)
     config = EstimateConfig(fmin=0.5)
     pool = process_pool(2)
     try:
-        if spoilt:
+        if case == "spoilt":
             with pytest.raises(BadInputError):
                 _alongside_ingest(study, tmp_path, config, skip_bad=False, executor=pool)
         else:
             got = _alongside_ingest(study, tmp_path, config, skip_bad=False, executor=pool)
     finally:
         pool.shutdown()
-    assert names and not any((Path("/dev/shm") / n.lstrip("/")).exists() for n in names)
-    if spoilt:
+    assert bool(names) == (case != "full")
+    assert not any((Path("/dev/shm") / n.lstrip("/")).exists() for n in names)
+    if case == "spoilt":
         return
-    assert len(names) == 3
+    assert len(names) == (0 if case == "full" else 3)
     ref = estimate_study([study], config, jobs=1)
     got.write(tmp_path / "got.parquet")
     ref.write(tmp_path / "ref.parquet")

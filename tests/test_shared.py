@@ -108,3 +108,23 @@ def test_blocks_never_closed_go_with_their_owner():
     del blocks, block
     gc.collect()
     assert not _exists(shared.name)
+
+
+def test_a_full_shared_memory_gives_no_block_and_leaves_none(monkeypatch):
+    # a tmpfs with no room (a container's /dev/shm): the pages reserved when the block
+    # is made (posix_fallocate) fail with ENOSPC, the block is removed and put gives
+    # None (the task then carries its arrays through the pipe), never a SIGBUS later
+    import errno
+    made: list[str] = []
+
+    def full(fd, offset, size):
+        made.append(os.readlink(f"/proc/self/fd/{fd}"))
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    blocks = _shared.Blocks()
+    try:
+        assert blocks.put([np.arange(100.0)]) is None
+    finally:
+        blocks.close()
+    assert made and not Path(made[0]).exists()
