@@ -2472,7 +2472,7 @@ def _key_hashes(sp: Spectra) -> np.ndarray:
     two keys that share a hash are told apart by nothing, so a read that finds a seen
     hash again takes the response for split over groups and reads the file whole (the
     same result)."""
-    return np.unique(np.fromiter(map(hash, _response_keys(sp)), np.int64))
+    return unique(np.fromiter(map(hash, _response_keys(sp)), np.int64))
 
 
 #: A read gives the memory it no longer needs back to the system
@@ -2525,7 +2525,7 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
         keys = _key_hashes(part)
         if np.isin(keys, seen, assume_unique=True).any():
             raise _NotByGroup           # a response split over groups: read it whole
-        seen = np.union1d(seen, keys)
+        seen = unique(np.concatenate([seen, keys]))     # np.union1d, without numpy.ma
         rows = _wanted_rows(part, wanted) if wanted else np.arange(len(part))
         part = _only_values(part, values)   # before the rows are copied
         if empty is None:

@@ -104,3 +104,17 @@ def test_no_numpy_ma_is_imported():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.strip()
     assert out == "False"
+
+
+def test_reading_a_spectra_file_imports_no_numpy_ma(serial_spectra, tmp_path):
+    # a spectra file read by group (Spectra.read, as diagnose, fit-* and run's stages
+    # read theirs) tells its responses apart by their keys' distinct hashes: with
+    # numpy's unique and union1d, that imported numpy.ma (11 ms of diagnose's start)
+    path = tmp_path / "spectra.parquet"
+    serial_spectra.write(path)
+    code = ("import sys; from armfit.spectra import Spectra; "
+            f"sp = Spectra.read({str(path)!r}, level='trial'); "
+            "print(len(sp) > 0, 'numpy.ma' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "True False"
