@@ -194,8 +194,8 @@ def for_executor(executor) -> Blocks | None:
     """:class:`Blocks` for tasks handed to ``executor`` when it is one of armfit's own
     process pools on Linux (its workers run on this machine and attach the blocks, kept
     in :data:`SHM_FOLDER`); None otherwise."""
-    pools = sys.modules.get("armfit._pool")
+    from armfit.workers import is_process_pool
     if (not sys.platform.startswith("linux") or not os.path.isdir(SHM_FOLDER)
-            or pools is None or not isinstance(executor, pools.Pool)):
+            or not is_process_pool(executor)):
         return None
     return Blocks()

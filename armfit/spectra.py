@@ -2525,7 +2525,7 @@ def _read_by_group(p: Path, wanted: Mapping[str, tuple],
         keys = _key_hashes(part)
         if np.isin(keys, seen, assume_unique=True).any():
             raise _NotByGroup           # a response split over groups: read it whole
-        seen = unique(np.concatenate([seen, keys]))     # np.union1d, without numpy.ma
+        seen = np.concatenate([seen, keys])     # disjoint (just checked): still distinct
         rows = _wanted_rows(part, wanted) if wanted else np.arange(len(part))
         part = _only_values(part, values)   # before the rows are copied
         if empty is None:

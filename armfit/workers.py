@@ -84,7 +84,8 @@ if TYPE_CHECKING:   # the pool's modules are imported with the first pool (armfi
 
 __all__ = ["BLAS_ONE_THREAD", "CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD",
            "RUN_FIGURES_PRELOAD", "cancel_pools", "child_environment", "executor_for",
-           "giving_way", "ignore_sigint", "iter_tasks", "let_go_sent", "map_tasks",
+           "giving_way", "ignore_sigint", "is_process_pool", "iter_tasks", "let_go_sent",
+           "map_tasks",
            "prepare_pool_folder", "preload_own_only", "read_ahead", "process_pool",
            "remove_pool_folder", "start_fork_server",
            "fork_server_running",
@@ -389,10 +390,16 @@ def giving_way(executor: Executor | None) -> Executor | None:
         waiting first. Any other executor, or None, is returned as it is. Where a task
         runs never changes its result.
     """
-    pools = sys.modules.get("armfit._pool")    # not imported: no pool of process_pool
-    if pools is None or not isinstance(executor, pools.Pool):
+    if not is_process_pool(executor):
         return executor
-    return pools.GivingWay(executor)
+    return sys.modules["armfit._pool"].GivingWay(executor)
+
+
+def is_process_pool(executor: Executor | None) -> bool:
+    """Whether ``executor`` is a pool of :func:`process_pool` (its workers on this
+    machine, forked from this process's fork server)."""
+    pools = sys.modules.get("armfit._pool")    # not imported: no pool of process_pool
+    return pools is not None and isinstance(executor, pools.Pool)
 
 
 def let_go_sent(executor: Executor | None) -> Future | None:

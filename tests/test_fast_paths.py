@@ -25,6 +25,7 @@ from scipy import ndimage, signal
 from scipy.stats import qmc
 
 import armfit
+from armfit import _shared
 from armfit.data import sobol_points
 from armfit.errors import BadInputError
 from armfit.io.arrow import arrow_array
@@ -926,7 +927,7 @@ def test_estimate_alongside_ingest_is_the_estimate_of_the_same_files(csv_study, 
         assert len(ref.trials) == 3 and pool.in_flight == [1, 2, 2]
 
 
-@pytest.mark.skipif(not Path("/dev/shm").is_dir(), reason="POSIX shared memory in /dev/shm")
+@pytest.mark.skipif(not Path(_shared.SHM_FOLDER).is_dir(), reason="Linux's shared memory")
 @pytest.mark.parametrize("case", ["shared", "spoilt", "full"])
 def test_trials_reach_the_pools_workers_through_shared_blocks_removed_after(
         tmp_path, make_columns, write_trial, monkeypatch, case):
@@ -939,7 +940,6 @@ def test_trials_reach_the_pools_workers_through_shared_blocks_removed_after(
     # with the same result
     import errno
 
-    from armfit import _shared
     from armfit.spectra import EstimateConfig, estimate_study
     from armfit.workers import process_pool
     study = tmp_path / "study"
@@ -977,7 +977,7 @@ def test_trials_reach_the_pools_workers_through_shared_blocks_removed_after(
     finally:
         pool.shutdown()
     assert bool(names) == (case != "full")
-    assert not any((Path("/dev/shm") / n.lstrip("/")).exists() for n in names)
+    assert not any((Path(_shared.SHM_FOLDER) / n.lstrip("/")).exists() for n in names)
     if case == "spoilt":
         return
     assert len(names) == (0 if case == "full" else 3)

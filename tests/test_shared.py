@@ -13,8 +13,8 @@ import pytest
 
 from armfit import _shared
 
-SHM = Path("/dev/shm")
-pytestmark = pytest.mark.skipif(os.name != "posix", reason="POSIX shared memory")
+SHM = Path(_shared.SHM_FOLDER)
+pytestmark = pytest.mark.skipif(not SHM.is_dir(), reason="Linux's POSIX shared memory")
 
 
 def _exists(name: str) -> bool:
