@@ -223,6 +223,17 @@ class Pool(ProcessPoolExecutor):
         except (RuntimeError, BrokenProcessPool):     # shut down meanwhile
             return None
 
+    @property
+    def started(self) -> bool:
+        """Whether the workers have started (:meth:`start`, or the first task)."""
+        return self._armfit_started
+
+    def start(self) -> None:
+        """Start the workers now, if they have not started (as the first task would):
+        returns once every worker is up; raises what stopped them starting. Another
+        thread that submits a task meanwhile waits for the same start."""
+        self._armfit_start()
+
     def _armfit_start(self) -> None:
         with self._armfit_lock:
             if self._armfit_started:

@@ -91,7 +91,7 @@ from armfit.io.trials import (
     saturated_samples,
 )
 from armfit.memory import release_memory
-from armfit.workers import POOL_PRELOAD, iter_tasks, read_ahead
+from armfit.workers import POOL_PRELOAD, iter_tasks, read_ahead, start_workers
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -3339,6 +3339,11 @@ class _Kept:
                                            self.kept))
 
 
+#: Bytes of trial samples :class:`EstimateAlongside` holds, read ahead, while its pool's
+#: workers start (44 trials of 60 s at 1 kHz).
+READ_AHEAD_BYTES = 64 << 20
+
+
 class EstimateAlongside:
     """Estimate the trials another reader reads, as it reads them: the reader (e.g.
     :func:`armfit.io.trials.ingest`, ``on_trial``) validates each trial once and hands
@@ -3350,6 +3355,16 @@ class EstimateAlongside:
     inputs takes them (its sampling-rate check included; duplicates are the reader's to
     refuse); a bad trial's error (without ``skip_bad``) is raised by :meth:`result`,
     after the reader's own.
+
+    On armfit's own process pool whose workers have not started, they start at once in
+    a thread (:func:`armfit.workers.start_workers`) and the reader goes on meanwhile: the
+    trials it reads are held, up to :data:`READ_AHEAD_BYTES` of samples (beyond that,
+    the oldest is estimated here), and handed over once the workers are up, the oldest
+    first, as many as are in flight otherwise; the reader then waits only while it holds
+    more than it held when they came up. (The fork server of ``armfit run`` with figures
+    imports matplotlib and pandas before it forks a worker: the run's process waited
+    about 0.6 s at its first trial.) Where a trial is estimated never changes its
+    result.
 
     The reader's read warnings are its own; the result's ``warnings`` hold the
     estimates'. On armfit's own process pool, a trial's samples reach the worker through
@@ -3368,6 +3383,14 @@ class EstimateAlongside:
         # in input order, not yet taken: a Future, a result, or a skip of the reader's
         self.order: collections.deque = collections.deque()
         self.pending: collections.deque[Future] = collections.deque()
+        # the trials read and not handed over yet, in order: (label, trial, its place in
+        # ``order``: a Future given the outcome of the task it becomes)
+        self.held: collections.deque = collections.deque()
+        self.held_bytes = 0
+        self.starting = start_workers(executor)
+        # what the reader may hold: the read-ahead while the workers start, then no more
+        # than it held when they came up, never more again
+        self.cap = READ_AHEAD_BYTES if self.starting is not None else 0
         self.skips_seen = 0
         self.failed: Exception | None = None
 
@@ -3395,27 +3418,66 @@ class EstimateAlongside:
             except Exception as exc:
                 self.failed = exc
 
+    def _workers_starting(self) -> bool:
+        if self.starting is not None and not self.starting.is_alive():
+            self.starting = None
+        return self.starting is not None
+
+    def _hand_over(self) -> None:
+        """Hand the held trials to the workers, the oldest first, up to :attr:`window` in
+        flight (none while the workers start)."""
+        if self._workers_starting():
+            return
+        while self.pending and self.pending[0].done():   # its outcome reaches its place
+            self.pending.popleft()
+        while self.held and len(self.pending) < self.window:
+            label, trial, place = self.held.popleft()
+            self.held_bytes -= _samples_bytes(trial)
+            task = (label, trial)
+            put = None if self.blocks is None else self.blocks.put(
+                [trial.force, trial.pos, *([] if trial.ref is None else [trial.ref])])
+            if put is not None:     # else no room in the shared memory: through the pipe
+                task = (label, trial.meta, put[0])
+            fut = self.executor.submit(_estimate_given, task, self.config)
+            if put is not None:
+                fut.add_done_callback(lambda _, block=put[1]: self.blocks.release(block))
+            fut.add_done_callback(lambda f, place=place: _settle(place, f))
+            self.pending.append(fut)
+
+    def _make_room(self) -> None:
+        """While the workers start, estimate the oldest trial held here; once they are
+        up, wait for the oldest trial in flight."""
+        if not self._workers_starting():
+            self.pending.popleft().exception()   # waits; its outcome is taken in order
+            return
+        label, trial, place = self.held.popleft()
+        self.held_bytes -= _samples_bytes(trial)
+        try:
+            place.set_result(_estimate_given((label, trial), self.config))
+        except Exception as exc:    # taken in order, as a worker's would be
+            place.set_exception(exc)
+
     def add(self, source, trial: Trial) -> None:
         """Estimate ``trial`` (read from ``source``, a :class:`TrialSource`) once the
         trials the reader skipped before it are placed."""
         self._skips()
         if self.failed is not None:     # the result is that error: nothing more to do
             return
-        task = (source.label, replace(trial, grip=None))   # the estimate needs no grip
+        trial = replace(trial, grip=None)   # the estimate needs no grip
         if self.executor is None:
-            self.order.append(_estimate_given(task, self.config))
+            self.order.append(_estimate_given((source.label, trial), self.config))
         else:
-            while len(self.pending) >= self.window:
-                self.pending.popleft().exception()   # waits; its outcome is taken in order
-            put = None if self.blocks is None else self.blocks.put(
-                [trial.force, trial.pos, *([] if trial.ref is None else [trial.ref])])
-            if put is not None:     # else no room in the shared memory: through the pipe
-                task = (source.label, trial.meta, put[0])
-            fut = self.executor.submit(_estimate_given, task, self.config)
-            if put is not None:
-                fut.add_done_callback(lambda _, block=put[1]: self.blocks.release(block))
-            self.pending.append(fut)
-            self.order.append(fut)
+            place: Future = Future()
+            self.order.append(place)
+            self.held.append((source.label, trial, place))
+            self.held_bytes += _samples_bytes(trial)
+            while True:
+                self._hand_over()
+                if self.held_bytes <= self.cap:
+                    if not self._workers_starting():
+                        self.cap = self.held_bytes
+                    break
+                self._make_room()
         self._take(wait=False)
 
     def result(self) -> StudySpectra:
@@ -3423,6 +3485,10 @@ class EstimateAlongside:
         trial is estimated; the first bad trial's BadInputError without ``skip_bad``."""
         try:
             self._skips()
+            while self.held and self.failed is None:
+                self._hand_over()
+                if self.held:
+                    self._make_room()
             self._take(wait=True)
             if self.failed is not None:
                 raise self.failed
@@ -3436,9 +3502,27 @@ class EstimateAlongside:
         for fut in self.pending:
             fut.cancel()
         self.pending.clear()
+        self.held.clear()
+        self.held_bytes = 0
         self.order.clear()
         if self.blocks is not None:
             self.blocks.close()
+
+
+def _samples_bytes(trial: Trial) -> int:
+    """The bytes of a trial's samples (force, position and reference)."""
+    return trial.force.nbytes + trial.pos.nbytes + (0 if trial.ref is None
+                                                    else trial.ref.nbytes)
+
+
+def _settle(place: Future, fut: Future) -> None:
+    """Give ``place`` the outcome of ``fut``."""
+    if fut.cancelled():
+        place.cancel()
+    elif fut.exception() is not None:
+        place.set_exception(fut.exception())
+    else:
+        place.set_result(fut.result())
 
 
 def _estimate_given(task, config: EstimateConfig):

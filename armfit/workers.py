@@ -87,7 +87,7 @@ __all__ = ["BLAS_ONE_THREAD", "CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD",
            "giving_way", "ignore_sigint", "is_process_pool", "iter_tasks", "let_go_sent",
            "map_tasks",
            "prepare_pool_folder", "preload_own_only", "read_ahead", "process_pool",
-           "remove_pool_folder", "start_fork_server",
+           "remove_pool_folder", "start_fork_server", "start_workers",
            "fork_server_running",
            "start_method", "stop_workers", "worker_start", "tune_allocator", "one_blas_thread",
            "system_arrow_pool", "ARROW_SYSTEM_POOL",
@@ -393,6 +393,41 @@ def giving_way(executor: Executor | None) -> Executor | None:
     if not is_process_pool(executor):
         return executor
     return sys.modules["armfit._pool"].GivingWay(executor)
+
+
+def start_workers(executor: Executor | None) -> threading.Thread | None:
+    """Start the workers of a pool of :func:`process_pool` that has not started them, in
+    a thread of its own, so that the caller works meanwhile.
+
+    A pool's workers start at its first task, which waits until they are up: forked from
+    the fork server once it has imported its modules (with ``armfit run``'s figures,
+    matplotlib and pandas: about a second). A caller that has other work to do until then
+    (``armfit run`` reading its trials) starts them here.
+
+    Parameters
+    ----------
+    executor : concurrent.futures.Executor or None
+        Any executor.
+
+    Returns
+    -------
+    threading.Thread or None
+        The thread, running while the workers start (a failure is dropped there and
+        raised by the pool's next task); None for any other executor, or a pool whose
+        workers have started.
+    """
+    if not is_process_pool(executor) or executor.started:
+        return None
+    thread = threading.Thread(target=_start_quietly, args=(executor,), daemon=True,
+                              name="armfit-workers-start")
+    thread.start()
+    return thread
+
+
+def _start_quietly(pool) -> None:
+    """Start ``pool``'s workers; a failure shows again at its next task."""
+    with contextlib.suppress(BaseException):
+        pool.start()
 
 
 def is_process_pool(executor: Executor | None) -> bool:

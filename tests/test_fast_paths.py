@@ -968,6 +968,7 @@ def test_trials_reach_the_pools_workers_through_shared_blocks_removed_after(
         monkeypatch.setattr(os, "posix_fallocate", full)
     config = EstimateConfig(fmin=0.5)
     pool = process_pool(2)
+    pool.start()    # its workers up: no trial is held or estimated here while they start
     try:
         if case == "spoilt":
             with pytest.raises(BadInputError):
@@ -987,25 +988,99 @@ def test_trials_reach_the_pools_workers_through_shared_blocks_removed_after(
     assert (tmp_path / "got.parquet").read_bytes() == (tmp_path / "ref.parquet").read_bytes()
 
 
-def _alongside_ingest(study, tmp_path, config, *, skip_bad, executor=None, jobs=2):
-    """ingest of ``study`` with each trial handed to an EstimateAlongside: its result."""
+def _alongside_ingest(study, tmp_path, config, *, skip_bad, executor=None, jobs=2,
+                      on_add=None):
+    """ingest of ``study`` with each trial handed to an EstimateAlongside: its result.
+    ``on_add(n)``: called after the n-th trial is handed over."""
     from armfit.io.trials import ingest
     from armfit.spectra import EstimateAlongside
     along = {}
+    added = []
 
     def opened(stream):
         along["estimate"] = EstimateAlongside(stream, config, skip_bad=skip_bad, jobs=jobs,
                                               executor=executor)
 
+    def add(source, trial):
+        along["estimate"].add(source, trial)
+        added.append(source)
+        if on_add is not None:
+            on_add(len(added))
+
     try:
         ingest([study], tmp_path / "trials.parquet", skip_bad=skip_bad, f_min_hz=config.fmin,
-               force_limit_N=config.force_limit_N, on_open=opened,
-               on_trial=lambda source, trial: along["estimate"].add(source, trial))
+               force_limit_N=config.force_limit_N, on_open=opened, on_trial=add)
     except BaseException:
         if "estimate" in along:     # as armfit run's ingest stage does
             along["estimate"].close()
         raise
     return along["estimate"].result()
+
+
+@pytest.mark.parametrize("read_ahead", ["none", "all"])
+def test_the_reader_goes_on_while_the_pools_workers_start(csv_study, tmp_path, monkeypatch,
+                                                          read_ahead):
+    # the pool's workers start in a thread (armfit.workers.start_workers), held here until
+    # the reader has handed over two of the three good trials. Meanwhile nothing goes to
+    # the pool: the reader holds the trials, up to READ_AHEAD_BYTES of samples ("all":
+    # room for every trial; "none": one byte), and beyond that the oldest is estimated
+    # here, in this thread. Once the workers are up the rest go to the pool. Where a
+    # trial is estimated does not change it: the spectra file is, byte for byte,
+    # estimate_study's of the same files (the reference, each trial read by the
+    # estimate itself), the spoilt trial and the duplicate skipped in their places
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    import armfit.spectra as spectra_mod
+    from armfit.spectra import EstimateConfig, estimate_study
+    study, _ = _spoilt_study(csv_study, tmp_path)
+    config = EstimateConfig()
+    ref = estimate_study([study], config, jobs=1, skip_bad=True)
+    assert len(ref.trials) == 3
+    up = threading.Event()
+    starter = threading.Thread(target=up.wait, daemon=True)
+
+    def start_workers(executor):
+        starter.start()
+        return starter
+
+    def on_add(n):
+        if n == 2:          # the workers are up once the reader has handed over two
+            up.set()
+            starter.join()
+
+    where: list[str] = []
+    estimate_given = spectra_mod._estimate_given
+
+    def recorded(task, cfg):
+        where.append("here" if threading.current_thread() is threading.main_thread()
+                     else "pool")
+        return estimate_given(task, cfg)
+
+    pool = ThreadPoolExecutor(2)
+    submitted_up: list[bool] = []
+    submit = pool.submit
+
+    def checked(fn, *args, **kwargs):
+        submitted_up.append(up.is_set())
+        return submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(pool, "submit", checked)
+    monkeypatch.setattr(spectra_mod, "start_workers", start_workers)
+    monkeypatch.setattr(spectra_mod, "_estimate_given", recorded)
+    monkeypatch.setattr(spectra_mod, "READ_AHEAD_BYTES", 1 if read_ahead == "none" else 1 << 30)
+    try:
+        got = _alongside_ingest(study, tmp_path, config, skip_bad=True, executor=pool,
+                                on_add=on_add)
+    finally:
+        pool.shutdown()
+    assert all(submitted_up)
+    assert sorted(where) == (["here", "here", "pool"] if read_ahead == "none"
+                             else ["pool"] * 3)
+    assert got.skipped == ref.skipped
+    got.write(tmp_path / "got.parquet")
+    ref.write(tmp_path / "ref.parquet")
+    assert (tmp_path / "got.parquet").read_bytes() == (tmp_path / "ref.parquet").read_bytes()
 
 
 @pytest.mark.parametrize("where", ["here", "threads"])

@@ -73,6 +73,29 @@ def test_a_pool_starts_all_its_workers_at_its_first_task():
     assert set(mp.active_children()) - before == set()
 
 
+def test_start_workers_starts_a_pools_workers_in_a_thread_once():
+    # a pool of armfit's own whose workers have not started: a thread starts them all
+    # while the caller goes on; once it ends they are up (no task run). A started pool,
+    # another executor, or None: no thread
+    before = set(mp.active_children())
+    pool = workers.process_pool(2)
+    other = ThreadPoolExecutor(1)
+    try:
+        thread = workers.start_workers(pool)
+        assert isinstance(thread, threading.Thread)
+        thread.join(timeout=60)
+        assert not thread.is_alive() and pool.started
+        assert len(set(mp.active_children()) - before) == 2
+        assert workers.start_workers(pool) is None
+        assert workers.start_workers(other) is None and workers.start_workers(None) is None
+        assert pool.submit(_square, 7).result() == 49
+        assert len(set(mp.active_children()) - before) == 2     # the same two workers
+    finally:
+        pool.shutdown()
+        other.shutdown()
+    assert set(mp.active_children()) - before == set()
+
+
 def test_a_pool_starts_all_its_workers_when_the_first_is_idle_before_the_next_task(
         monkeypatch):
     # seen on a loaded machine: the first worker had done its start task before the next
