@@ -501,7 +501,7 @@ class GripFits(StageResult):
     diagnosis started from it and the fits of Table II (futures)."""
 
     grip: api.ModelFit
-    diagnosing: Background[api.Diagnosis]
+    diagnosing: Background[tuple]
     nominal: Background[api.ModelFit]
 
 
@@ -681,13 +681,17 @@ def _fit_base(which: str, config: RunConfig, workers: _Workers,
 
 
 def _table(which: str, config: RunConfig, model: api.ModelFit,
-           spectra: Spectra) -> api.ModelFit:
+           spectra: Spectra, *, csv_written: bool = False) -> api.ModelFit:
     """Table I ("grip") or II ("nominal") of the base model fitted (``model``), written
-    (params CSV and LaTeX) and read back, as the subcommands do."""
+    (params CSV and LaTeX; ``csv_written``: the CSV is written already) and read back,
+    as the subcommands do."""
     _warn_at_bound(which, model, config.warn)
-    model.write(config.path(f"{which}_params.csv"), latex=config.path(f"{which}_params.tex"))
-    return replace(api.ModelFit.read(config.path(f"{which}_params.csv")), fits=model.fits,
-                   spectra=spectra)
+    csv = config.path(f"{which}_params.csv")
+    if csv_written:
+        write_text_atomic(config.path(f"{which}_params.tex"), model.latex())
+    else:
+        model.write(csv, latex=config.path(f"{which}_params.tex"))
+    return replace(api.ModelFit.read(csv), fits=model.fits, spectra=spectra)
 
 
 def _fit_summary(model: api.ModelFit, cost: str) -> str:
@@ -695,15 +699,14 @@ def _fit_summary(model: api.ModelFit, cost: str) -> str:
             f"{_median(model.table['rms_db']):.2f} dB")
 
 
-def _diagnosis(path: Path, spectra: Spectra, grip: api.ModelFit, axes: Sequence[str],
-               executor: Executor | None) -> api.Diagnosis:
-    """The diagnosis of ``axes`` started from the grip fits: the trial rows of the
-    spectra file ``path``, read an axis at a time, its fits on the run's ``executor``
-    (here when it is None); the aggregates ``spectra`` are kept with it (all its plot
-    needs)."""
-    axes_done = tuple(diagnose_axes(path, grip.table, axes=axes, executor=executor))
+def _diagnosis(path: Path, starts, executor: Executor | None) -> tuple:
+    """The diagnosis's axes started from the grip fits ``starts`` (as grip_params.csv
+    gives them: :attr:`armfit.api.ModelFit.start_rows`): the trial rows of the spectra
+    file ``path``, read an axis at a time, its fits on the run's ``executor`` (here when
+    it is None)."""
+    axes_done = tuple(diagnose_axes(path, starts, executor=executor))
     release_memory()
-    return api.Diagnosis(axes_done, spectra, grip)
+    return axes_done
 
 
 def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> GripFits:
@@ -717,11 +720,17 @@ def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> Gri
     spectra = estimated.spectra
     fitted = _fit_base("grip", config, workers, spectra)
     nominal = workers.start(_fit_base, "nominal", config, workers, spectra)
-    grip = _table("grip", config, fitted, spectra)
+    # grip_params.csv first, and the diagnosis starts from it as read back (its base
+    # parameters, read without pandas); Table I's warnings, LaTeX table and DataFrame
+    # (pandas, about 0.3 s to import) are made meanwhile. Made before the diagnosis
+    # started, they left the workers idle once Table II's fits were done
+    csv = config.path("grip_params.csv")
+    fitted.write(csv)
+    starts = api.ModelFit.read_starts(csv).start_rows
     estimated.written()     # every later stage reads the file
-    axes = [a for a in AXES if (grip.table["axis"] == a).any()]
-    diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), spectra, grip,
-                               axes, workers.executor)
+    diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), starts,
+                               workers.executor)
+    grip = _table("grip", config, fitted, spectra, csv_written=True)
     return GripFits(grip, diagnosing, nominal, files=("grip_params.csv", "grip_params.tex"),
                     summary=_fit_summary(grip, config.options.cost))
 
@@ -737,7 +746,8 @@ def _fit_nominal(config: RunConfig, grip: GripFits, spectra: Spectra) -> Nominal
 def _diagnose(config: RunConfig, grip: GripFits) -> Diagnosed:
     """Wait for the diagnosis fit-grip started (diagnosis.json) and adopt the model of
     each axis (adoption.csv)."""
-    diagnosis = grip.diagnosing.result()
+    # the aggregates are kept with it (all its plot needs)
+    diagnosis = api.Diagnosis(grip.diagnosing.result(), grip.grip.spectra, grip.grip)
     diagnosis.write(config.path("diagnosis.json"))
     for d in diagnosis.axes:
         for c in d.failed_candidates:
