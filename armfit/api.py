@@ -24,7 +24,6 @@ import html
 import importlib
 import json
 import os
-import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
@@ -32,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from armfit._lazy import loaded
 from armfit.constants import AXES
 from armfit.diagnosis.tuning import MAX_STEPS, MIN_EFFECT_DB, MIN_EFFECT_DEG
 from armfit.errors import BadInputError, UsageError
@@ -98,7 +98,7 @@ def _fit_effects(effects):
     (:func:`armfit.models.effects.resolve_effects`)."""
     if isinstance(effects, AdoptedModel):
         return effects.adoption.effects
-    adopt = sys.modules.get("armfit.adopt")   # not imported: no Adoption was made
+    adopt = loaded("armfit.adopt")   # not imported: no Adoption was made
     if adopt is not None and isinstance(effects, adopt.Adoption):
         return effects.effects
     if isinstance(effects, Mapping):

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import sys
+
+from armfit._lazy import loaded
 
 __all__ = ["release_memory"]
 
@@ -31,7 +32,7 @@ def release_memory() -> None:
     """Give the memory freed so far back to the system: Arrow's unused buffers (when
     pyarrow is loaded) and the C library's free pages (``malloc_trim(0)``, GNU C library
     only). Safe from any thread; it changes no value held."""
-    pa = sys.modules.get("pyarrow")
+    pa = loaded("pyarrow")
     if pa is not None:
         pa.default_memory_pool().release_unused()
     trim = _malloc_trim()

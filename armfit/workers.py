@@ -79,6 +79,8 @@ import weakref
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
+from armfit._lazy import loaded
+
 if TYPE_CHECKING:   # the pool's modules are imported with the first pool (armfit._pool)
     from concurrent.futures import Executor, Future, ProcessPoolExecutor
 
@@ -433,7 +435,7 @@ def _start_quietly(pool) -> None:
 def is_process_pool(executor: Executor | None) -> bool:
     """Whether ``executor`` is a pool of :func:`process_pool` (its workers on this
     machine, forked from this process's fork server)."""
-    pools = sys.modules.get("armfit._pool")    # not imported: no pool of process_pool
+    pools = loaded("armfit._pool")    # not imported: no pool of process_pool
     return pools is not None and isinstance(executor, pools.Pool)
 
 
@@ -455,7 +457,7 @@ def let_go_sent(executor: Executor | None) -> Future | None:
     concurrent.futures.Future or None
         The empty task's; None when nothing was sent.
     """
-    pools = sys.modules.get("armfit._pool")    # not imported: no pool of process_pool
+    pools = loaded("armfit._pool")    # not imported: no pool of process_pool
     if pools is None:
         return None
     if isinstance(executor, pools.GivingWay):

@@ -24,11 +24,11 @@ import decimal
 import math
 import numbers
 import re
-import sys
 from collections.abc import Iterable
 
 import numpy as np
 
+from armfit._lazy import loaded
 from armfit.errors import BadInputError, cell
 from armfit.io.arrow import arrow_numbers
 
@@ -122,7 +122,7 @@ def _arrow(values):
         return values.combine_chunks() if values.num_chunks != 1 else values.chunk(0)
     if isinstance(values, pa.Array):
         return values
-    pd = sys.modules.get("pandas")   # not imported: ``values`` is no pandas object
+    pd = loaded("pandas")   # not imported (or half, by another thread): no pandas object
     if pd is not None and isinstance(values, pd.Series | pd.Index):
         if pd.api.types.is_numeric_dtype(values.dtype) \
                 and not pd.api.types.is_bool_dtype(values.dtype):
@@ -141,11 +141,10 @@ def _missing(v) -> bool:
         return True
     if isinstance(v, float):
         return math.isnan(v)
-    try:
-        import pandas as pd
-        return v is pd.NA or v is pd.NaT
-    except ImportError:  # pragma: no cover
-        return False
+    # pandas's missing values exist only once pandas is imported: not imported here for
+    # them (a third of a second)
+    pd = loaded("pandas")
+    return pd is not None and (v is pd.NA or v is pd.NaT)
 
 
 def _as_text(v) -> str:
