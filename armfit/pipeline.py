@@ -680,18 +680,23 @@ def _fit_base(which: str, config: RunConfig, workers: _Workers,
                jobs=config.options.jobs, executor=workers.executor)
 
 
+def _params_csv(which: str, config: RunConfig, model: api.ModelFit) -> Path:
+    """Table I ("grip") or II ("nominal") of the base model fitted (``model``) written as
+    its params CSV (no pandas needed); its path."""
+    path = config.path(f"{which}_params.csv")
+    model.write(path)
+    return path
+
+
 def _table(which: str, config: RunConfig, model: api.ModelFit,
-           spectra: Spectra, *, csv_written: bool = False) -> api.ModelFit:
-    """Table I ("grip") or II ("nominal") of the base model fitted (``model``), written
-    (params CSV and LaTeX; ``csv_written``: the CSV is written already) and read back,
-    as the subcommands do."""
+           spectra: Spectra) -> api.ModelFit:
+    """The rest of Table I or II once its params CSV is written (:func:`_params_csv`):
+    the warnings of its fits at a bound, its LaTeX table, and the table read back from
+    the CSV, as the subcommands do."""
     _warn_at_bound(which, model, config.warn)
-    csv = config.path(f"{which}_params.csv")
-    if csv_written:
-        write_text_atomic(config.path(f"{which}_params.tex"), model.latex())
-    else:
-        model.write(csv, latex=config.path(f"{which}_params.tex"))
-    return replace(api.ModelFit.read(csv), fits=model.fits, spectra=spectra)
+    write_text_atomic(config.path(f"{which}_params.tex"), model.latex())
+    return replace(api.ModelFit.read(config.path(f"{which}_params.csv")),
+                   fits=model.fits, spectra=spectra)
 
 
 def _fit_summary(model: api.ModelFit, cost: str) -> str:
@@ -724,20 +729,20 @@ def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> Gri
     # parameters, read without pandas); Table I's warnings, LaTeX table and DataFrame
     # (pandas, about 0.3 s to import) are made meanwhile. Made before the diagnosis
     # started, they left the workers idle once Table II's fits were done
-    csv = config.path("grip_params.csv")
-    fitted.write(csv)
-    starts = api.ModelFit.read_starts(csv).start_rows
+    starts = api.ModelFit.read_starts(_params_csv("grip", config, fitted)).start_rows
     estimated.written()     # every later stage reads the file
     diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), starts,
                                workers.executor)
-    grip = _table("grip", config, fitted, spectra, csv_written=True)
+    grip = _table("grip", config, fitted, spectra)
     return GripFits(grip, diagnosing, nominal, files=("grip_params.csv", "grip_params.tex"),
                     summary=_fit_summary(grip, config.options.cost))
 
 
 def _fit_nominal(config: RunConfig, grip: GripFits, spectra: Spectra) -> NominalFits:
     """Table II of the base model, from the fits fit-grip started."""
-    nominal = _table("nominal", config, grip.nominal.result(), spectra)
+    fitted = grip.nominal.result()
+    _params_csv("nominal", config, fitted)
+    nominal = _table("nominal", config, fitted, spectra)
     return NominalFits(nominal, files=("nominal_params.csv", "nominal_params.tex"),
                        started=grip.nominal.started,
                        summary=_fit_summary(nominal, config.options.cost))

@@ -149,11 +149,11 @@ class TaskQueue:
 
 
 def _start(pool: Executor, queue: TaskQueue) -> None:
-    """Start the workers of a pool of :func:`armfit.workers.process_pool` (they start at
-    its first task) and hand them the queue's ready tasks; a failure shows again at the
-    pool's next task, in the queue's own thread."""
+    """Start the workers of a pool of :func:`armfit.workers.process_pool` and hand them
+    the queue's ready tasks; a failure shows again at the pool's next task, in the
+    queue's own thread."""
     with contextlib.suppress(BaseException):
-        pool.submit(int)
+        pool.start()
         queue.hand_over()
 
 
