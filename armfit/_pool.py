@@ -267,6 +267,13 @@ class Pool(ProcessPoolExecutor):
                 while len(self._processes or ()) < self._armfit_jobs \
                         and len(futures) < _START_TASKS * self._armfit_jobs:
                     futures.append(super().submit(hooks.ready))
+                # a worker that won every race (each task done before the next was
+                # sent) took them all: the workers still missing are started outright,
+                # as the executor starts one for a task that finds none idle
+                with self._shutdown_lock:
+                    while self._processes is not None \
+                            and len(self._processes) < self._armfit_jobs:
+                        self._spawn_process()
                 for fut in futures:
                     fut.result()
         except BaseException as exc:  # raised in the caller's thread
