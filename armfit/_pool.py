@@ -21,14 +21,14 @@ import weakref
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import CancelledError, Executor, Future, ProcessPoolExecutor
 from concurrent.futures import wait as _wait_futures
-from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures.process import BrokenProcessPool, _SafeQueue
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from multiprocessing import reduction
 from multiprocessing.connection import Connection
 from typing import Any
 
-__all__ = ["GivingWay", "Hooks", "Pool", "WholeReads", "whole_reads"]
+__all__ = ["GivingWay", "Hooks", "Pool", "WholeReads", "after_task", "whole_reads"]
 
 #: Tasks ``Hooks.ready`` sent a worker at most while a pool starts its workers.
 _START_TASKS = 8
@@ -36,6 +36,12 @@ _START_TASKS = 8
 #: A message through a pool's pipes of at least this many bytes is read into one buffer
 #: of its size (:class:`WholeReads`); a shorter one as :mod:`multiprocessing` reads it.
 WHOLE_READ_BYTES = 1 << 16
+
+#: In a pool's worker: what :func:`after_task` was asked to run once the task now running
+#: has ended; and whether this process is such a worker (it received the pool's queue of
+#: tasks, :class:`_Tasks`).
+_AFTER_TASK: list[Callable[[], None]] = []
+_IN_WORKER = False
 
 
 @dataclass(frozen=True)
@@ -99,6 +105,7 @@ class Pool(ProcessPoolExecutor):
         # whole (the workers' ends are made from these when they start)
         for reader in (self._call_queue._reader, self._result_queue._reader):
             whole_reads(reader)
+        self._call_queue.__class__ = _Tasks
         self._armfit_hooks = hooks
         self._armfit_jobs = jobs
         self._armfit_lock = threading.Lock()
@@ -302,6 +309,24 @@ class Pool(ProcessPoolExecutor):
                              cancel_futures=cancel_futures)
 
 
+class _Tasks(_SafeQueue):
+    """The queue a :class:`Pool`'s tasks reach its workers through. In a worker, before
+    it waits for its next task, it runs what the task before asked to run once it had
+    ended (:func:`after_task`): the worker's loop has sent that task's result and let
+    its arguments go by then."""
+
+    def __setstate__(self, state):
+        global _IN_WORKER
+        _IN_WORKER = True        # only a pool's worker receives the queue
+        super().__setstate__(state)
+
+    def get(self, block=True, timeout=None):
+        while _AFTER_TASK:
+            with contextlib.suppress(Exception):    # never the worker's end
+                _AFTER_TASK.pop(0)()
+        return super().get(block, timeout)
+
+
 class WholeReads(Connection):
     """The reading end of a pool's pipe, reading each message of
     :data:`WHOLE_READ_BYTES` or more into one buffer of the message's size.
@@ -375,6 +400,18 @@ def _reduce_whole(conn: WholeReads):
 
 def _rebuild_whole(df, readable: bool, writable: bool) -> WholeReads:
     return WholeReads(df.detach(), readable, writable)
+
+
+def after_task(fn: Callable[[], None]) -> bool:
+    """In a pool's worker, have ``fn()`` run once the task now running has ended: after
+    its result was sent and its arguments were let go, before the worker waits for its
+    next task (:class:`_Tasks`). A task's own ``finally`` comes before both: the
+    result is pickled, and the arguments freed, only after the task function returns.
+    Returns False (and runs nothing) in any other process."""
+    if not _IN_WORKER:
+        return False
+    _AFTER_TASK.append(fn)
+    return True
 
 
 reduction.register(WholeReads, _reduce_whole)

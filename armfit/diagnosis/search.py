@@ -62,7 +62,7 @@ from armfit.diagnosis.tuning import (
 from armfit.diagnosis.verdict import verdict_text
 from armfit.errors import EffectDefinitionError
 from armfit.feedback import chi2_sf
-from armfit.memory import release_memory
+from armfit.memory import release_memory, release_memory_after_task
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
 from armfit.spectra import Spectra
@@ -422,16 +422,17 @@ class _Search:
             excluded_hz=ex_hz)
 
 
-# Each task gives back the memory its fit freed (:func:`armfit.memory.release_memory`): a
-# worker runs fit after fit over all of an axis's trials, and would otherwise keep the
-# pages of every one.
+# Each task gives back the memory its fit freed once it has ended
+# (:func:`armfit.memory.release_memory_after_task`: in a worker, after its result is sent
+# and its arguments, an axis's trials, are let go): a worker runs fit after fit over all
+# of an axis's trials, and would otherwise keep the pages of every one.
 
 def _base_task(args):
     data, band = args
     try:
         return fit_base(data, band)
     finally:
-        release_memory()
+        release_memory_after_task()
 
 
 def _screen_task(args):
@@ -441,7 +442,7 @@ def _screen_task(args):
     except EffectDefinitionError as exc:     # the effect's own code broke the fit
         return FailedCandidate(effect.name, str(exc))
     finally:
-        release_memory()
+        release_memory_after_task()
 
 
 def _extend_task(args):
@@ -456,7 +457,7 @@ def _extend_task(args):
     except EffectDefinitionError as exc:     # the effect's own code broke the fit
         return FailedCandidate(effect.name, str(exc))
     finally:
-        release_memory()
+        release_memory_after_task()
 
 
 def _subject_task(args):
@@ -467,7 +468,7 @@ def _subject_task(args):
     except EffectDefinitionError:    # the effect's own code broke a fit: keep it shared
         return None
     finally:
-        release_memory()
+        release_memory_after_task()
 
 
 def diagnose_axes(spectra, params, *,
@@ -738,7 +739,7 @@ def _borrow_task(args):
     except EffectDefinitionError:   # an effect's own code broke the refit: keep the search's
         return None
     finally:
-        release_memory()
+        release_memory_after_task()
 
 
 def cross_axis_agreement(results: Sequence[AxisDiagnosis], share: Sequence[str]
