@@ -30,9 +30,6 @@ from typing import Any
 
 __all__ = ["GivingWay", "Hooks", "Pool", "WholeReads", "after_task", "whole_reads"]
 
-#: Tasks ``Hooks.ready`` sent a worker at most while a pool starts its workers.
-_START_TASKS = 8
-
 #: A message through a pool's pipes of at least this many bytes is read into one buffer
 #: of its size (:class:`WholeReads`); a shorter one as :mod:`multiprocessing` reads it.
 WHOLE_READ_BYTES = 1 << 16
@@ -266,17 +263,14 @@ class Pool(ProcessPoolExecutor):
             with hooks.starting, hooks.environment():
                 if hooks.stopped():
                     raise BrokenProcessPool("the worker processes were stopped")
-                # a task per worker: a submit starts a worker while none is idle. A
-                # worker that has already done its task (a loaded machine may pause
-                # this thread between two submits) takes the next one instead, so tasks
-                # are sent until every worker is started (at most _START_TASKS a worker)
-                futures = [super().submit(hooks.ready)]   # refused once the pool is shut down
-                while len(self._processes or ()) < self._armfit_jobs \
-                        and len(futures) < _START_TASKS * self._armfit_jobs:
-                    futures.append(super().submit(hooks.ready))
-                # a worker that won every race (each task done before the next was
-                # sent) took them all: the workers still missing are started outright,
-                # as the executor starts one for a task that finds none idle
+                # a task per worker (refused once the pool is shut down): a submit
+                # starts a worker while none is idle. A worker that has already done its
+                # task (a loaded machine may pause this thread between two submits)
+                # takes the next one instead: the workers still missing are then
+                # started outright, as the executor starts one for a task that finds
+                # none idle
+                submit = super().submit
+                futures = [submit(hooks.ready) for _ in range(self._armfit_jobs)]
                 with self._shutdown_lock:
                     while self._processes is not None \
                             and len(self._processes) < self._armfit_jobs:

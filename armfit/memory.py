@@ -45,7 +45,7 @@ def release_memory_after_task() -> None:
     (:func:`armfit._pool.after_task`): then the memory of the task's result, pickled
     after the task function returns, and of its arguments, let go after the result is
     sent, is given back too. A worker of the diagnosis of 4,050 trials otherwise kept
-    12 MB of the last task's arrays freed (57 MB against 45 MB). Elsewhere (a task run
+    11 MB of the last task's arrays freed (57 MB against 46 MB). Elsewhere (a task run
     in the calling process) the memory is given back now."""
     pool = loaded("armfit._pool")
     if pool is None or not pool.after_task(release_memory):
