@@ -294,6 +294,87 @@ def test_a_pickled_builtin_effect_loads_no_package_metadata_in_a_fresh_process()
     assert out.stdout.decode().split() == ["lowpass", "False"]
 
 
+def test_listing_the_library_reads_no_package_metadata_when_no_package_declares_effects():
+    # the packages installed with armfit declare no effect: listing the library looks
+    # for the group's name in their entry_points.txt and does not import
+    # importlib.metadata (about 45 ms); the registry then holds the built-ins only
+    code = ("import sys; from armfit.models.effects import EFFECTS; "
+            "print(len(list(EFFECTS)), 'importlib.metadata' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, check=True,
+                         timeout=60, cwd=Path(__file__).parent)
+    from armfit.models import library
+    assert out.stdout.decode().split() == [str(len(library.EFFECTS)), "False"]
+
+
+@pytest.mark.parametrize("layout", ["dist-info", "egg-info", "other-group", "none", "zip",
+                                    "egg"])
+def test_the_quick_look_for_declared_effects_never_misses_what_importlib_finds(
+        tmp_path, monkeypatch, layout):
+    # the independent reference: importlib.metadata's own entry_points on the same path
+    from importlib.metadata import entry_points
+    group = effects_mod.ENTRY_POINT_GROUP
+    if layout in ("dist-info", "egg-info", "other-group"):
+        info = tmp_path / f"armfit_demo-0.1.{layout if layout != 'other-group' else 'dist-info'}"
+        info.mkdir()
+        (info / "METADATA").write_text("Metadata-Version: 2.1\nName: armfit-demo\n"
+                                       "Version: 0.1\n")
+        (info / "PKG-INFO").write_text("Metadata-Version: 2.1\nName: armfit-demo\n"
+                                       "Version: 0.1\n")
+        section = "console_scripts" if layout == "other-group" else group
+        (info / "entry_points.txt").write_text(f"[{section}]\ndemo = armfit_demo_x\n")
+        entry = tmp_path
+    elif layout == "zip":         # a zip archive on the path: looked at by importlib only
+        import zipfile
+        entry = tmp_path / "pkgs.zip"
+        with zipfile.ZipFile(entry, "w") as z:
+            z.writestr("armfit_demo-0.1.dist-info/METADATA",
+                       "Metadata-Version: 2.1\nName: armfit-demo\nVersion: 0.1\n")
+            z.writestr("armfit_demo-0.1.dist-info/entry_points.txt",
+                       f"[{group}]\ndemo = armfit_demo_x\n")
+    elif layout == "egg":
+        entry = tmp_path / "armfit_demo-0.1-py3.11.egg"
+        (entry / "EGG-INFO").mkdir(parents=True)
+        (entry / "EGG-INFO" / "PKG-INFO").write_text("Metadata-Version: 2.1\n"
+                                                     "Name: armfit-demo\nVersion: 0.1\n")
+        (entry / "EGG-INFO" / "entry_points.txt").write_text(f"[{group}]\ndemo = x\n")
+    else:
+        entry = tmp_path
+    # another distribution finder in this process (importlib_metadata's, once dask is
+    # imported) makes the look give way to importlib.metadata: compare with the answer
+    # before the folder is added
+    before = effects_mod._may_declare_group(group)
+    monkeypatch.syspath_prepend(str(entry))
+    found = [ep.name for ep in entry_points(group=group)]
+    assert found == (["demo"] if layout in ("dist-info", "egg-info", "zip", "egg") else [])
+    quick = effects_mod._may_declare_group(group)
+    assert quick or not found          # never False where importlib finds one
+    # a folder that declares nothing changes nothing; any other answers True
+    assert quick == (before if layout in ("other-group", "none") else True)
+    assert [ep.name for ep in effects_mod._entry_points()] == found
+
+
+def test_another_distribution_finder_makes_the_quick_look_give_way(monkeypatch):
+    # a finder that finds distributions where the look does not go (importlib.metadata
+    # asks every finder on sys.meta_path): the look cannot rule the group out
+    class Finder:
+        @staticmethod
+        def find_spec(*args):
+            return None
+
+        @staticmethod
+        def find_distributions(*args, **kwargs):
+            return iter(())
+
+    import importlib.machinery
+    monkeypatch.setattr(sys, "meta_path", [m for m in sys.meta_path
+                                           if not hasattr(m, "find_distributions")
+                                           or m is importlib.machinery.PathFinder])
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if "site-packages" in p])
+    assert effects_mod._may_declare_group(effects_mod.ENTRY_POINT_GROUP) is False
+    monkeypatch.setattr(sys, "meta_path", [*sys.meta_path, Finder()])
+    assert effects_mod._may_declare_group(effects_mod.ENTRY_POINT_GROUP) is True
+
+
 def test_at_bound_rule():
     # 1 % of the range in the search coordinate: log for b1 (0.05 … 1000 N·s/m)
     b1 = next(p for p in BASE_PARAMS if p.name == "b1")

@@ -809,8 +809,53 @@ def _import_file(path: Path, key: str, label: str):
 
 
 def _entry_points():
+    """The installed packages' entry points of :data:`ENTRY_POINT_GROUP`
+    (:func:`importlib.metadata.entry_points`), or () when :func:`_may_declare_group`
+    finds no package that could declare one: importing :mod:`importlib.metadata` and
+    reading every package's metadata costs about 45 ms, where looking for the group's
+    name in the packages' ``entry_points.txt`` costs about 1 ms."""
+    if not _may_declare_group(ENTRY_POINT_GROUP):
+        return ()
     from importlib.metadata import entry_points
     return entry_points(group=ENTRY_POINT_GROUP)
+
+
+def _may_declare_group(group: str) -> bool:
+    """False only when no installed package can declare an entry point of ``group``:
+    no ``*.dist-info`` or ``*.egg-info`` folder on :data:`sys.path` (a path entry ``''``
+    is the working folder, as for :mod:`importlib.metadata`) has an ``entry_points.txt``
+    that holds the group's name. True (look with :mod:`importlib.metadata`) also
+    wherever this look could miss a package that :mod:`importlib.metadata` finds: a path
+    entry that is a file (a zip archive) or an egg, or a finder other than the standard
+    path finder that finds distributions."""
+    import importlib.machinery
+    import os
+
+    if any(getattr(f, "find_distributions", None) is not None
+           and f is not importlib.machinery.PathFinder for f in sys.meta_path):
+        return True
+    name = group.encode()
+    for entry in sys.path:
+        root = os.fspath(entry) or "."
+        if root.lower().endswith(".egg"):
+            return True
+        try:
+            children = os.scandir(root)
+        except NotADirectoryError:
+            return True                   # a zip archive: importlib.metadata reads it
+        except OSError:
+            continue                      # a path entry that is not there
+        with children:
+            for child in children:
+                if not child.name.lower().endswith((".dist-info", ".egg-info")):
+                    continue
+                try:
+                    with open(os.path.join(child.path, "entry_points.txt"), "rb") as fh:
+                        if name in fh.read():
+                            return True
+                except OSError:
+                    continue              # no entry points (or an egg-info file)
+    return False
 
 
 def _load_entry_points(registry: EffectRegistry) -> None:
