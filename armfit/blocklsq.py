@@ -42,7 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BlockResult", "Groups", "Normal", "normal_blocks", "normal_covariance", "solve"]
+__all__ = ["BlockResult", "Groups", "Normal", "Resume", "normal_blocks", "normal_covariance",
+           "solve"]
 
 #: Residual function: x (T·nb + k,) -> r (T·m,), trial-major.
 Fun = Callable[[np.ndarray], np.ndarray]
@@ -59,14 +60,38 @@ NormalFun = Callable[[np.ndarray, np.ndarray], Normal]
 class BlockResult:
     """The solution: ``x``, ``cost`` = ½‖r‖², the residuals ``fun`` and the blocks of
     JᵀJ at ``x`` (``normal``: A (T, nb, nb), B (T, nb, kl), C (K, K); enough for
-    :func:`normal_covariance`); ``status`` as :func:`scipy.optimize.least_squares` (0:
-    evaluation budget spent; 1: gtol, 2: ftol, 3: xtol); ``nfev`` residual evaluations."""
+    :func:`normal_covariance`; None when :func:`solve` was told not to make them at the
+    end); ``status`` as :func:`scipy.optimize.least_squares` (0: evaluation budget
+    spent; 1: gtol, 2: ftol, 3: xtol); ``nfev`` residual evaluations."""
 
     x: np.ndarray
     cost: float
     fun: np.ndarray
-    normal: tuple[np.ndarray, np.ndarray, np.ndarray]
+    normal: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     status: int
+    nfev: int
+    #: Given ``watch_ftol`` to :func:`solve`: the result the same run with ``ftol =
+    #: watch_ftol`` (and any larger budget) returns, where it stops within this run's
+    #: evaluations; else None.
+    watched: BlockResult | None = None
+    #: Where this run ended by its budget (status 0): the state a run with a larger
+    #: budget has at that point (:func:`solve`'s ``resume``); else None.
+    state: Resume | None = None
+
+
+@dataclass(frozen=True)
+class Resume:
+    """The state of :func:`solve` at the end of its budget: ``x``, its residuals ``r`` and
+    ``cost``, the blocks at ``x`` (:data:`Normal`; None when not made yet), the trust
+    radius ``delta``, the last α and the evaluations made. Resumed, the run goes on
+    exactly as one run with the larger budget would have, bit for bit."""
+
+    x: np.ndarray
+    r: np.ndarray
+    cost: float
+    blocks: Normal | None
+    delta: float
+    alpha: float
     nfev: int
 
 
@@ -366,7 +391,8 @@ def _strictly_inside(x, lower, upper) -> np.ndarray:
 def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, *,
           n_trials: int, n_block: int, max_nfev: int = 200, ftol: float = 1e-8,
           xtol: float = 1e-8, gtol: float = 1e-8, cols: np.ndarray | None = None,
-          normal: NormalFun | None = None) -> BlockResult:
+          normal: NormalFun | None = None, final_normal: bool = True,
+          watch_ftol: float | None = None, resume: Resume | None = None) -> BlockResult:
     """Minimise ½‖fun(x)‖² over ``lower < x < upper`` for a block-arrow problem.
 
     The trust-region-reflective method of :func:`scipy.optimize.least_squares`
@@ -400,6 +426,20 @@ def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: n
         (x, r (T, m)) -> the blocks of JᵀJ and Jᵀr at x (:data:`Normal`, as
         :func:`normal_blocks` makes them), in place of ``jac``: the Jacobian is then
         never held whole (the module docstring's *Memory*).
+    final_normal : bool
+        False: when the evaluation budget ends with a step taken, the blocks at the
+        new ``x`` are not made (the result's ``normal`` is then None and its status 0,
+        even where that ``x``'s gradient would meet ``gtol``), for a caller that uses
+        only ``x`` and ``cost`` (a brief try of a start). ``x``, ``cost`` and ``fun``
+        are those of the default.
+    watch_ftol : float, optional
+        A larger ``ftol`` whose run this one follows: the result's ``watched`` is what
+        the run with ``ftol = watch_ftol`` and the same start returns, where it stops
+        within this run's evaluations; and where it does not, the result's ``state``
+        resumes it. A brief try of a start so gives its refinement for nothing.
+    resume : Resume, optional
+        Go on from another run's ``state`` (``x0`` then unused) with this call's budget
+        and tolerances: the result is that of one run from the first start.
 
     Returns
     -------
@@ -407,20 +447,35 @@ def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: n
     """
     T, nb = n_trials, n_block
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
-    x = _strictly_inside(np.clip(np.asarray(x0, float), lower, upper), lower, upper)
+    if resume is None:
+        x = _strictly_inside(np.clip(np.asarray(x0, float), lower, upper), lower, upper)
+    else:
+        x = resume.x
     groups = None if cols is None else Groups(cols, x.size - T * nb)
     normal = normal or _from_jac(jac, groups)
-    r, nfev = fun(x), 1
-    cost = 0.5 * float(r @ r)
-    blocks = normal(x, r.reshape(T, -1))
-    v, _ = _cl_scaling(x, np.concatenate([blocks[3].ravel(), blocks[4]]), lower, upper)
-    delta = float(np.linalg.norm(x / np.sqrt(v))) or 1.0
-    alpha, status = 0.0, 0
+    if resume is None:
+        r, nfev = fun(x), 1
+        cost = 0.5 * float(r @ r)
+        blocks = normal(x, r.reshape(T, -1))
+        v, _ = _cl_scaling(x, np.concatenate([blocks[3].ravel(), blocks[4]]), lower, upper)
+        delta = float(np.linalg.norm(x / np.sqrt(v))) or 1.0
+        alpha = 0.0
+    else:
+        r, cost, blocks = resume.r, resume.cost, resume.blocks
+        delta, alpha, nfev = resume.delta, resume.alpha, resume.nfev
+        if blocks is None:
+            blocks = normal(x, r.reshape(T, -1))
+    status = 0
+    watched: BlockResult | None = None
+    watch_status = 0        # the watched run stops at the step being taken, so
     while True:
         A, B, C, gb, gs = blocks
         g = np.concatenate([gb.ravel(), gs])
         v, dv = _cl_scaling(x, g, lower, upper)
         g_norm = float(np.abs(g * v).max(initial=0.0))
+        if watch_status and watched is None:
+            watched = BlockResult(x, cost, r, blocks[:3], 1 if g_norm < gtol else watch_status,
+                                  nfev)
         if g_norm < gtol:
             status = 1
         if status or nfev >= max_nfev:
@@ -448,6 +503,12 @@ def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: n
             step_norm = float(np.linalg.norm(step))
             small_f = actual < ftol * cost and ratio > 0.25
             small_x = step_norm < xtol * (xtol + float(np.linalg.norm(x)))
+            if watch_ftol is not None and watched is None and not watch_status:
+                watch_f = actual < watch_ftol * cost and ratio > 0.25
+                if watch_f or small_x:
+                    watch_status = 4 if watch_f and small_x else (2 if watch_f else 3)
+                    if actual <= 0:       # it stops where it is
+                        watched = BlockResult(x, cost, r, blocks[:3], watch_status, nfev)
             if small_f or small_x:
                 status = 4 if small_f and small_x else (2 if small_f else 3)
                 break
@@ -457,8 +518,15 @@ def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: n
         if actual > 0:
             x, r, cost = x_new, r_new, cost_new
             sub = blocks = None    # the old blocks go before the new ones are made
+            if (not final_normal and not status and nfev >= max_nfev
+                    and (watch_ftol is None or watched is not None or not watch_status)):
+                return BlockResult(x, cost, r, None, 0, nfev, watched,
+                                   Resume(x, r, cost, None, delta, alpha, nfev))
             blocks = normal(x, r.reshape(T, -1))
-    return BlockResult(x, cost, r, blocks[:3], status, nfev)
+    if watch_ftol is not None and watched is None and status:
+        watched = BlockResult(x, cost, r, blocks[:3], status, nfev)   # stops here too
+    state = None if status else Resume(x, r, cost, blocks, delta, alpha, nfev)
+    return BlockResult(x, cost, r, blocks[:3], status, nfev, watched, state)
 
 
 def _from_jac(jac: Jac, groups: Groups | None) -> NormalFun:

@@ -294,3 +294,48 @@ def test_the_model_of_the_cost_along_a_step_is_that_of_the_dense_jacobian():
             0.5 * (np.sum((Jh @ s0) ** 2) + s0 @ (c * s0)) + gh @ s0)
     np.testing.assert_allclose(sub.quadratic_1d(s, s0), want, rtol=1e-10)
     np.testing.assert_allclose(sub.value(s), want[0] + gh @ s, rtol=1e-10)
+
+
+def _same(a: blocklsq.BlockResult, b: blocklsq.BlockResult) -> None:
+    """Bit for bit: the solution, its cost, residuals, blocks, status and evaluations."""
+    np.testing.assert_array_equal(a.x, b.x)
+    assert a.cost == b.cost and a.status == b.status and a.nfev == b.nfev
+    np.testing.assert_array_equal(a.fun, b.fun)
+    for p, q in zip(a.normal, b.normal, strict=True):
+        np.testing.assert_array_equal(p, q)
+
+
+@pytest.mark.parametrize("c_hi", [10.0, 1.0])
+@pytest.mark.parametrize("ftol", [1e-8, 1e-5, 1e-3, 0.3])
+def test_a_brief_run_that_watches_a_tolerance_gives_that_run_bit_for_bit(c_hi, ftol):
+    # the reference: the long run made in one go from the same start (noisy data, and
+    # with c <= 1 a bound the steps reflect off); a brief run of every budget from 1 to
+    # 25 evaluations watching its ftol either saw it stop (watched) or resumes into it
+    a, e, c = np.array([1.0, 2.5, 0.7]), np.array([0.1, -0.2, 0.0]), 1.3
+    fun, jac, _ = _problem(a, e, c, noise=0.05, seed=3)
+    n = a.size
+    lo = np.full(2 * n + 1, -10.0)
+    hi = np.concatenate([np.full(2 * n, 10.0), [c_hi]])
+    for x0 in (_start(n), _start(n, c0=5.0)):
+        kw = dict(n_trials=n, n_block=2)
+        full = blocklsq.solve(fun, jac, x0, lo, hi, max_nfev=60, ftol=ftol, **kw)
+        seen = set()
+        for budget in range(1, 26):
+            for final in (True, False):
+                brief = blocklsq.solve(fun, jac, x0, lo, hi, max_nfev=budget,
+                                       final_normal=final, watch_ftol=ftol, **kw)
+                plain = blocklsq.solve(fun, jac, x0, lo, hi, max_nfev=budget, **kw)
+                # watching, or leaving the last blocks out, changes nothing of the run
+                np.testing.assert_array_equal(brief.x, plain.x)
+                assert brief.cost == plain.cost and brief.nfev == plain.nfev
+                assert brief.normal is not None or not final
+                if brief.watched is not None:
+                    _same(brief.watched, full)
+                    seen.add("watched")
+                else:
+                    assert brief.state is not None and brief.status == 0
+                    _same(blocklsq.solve(fun, jac, x0, lo, hi, max_nfev=60, ftol=ftol,
+                                         resume=brief.state, **kw), full)
+                    seen.add("resumed")
+        # both ways are taken for every tolerance but the loosest (which stops at once)
+        assert "watched" in seen and ("resumed" in seen or ftol == 0.3)

@@ -658,10 +658,10 @@ def test_a_joint_fit_keeps_no_residuals_of_its_best_start_while_it_refines_the_n
     model = ClosedLoopModel.for_axis("z", [EFFECTS["delay"]])
     real, real_rescue, at_start, rescuing = joint.refine, joint.rescue_trials, [], []
 
-    def refine(prob, x0, max_nfev):     # a start's refinement, not a rescue's
+    def refine(prob, x0, max_nfev, brief=None):     # a start's refinement, not a rescue's
         if not rescuing:
             at_start.append(tracemalloc.get_traced_memory()[0])
-        return real(prob, x0, max_nfev)
+        return real(prob, x0, max_nfev, brief)
 
     def rescue(*args, **kwargs):
         rescuing.append(1)
@@ -753,6 +753,36 @@ def test_screen_starts_with_repeated_combinations_is_each_tried(study):
     assert len(got) == 3
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g, w)
+
+
+@pytest.mark.parametrize(("nfev", "way"), [(4, "resumed"), (60, "watched")])
+def test_a_refinement_that_goes_on_from_its_brief_try_is_the_refinement_made_anew(study,
+                                                                                 nfev, way):
+    # the base model on the z axis's 4 trials: the brief tries are on every trial and
+    # their starts are the refinements' own (no effect value moves), so each refinement
+    # goes on from its brief try (resumed) or is the fit the brief try saw stop
+    # (watched); the reference is the refinement made from the start in one run
+    data, band = _z_data(study)
+    model = ClosedLoopModel.for_axis("z")
+    sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    prob = joint.JointProblem(model, data, sel)
+    start = start_array(data)
+    combos = [(start, {}), (start * 1.3, {}), (start * 0.6, {})]
+    briefs: dict = {}
+    x0s = joint.screen_starts(model, data, sel, combos, prob, keep=3, nfev=nfev,
+                              briefs=briefs)
+    assert len(x0s) == 3 and set(briefs) == {x.tobytes() for x in x0s}
+    ways = set()
+    for x0 in x0s:
+        brief = briefs[x0.tobytes()]
+        ways.add("watched" if brief.watched is not None else "resumed")
+        got, want = joint.refine(prob, x0, 200, brief), joint.refine(prob, x0, 200)
+        np.testing.assert_array_equal(got.x, want.x)
+        np.testing.assert_array_equal(got.fun, want.fun)
+        assert (got.cost, got.status, got.nfev) == (want.cost, want.status, want.nfev)
+        for p, q in zip(got.normal, want.normal, strict=True):
+            np.testing.assert_array_equal(p, q)
+    assert ways == {way}
 
 
 def test_a_start_far_behind_after_its_brief_try_is_not_refined(study, monkeypatch):

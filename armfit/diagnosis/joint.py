@@ -285,12 +285,13 @@ class JointProblem:
         De = (R[1:] - R[:1]) / h.T[:, :, None]                         # (k, t, m)
         return np.moveaxis(np.concatenate([Db, De]), 0, -1)            # (t, m, P)
 
-    def solve(self, x0: np.ndarray, max_nfev: int, **tol) -> blocklsq.BlockResult:
-        """The joint least-squares fit from ``x0`` (:func:`armfit.blocklsq.solve`)."""
+    def solve(self, x0: np.ndarray, max_nfev: int, **opts) -> blocklsq.BlockResult:
+        """The joint least-squares fit from ``x0`` (:func:`armfit.blocklsq.solve`, given
+        ``opts``: its tolerances, ``final_normal``)."""
         lo, hi = self.bounds()
         return blocklsq.solve(self.fun, None, x0, lo, hi, n_trials=self.T,
                               n_block=self.nb, max_nfev=max_nfev, cols=self.cols,
-                              normal=self.normal, **tol)
+                              normal=self.normal, **opts)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo = np.concatenate([np.tile(self.space.zlo[: self.nb], self.T),
@@ -350,11 +351,12 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
     prob = JointProblem(model, data, sel, varying)
     bases = [base] if isinstance(base, np.ndarray) else list(base)
     combos = [(b, st) for b in bases for st in starts] + list(pairs)
+    briefs: dict[bytes, blocklsq.BlockResult] = {}
     if len(combos) > 1:
         x0s = screen_starts(model, data, sel, combos, prob,
                       REFINE_BEST if refine_best is None else refine_best,
                       START_SCREEN_NFEV if screen_nfev is None else screen_nfev,
-                      by_subject)
+                      by_subject, briefs=briefs)
     else:
         x0s = [prob.pack(*combos[0], by_subject)]
     best = clear = None
@@ -363,7 +365,8 @@ def joint_fit(model: ClosedLoopModel, data: AxisData, band: tuple[float, float],
         if x0.tobytes() in seen:   # the same start ends where it ended before: no better
             continue
         seen.add(x0.tobytes())
-        r = rescue_trials(prob, model, data, sel, refine(prob, x0, max_nfev), max_nfev,
+        r = rescue_trials(prob, model, data, sel,
+                          refine(prob, x0, max_nfev, briefs.get(x0.tobytes())), max_nfev,
                           prior=clear)
         if best is None or r.cost < best.cost:
             # the best fit so far is kept without its weighted residuals (one array as
@@ -439,15 +442,30 @@ def _population(space: ParamSpace, name: str, by_subject: Mapping[str, Mapping[s
     return float(th[0]), float(th[1]), float(th[2])
 
 
-def refine(prob: JointProblem, x0: np.ndarray, max_nfev: int) -> blocklsq.BlockResult:
+def refine(prob: JointProblem, x0: np.ndarray, max_nfev: int,
+           brief: blocklsq.BlockResult | None = None) -> blocklsq.BlockResult:
     """The joint fit from ``x0`` (:meth:`JointProblem.solve`).
 
     The fit stops when a step lowers the cost by less than :data:`FTOL_VARIANCE` of the
     residual variance s² = 2·cost/(m − p) (``ftol`` = 2·FTOL_VARIANCE/(m − p), at least
-    1e-8), or moves the parameters by less than 1e-8 of their size."""
-    m = 2 * prob.f.size * prob.T
-    ftol = max(1e-8, 2.0 * FTOL_VARIANCE / max(m - x0.size, 1))
+    1e-8, :func:`refine_ftol`), or moves the parameters by less than 1e-8 of their size.
+
+    ``brief``: a brief try of the same problem from the same ``x0`` that watched this
+    fit's ``ftol`` (:func:`screen_starts`): the fit is then the one the brief try saw
+    stop, or goes on from where the brief try ended, the same fit bit for bit without
+    making the brief try's evaluations again."""
+    ftol = refine_ftol(prob, x0.size)
+    if brief is not None and brief.watched is not None:
+        return brief.watched
+    if brief is not None and brief.state is not None:
+        return prob.solve(x0, max_nfev, ftol=ftol, xtol=1e-8, resume=brief.state)
     return prob.solve(x0, max_nfev, ftol=ftol, xtol=1e-8)
+
+
+def refine_ftol(prob: JointProblem, n_x: int) -> float:
+    """The ``ftol`` of :func:`refine` on ``prob`` with ``n_x`` parameters."""
+    m = 2 * prob.f.size * prob.T
+    return max(1e-8, 2.0 * FTOL_VARIANCE / max(m - n_x, 1))
 
 
 def _misfit_limit(prob: JointProblem, res) -> tuple[np.ndarray, float]:
@@ -557,16 +575,24 @@ def trial_fit(model: ClosedLoopModel, data: AxisData, i: int, band: tuple[float,
 
 def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: int = REFINE_BEST,
                   nfev: int = START_SCREEN_NFEV,
-                  by_subject: Mapping[str, Mapping[str, float]] | None = None) -> np.ndarray:
+                  by_subject: Mapping[str, Mapping[str, float]] | None = None,
+                  briefs: dict[bytes, blocklsq.BlockResult] | None = None) -> np.ndarray:
     """Short fits of every (base, start) pair on a spread-out subset of the trials;
     returns the full starting vectors built from the ``keep`` best, less those whose cost
     exceeds :data:`START_GAP` times the best one's (their effect values,
     and the per-subject values of the subset's subjects, from the short fit; the other
-    subjects' from ``by_subject``)."""
+    subjects' from ``by_subject``).
+
+    ``briefs``: filled with the short fit of each returned start that is one (the
+    subset is every trial, and the start is the pair's own: no effect value moved),
+    by the start's bytes; that short fit watched :func:`refine`'s ``ftol``, so the
+    refinement goes on from it (:func:`refine`'s ``brief``)."""
     T = data.h.shape[0]
     idx = unique(np.linspace(0, T - 1, min(T, START_SCREEN_TRIALS)).round().astype(int))
-    sub = data.subset(idx)
-    sprob = JointProblem(model, sub, sel, prob.varying)
+    # on every trial, the short fits are of the problem itself: a refinement may go on
+    # from one
+    whole = idx.size == T
+    sprob = prob if whole else JointProblem(model, data.subset(idx), sel, prob.varying)
     scored = []
     tried: dict[bytes, blocklsq.BlockResult] = {}
     for b, st in combos:
@@ -575,11 +601,15 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
         x = sprob.pack(b[idx], st, by_subject)
         r = tried.get(x.tobytes())
         if r is None:
-            r = tried[x.tobytes()] = sprob.solve(x, nfev)
-        scored.append((r.cost, b, st, r.x))
+            # only its cost and end are used (not the blocks of JᵀJ at the end), and
+            # on every trial where the refinement would stop
+            r = tried[x.tobytes()] = sprob.solve(
+                x, nfev, final_normal=False,
+                watch_ftol=refine_ftol(prob, x.size) if whole else None)
+        scored.append((r.cost, b, st, r.x, x, r))
     scored.sort(key=lambda t: t[0])
     out = []
-    for cost, b, st, xs in scored[:keep]:
+    for cost, b, st, xs, x, r in scored[:keep]:
         if cost > START_GAP * scored[0][0]:     # far behind the best: not refined
             break
         if not prob.varying:
@@ -589,6 +619,8 @@ def screen_starts(model, data: AxisData, sel, combos, prob: JointProblem, keep: 
         else:
             shared, subs = sprob.effect_values(xs)
             x0 = prob.pack(b, {**st, **shared}, {**(by_subject or {}), **subs})
+        if whole and briefs is not None and x0.tobytes() == x.tobytes():
+            briefs[x0.tobytes()] = r
         out.append(x0)
     return out
 

@@ -548,7 +548,8 @@ def diagnose_axes(spectra, params, *,
             return []
         if given is None:
             # the library is listed while the base fits run, not before they start:
-            # listing it reads every installed package's metadata (about 55 ms)
+            # listing it looks through the installed packages (1 ms; 45 ms where one
+            # declares effects)
             library = list(EFFECTS.values())
             for s in searches:
                 s.effects = list(library)
