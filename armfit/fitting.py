@@ -76,6 +76,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+import functools
 from functools import lru_cache
 
 import numpy as np
@@ -166,6 +167,11 @@ class FitResult:
 # Parameter transform (log for positive parameters, scaled-linear otherwise)
 # ---------------------------------------------------------------------------
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
 @dataclass(frozen=True)
 class ParamSpace:
     names: tuple[str, ...]
@@ -179,13 +185,16 @@ class ParamSpace:
         return cls(tuple(p.name for p in ps), np.array([p.log for p in ps]),
                    np.array([p.lower for p in ps], float), np.array([p.upper for p in ps], float))
 
-    @property
-    def zlo(self) -> np.ndarray:
-        return np.where(self.log, np.log(np.where(self.log, self.lower, 1.0)), 0.0)
+    # the bounds in the fitter's coordinate, made once (every Jacobian and every fit of
+    # the diagnosis asks for them) and read-only, as the fields they come from never change
 
-    @property
+    @functools.cached_property
+    def zlo(self) -> np.ndarray:
+        return _read_only(np.where(self.log, np.log(np.where(self.log, self.lower, 1.0)), 0.0))
+
+    @functools.cached_property
     def zhi(self) -> np.ndarray:
-        return np.where(self.log, np.log(np.where(self.log, self.upper, 1.0)), 1.0)
+        return _read_only(np.where(self.log, np.log(np.where(self.log, self.upper, 1.0)), 1.0))
 
     def to_theta(self, z: np.ndarray) -> np.ndarray:
         z = np.asarray(z, float)

@@ -38,6 +38,8 @@ from armfit.models.arm import ClosedLoopModel
 __all__ = ["CHUNK_TRIALS", "JointFit", "JointProblem", "joint_fit", "refine", "rescue_trials",
            "screen_starts", "trial_fit"]
 
+#: √eps of float64: the relative step of the forward differences of the Jacobian.
+_SQRT_EPS = float(np.sqrt(np.finfo(float).eps))
 
 
 @dataclass(frozen=True)
@@ -256,7 +258,7 @@ class JointProblem:
         row."""
         t, P = z.shape
         nb, k = self.nb, P - self.nb
-        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(z[:, nb:]))
+        h = _SQRT_EPS * np.maximum(1.0, np.abs(z[:, nb:]))
         h = np.where(z[:, nb:] + h > self.space.zhi[nb:], -h, h)
         Z = np.repeat(z[None], k + 1, axis=0)                 # (k + 1, t, P)
         idx = np.arange(k)

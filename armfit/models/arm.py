@@ -413,16 +413,17 @@ class ClosedLoopModel:
         each effect's own values, in the order of :attr:`effects`. Given an impedance
         ``z``, the impedances are added to it in turn (z + ΔZ₁ + ΔZ₂ …) and that sum is
         returned in place of ΔZ."""
-        factor = np.ones_like(s)
+        factor = None           # the first factor as it is, not times an array of ones
         dz = np.zeros_like(s) if z is None else z
         for e, v in zip(self.effects, eff, strict=True):
             if e.stage not in stages:
                 continue
             if e.stage == "output":
-                factor = factor * e.evaluate(s, v, self.mp)
+                term = e.evaluate(s, v, self.mp)
+                factor = term if factor is None else factor * term
             else:
                 dz = dz + e.evaluate(s, v, self.mp)
-        return factor, dz
+        return (np.ones_like(s) if factor is None else factor), dz
 
     def remove_effects(self, f_hz, H, effect_values: Mapping[str, float]) -> np.ndarray:
         """The response eq. 4 would have without the effects, given a measured X/F (m/N)
