@@ -73,10 +73,10 @@ never narrower than these.
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-import functools
 from functools import lru_cache
 
 import numpy as np
