@@ -14,6 +14,7 @@ at its step limit and tries the axes' common values).
 from __future__ import annotations
 
 import contextlib
+import heapq
 import operator
 import os
 import threading
@@ -308,6 +309,33 @@ def test_an_axis_of_large_data_gives_memory_back_before_its_evidence(monkeypatch
         calls.clear()
         search._AxisSteps(axis, TaskQueue(), iter(range(3)))._based(None)
         assert calls == expected
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_the_last_axes_as_many_as_the_workers_screen_their_candidates_in_turn(study,
+                                                                             workers):
+    # the order the ready screening fits are handed out in: axis by axis (x's, then
+    # z's) while the axes outnumber the workers; the last axes as many as the workers
+    # alternately (x, z, x, z, ...), each axis's candidates of most parameters first
+    spectra, params = study
+    effects = list(EFFECTS.values())
+    tasks, turns = TaskQueue(), search._Turns()
+    turns.share_last(2, workers)
+    for axis in ("x", "z"):
+        data = axis_data(spectra, params, axis)
+        s = search._Search(data, (float(data.f_hz[0]), float(data.f_hz[-1])), effects,
+                           3, 0.5, 3.0)
+        base = search._base_task((s.data, s.band))
+        search._AxisSteps(s, tasks, turns)._based(base)
+    order = []
+    while tasks._ready:
+        item = heapq.heappop(tasks._ready)
+        order.append((item[3][0].axis, item[3][4].name))
+    by_params = [e.name for e in sorted(effects, key=lambda e: -len(e.params))]
+    if workers == 1:
+        assert order == [("x", n) for n in by_params] + [("z", n) for n in by_params]
+    else:
+        assert order == [(a, n) for n in by_params for a in ("x", "z")]
 
 
 def test_task_queue_runs_tasks_here_while_the_pool_starts():
