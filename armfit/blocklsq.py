@@ -447,24 +447,23 @@ def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: n
     """
     T, nb = n_trials, n_block
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
-    if resume is None:
-        x = _strictly_inside(np.clip(np.asarray(x0, float), lower, upper), lower, upper)
-    else:
-        x = resume.x
-    groups = None if cols is None else Groups(cols, x.size - T * nb)
+    size = np.size(x0) if resume is None else resume.x.size
+    groups = None if cols is None else Groups(cols, size - T * nb)
     normal = normal or _from_jac(jac, groups)
-    if resume is None:
-        r, nfev = fun(x), 1
-        cost = 0.5 * float(r @ r)
-        blocks = normal(x, r.reshape(T, -1))
-        v, _ = _cl_scaling(x, np.concatenate([blocks[3].ravel(), blocks[4]]), lower, upper)
-        delta = float(np.linalg.norm(x / np.sqrt(v))) or 1.0
-        alpha = 0.0
-    else:
-        r, cost, blocks = resume.r, resume.cost, resume.blocks
-        delta, alpha, nfev = resume.delta, resume.alpha, resume.nfev
-        if blocks is None:
-            blocks = normal(x, r.reshape(T, -1))
+    x, r, cost, blocks, delta, alpha, nfev = (
+        _first_state(fun, normal, x0, lower, upper, T) if resume is None
+        else _resumed_state(normal, resume, T))
+    return _iterate(fun, normal, (x, r, cost, blocks, delta, alpha, nfev), lower, upper,
+                    T, nb, groups, max_nfev, (ftol, xtol, gtol), final_normal, watch_ftol)
+
+
+def _iterate(fun: Fun, normal: NormalFun, state: tuple, lower, upper, T: int, nb: int,
+             groups: Groups | None, max_nfev: int, tols: tuple[float, float, float],
+             final_normal: bool, watch_ftol: float | None) -> BlockResult:
+    """:func:`solve`'s iterations from ``state`` (x, r, cost, blocks, trust radius, α,
+    evaluations made) until a stop or the budget."""
+    x, r, cost, blocks, delta, alpha, nfev = state
+    ftol, xtol, gtol = tols
     status = 0
     watched: BlockResult | None = None
     watch_status = 0        # the watched run stops at the step being taken, so
@@ -504,13 +503,12 @@ def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: n
             small_f = actual < ftol * cost and ratio > 0.25
             small_x = step_norm < xtol * (xtol + float(np.linalg.norm(x)))
             if watch_ftol is not None and watched is None and not watch_status:
-                watch_f = actual < watch_ftol * cost and ratio > 0.25
-                if watch_f or small_x:
-                    watch_status = 4 if watch_f and small_x else (2 if watch_f else 3)
-                    if actual <= 0:       # it stops where it is
-                        watched = BlockResult(x, cost, r, blocks[:3], watch_status, nfev)
+                watch_status = _stop_status(actual < watch_ftol * cost and ratio > 0.25,
+                                            small_x)
+                if watch_status and actual <= 0:       # it stops where it is
+                    watched = BlockResult(x, cost, r, blocks[:3], watch_status, nfev)
             if small_f or small_x:
-                status = 4 if small_f and small_x else (2 if small_f else 3)
+                status = _stop_status(small_f, small_x)
                 break
             if new_delta > 0:
                 alpha *= delta / new_delta
@@ -527,6 +525,31 @@ def solve(fun: Fun, jac: Jac | None, x0: np.ndarray, lower: np.ndarray, upper: n
         watched = BlockResult(x, cost, r, blocks[:3], status, nfev)   # stops here too
     state = None if status else Resume(x, r, cost, blocks, delta, alpha, nfev)
     return BlockResult(x, cost, r, blocks[:3], status, nfev, watched, state)
+
+
+def _first_state(fun: Fun, normal: NormalFun, x0, lower, upper, T: int) -> tuple:
+    """:func:`solve`'s state at ``x0`` (moved strictly inside the bounds): x, r, cost,
+    the blocks, the first trust radius, α = 0 and one evaluation."""
+    x = _strictly_inside(np.clip(np.asarray(x0, float), lower, upper), lower, upper)
+    r = fun(x)
+    blocks = normal(x, r.reshape(T, -1))
+    v, _ = _cl_scaling(x, np.concatenate([blocks[3].ravel(), blocks[4]]), lower, upper)
+    return (x, r, 0.5 * float(r @ r), blocks, float(np.linalg.norm(x / np.sqrt(v))) or 1.0,
+            0.0, 1)
+
+
+def _resumed_state(normal: NormalFun, resume: Resume, T: int) -> tuple:
+    """:func:`solve`'s state from ``resume`` (the blocks made if it has none)."""
+    blocks = resume.blocks
+    if blocks is None:
+        blocks = normal(resume.x, resume.r.reshape(T, -1))
+    return (resume.x, resume.r, resume.cost, blocks, resume.delta, resume.alpha,
+            resume.nfev)
+
+
+def _stop_status(small_f: bool, small_x: bool) -> int:
+    """The status of a stop by ``ftol`` (2), ``xtol`` (3) or both (4); 0: no stop."""
+    return 4 if small_f and small_x else 2 if small_f else 3 if small_x else 0
 
 
 def _from_jac(jac: Jac, groups: Groups | None) -> NormalFun:

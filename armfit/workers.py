@@ -100,7 +100,8 @@ __all__ = ["BLAS_ONE_THREAD", "CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD",
 #: every later pool of the process start with them loaded (see
 #: :func:`preload_own_only` for a process that starts one pool).
 PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fitting",
-                            "armfit.uncertainty", "armfit.diagnosis.search", "scipy.special")
+                            "armfit.uncertainty", "armfit.diagnosis.search",
+                            "armfit.diagnosis.driver", "scipy.special")
 #: The modules the tasks of each kind of pool run, the ``preload`` of its pools: what
 #: the fork server imports first for a command line's one pool (:func:`preload_own_only`,
 #: :func:`start_fork_server`). Each is in :data:`PRELOAD`. The fits' workers take t
@@ -114,7 +115,7 @@ POOL_PRELOAD: dict[str, tuple[str, ...]] = {
     "estimate": ("armfit.spectra", "armfit.io.trials"),
     "fit": ("armfit.fitting", "scipy.special"),
     "uncertainty": ("armfit.uncertainty",),
-    "diagnosis": ("armfit.diagnosis.search",),
+    "diagnosis": ("armfit.diagnosis.search", "armfit.diagnosis.driver"),
 }
 #: What ``run``'s one pool preloads when the run draws figures: every engine module and
 #: :mod:`armfit.figures` (matplotlib), imported once by the fork server rather than by

@@ -17,6 +17,7 @@ import contextlib
 import heapq
 import operator
 import os
+import textwrap
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -32,7 +33,7 @@ from armfit.diagnosis import joint, schedule, search
 from armfit.diagnosis.bands import band_columns, band_error
 from armfit.diagnosis.evidence import adequacy
 from armfit.diagnosis.fit import start_array
-from armfit.diagnosis.responses import axis_data, param_row
+from armfit.diagnosis.responses import axis_data, cross_coupling, param_row
 from armfit.diagnosis.schedule import TaskQueue
 from armfit.diagnosis.screen import keep_screened, rank_screened, screen_candidate
 from armfit.diagnosis.tuning import FTOL_VARIANCE, SHARED_EFFECTS
@@ -127,7 +128,7 @@ def _step_by_step(spectra, params, max_steps: int = 3) -> list:
                         (s.data, s.band, c.fit, c.effect, s.min_db, s.min_deg))
                         for c in rivals])
     search._borrow_step(searches, lambda fn, items: [fn(a) for a in items], SHARED_EFFECTS)
-    out = [replace(s.result(), coupling=search.cross_coupling(spectra, s.data, s.band))
+    out = [replace(s.result(), coupling=cross_coupling(spectra, s.data, s.band))
            for s in searches]
     agreement = search.cross_axis_agreement(out, SHARED_EFFECTS)
     return [replace(d, shared=agreement) for d in out] if agreement else out
@@ -244,7 +245,8 @@ def test_diagnosis_starts_an_axis_while_the_next_is_read(study, pipelined, monke
     # read (the result is the same)
     spectra, params = study
     events = []
-    reader = search._trial_rows
+    from armfit.diagnosis import driver
+    reader = driver._trial_rows
 
     def recorded(sp):
         read = reader(sp)
@@ -259,12 +261,45 @@ def test_diagnosis_starts_an_axis_while_the_next_is_read(study, pipelined, monke
             events.append(("submit", fn.__name__))
             return super().submit(fn, *args, **kwargs)
 
-    monkeypatch.setattr(search, "_trial_rows", recorded)
+    monkeypatch.setattr(driver, "_trial_rows", recorded)
     with Recording(max_workers=2) as ex:
         got = search.diagnose_axes(spectra, params, executor=ex)
     assert repr(got) == repr(pipelined)
     assert events[:4] == [("read", "x", "measured"), ("submit", "_base_task"),
                           ("read", "x", "cross"), ("read", "z", "measured")]
+
+
+def test_the_first_base_fit_is_handed_over_before_the_search_is_loaded(study, tmp_path):
+    # in a fresh process: the search's own modules (the evidence, the results, the
+    # joint fits and the fitting they use) are imported only after the first base fit
+    # is handed to the executor, while it runs; the diagnosis is the one made here
+    import pickle
+    import subprocess
+    import sys
+    spectra, params = study
+    (tmp_path / "study.pkl").write_bytes(pickle.dumps((spectra, params)))
+    code = textwrap.dedent("""
+        import pickle, sys
+        from concurrent.futures import ThreadPoolExecutor
+        from armfit.diagnosis import diagnose_axes
+        spectra, params = pickle.loads(open(sys.argv[1], "rb").read())
+        seen = []
+        class Recording(ThreadPoolExecutor):
+            def submit(self, fn, *args, **kwargs):
+                seen.append((fn.__name__, "armfit.diagnosis.search" in sys.modules,
+                             "armfit.fitting" in sys.modules))
+                return super().submit(fn, *args, **kwargs)
+        with Recording(max_workers=2) as ex:
+            out = diagnose_axes(spectra, params, executor=ex)
+        print(repr(seen[0]), "armfit.diagnosis.search" in sys.modules)
+        sys.stdout.flush()
+        open(sys.argv[2], "w").write(repr(out))
+    """)
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "study.pkl"),
+                          str(tmp_path / "out.txt")], capture_output=True, text=True,
+                         timeout=300, check=True)
+    assert res.stdout.split("\n")[0] == "('_base_task', False, False) True"
+    assert (tmp_path / "out.txt").read_text() == repr(search.diagnose_axes(spectra, params))
 
 
 def test_task_queue_lets_go_of_a_large_task_it_handed_over_last(monkeypatch):

@@ -226,10 +226,10 @@ def test_each_pool_preloads_the_module_of_its_tasks():
     import inspect
 
     from armfit import fitting, spectra, uncertainty
-    from armfit.diagnosis import schedule, search
+    from armfit.diagnosis import driver, schedule, search
     assert inspect.signature(schedule.task_queue).parameters["preload"].default == \
         workers.POOL_PRELOAD["diagnosis"]
-    tasks = {"diagnosis": (search._base_task, search._screen_task, search._extend_task,
+    tasks = {"diagnosis": (driver._base_task, search._screen_task, search._extend_task,
                            search._subject_task),
              "estimate": (spectra._estimate_source,),
              "fit": (fitting._fit_group, fitting._fit_trial_task),

@@ -14,7 +14,8 @@ from armfit.constants import AXES, PARAM_NAMES
 from armfit.models.params import FitStarts
 from armfit.spectra import Spectra
 
-__all__ = ["AxisData", "axis_data", "axis_grips", "cross_coupling", "has_axis",
+__all__ = ["AxisData", "axis_data", "axis_grips", "comparison_notes", "cross_coupling",
+           "has_axis",
            "not_excitation", "param_row",
            "select_rows", "trial_responses"]
 
@@ -222,4 +223,52 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
         if not np.isfinite(ratio).any():  # no signal on that axis (cells flagged no_signal)
             continue
         out[other] = float(nanmedian(ratio))
+    return out
+
+
+def comparison_notes(spectra, params, level: str, *, spectra_label: str | None = None,
+                     params_label: str | None = None, action: str = "compared"
+                     ) -> list[str]:
+    """What :func:`compare_models` leaves out or approximates, in sentences: an axis
+    with measurements at ``level`` but no params row, a params row without such
+    measurements, and (grip fits at level "mean") a grip mean compared with the row of
+    the nearest grip because the file has no row of its own grip.
+
+    Parameters
+    ----------
+    spectra : Spectra or pandas.DataFrame
+    params : pandas.DataFrame or armfit.models.params.FitStarts
+        The params table compared (or the base parameters of its file).
+    level : {'mean', 'median', 'trial'}
+    spectra_label, params_label : str, optional
+        The files, named in the sentences.
+    action : str
+        What is done with an axis ("compared", "diagnosed"), for the sentences.
+
+    Returns
+    -------
+    list of str
+        In x, y, z order (empty when every axis and grip is compared with its own row).
+    """
+    sl = spectra_label or "the spectra"
+    pl = params_label or "the params table"
+    spectra = Spectra.of(spectra)
+    out = []
+    for axis in AXES:
+        rows = select_rows(spectra, level=level, kind="measured", axis=axis)
+        has_row = has_axis(params, axis)
+        if len(rows) and not has_row:
+            out.append(f"axis {axis}: {sl} holds {level}-level measurements but {pl} has "
+                       f"no row for it; axis {axis} is not {action}")
+        elif has_row and not len(rows):
+            out.append(f"axis {axis}: {pl} has a row but {sl} holds no {level}-level "
+                       f"measured responses of it; axis {axis} is not {action}")
+        own = axis_grips(params, axis)
+        if not (has_row and len(rows) and level == "mean" and own is not None):
+            continue
+        for grip in sorted(float(g) for g in rows.values_of("grip_N")):
+            if not np.isclose(own, grip).any():
+                near = param_row(params, axis, grip)["grip_N"]
+                out.append(f"axis {axis}: {pl} has no row for grip {grip:g} N; its mean "
+                           f"is compared with the row of the nearest grip, {near:g} N")
     return out

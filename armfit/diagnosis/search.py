@@ -4,15 +4,23 @@ the noise, and the axes' shared effects compared."""
 from __future__ import annotations
 
 import itertools
-import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from armfit.constants import AXES, Z_975, axis_band
+from armfit.constants import Z_975
 from armfit.diagnosis.bands import BandError, _runs, band_columns, band_error
+from armfit.diagnosis.driver import (  # noqa: F401 (names of this module's API)
+    _BASE,
+    _EXTEND,
+    _SCREEN,
+    LARGE_TASK_BYTES,
+    _base_task,
+    _large,
+    _trial_rows,
+    diagnose_axes,
+)
 from armfit.diagnosis.evidence import (
     Adequacy,
     adequacy,
@@ -22,9 +30,9 @@ from armfit.diagnosis.evidence import (
     practical,
     union_bias,
 )
-from armfit.diagnosis.fit import fit_base, fit_borrowed, fit_extend
+from armfit.diagnosis.fit import fit_borrowed, fit_extend
 from armfit.diagnosis.joint import JointFit
-from armfit.diagnosis.responses import AxisData, axis_data, cross_coupling, has_axis
+from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.results import (
     AxisDiagnosis,
     Candidate,
@@ -34,7 +42,7 @@ from armfit.diagnosis.results import (
     short_by_subject,
     short_params,
 )
-from armfit.diagnosis.schedule import TaskQueue, task_queue
+from armfit.diagnosis.schedule import TaskQueue
 from armfit.diagnosis.screen import (
     keep_screened,
     rank_screened,
@@ -50,11 +58,7 @@ from armfit.diagnosis.subjects import (
     subjects_allow,
 )
 from armfit.diagnosis.tuning import (
-    MAX_STEPS,
-    MIN_EFFECT_DB,
-    MIN_EFFECT_DEG,
     MIN_REDUCTION,
-    SHARED_EFFECTS,
     SIGNIFICANT_BIC,
     TIE_BIC,
     TIE_FRACTION,
@@ -65,7 +69,6 @@ from armfit.feedback import chi2_sf
 from armfit.memory import release_memory, release_memory_after_task
 from armfit.models.arm import ClosedLoopModel, at_bound
 from armfit.models.effects import EFFECTS, Effect
-from armfit.spectra import Spectra
 
 __all__ = ["CandidateFit", "cross_axis_agreement", "diagnose_axes"]
 
@@ -427,14 +430,6 @@ class _Search:
 # and its arguments, an axis's trials, are let go): a worker runs fit after fit over all
 # of an axis's trials, and would otherwise keep the pages of every one.
 
-def _base_task(args):
-    data, band = args
-    try:
-        return fit_base(data, band)
-    finally:
-        release_memory_after_task()
-
-
 def _screen_task(args):
     data, current, quick, band, effect, by_subject = args   # screen_trials' trials
     try:
@@ -469,143 +464,6 @@ def _subject_task(args):
         return None
     finally:
         release_memory_after_task()
-
-
-def diagnose_axes(spectra, params, *,
-                  band: tuple[float, float] | Mapping[str, tuple[float, float]] | None = None,
-                  axes: Sequence[str] = AXES,
-                  effects: Sequence[Effect] | None = None, jobs: int = 1,
-                  max_steps: int = MAX_STEPS, min_effect_db: float = MIN_EFFECT_DB,
-                  min_effect_deg: float = MIN_EFFECT_DEG,
-                  share: Sequence[str] | None = None,
-                  executor: Executor | None = None,
-                  by_subject: bool = True) -> list[AxisDiagnosis]:
-    """Diagnose every axis present in both ``spectra`` (a Spectra, a spectra DataFrame,
-    or the path of a spectra file) and ``params`` (a params DataFrame, grip or nominal
-    fits, or the :class:`~armfit.models.params.FitStarts` of such a file) by a stepwise
-    search. Of a file, the trial rows of one axis are read at a time
-    (:meth:`armfit.spectra.Spectra.read`), and only the arrays the search uses and the
-    axis's cross-axis coupling are kept (the memory of the rest is given back once every
-    axis is read); the result is that of the file read whole. An axis's base fit is
-    handed to the workers (or the executor) as soon as its arrays are made, and runs
-    while the next axis is read.
-
-    Per axis: fit the base model to every trial (arm parameters per trial); while the
-    model is not adequate (:func:`adequacy`), fit the current model plus each remaining
-    effect (all effects refitted jointly, shared by the trials, warm-started), add the
-    candidate with the highest ΔBIC among those significant in both senses — ΔBIC >
-    :data:`SIGNIFICANT_BIC` with at least :data:`MIN_REDUCTION` of the cost removed, and
-    a change of the response larger than the noise and than ``min_effect_db`` /
-    ``min_effect_deg`` (:func:`practical`) — and repeat, at most ``max_steps`` times. No
-    effect is added twice. ``share``: effects whose parameters the axes' fits are
-    compared for agreement (default :data:`SHARED_EFFECTS`), see
-    :func:`cross_axis_agreement`.
-
-    A candidate whose own code breaks its fit (an :class:`EffectDefinitionError`: its
-    term raised, or was NaN or infinite on the band) is left out of this and every later
-    step with the message as reason (:attr:`AxisDiagnosis.failed_candidates`); the
-    search goes on with the other candidates.
-
-    ``band`` (Hz), one (lo, hi) for every axis or {axis: (lo, hi)}, defaults to the
-    whole grid of the spectra (for an axis a mapping does not name, too); ``jobs`` > 1
-    runs the fits (one task per axis and candidate) in parallel processes, or ``executor`` (any
-    :class:`concurrent.futures.Executor`, e.g. a dask client's) runs them — the results
-    do not depend on ``jobs`` or the executor. Each axis goes on to its next step as soon
-    as its own fits are done (:mod:`armfit.diagnosis.schedule`).
-
-    ``by_subject`` (default True): where an axis has trials of two or more subjects,
-    every named effect is also tested with one value per subject
-    (:mod:`armfit.diagnosis.subjects`): an effect of the arm while the step chooses among
-    the candidates (screened and fitted per subject), an apparatus effect once named
-    (and then, if its values differ between subjects, the step's other candidates fitted
-    on all trials too); the per-subject form is kept when it is significant in both
-    senses. False: every effect shared by the trials of an axis.
-    """
-    given = None if effects is None else list(effects)
-    trial_rows = _trial_rows(spectra)
-    searches: list[_Search] = []
-    coupling: dict[str, dict[str, float]] = {}
-    axes = [axis for axis in axes if has_axis(params, axis)]
-    if not axes:
-        return []
-    share = SHARED_EFFECTS if share is None else tuple(share)
-    # the workers start while the axes are read; an axis's base fit starts as soon as
-    # its data are ready, while the next axis is read
-    with task_queue(jobs, executor) as tasks:
-        steps = _Turns()
-        for axis in axes:
-            data = axis_data(trial_rows(axis, "measured"), params, axis)
-            release_memory()    # what reading the rows took, before the next read
-            if data is not None:
-                b = axis_band(band, axis) or (float(data.f_hz[0]), float(data.f_hz[-1]))
-                searches.append(_Search(data, b, given or (), max_steps, min_effect_db,
-                                        min_effect_deg, by_subject))
-                _AxisSteps(searches[-1], tasks, steps).begin()
-                tasks.start_ready()
-                coupling[axis] = cross_coupling(trial_rows(axis, "cross"), data, b)
-                release_memory()
-        if not searches:
-            return []
-        if executor is None and jobs > 1:
-            steps.share_last(len(searches), jobs)
-        if given is None:
-            # the library is listed while the base fits run, not before they start:
-            # listing it looks through the installed packages (1 ms; 45 ms where one
-            # declares effects)
-            library = list(EFFECTS.values())
-            for s in searches:
-                s.effects = list(library)
-        tasks.run()
-        large = any(_large(s.data) for s in searches)
-        _borrow_step(searches, lambda fn, items: tasks.map(fn, items, large=large), share)
-    out = []
-    for s in searches:
-        d = s.result()
-        out.append(replace(d, coupling=coupling[s.data.axis]))
-    agreement = cross_axis_agreement(out, share)
-    if agreement:
-        out = [replace(d, shared=agreement) for d in out]
-    return out
-
-
-def _trial_rows(spectra) -> Callable[[str, str], Spectra]:
-    """``(axis, kind) ->`` responses of ``spectra`` holding the trial rows of that kind
-    the diagnosis of that stimulated axis uses ("measured", or "cross" for the
-    coupling): read from the file when ``spectra`` is a path, else ``spectra`` itself
-    (the diagnosis selects them). Of a file, only the values the diagnosis uses are kept:
-    the standard errors of the measured rows; the responses and their flags always are.
-    The two kinds are read one after the other, the cross rows without values: read
-    together, the rows of an axis of 1,350 trials held 20 MB (41 MB at the read's
-    peak); one after the other 9 and 10 MB (18 and 21 MB at the peak). Each read scans
-    the whole file, so this takes about 1.1 s an axis of the 4,050-trial study instead
-    of 0.6 s, while the axis's base fit runs in the workers (the measured rows are read
-    first, and the base fit starts on them); on 81 trials the run's time did not change
-    (16 alternated pairs)."""
-    if isinstance(spectra, str | os.PathLike):
-        def read(axis: str, kind: str) -> Spectra:
-            return Spectra.read(spectra, level="trial", kind=kind, axis=axis,
-                                values=("se_db", "se_deg") if kind == "measured" else (),
-                                estimators=False)
-        return read
-    sp = Spectra.of(spectra)
-    return lambda axis, kind: sp
-
-
-
-#: A task carrying trials of at least this many bytes of arrays is handed over as large
-#: (:class:`armfit.diagnosis.schedule.TaskQueue`): on 1,350 trials an axis's take 4.3 MB.
-LARGE_TASK_BYTES = 1 << 20
-
-
-def _large(data: AxisData) -> bool:
-    return data.nbytes >= LARGE_TASK_BYTES
-
-
-#: Priorities of the search's tasks (lower first): a candidate's joint fit on all trials
-#: (its axis's next step waits for it), then base fits, then the screening fits, step by
-#: step in the order the steps began (an axis's step ends when its last fit does), within
-#: a step those of effects with more parameters (the longer fits) first.
-_EXTEND, _BASE, _SCREEN = 0, 1, 2
 
 
 def _gather(n: int, then: Callable[[list], None]) -> list[Callable]:
@@ -654,18 +512,15 @@ class _Turns:
 
 
 class _AxisSteps:
-    """One axis's search on the task queue: its base fit, then step after step cheap
-    screening of every remaining effect (one task each) and joint fits of the best (one
-    task each), each step as soon as the axis's previous one has ended: the axes do not
-    wait for each other."""
+    """One axis's search on the task queue, from its base fit's result (:meth:`_based`;
+    the fit itself is handed over by :func:`armfit.diagnosis.driver.diagnose_axes`):
+    step after step cheap screening of every remaining effect (one task each) and joint
+    fits of the best (one task each), each step as soon as the axis's previous one has
+    ended: the axes do not wait for each other."""
 
     def __init__(self, search: _Search, tasks: TaskQueue, steps: Iterator[int]):
         self.s, self.tasks, self.steps = search, tasks, steps
         self.large = _large(search.data)
-
-    def begin(self) -> None:
-        self.tasks.add((_BASE,), _base_task, (self.s.data, self.s.band), self._based,
-                       large=self.large)
 
     def _judging(self) -> None:
         """Before the evidence of this axis's fits is made: the memory freed since the
