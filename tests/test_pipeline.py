@@ -4,6 +4,8 @@ failing after others have written leaves no OUTDIR (or the old one untouched).""
 from __future__ import annotations
 
 import multiprocessing as mp
+import sys
+import threading
 
 import pytest
 from click.testing import CliRunner
@@ -14,6 +16,7 @@ from armfit.errors import ConvergenceError, OutputError
 from armfit.pipeline import (
     COMPARE_COLUMNS,
     RunOptions,
+    _import_meanwhile,
     check_outdir,
     compare_frame,
     run_pipeline,
@@ -145,3 +148,25 @@ def test_run_gives_the_same_bytes_with_one_or_two_jobs(tiny_study, tmp_path, mon
     assert any(name.endswith(".png") for name in outs[1])
     assert [n for n in outs[1] if outs[1][n] != outs[2][n]] == []
     assert mp.active_children() == []   # the pool is shut down with the run
+
+
+def test_a_module_imported_meanwhile_is_loaded_and_a_failure_there_is_left_to_its_user(
+        tmp_path, monkeypatch):
+    """The run loads pandas in a thread while the grip fits run in the workers
+    (:func:`armfit.pipeline._import_meanwhile`): the module is then in sys.modules, run
+    once; a module that fails to import raises nothing in that thread (no traceback on
+    stderr, which the thread's hook would print) and its first user gets the error."""
+    (tmp_path / "armfit_probe_ok.py").write_text("LOADS = []\nLOADS.append(1)\n")
+    (tmp_path / "armfit_probe_bad.py").write_text("raise ImportError('broken install')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    uncaught = []
+    monkeypatch.setattr(threading, "excepthook", uncaught.append)
+    for name in ("armfit_probe_ok", "armfit_probe_bad"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+        _import_meanwhile(name).join(timeout=30)
+    assert uncaught == []
+    import armfit_probe_ok
+    assert armfit_probe_ok.LOADS == [1]
+    with pytest.raises(ImportError, match="broken install"):
+        import armfit_probe_bad  # noqa: F401
+    monkeypatch.delitem(sys.modules, "armfit_probe_ok")
