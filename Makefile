@@ -42,8 +42,11 @@ test-slow: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check armfit tests benchmarks
 
+# every script with its defaults, then the run of a study with a hidden delay against the
+# same study without it
 bench: $(STAMP) compile
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
+	$(BIN)/python benchmarks/bench_run.py --effect delay=0.012 --against-null --repeat 3
 
 # Regenerate requirements.lock: newest versions pyproject.toml allows, resolved by pip in
 # a clean venv, frozen with exact versions. Run `make test` (and commit) afterwards.
