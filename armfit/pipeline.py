@@ -737,16 +737,16 @@ def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> Gri
     over its processes; without, 2.87 s and 422 MB."""
     spectra = estimated.spectra
     if workers.executor is not None:
-        # Table I's DataFrame below needs pandas (about 0.4 s to import), loaded while
-        # the grip fits run in the workers rather than after them, when it kept the
-        # diagnosis's fits from the workers (a run of 81 trials: 3 % shorter)
+        # Table I's DataFrame below needs pandas (about 0.4 s to import): loaded while
+        # this process waits for the grip fits, not after them while the workers wait
+        # (a run of 81 trials: 3 % shorter)
         _import_meanwhile("pandas")
     fitted = _fit_base("grip", config, workers, spectra)
     nominal = workers.start(_fit_base, "nominal", config, workers, spectra)
     # grip_params.csv first, and the diagnosis starts from it as read back (its base
     # parameters, read without pandas); Table I's warnings, LaTeX table and DataFrame
-    # (pandas) are made meanwhile. Made before the diagnosis
-    # started, they left the workers idle once Table II's fits were done
+    # are made meanwhile. Made before the diagnosis started, they left the workers idle
+    # once Table II's fits were done
     starts = api.ModelFit.read_starts(_params_csv("grip", config, fitted)).start_rows
     estimated.written()     # every later stage reads the file
     diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), starts,

@@ -69,9 +69,8 @@ def against_null(args) -> None:
         for i in range(args.repeat):
             # the two in turn, the first of a pair alternating between pairs
             for name in ("effect", "null") if i % 2 == 0 else ("null", "effect"):
-                study = studies[name]
-                wall, docs[name] = timed_run(study, Path(tmp) / f"out-{name}-{i}", args,
-                                             "auto")
+                wall, docs[name] = timed_run(studies[name], Path(tmp) / f"out-{name}-{i}",
+                                             args, "auto")
                 times[name].append(wall)
                 print(f"  run {i + 1} {name:6s} {wall:6.1f} s", flush=True)
     ratios = [e / n for e, n in zip(times["effect"], times["null"], strict=True)]

@@ -161,12 +161,13 @@ def test_a_module_imported_meanwhile_is_loaded_and_a_failure_there_is_left_to_it
     monkeypatch.syspath_prepend(str(tmp_path))
     uncaught = []
     monkeypatch.setattr(threading, "excepthook", uncaught.append)
-    for name in ("armfit_probe_ok", "armfit_probe_bad"):
-        monkeypatch.delitem(sys.modules, name, raising=False)
-        _import_meanwhile(name).join(timeout=30)
-    assert uncaught == []
-    import armfit_probe_ok
-    assert armfit_probe_ok.LOADS == [1]
-    with pytest.raises(ImportError, match="broken install"):
-        import armfit_probe_bad  # noqa: F401
-    monkeypatch.delitem(sys.modules, "armfit_probe_ok")
+    try:
+        for name in ("armfit_probe_ok", "armfit_probe_bad"):
+            _import_meanwhile(name).join(timeout=30)
+        assert uncaught == []
+        import armfit_probe_ok
+        assert armfit_probe_ok.LOADS == [1]
+        with pytest.raises(ImportError, match="broken install"):
+            import armfit_probe_bad  # noqa: F401
+    finally:
+        sys.modules.pop("armfit_probe_ok", None)
