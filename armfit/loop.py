@@ -16,7 +16,10 @@ The loop (see docs/methods.md, "Stability", for the derivation and the choices):
   K′ in [0, K]. The characteristic polynomial is affine in K, so a root can only cross
   |z| = 1 at a frequency where the open loop is real; every such crossing is found at
   once as a generalised eigenvalue of a symplectic-like pencil (:func:`crossing_gains`),
-  which cannot step over a narrow stable or unstable gap. The gains between crossings
+  which cannot step over a narrow stable or unstable gap; a long loop without virtual
+  damping finds them from the phase of the plant's poles and zeros instead, on
+  intervals where that phase is proven monotonic (:func:`_phase_crossings`: its work
+  grows with the delay's samples, not with their cube). The gains between crossings
   are tested by closed-loop eigenvalues; the first loss of stability is verified to
   0.1 % (:data:`K_REL_TOL`) and refined by bisection if the check fails.
 
@@ -576,15 +579,275 @@ def _wall_stability(plants: Sequence[RationalPlant], settings: WallSettings
 
 def _crossings(g: _Group) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Each loop's crossing gains (:func:`crossing_gains`, g from the plant alone)
-    sorted, those within 1e-9 (relative) of the one below dropped, and their angles."""
+    sorted, those within 1e-9 (relative) of the one below dropped, and their angles.
+
+    Loops of at least :data:`PHASE_ROUTE_MIN_STATES` states without virtual damping take
+    the phase route (:func:`_phase_crossings`); the others, and any loop that route
+    cannot certify, the pencil's generalised eigenvalues (:func:`crossing_gains`)."""
+    R, N = g.M0.shape[:2]
+    found: list[tuple[np.ndarray, np.ndarray] | None] = [None] * R
+    if g.BT == 0.0 and N >= PHASE_ROUTE_MIN_STATES:
+        found = _phase_crossings(g)
+    rest = np.array([r for r in range(R) if found[r] is None], int)
+    if rest.size:
+        for r, KT in zip(rest, _crossing_gains_batch(
+                g.M0[rest], g.b[rest], g.c[rest], g_of=lambda i, z: g.g(rest[i], z)),
+                strict=True):
+            found[r] = KT
     cands, thetas = [], []
-    for K, th in _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g):
+    for K, th in found:   # type: ignore[misc]
         order = np.argsort(K)
         K, th = K[order], th[order]
         keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
         cands.append(K[keep])
         thetas.append(th[keep])
     return cands, thetas
+
+
+#: Loops of at least this many states (plant, delay and controller) take the phase route
+#: to their crossing gains when they have no virtual damping (:func:`_phase_crossings`):
+#: its cost grows with the delay's samples, the QZ of the pencil's 2N + 1 rows with their
+#: cube; below about ten states the pencil is the cheaper (measured on the stability
+#: figure's sweep).
+PHASE_ROUTE_MIN_STATES = 10
+
+#: Intervals of the phase route's first grid per state of the loop (at least 32 in all).
+_PHASE_GRID_PER_STATE = 2
+#: Halvings of an interval the phase route tries before it leaves the loop to the pencil.
+_PHASE_MAX_HALVINGS = 40
+#: Largest error (rad) of the phase from the plant's poles and zeros, against that of g
+#: from its states, with which the phase route still answers.
+_PHASE_MAX_MISS = 1e-4
+
+
+def _plant_roots(g: _Group) -> tuple[np.ndarray, np.ndarray]:
+    """The poles and finite zeros of each loop's sampled plant P(z) = Cd (zI − Pd)⁻¹ Gd:
+    (roots (R, k), weights (R, k): +1 a pole, −1 a zero, 0 padding). The poles are the
+    eigenvalues of Pd; the zeros the finite generalised eigenvalues of the Rosenbrock
+    pencil ([[Pd, Gd], [Cd, 0]], [[I, 0], [0, 0]]) (a huge one, an infinite eigenvalue
+    found finite, adds a phase of about 1/|a|: nothing)."""
+    R, nd = g.Pd.shape[:2]
+    poles = np.linalg.eigvals(g.Pd)
+    A = np.zeros((nd + 1, nd + 1))
+    E = np.zeros((nd + 1, nd + 1))
+    E[:nd, :nd] = np.eye(nd)
+    ggev = _lapack_ggev(A)
+    zeros = []
+    for r in range(R):
+        A[:nd, :nd] = g.Pd[r]
+        A[:nd, nd] = g.Gd[r]
+        A[nd, :nd] = g.Cd[r]
+        with np.errstate(all="ignore"):
+            ar, ai, beta, _, _, _, info = ggev(A, E, compute_vl=0, compute_vr=0)
+            z = (ar + 1j * ai) / beta if info == 0 else _eigvals(A, E)
+        zeros.append(z[np.isfinite(z)])
+    k = nd + max(z.size for z in zeros)
+    roots = np.zeros((R, k), complex)
+    weight = np.zeros((R, k))
+    roots[:, :nd] = poles
+    weight[:, :nd] = 1.0
+    for r, z in enumerate(zeros):
+        roots[r, nd:nd + z.size] = z
+        weight[r, nd:nd + z.size] = -1.0
+    return roots, weight
+
+
+@dataclass(frozen=True)
+class _Phase:
+    """The phase H(θ) = D θ − arg P(e^(jθ)) of the loops of a group without virtual
+    damping, from the plant's poles and zeros: there g(z) = −z^(−D) P(z), so g(e^(jθ)) is
+    real exactly where H(θ) ∈ πℤ. Each root a gives arg(e^(jθ) − a) continuously in θ, up
+    to a constant: θ + arg(1 − a e^(−jθ)) for |a| < 1, arg(1 − e^(jθ)/a) for |a| > 1 (the
+    arguments of numbers with a positive real part); the constants sum to a multiple of π
+    (conjugate pairs and real roots), and H(0) = 0."""
+
+    roots: np.ndarray         # (R, k) complex
+    weight: np.ndarray        # (R, k): +1 pole, −1 zero, 0 padding
+    D: int
+
+    @classmethod
+    def of(cls, g: _Group) -> _Phase:
+        roots, weight = _plant_roots(g)
+        return cls(roots, weight, g.D)
+
+    def at(self, idx: np.ndarray, theta: np.ndarray, derivative: bool = False):
+        """H(θ) of loops ``idx`` at ``theta`` (one each), and with ``derivative`` also
+        H′(θ) = D + Σ ± Re(e^(jθ) / (e^(jθ) − a)) (+ for a pole, − for a zero)."""
+        a, w = self.roots[idx], self.weight[idx]
+        inside = np.abs(a) < 1.0
+        e = np.exp(1j * theta)[:, None]
+        with np.errstate(all="ignore"):
+            u = np.where(inside, 1.0 - a * np.conj(e), 1.0 - e / np.where(w != 0, a, 1.0))
+        h = (self.D + np.sum(np.where(inside, w, 0.0), axis=1)) * theta \
+            + np.sum(w * np.arctan2(u.imag, u.real), axis=1)
+        if not derivative:
+            return h
+        with np.errstate(all="ignore"):
+            slope = np.where(w != 0, w * (e / (e - a)).real, 0.0)
+        return h, self.D + np.sum(slope, axis=1)
+
+    def slope_bounds(self, idx: np.ndarray, lo: np.ndarray, hi: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of H′ over the intervals [lo, hi] of loops ``idx``. Each root's term
+        Re(e^(jθ) / (e^(jθ) − a)) = (1 − r c) / (1 − 2 r c + r²), c = cos(θ − arg a), is
+        monotonic in c (rising for r = |a| < 1, falling for r > 1), so its extremes over
+        an interval lie where c does: at 1 or −1 when the interval holds arg a or
+        arg a + π, else at an end. A root on the circle whose angle the interval holds
+        leaves it unbounded."""
+        a, w = self.roots[idx], self.weight[idx]
+        r, alpha = np.abs(a), np.angle(a)
+        lo, hi = lo[:, None], hi[:, None]
+        width = hi - lo
+        c_lo, c_hi = np.cos(lo - alpha), np.cos(hi - alpha)
+        holds = np.mod(alpha - lo, 2 * np.pi) <= width
+        holds_opposite = np.mod(alpha + np.pi - lo, 2 * np.pi) <= width
+        c_max = np.where(holds, 1.0, np.maximum(c_lo, c_hi))
+        c_min = np.where(holds_opposite, -1.0, np.minimum(c_lo, c_hi))
+        with np.errstate(all="ignore"):
+            at_max = (1 - r * c_max) / (1 - 2 * r * c_max + r * r)
+            at_min = (1 - r * c_min) / (1 - 2 * r * c_min + r * r)
+        t_lo = np.where(r < 1, at_min, at_max)
+        t_hi = np.where(r < 1, at_max, at_min)
+        on_circle = (np.abs(r - 1) < 1e-9) & holds
+        t_lo = np.where(on_circle, -np.inf, t_lo)
+        t_hi = np.where(on_circle, np.inf, t_hi)
+        s_lo = np.where(w > 0, t_lo, np.where(w < 0, -t_hi, 0.0))
+        s_hi = np.where(w > 0, t_hi, np.where(w < 0, -t_lo, 0.0))
+        return self.D + np.sum(s_lo, axis=1), self.D + np.sum(s_hi, axis=1)
+
+
+def _phase_crossings(g: _Group) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """The crossing gains of each loop of a group without virtual damping (B = 0), as
+    :func:`crossing_gains` finds them, from the phase H(θ) of :class:`_Phase`: every
+    θ ∈ (0, π) with H(θ) ∈ πℤ, and θ = 0 and π; K = 1/Re g(e^(jθ)) from the plant's
+    states (:meth:`_Group.g`). None for a loop the route cannot certify.
+
+    [0, π] is cut into intervals on each of which H is proven monotonic (the bounds of
+    H′ of :meth:`_Phase.slope_bounds` exclude 0) or proven to hold no root (H at the
+    middle is farther from πℤ than the largest |H′| times the half-width allows); an
+    interval neither proves is halved, at most :data:`_PHASE_MAX_HALVINGS` times. On a
+    monotonic interval each multiple of π between its ends' H is one root, found by
+    Newton's method kept inside its bracket (bisection when a step leaves it). So no
+    crossing can be missed, as with the pencil's eigenvalues, while the work grows with
+    the delay's samples instead of their cube. A loop is left to the pencil when an
+    interval stays unproven (a root of the plant on the unit circle, a tangential
+    crossing) or when H disagrees with the phase of g at the grid (a plant whose roots
+    were not all found)."""
+    R, N = g.M0.shape[:2]
+    ph = _Phase.of(g)
+    m = max(32, _PHASE_GRID_PER_STATE * N)
+    grid = np.linspace(0.0, np.pi, m + 1)
+    at = np.repeat(np.arange(R), m + 1)
+    H = ph.at(at, np.tile(grid, R)).reshape(R, m + 1)
+    # g(e^(jθ)) = −e^(−jDθ) P: its angle is π − H, so sin(H + angle g) vanishes; what it
+    # leaves at the grid (and at the roots, below) measures how far the poles and zeros
+    # miss the plant's states, and every decision keeps ten times that from a level
+    with np.errstate(all="ignore"):
+        gz = g.g(at, np.exp(1j * np.tile(grid, R))).reshape(R, m + 1)
+        miss = np.abs(np.sin(H + np.angle(gz)))
+    miss = np.max(np.where(np.isfinite(gz), miss, 0.0), axis=1)
+    tol = 10.0 * np.minimum(miss, _PHASE_MAX_MISS) + 1e-9
+    H[:, 0] = 0.0
+    H[:, -1] = np.pi * np.round(H[:, -1] / np.pi)    # P(−1) is real
+    idx = np.repeat(np.arange(R), m)
+    lo, hi = np.tile(grid[:-1], R), np.tile(grid[1:], R)
+    h_lo, h_hi = H[:, :-1].ravel(), H[:, 1:].ravel()
+    pieces, free = [], []
+    for _ in range(_PHASE_MAX_HALVINGS):
+        s_lo, s_hi = ph.slope_bounds(idx, lo, hi)
+        margin = 1e-9 * (np.abs(s_lo) + np.abs(s_hi) + ph.D + 1.0)
+        monotonic = (s_lo > margin) | (s_hi < -margin)
+        pieces.append((idx[monotonic], lo[monotonic], hi[monotonic], h_lo[monotonic],
+                       h_hi[monotonic]))
+        open_ = ~monotonic
+        idx, lo, hi, h_lo, h_hi, s_lo, s_hi = (x[open_] for x in
+                                               (idx, lo, hi, h_lo, h_hi, s_lo, s_hi))
+        mid = 0.5 * (lo + hi)
+        h_mid = ph.at(idx, mid)
+        reach = np.maximum(np.abs(s_lo), np.abs(s_hi)) * 0.5 * (hi - lo)
+        away = np.abs(h_mid - np.pi * np.round(h_mid / np.pi))
+        split = ~(away > reach * (1 + 1e-9) + tol[idx])
+        free.append((idx[~split], away[~split] - reach[~split] * (1 + 1e-9)))
+        if not split.any():
+            idx = idx[:0]
+            break
+        idx, lo, hi, h_lo, h_hi, h_mid, mid = (x[split] for x in
+                                               (idx, lo, hi, h_lo, h_hi, h_mid, mid))
+        idx = np.concatenate([idx, idx])
+        lo, hi = np.concatenate([lo, mid]), np.concatenate([mid, hi])
+        h_lo, h_hi = np.concatenate([h_lo, h_mid]), np.concatenate([h_mid, h_hi])
+    unproven = idx
+    p_idx, p_lo, p_hi, p_hlo, p_hhi = (np.concatenate(x) for x in zip(*pieces, strict=True))
+    # the multiples Lπ each monotonic interval crosses: rising h_lo < L ≤ h_hi, falling
+    # h_hi ≤ L < h_lo (a root on a shared end counted once); at θ = π, H(π) itself is
+    # the end, not an inner root
+    rising = p_hhi > p_hlo
+    end = p_hi >= np.pi
+    first = np.where(rising, np.floor(p_hlo / np.pi) + 1,
+                     np.where(end, np.floor(p_hhi / np.pi) + 1, np.ceil(p_hhi / np.pi)))
+    last = np.where(rising, np.where(end, np.ceil(p_hhi / np.pi) - 1,
+                                     np.floor(p_hhi / np.pi)),
+                    np.ceil(p_hlo / np.pi) - 1)
+    n = np.maximum(0, last - first + 1).astype(int)
+    r_idx = np.repeat(p_idx, n)
+    a, b = np.repeat(p_lo, n), np.repeat(p_hi, n)
+    up = np.repeat(rising, n)
+    level = np.pi * (np.repeat(first, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+    h_a, h_b = np.repeat(p_hlo, n), np.repeat(p_hhi, n)
+    theta = _bracketed_newton(ph, r_idx, level, a, b, up,
+                              a + (b - a) * np.clip((level - h_a) / (h_b - h_a), 0, 1))
+    # one step on the phase of g itself, from the plant's states: the root then owes
+    # nothing to the accuracy of the poles and zeros
+    if theta.size:
+        with np.errstate(all="ignore"):
+            gz = g.g(r_idx, np.exp(1j * theta))
+            _, slope = ph.at(r_idx, theta, derivative=True)
+            off = np.arctan(gz.imag / gz.real)
+        np.maximum.at(miss, r_idx, np.where(np.isfinite(off), np.abs(off), np.inf))
+        theta = theta + np.where(np.isfinite(off / slope), off / slope, 0.0)
+    # what is proven holds with ten times the error of H found at the grid and the roots
+    doubt = ~(miss <= _PHASE_MAX_MISS)
+    doubt[unproven] = True
+    tol = 10.0 * np.where(doubt, 0.0, miss) + 1e-9
+    f_idx, slack = (np.concatenate(x) for x in zip(*free, strict=True)) if free else \
+        (np.zeros(0, int), np.zeros(0))
+    doubt[f_idx[~(slack > tol[f_idx])]] = True
+    # an inner end of a monotonic interval as near a level as H's error: on which side
+    # the root lies (if any, at an extremum) is not proven
+    for ends, h in ((p_lo, p_hlo), (p_hi, p_hhi)):
+        near = np.abs(h - np.pi * np.round(h / np.pi)) <= tol[p_idx]
+        doubt[p_idx[near & (ends > 0.0) & (ends < np.pi)]] = True
+    # and θ = 0 and π, where g is real for every loop
+    r_idx = np.concatenate([r_idx, np.arange(R), np.arange(R)])
+    theta = np.concatenate([theta, np.zeros(R), np.full(R, np.pi)])
+    gz = g.g(r_idx, np.exp(1j * theta))
+    with np.errstate(all="ignore"):
+        K = 1.0 / gz.real
+    ok = np.isfinite(K) & (K > 0) & (np.abs(gz.imag) <= 1e-6 * np.abs(gz) + 1e-300)
+    return [None if doubt[r] else (K[ok & (r_idx == r)], theta[ok & (r_idx == r)])
+            for r in range(R)]
+
+
+def _bracketed_newton(ph: _Phase, idx: np.ndarray, level: np.ndarray, a: np.ndarray,
+                      b: np.ndarray, rising: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """θ in [a, b] with H(θ) = ``level`` for loops ``idx``, H monotonic on each bracket
+    (rising or not), from ``theta`` (in the bracket): Newton's steps, a bisection where a
+    step would leave the bracket, which shrinks to the root, until the steps stop moving
+    (at most 80 rounds)."""
+    for _ in range(80):
+        h, slope = ph.at(idx, theta, derivative=True)
+        f = h - level
+        beyond = np.where(rising, f > 0, f < 0)
+        b = np.where(beyond, theta, b)
+        a = np.where(beyond, a, theta)
+        with np.errstate(all="ignore"):
+            step = theta - f / slope
+        step = np.where((step >= a) & (step <= b), step, 0.5 * (a + b))
+        done = (np.abs(step - theta) <= 1e-15 * np.maximum(1.0, theta)) | (f == 0)
+        theta = step
+        if done.all():
+            break
+    return theta
 
 
 def _by_intervals(g: _Group, rows: Sequence[int], cands: Sequence[np.ndarray],
@@ -607,9 +870,14 @@ def _by_intervals(g: _Group, rows: Sequence[int], cands: Sequence[np.ndarray],
             continue
         if j == 0:
             rho0, top0 = _spectral_radius(g, np.array([r]), np.array([0.0]))
-            z0 = top0[0] if rho0[0] >= 1.0 else top_first[i]
-            out[g.rows[r]] = WallStability(0.0, abs(float(np.angle(z0))) / (2 * np.pi * T),
-                                           True)
+            if rho0[0] < 1.0:
+                # stable at K = 0 yet not below the first crossing: the crossings missed
+                # one (eigenvalues that strayed from the unit circle): K_max lies in
+                # (0, Ks[0]), found by halving down to a stable gain, then bisection
+                out[g.rows[r]] = _below_first(g, r, float(Ks[0]), top_first[i], T)
+                continue
+            out[g.rows[r]] = WallStability(0.0, abs(float(np.angle(top0[0])))
+                                           / (2 * np.pi * T), True)
             continue
         pending.append((r, float(K[j - 1]), float(thetas[r][j - 1]),
                         float(Ks[j - 1]), float(Ks[j])))
@@ -669,6 +937,19 @@ def loop_delay_samples(plant: RationalPlant, settings: WallSettings) -> int:
     """Whole samples of latency in the sampled loop: ⌈plant delay / T⌉ + d."""
     return int(math.ceil(plant.delay_s / settings.sample_time_s - 1e-12)) + \
         int(settings.delay_samples)
+
+
+def _below_first(g: _Group, r: int, k_hi: float, top: complex, T: float) -> WallStability:
+    """K_max of loop ``r``, stable at K = 0 and unstable at ``k_hi`` (its outermost
+    eigenvalue there ``top``): the unstable gain halved until the loop is stable (at most
+    60 times; none stable: K_max = 0 at the frequency of ``top``), then bisected."""
+    for _ in range(60):
+        k_lo = 0.5 * k_hi
+        rho, top_lo = _spectral_radius(g, np.array([r]), np.array([k_lo]))
+        if rho[0] < 1.0:
+            return _bisect(g, r, k_lo, k_hi, T)
+        k_hi, top = k_lo, top_lo[0]
+    return WallStability(0.0, abs(float(np.angle(top))) / (2 * np.pi * T), False)
 
 
 def _bisect(g: _Group, r: int, k_lo: float, k_hi: float, T: float) -> WallStability:
