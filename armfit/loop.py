@@ -607,12 +607,12 @@ def _crossings(g: _Group) -> tuple[list[np.ndarray], list[np.ndarray]]:
 #: Loops of at least this many states (plant, delay and controller) take the phase route
 #: to their crossing gains when they have no virtual damping (:func:`_phase_crossings`):
 #: its cost grows with the delay's samples, the QZ of the pencil's 2N + 1 rows with their
-#: cube; below about ten states the pencil is the cheaper (measured on the stability
+#: cube; below about twelve states the pencil is the cheaper (measured on the stability
 #: figure's sweep).
-PHASE_ROUTE_MIN_STATES = 10
+PHASE_ROUTE_MIN_STATES = 12
 
-#: Intervals of the phase route's first grid per state of the loop (at least 32 in all).
-_PHASE_GRID_PER_STATE = 2
+#: Intervals of the phase route's first grid per state of the loop (at least 16 in all).
+_PHASE_GRID_PER_STATE = 1
 #: Halvings of an interval the phase route tries before it leaves the loop to the pencil.
 _PHASE_MAX_HALVINGS = 40
 #: Largest error (rad) of the phase from the plant's poles and zeros, against that of g
@@ -652,18 +652,25 @@ def _plant_roots(g: _Group) -> tuple[np.ndarray, np.ndarray]:
     return roots, weight
 
 
-@dataclass(frozen=True)
 class _Phase:
     """The phase H(θ) = D θ − arg P(e^(jθ)) of the loops of a group without virtual
     damping, from the plant's poles and zeros: there g(z) = −z^(−D) P(z), so g(e^(jθ)) is
     real exactly where H(θ) ∈ πℤ. Each root a gives arg(e^(jθ) − a) continuously in θ, up
     to a constant: θ + arg(1 − a e^(−jθ)) for |a| < 1, arg(1 − e^(jθ)/a) for |a| > 1 (the
     arguments of numbers with a positive real part); the constants sum to a multiple of π
-    (conjugate pairs and real roots), and H(0) = 0."""
+    (conjugate pairs and real roots), and H(0) = 0.
 
-    roots: np.ndarray         # (R, k) complex
-    weight: np.ndarray        # (R, k): +1 pole, −1 zero, 0 padding
-    D: int
+    ``roots`` (R, k) complex and ``weight`` (R, k): +1 a pole, −1 a zero, 0 padding (a
+    root at 0 of weight 0 adds nothing)."""
+
+    def __init__(self, roots: np.ndarray, weight: np.ndarray, D: int) -> None:
+        self.roots, self.weight, self.D = roots, weight, int(D)
+        self.r, self.alpha = np.abs(roots), np.angle(roots)
+        self.inside = self.r < 1.0
+        with np.errstate(all="ignore"):
+            self.c = np.where(self.inside, roots, 1.0 / np.where(self.inside, 1.0, roots))
+        # H's slope from the roots inside (each adds θ), the rest from their arguments
+        self.slope = self.D + np.sum(np.where(self.inside, weight, 0.0), axis=1)
 
     @classmethod
     def of(cls, g: _Group) -> _Phase:
@@ -673,18 +680,15 @@ class _Phase:
     def at(self, idx: np.ndarray, theta: np.ndarray, derivative: bool = False):
         """H(θ) of loops ``idx`` at ``theta`` (one each), and with ``derivative`` also
         H′(θ) = D + Σ ± Re(e^(jθ) / (e^(jθ) − a)) (+ for a pole, − for a zero)."""
-        a, w = self.roots[idx], self.weight[idx]
-        inside = np.abs(a) < 1.0
+        w, inside = self.weight[idx], self.inside[idx]
         e = np.exp(1j * theta)[:, None]
-        with np.errstate(all="ignore"):
-            u = np.where(inside, 1.0 - a * np.conj(e), 1.0 - e / np.where(w != 0, a, 1.0))
-        h = (self.D + np.sum(np.where(inside, w, 0.0), axis=1)) * theta \
-            + np.sum(w * np.arctan2(u.imag, u.real), axis=1)
+        u = 1.0 - self.c[idx] * np.where(inside, np.conj(e), e)
+        h = self.slope[idx] * theta + np.sum(w * np.arctan2(u.imag, u.real), axis=1)
         if not derivative:
             return h
         with np.errstate(all="ignore"):
-            slope = np.where(w != 0, w * (e / (e - a)).real, 0.0)
-        return h, self.D + np.sum(slope, axis=1)
+            terms = w * (e / (e - self.roots[idx])).real
+        return h, self.D + np.sum(terms, axis=1)
 
     def slope_bounds(self, idx: np.ndarray, lo: np.ndarray, hi: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -694,8 +698,7 @@ class _Phase:
         an interval lie where c does: at 1 or −1 when the interval holds arg a or
         arg a + π, else at an end. A root on the circle whose angle the interval holds
         leaves it unbounded."""
-        a, w = self.roots[idx], self.weight[idx]
-        r, alpha = np.abs(a), np.angle(a)
+        w, r, alpha = self.weight[idx], self.r[idx], self.alpha[idx]
         lo, hi = lo[:, None], hi[:, None]
         width = hi - lo
         c_lo, c_hi = np.cos(lo - alpha), np.cos(hi - alpha)
@@ -735,7 +738,7 @@ def _phase_crossings(g: _Group) -> list[tuple[np.ndarray, np.ndarray] | None]:
     were not all found)."""
     R, N = g.M0.shape[:2]
     ph = _Phase.of(g)
-    m = max(32, _PHASE_GRID_PER_STATE * N)
+    m = max(16, _PHASE_GRID_PER_STATE * N)
     grid = np.linspace(0.0, np.pi, m + 1)
     at = np.repeat(np.arange(R), m + 1)
     H = ph.at(at, np.tile(grid, R)).reshape(R, m + 1)
