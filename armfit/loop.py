@@ -749,9 +749,49 @@ def _phase_crossings(g: _Group) -> list[tuple[np.ndarray, np.ndarray] | None]:
         gz = g.g(at, np.exp(1j * np.tile(grid, R))).reshape(R, m + 1)
         miss = np.abs(np.sin(H + np.angle(gz)))
     miss = np.max(np.where(np.isfinite(gz), miss, 0.0), axis=1)
-    tol = 10.0 * np.minimum(miss, _PHASE_MAX_MISS) + 1e-9
     H[:, 0] = 0.0
     H[:, -1] = np.pi * np.round(H[:, -1] / np.pi)    # P(−1) is real
+    pieces, (f_idx, slack), unproven = _phase_intervals(
+        ph, H, grid, 10.0 * np.minimum(miss, _PHASE_MAX_MISS) + 1e-9)
+    r_idx, theta = _phase_roots(ph, pieces)
+    # one step on the phase of g itself, from the plant's states: the root then owes
+    # nothing to the accuracy of the poles and zeros
+    if theta.size:
+        with np.errstate(all="ignore"):
+            gz = g.g(r_idx, np.exp(1j * theta))
+            _, slope = ph.at(r_idx, theta, derivative=True)
+            off = np.arctan(gz.imag / gz.real)
+        np.maximum.at(miss, r_idx, np.where(np.isfinite(off), np.abs(off), np.inf))
+        theta = theta + np.where(np.isfinite(off / slope), off / slope, 0.0)
+    # what is proven holds with ten times the error of H found at the grid and the roots
+    doubt = ~(miss <= _PHASE_MAX_MISS)
+    doubt[unproven] = True
+    tol = 10.0 * np.where(doubt, 0.0, miss) + 1e-9
+    doubt[f_idx[~(slack > tol[f_idx])]] = True
+    # an inner end of a monotonic interval as near a level as H's error: on which side
+    # the root lies (if any, at an extremum) is not proven
+    p_idx, p_lo, p_hi, p_hlo, p_hhi = pieces
+    for ends, h in ((p_lo, p_hlo), (p_hi, p_hhi)):
+        near = np.abs(h - np.pi * np.round(h / np.pi)) <= tol[p_idx]
+        doubt[p_idx[near & (ends > 0.0) & (ends < np.pi)]] = True
+    # and θ = 0 and π, where g is real for every loop
+    r_idx = np.concatenate([r_idx, np.arange(R), np.arange(R)])
+    theta = np.concatenate([theta, np.zeros(R), np.full(R, np.pi)])
+    gz = g.g(r_idx, np.exp(1j * theta))
+    with np.errstate(all="ignore"):
+        K = 1.0 / gz.real
+    ok = np.isfinite(K) & (K > 0) & (np.abs(gz.imag) <= 1e-6 * np.abs(gz) + 1e-300)
+    return [None if doubt[r] else (K[ok & (r_idx == r)], theta[ok & (r_idx == r)])
+            for r in range(R)]
+
+
+def _phase_intervals(ph: _Phase, H: np.ndarray, grid: np.ndarray, tol: np.ndarray):
+    """The intervals of :func:`_phase_crossings`: from the grid's (H (R, m + 1) at
+    ``grid``), halved until each is proven monotonic or free of roots by more than
+    ``tol`` (per loop). Returns the monotonic ones (loop, lo, hi, H(lo), H(hi)), the free
+    ones (loop, how far beyond the proof their H stays from πℤ) and the loops of any
+    interval still unproven after :data:`_PHASE_MAX_HALVINGS` halvings."""
+    R, m = H.shape[0], grid.size - 1
     idx = np.repeat(np.arange(R), m)
     lo, hi = np.tile(grid[:-1], R), np.tile(grid[1:], R)
     h_lo, h_hi = H[:, :-1].ravel(), H[:, 1:].ravel()
@@ -779,11 +819,17 @@ def _phase_crossings(g: _Group) -> list[tuple[np.ndarray, np.ndarray] | None]:
         idx = np.concatenate([idx, idx])
         lo, hi = np.concatenate([lo, mid]), np.concatenate([mid, hi])
         h_lo, h_hi = np.concatenate([h_lo, h_mid]), np.concatenate([h_mid, h_hi])
-    unproven = idx
-    p_idx, p_lo, p_hi, p_hlo, p_hhi = (np.concatenate(x) for x in zip(*pieces, strict=True))
-    # the multiples Lπ each monotonic interval crosses: rising h_lo < L ≤ h_hi, falling
-    # h_hi ≤ L < h_lo (a root on a shared end counted once); at θ = π, H(π) itself is
-    # the end, not an inner root
+    return (tuple(np.concatenate(x) for x in zip(*pieces, strict=True)),
+            tuple(np.concatenate(x) for x in zip(*free, strict=True)), idx)
+
+
+def _phase_roots(ph: _Phase, pieces) -> tuple[np.ndarray, np.ndarray]:
+    """The roots (loop, θ) of H(θ) ∈ πℤ on the monotonic intervals ``pieces`` of
+    :func:`_phase_intervals`: each multiple Lπ an interval crosses, rising
+    H(lo) < L ≤ H(hi), falling H(hi) ≤ L < H(lo) (a root on a shared end counted once;
+    at θ = π, H(π) itself is the end, not an inner root), solved by
+    :func:`_bracketed_newton` from the chord's crossing."""
+    p_idx, p_lo, p_hi, p_hlo, p_hhi = pieces
     rising = p_hhi > p_hlo
     end = p_hi >= np.pi
     first = np.where(rising, np.floor(p_hlo / np.pi) + 1,
@@ -794,41 +840,11 @@ def _phase_crossings(g: _Group) -> list[tuple[np.ndarray, np.ndarray] | None]:
     n = np.maximum(0, last - first + 1).astype(int)
     r_idx = np.repeat(p_idx, n)
     a, b = np.repeat(p_lo, n), np.repeat(p_hi, n)
-    up = np.repeat(rising, n)
     level = np.pi * (np.repeat(first, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
     h_a, h_b = np.repeat(p_hlo, n), np.repeat(p_hhi, n)
-    theta = _bracketed_newton(ph, r_idx, level, a, b, up,
+    theta = _bracketed_newton(ph, r_idx, level, a, b, np.repeat(rising, n),
                               a + (b - a) * np.clip((level - h_a) / (h_b - h_a), 0, 1))
-    # one step on the phase of g itself, from the plant's states: the root then owes
-    # nothing to the accuracy of the poles and zeros
-    if theta.size:
-        with np.errstate(all="ignore"):
-            gz = g.g(r_idx, np.exp(1j * theta))
-            _, slope = ph.at(r_idx, theta, derivative=True)
-            off = np.arctan(gz.imag / gz.real)
-        np.maximum.at(miss, r_idx, np.where(np.isfinite(off), np.abs(off), np.inf))
-        theta = theta + np.where(np.isfinite(off / slope), off / slope, 0.0)
-    # what is proven holds with ten times the error of H found at the grid and the roots
-    doubt = ~(miss <= _PHASE_MAX_MISS)
-    doubt[unproven] = True
-    tol = 10.0 * np.where(doubt, 0.0, miss) + 1e-9
-    f_idx, slack = (np.concatenate(x) for x in zip(*free, strict=True)) if free else \
-        (np.zeros(0, int), np.zeros(0))
-    doubt[f_idx[~(slack > tol[f_idx])]] = True
-    # an inner end of a monotonic interval as near a level as H's error: on which side
-    # the root lies (if any, at an extremum) is not proven
-    for ends, h in ((p_lo, p_hlo), (p_hi, p_hhi)):
-        near = np.abs(h - np.pi * np.round(h / np.pi)) <= tol[p_idx]
-        doubt[p_idx[near & (ends > 0.0) & (ends < np.pi)]] = True
-    # and θ = 0 and π, where g is real for every loop
-    r_idx = np.concatenate([r_idx, np.arange(R), np.arange(R)])
-    theta = np.concatenate([theta, np.zeros(R), np.full(R, np.pi)])
-    gz = g.g(r_idx, np.exp(1j * theta))
-    with np.errstate(all="ignore"):
-        K = 1.0 / gz.real
-    ok = np.isfinite(K) & (K > 0) & (np.abs(gz.imag) <= 1e-6 * np.abs(gz) + 1e-300)
-    return [None if doubt[r] else (K[ok & (r_idx == r)], theta[ok & (r_idx == r)])
-            for r in range(R)]
+    return r_idx, theta
 
 
 def _bracketed_newton(ph: _Phase, idx: np.ndarray, level: np.ndarray, a: np.ndarray,
