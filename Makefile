@@ -46,7 +46,7 @@ lint: $(STAMP)
 # same study without it
 bench: $(STAMP) compile
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
-	$(BIN)/python benchmarks/bench_run.py --effect delay=0.012 --against-null --repeat 3
+	$(BIN)/python benchmarks/bench_run.py --effect delay=0.012 --against-null --repeat 5
 
 # Regenerate requirements.lock: newest versions pyproject.toml allows, resolved by pip in
 # a clean venv, frozen with exact versions. Run `make test` (and commit) afterwards.
