@@ -734,8 +734,9 @@ def _phase_crossings(g: _Group) -> list[tuple[np.ndarray, np.ndarray] | None]:
     crossing can be missed, as with the pencil's eigenvalues, while the work grows with
     the delay's samples instead of their cube. A loop is left to the pencil when an
     interval stays unproven (a root of the plant on the unit circle, a tangential
-    crossing) or when H disagrees with the phase of g at the grid (a plant whose roots
-    were not all found)."""
+    crossing), when H misses the phase of g from the plant's states by more than
+    :data:`_PHASE_MAX_MISS` at the grid or at a root (poles and zeros not found to that
+    accuracy), or when a decision lies within ten times that miss of a multiple of π."""
     R, N = g.M0.shape[:2]
     ph = _Phase.of(g)
     m = max(16, _PHASE_GRID_PER_STATE * N)
