@@ -39,7 +39,7 @@ ARMS = {"x": (0.5, 120.0, 400.0, 8.0, 6.0), "y": (0.8, 90.0, 300.0, 5.0, 9.0),
 def _plants() -> list[RationalPlant]:
     """Each arm alone, with an output delay of 3 to 12.3 ms (whole and fractional
     samples), with a delay and a lag, with a delay and a device resonance, and with a
-    delayed reflex inside the arm (its Padé approximant): plants of 4 to 17 states."""
+    delayed reflex inside the arm (its Padé approximant): plants of order 4 to 10."""
     out = []
     for axis, arm in ARMS.items():
         base = dict(zip(("Ma", "k1", "k2", "b1", "b2"), arm, strict=True))
