@@ -596,12 +596,19 @@ def _crossings(g: _Group) -> tuple[list[np.ndarray], list[np.ndarray]]:
             found[r] = KT
     cands, thetas = [], []
     for K, th in found:   # type: ignore[misc]
-        order = np.argsort(K)
-        K, th = K[order], th[order]
-        keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
-        cands.append(K[keep])
-        thetas.append(th[keep])
+        K, th = _distinct_sorted(K, th)
+        cands.append(K)
+        thetas.append(th)
     return cands, thetas
+
+
+def _distinct_sorted(K: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Crossing gains ``K`` sorted, those within 1e-9 (relative) of the one below
+    dropped, and their angles ``theta``."""
+    order = np.argsort(K)
+    K, theta = K[order], theta[order]
+    keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
+    return K[keep], theta[keep]
 
 
 #: Loops of at least this many states (plant, delay and controller) take the phase route
@@ -611,8 +618,6 @@ def _crossings(g: _Group) -> tuple[list[np.ndarray], list[np.ndarray]]:
 #: figure's sweep).
 PHASE_ROUTE_MIN_STATES = 12
 
-#: Intervals of the phase route's first grid per state of the loop (at least 16 in all).
-_PHASE_GRID_PER_STATE = 1
 #: Halvings of an interval the phase route tries before it leaves the loop to the pencil.
 _PHASE_MAX_HALVINGS = 40
 #: Largest error (rad) of the phase from the plant's poles and zeros, against that of g
@@ -739,7 +744,7 @@ def _phase_crossings(g: _Group) -> list[tuple[np.ndarray, np.ndarray] | None]:
     accuracy), or when a decision lies within ten times that miss of a multiple of π."""
     R, N = g.M0.shape[:2]
     ph = _Phase.of(g)
-    m = max(16, _PHASE_GRID_PER_STATE * N)
+    m = max(16, N)      # the first grid: an interval per state of the loop, at least 16
     grid = np.linspace(0.0, np.pi, m + 1)
     at = np.repeat(np.arange(R), m + 1)
     H = ph.at(at, np.tile(grid, R)).reshape(R, m + 1)

@@ -21,6 +21,7 @@ from armfit.loop import (
     WallSettings,
     _crossing_gains_batch,
     _crossings,
+    _distinct_sorted,
     _loops,
     _phase_crossings,
     closed_loop_stable,
@@ -70,13 +71,8 @@ SETTINGS = [WallSettings(1.0 / rate, 0.0, d) for rate in (250.0, 1000.0, 2828.4,
 def _by_pencil(g) -> list[tuple[np.ndarray, np.ndarray]]:
     """The pencil's crossing gains of each loop of ``g``, sorted, those within 1e-9 of
     the one below dropped (as :func:`armfit.loop._crossings` returns them)."""
-    out = []
-    for K, th in _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g):
-        order = np.argsort(K)
-        K, th = K[order], th[order]
-        keep = np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]]) if K.size else K > 0
-        out.append((K[keep], th[keep]))
-    return out
+    return [_distinct_sorted(K, th)
+            for K, th in _crossing_gains_batch(g.M0, g.b, g.c, g_of=g.g)]
 
 
 def _long_groups():
@@ -133,8 +129,8 @@ def test_the_crossings_are_those_of_a_scan_of_the_sign_of_im_g():
             roots = np.array([brentq(im_g, theta[i], theta[i + 1], xtol=1e-15) for i in sc])
             z = np.concatenate([roots, [0.0, np.pi]])
             gz = g.g(np.full(z.size, r), np.exp(1j * z))
-            K = np.sort(1.0 / gz.real[gz.real > 0])
-            K = K[np.concatenate([[True], np.diff(K) > 1e-9 * K[1:]])] if K.size else K
+            pos = gz.real > 0
+            K, _ = _distinct_sorted(1.0 / gz.real[pos], z[pos])
             np.testing.assert_allclose(cands[r], K, rtol=1e-7)
             checked += 1
     assert checked >= 25
