@@ -24,7 +24,7 @@ import html
 import importlib
 import json
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -739,13 +739,19 @@ def _checked_rows(table: pd.DataFrame, *, keep_row: bool = False) -> pd.DataFram
 
 def _fit(which: str, spectra, *, cost: str, bands, effects, bootstrap: int, seed,
          method, max_nfev, on_fit, jobs: int, executor: Executor | None = None) -> ModelFit:
+    (model,) = _table_fits((which,), spectra, cost=cost, bands=bands, effects=effects,
+                           bootstrap=bootstrap, seed=seed, method=method,
+                           max_nfev=max_nfev, on_fit=on_fit, jobs=jobs, executor=executor)
+    return model
+
+
+def _table_fits(whiches: Sequence[str], spectra, *, effects, **kwargs) -> Iterator[ModelFit]:
+    """The :class:`ModelFit` of each of ``whiches`` ("grip", "nominal"), yielded as each
+    is done, every fit handed to the workers at once in this order
+    (:func:`armfit.fitting.fit_studies`; ``kwargs``: its options)."""
     sp = _spectra(spectra)
-    study = _fitting.fit_study(sp, which=which, cost=cost, bands=bands,
-                               effects=_fit_effects(effects), bootstrap=bootstrap,
-                               seed=seed,
-                               method=method, max_nfev=max_nfev, on_fit=on_fit, jobs=jobs,
-                               executor=executor)
-    return ModelFit(study.row_table(), which, study.fits, sp)
+    for study in _fitting.fit_studies(sp, whiches, effects=_fit_effects(effects), **kwargs):
+        yield ModelFit(study.row_table(), study.which, study.fits, sp)
 
 
 def fit_grip(spectra, *, cost: str = "complex",
@@ -1403,7 +1409,8 @@ class AdoptedModel:
 
 def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "auto",
                 cost: str = "complex", trials: bool = True, jobs: int = 1,
-                executor: Executor | None = None) -> AdoptedModel:
+                executor: Executor | None = None,
+                on_table: Callable[[str, ModelFit], None] | None = None) -> AdoptedModel:
     """Fit the adopted model (:mod:`armfit.adopt`): the paper's model plus the effects
     the diagnosis names per axis, apparatus effects held at the diagnosis's joint fit.
 
@@ -1426,6 +1433,10 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
         a ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut
         down; see :mod:`armfit.workers`). The result does not depend on it.
         The diagnosis, which takes no executor, runs in ``jobs`` worker processes.
+    on_table : callable, optional
+        ``on_table(which, model)`` as each adopted table is fitted: ``"nominal"`` (Table
+        II, whose fits run first) while Table I's fits still run, then ``"grip"``. What
+        needs only Table II (its W_max and Wu, say) can start there.
 
     Returns
     -------
@@ -1440,7 +1451,7 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
         base = diagnosis.model
     ad = _adopt.adopt(diagnosis, policy)
     bands = ad.bands
-    grip, nominal = _adopted_tables(sp, ad, cost, jobs, executor)
+    grip, nominal = _adopted_tables(sp, ad, cost, jobs, executor, on_table)
     per_trial = None
     if trials:
         keys = zip(grip.table["axis"], grip.table["grip_N"], strict=True)
@@ -1454,21 +1465,23 @@ def adopt_model(spectra, diagnosis: Diagnosis | None = None, *, policy: str = "a
 
 
 def _adopted_tables(sp: Spectra, ad: _adopt.Adoption, cost: str, jobs: int,
-                    executor: Executor | None) -> tuple[ModelFit, ModelFit]:
+                    executor: Executor | None,
+                    on_table: Callable[[str, ModelFit], None] | None = None
+                    ) -> tuple[ModelFit, ModelFit]:
     """Tables I and II of the adopted model (:func:`adopt_model`), on one set of workers:
-    Table II's fits run alongside Table I's, so that neither table's tasks wait for the
-    other's last one (the same fits, in any order: the same results)."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    Table II's fits handed to them first and Table I's at once behind them, so that
+    neither table's tasks wait for the other's last one (the same fits, in any order: the
+    same results), and ``on_table`` has Table II while Table I's fits run."""
     from armfit.workers import POOL_PRELOAD, executor_for
 
-    kw = dict(cost=cost, bands=ad.bands, effects=ad.effects)
+    fitted = {}
     with executor_for(executor, jobs, preload=POOL_PRELOAD["fit"]) as pool:
-        if pool is None:
-            return fit_grip(sp, **kw), fit_nominal(sp, **kw)
-        with ThreadPoolExecutor(max_workers=1) as side:
-            nominal = side.submit(fit_nominal, sp, executor=pool, **kw)
-            return fit_grip(sp, executor=pool, **kw), nominal.result()
+        for model in _table_fits(("nominal", "grip"), sp, cost=cost, bands=ad.bands,
+                                 effects=ad.effects, executor=pool):
+            fitted[model.which] = model
+            if on_table is not None:
+                on_table(model.which, model)
+    return fitted["grip"], fitted["nominal"]
 
 
 @dataclass(frozen=True, eq=False)

@@ -1057,24 +1057,59 @@ def fit_study(spectra, *, which: str, cost: str = "complex",
     ConvergenceError
         A fit did not converge (exit 3).
     """
-    if which not in STUDY_FITS:
-        raise UsageError(f"which must be one of {', '.join(STUDY_FITS)}, got {which!r}")
+    (study,) = fit_studies(spectra, (which,), cost=cost, bands=bands, effects=effects,
+                           bootstrap=bootstrap, seed=seed, method=method, max_nfev=max_nfev,
+                           source=source, on_fit=on_fit, jobs=jobs, executor=executor)
+    return study
+
+
+def fit_studies(spectra, whiches: Sequence[str], *, cost: str = "complex",
+                bands: Mapping[str, tuple[float, float]] | None = None,
+                effects: Sequence = (), bootstrap: int = 0, seed: int | None = 0,
+                method: str | None = None, max_nfev: int | None = None,
+                source: str | None = None,
+                on_fit: Callable[[str, float | None, FitResult], None] | None = None,
+                jobs: int = 1, executor=None) -> Iterator[StudyFit]:
+    """:func:`fit_study` of each set of ``whiches`` (e.g. ``("nominal", "grip")``), with
+    the same model, band and options: every fit of every set handed to the workers at
+    once, in this order, and each set's :class:`StudyFit` yielded as soon as its own fits
+    are done, while the next sets' fits go on. Work that needs only the first set (Table
+    II's W_max, say) can then start while the others run, and queue behind them instead
+    of waiting for the slowest. Each fit is the one :func:`fit_study` makes (the same
+    task, in any company). Parameters as :func:`fit_study`; the generator, closed early,
+    cancels the fits not yet started.
+
+    Yields
+    ------
+    StudyFit
+        One per set, in the order of ``whiches``.
+    """
+    for which in whiches:
+        if which not in STUDY_FITS:
+            raise UsageError(f"which must be one of {', '.join(STUDY_FITS)}, "
+                             f"got {which!r}")
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
     specs = effects_by_axis(effects)
     sp = Spectra.of(spectra)
     source = source if source is not None else sp.source
-    agg, measured = _study_aggregates(sp, STUDY_FITS[which], method, source)
-    keys, tasks = _study_tasks(agg, measured, which, source, bands=bands, specs=specs,
-                               bootstrap=(bootstrap, seed),
-                               options={"cost": cost, "max_nfev": max_nfev})
-    fits = []
-    for (axis, grip), fit in zip(keys, iter_tasks(_fit_group, tasks, jobs,
-                                                  preload=POOL_PRELOAD["fit"],
-                                                  executor=executor), strict=True):
-        fits.append(fit)
-        if on_fit is not None:
-            on_fit(axis, grip, fit)
-    return StudyFit(which, tuple(keys), tuple(fits))
+    sets, tasks = [], []
+    for which in whiches:
+        agg, measured = _study_aggregates(sp, STUDY_FITS[which], method, source)
+        keys, set_tasks = _study_tasks(agg, measured, which, source, bands=bands,
+                                       specs=specs, bootstrap=(bootstrap, seed),
+                                       options={"cost": cost, "max_nfev": max_nfev})
+        sets.append((which, keys))
+        tasks += set_tasks
+    done = iter_tasks(_fit_group, tasks, jobs, preload=POOL_PRELOAD["fit"],
+                      executor=executor)
+    del tasks
+    for which, keys in sets:
+        fits = []
+        for (axis, grip), fit in zip(keys, done, strict=False):
+            fits.append(fit)
+            if on_fit is not None:
+                on_fit(axis, grip, fit)
+        yield StudyFit(which, tuple(keys), tuple(fits))
 
 
 def _study_aggregates(sp: Spectra, how: str, method: str | None, source: str | None
@@ -1460,6 +1495,7 @@ def trial_fits_table(fits: Sequence[TrialFit], effects=()):
     return df
 
 __all__ = ["COSTS", "PAPER_BANDS", "STUDY_FITS", "FitResult", "StudyFit", "analytic_guess",
-           "bootstrap_fit", "exact_response", "fit_response", "fit_study", "log_errors",
+           "bootstrap_fit", "exact_response", "fit_response", "fit_study", "fit_studies",
+           "log_errors",
            "TRIAL_KEYS", "TrialFit", "fit_trial", "fit_trial_models",
            "trial_fits_table", "trial_groups"]

@@ -534,6 +534,8 @@ class Models(StageResult):
     bands: Mapping[str, tuple[float, float]]
     base_grip: api.ModelFit | None = None
     base_nominal: api.ModelFit | None = None
+    #: The Wu fits the adopt stage started (None: the uncertainty stage starts them).
+    weights: Background[_Weights] | None = None
 
 
 @dataclass(frozen=True)
@@ -808,7 +810,10 @@ def _adopt(config: RunConfig, workers: _Workers, spectra: Spectra, grip: GripFit
            nominal: NominalFits, diagnosed: Diagnosed) -> Models:
     """Tables I and II again with the adopted model (the band of the diagnosis on the
     adopted axes, apparatus effects held at its joint fit); the base model's tables are
-    kept as grip_params_base.csv/.tex and nominal_params_base.csv/.tex."""
+    kept as grip_params_base.csv/.tex and nominal_params_base.csv/.tex. Table II's fits
+    run first: once it is written, its W_max is made and its Wu fits
+    (:func:`_fit_weights`) start, queued behind Table I's fits, so that no worker waits
+    for Table I's slowest fit."""
     ad, o = diagnosed.adoption, config.options
     files = []
     for which in ("grip", "nominal"):
@@ -816,18 +821,24 @@ def _adopt(config: RunConfig, workers: _Workers, spectra: Spectra, grip: GripFit
             os.replace(config.path(f"{which}_params{ext}"),
                        config.path(f"{which}_params_base{ext}"))
             files.append(f"{which}_params_base{ext}")
-    fitted = api.adopt_model(spectra, diagnosed.diagnosis, policy=ad.policy, cost=o.cost,
-                             trials=False, jobs=o.jobs, executor=workers.executor)
-    refit = {}
-    for which in ("grip", "nominal"):
-        model = getattr(fitted, which)
+    refit: dict[str, api.ModelFit] = {}
+    weights: list[Background[_Weights]] = []
+
+    def on_table(which: str, model: api.ModelFit) -> None:
         _warn_at_bound(which, model, config.warn)
         model.write(config.path(f"{which}_params.csv"),
                     latex=config.path(f"{which}_params.tex"))
         refit[which] = replace(api.ModelFit.read(config.path(f"{which}_params.csv")),
                                fits=model.fits, spectra=spectra)
+        if which == "nominal":
+            weights.append(workers.start(_fit_weights, config, workers,
+                                         _wmax(config, refit["nominal"], ad)))
+
+    api.adopt_model(spectra, diagnosed.diagnosis, policy=ad.policy, cost=o.cost,
+                    trials=False, jobs=o.jobs, executor=workers.executor,
+                    on_table=on_table)
     return Models(refit["grip"], refit["nominal"], ad.bands, grip.grip, nominal.nominal,
-                  files=tuple(files),
+                  weights=weights[0], files=tuple(files),
                   summary="; ".join(f"{' + '.join(ad[a].effects)} on {a}"
                                     for a in ad.adopted_axes))
 
@@ -840,24 +851,63 @@ def _effects_of(adoption: Adoption):
 def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                      adoption: Adoption) -> UncertaintyFit:
     """W_max and Wu (Table III) of the adopted nominal, apparatus effects removed: wu.csv,
-    wu_summary.csv, wu_wmax.csv, wu.tex, from the derived trial rows of spectra.parquet
-    (read here, let go once W_max is made: the Wu fits need W_max only). The per-trial
-    fits start then (their own read of the file's measured rows would otherwise overlap
-    the derived rows) and run in the worker processes whenever the Wu fits leave one
-    free (they give way: the stability stage needs both, and the Wu fits are the longer
-    chain). The result is :func:`armfit.api.fit_uncertainty`'s, without the spectra."""
+    wu_summary.csv, wu_wmax.csv, wu.tex (:func:`_wmax`, :func:`_fit_weights`; with an
+    adopted model, started by the adopt stage as soon as its Table II was written). The
+    per-trial fits start once W_max is made (their own read of the file's measured rows
+    would otherwise overlap the derived rows) and run in the worker processes whenever
+    the Wu fits leave one free (they give way: the stability stage needs both, and the
+    Wu fits are the longer chain). The result is :func:`armfit.api.fit_uncertainty`'s,
+    without the spectra."""
     o = config.options
+    targets = None if models.weights is not None else _wmax(config, models.nominal,
+                                                            adoption)
     # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
     grip = models.grip
     starts = grip_fit_starts(zip(grip.table["axis"], grip.table["grip_N"], strict=True),
                              grip.fits)
     per_subject = {"subject_effects": adoption.subject_effects} if adoption.by_subject \
         else {}
+    trial_fits = workers.start(_trial_fits, config, workers.drawings.pool,
+                               config.path("spectra.parquet"), cost=o.cost,
+                               jobs=o.jobs, source="spectra.parquet", starts=starts,
+                               bands=models.bands, effects=_effects_of(adoption),
+                               executor=workers.later, **per_subject)
+    done = (models.weights.result() if targets is None
+            else _fit_weights(config, workers, targets))
+    unc = done.uncertainty
+    return UncertaintyFit(unc, trial_fits, files=done.files,
+                          summary=", ".join(f"{r.axis}: {r.result.order} pair(s)"
+                                            for r in unc.axes) + f", cost {o.wu_cost}")
+
+
+@dataclass(frozen=True)
+class _Targets:
+    """W_max of each axis (:func:`armfit.uncertainty.wmax_targets`), the notes on the
+    weights, and the nominal model and per-subject effect values they were made with."""
+
+    targets: list
+    notes: list
+    nominal: api.ModelFit
+    by_subject: Mapping
+
+
+@dataclass(frozen=True)
+class _Weights:
+    """Wu fitted (Table III) and the files it was written to."""
+
+    uncertainty: api.Uncertainty
+    files: tuple[str, ...]
+
+
+def _wmax(config: RunConfig, nominal: api.ModelFit, adoption: Adoption) -> _Targets:
+    """W_max (eq. 6) of ``nominal`` and the notes on the weights, from the derived trial
+    rows of spectra.parquet, read here and let go at once: the Wu fits need W_max only,
+    and the trial fits' read never overlaps them."""
+    by_subject = adoption.by_subject
     # the responses only: W_max (eq. 6) uses no other value of the rows, and the values
     # would more than double what the rows hold
     derived = Spectra.read(config.path("spectra.parquet"), level="trial", kind="derived",
                            values=(), estimators=False)
-    nominal, by_subject = models.nominal, adoption.by_subject
     # W_max (eq. 6) and the notes are all that is made of the derived rows, and then
     # they are let go: the Wu fits and the trial fits' read never hold them (13 MB at
     # 4,050 trials)
@@ -867,23 +917,21 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                                  params_label=nominal.source)
     del derived
     release_memory()
-    trial_fits = workers.start(_trial_fits, config, workers.drawings.pool,
-                               config.path("spectra.parquet"), cost=o.cost,
-                               jobs=o.jobs, source="spectra.parquet", starts=starts,
-                               bands=models.bands, effects=_effects_of(adoption),
-                               executor=workers.later, **per_subject)
-    results = wu.fit_targets(targets, cost=o.wu_cost, jobs=o.jobs,
+    return _Targets(targets, notes, nominal, by_subject)
+
+
+def _fit_weights(config: RunConfig, workers: _Workers, made: _Targets) -> _Weights:
+    """Wu (eq. 7) fitted to the W_max of :func:`_wmax` on the run's workers, written as
+    wu.csv (and its side files) and wu.tex."""
+    o = config.options
+    results = wu.fit_targets(made.targets, cost=o.wu_cost, jobs=o.jobs,
                              executor=workers.executor)
     wu.require_converged(results, o.wu_cost)
-    unc = api.Uncertainty(tuple(results), o.wu_cost, None, None, nominal, tuple(notes),
-                          dict(by_subject or {}))
+    unc = api.Uncertainty(tuple(results), o.wu_cost, None, None, made.nominal,
+                          tuple(made.notes), dict(made.by_subject or {}))
     wu_path = config.path("wu.csv")
     unc.write(wu_path, latex=config.path("wu.tex"))
-    return UncertaintyFit(unc, trial_fits,
-                          files=("wu.csv", *(p.name for p in wu_sidecar_paths(wu_path)),
-                                 "wu.tex"),
-                          summary=", ".join(f"{r.axis}: {r.result.order} pair(s)"
-                                            for r in unc.axes) + f", cost {o.wu_cost}")
+    return _Weights(unc, ("wu.csv", *(p.name for p in wu_sidecar_paths(wu_path)), "wu.tex"))
 
 
 @dataclass(frozen=True)

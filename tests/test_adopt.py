@@ -161,6 +161,47 @@ def test_report_opens_with_the_adopted_model(delayed):
     assert z_adopted < 0.5 * z_base      # the latency in the loop lowers Z's wall
 
 
+def test_adopted_tables_come_nominal_first_and_equal_the_separate_fits(delayed):
+    """adopt_model hands Table II's fits to the executor before Table I's, all at once,
+    and gives ``on_table`` Table II first: what needs only Table II (armfit run's W_max
+    and Wu) starts while Table I's fits run. Each table equals the one fit_nominal and
+    fit_grip make alone with the adopted effects and bands (an independent call: the
+    same fits, whatever their company)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import armfit
+
+    class Recording(ThreadPoolExecutor):
+        """A thread pool that records the group of each fit handed to it, in order."""
+
+        def __init__(self) -> None:
+            super().__init__(max_workers=2)
+            self.handed: list[str] = []
+
+        def submit(self, fn, /, *args, **kwargs):
+            self.handed.append(args[0][0])     # _fit_group's task: (where, model, ...)
+            return super().submit(fn, *args, **kwargs)
+
+    sp = armfit.read_spectra(delayed / "spectra.parquet")
+    diagnosis = armfit.diagnose(sp, armfit.read_model(delayed / "grip_params_base.csv"))
+    seen: list[tuple[str, int]] = []
+    with Recording() as ex:
+        adopted = armfit.adopt_model(sp, diagnosis, trials=False, executor=ex,
+                                     on_table=lambda which, m: seen.append(
+                                         (which, len(ex.handed))))
+    # 3 axes: Table II's 3 fits first, then Table I's 9, all handed before either table
+    assert [w for w, _ in seen] == ["nominal", "grip"]
+    assert all(n == 12 for _, n in seen)
+    assert ex.handed[:3] == ["axis x", "axis y", "axis z"]
+    assert all(", grip " in w for w in ex.handed[3:])
+    ad = adopted.adoption
+    assert ad.anything
+    alone = {"nominal": armfit.fit_nominal(sp, bands=ad.bands, effects=ad.effects),
+             "grip": armfit.fit_grip(sp, bands=ad.bands, effects=ad.effects)}
+    for which in ("nominal", "grip"):
+        pd.testing.assert_frame_equal(getattr(adopted, which).table, alone[which].table)
+
+
 def test_adopt_declines_an_effect_at_its_bound():
     """An effect whose parameter ended at its bound is declined (the library's effect is
     only the nearest approximation), and the effects after it too."""
