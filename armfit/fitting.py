@@ -1103,13 +1103,16 @@ def fit_studies(spectra, whiches: Sequence[str], *, cost: str = "complex",
     done = iter_tasks(_fit_group, tasks, jobs, preload=POOL_PRELOAD["fit"],
                       executor=executor)
     del tasks
-    for which, keys in sets:
-        fits = []
-        for (axis, grip), fit in zip(keys, done, strict=False):
-            fits.append(fit)
-            if on_fit is not None:
-                on_fit(axis, grip, fit)
-        yield StudyFit(which, tuple(keys), tuple(fits))
+    try:
+        for which, keys in sets:
+            fits = []
+            for (axis, grip), fit in zip(keys, done, strict=False):
+                fits.append(fit)
+                if on_fit is not None:
+                    on_fit(axis, grip, fit)
+            yield StudyFit(which, tuple(keys), tuple(fits))
+    finally:
+        done.close()        # closed early: the fits not yet started are cancelled
 
 
 def _study_aggregates(sp: Spectra, how: str, method: str | None, source: str | None

@@ -202,6 +202,39 @@ def test_adopted_tables_come_nominal_first_and_equal_the_separate_fits(delayed):
         pd.testing.assert_frame_equal(getattr(adopted, which).table, alone[which].table)
 
 
+def test_fit_studies_closed_early_leaves_the_later_fits_unrun(serial_spectra):
+    """fit_studies yields each table as its own fits are done; a caller that stops after
+    the first (an error there, say) leaves the fits not yet started unrun: of a small
+    study's 1 nominal and 2 grip fits on one thread, at most the one running when the
+    first table came back also runs."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from armfit.fitting import fit_studies, fit_study
+
+    ran: list[str] = []
+    lock = threading.Lock()
+
+    def counted(fn, task):
+        with lock:
+            ran.append(task[0])
+        return fn(task)
+
+    class Counting(ThreadPoolExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            return super().submit(counted, fn, *args, **kwargs)
+
+    with Counting(max_workers=1) as ex:
+        studies = fit_studies(serial_spectra, ("nominal", "grip"), executor=ex)
+        first = next(studies)
+        studies.close()
+    assert first.which == "nominal" and first.keys == (("x", None),)
+    assert ran[0] == "axis x" and len(ran) <= 2
+    # the table itself is the one fit_study makes alone (the same fit)
+    alone = fit_study(serial_spectra, which="nominal")
+    assert first.fits[0].params == alone.fits[0].params
+
+
 def test_adopt_declines_an_effect_at_its_bound():
     """An effect whose parameter ended at its bound is declined (the library's effect is
     only the nearest approximation), and the effects after it too."""
