@@ -859,8 +859,8 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
     Wu fits are the longer chain). The result is :func:`armfit.api.fit_uncertainty`'s,
     without the spectra."""
     o = config.options
-    targets = None if models.weights is not None else _wmax(config, models.nominal,
-                                                            adoption)
+    # with an adopted model the adopt stage has made W_max and started the Wu fits
+    targets = _wmax(config, models.nominal, adoption) if models.weights is None else None
     # each trial's fit starts from its grip's fit, as `armfit fit-trials` does
     grip = models.grip
     starts = grip_fit_starts(zip(grip.table["axis"], grip.table["grip_N"], strict=True),
@@ -872,8 +872,8 @@ def _fit_uncertainty(config: RunConfig, workers: _Workers, models: Models,
                                jobs=o.jobs, source="spectra.parquet", starts=starts,
                                bands=models.bands, effects=_effects_of(adoption),
                                executor=workers.later, **per_subject)
-    done = (models.weights.result() if targets is None
-            else _fit_weights(config, workers, targets))
+    done = (_fit_weights(config, workers, targets) if models.weights is None
+            else models.weights.result())
     unc = done.uncertainty
     return UncertaintyFit(unc, trial_fits, files=done.files,
                           summary=", ".join(f"{r.axis}: {r.result.order} pair(s)"
