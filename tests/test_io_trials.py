@@ -295,6 +295,35 @@ def test_dataset_round_trip_bit_for_bit(tmp_path, raw_study):
     assert [t.meta for t in again] == metas
 
 
+def test_dataset_with_nullable_columns_reads_the_same(tmp_path, raw_study):
+    # armfit writes the dataset's columns as required (no definition levels); a dataset
+    # whose columns are nullable (written by an earlier armfit, or by other software
+    # from the same table) holds the same values and is read the same, trial by trial
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    ours = tmp_path / "trials.parquet"
+    write_dataset(list(open_trials([raw_study])), ours)
+    table = pq.read_table(ours)
+    assert not any(f.nullable for f in table.schema)
+    nullable = pa.schema([f.with_nullable(True) for f in table.schema])
+    other = tmp_path / "nullable.parquet"
+    with pq.ParquetWriter(other, nullable) as w:
+        for g in range(pq.ParquetFile(ours).num_row_groups):
+            w.write_table(pq.ParquetFile(ours).read_row_group(g).cast(nullable))
+        w.add_key_value_metadata({k: v for k, v in pq.read_metadata(ours).metadata.items()
+                                  if k.startswith(b"armfit.")})
+    assert all(f.nullable for f in pq.read_schema(other))
+    assert dataset_metadata(other) == dataset_metadata(ours)
+    for a, b in zip(dataset_sources(ours), dataset_sources(other), strict=True):
+        ta, tb = read_trial(a), read_trial(b)
+        assert ta.meta == tb.meta
+        assert (ta.grip is None) == (tb.grip is None)
+        pairs = [(ta.force, tb.force), (ta.pos, tb.pos)]
+        pairs += [] if ta.grip is None else [(ta.grip, tb.grip)]
+        for x, y in pairs:
+            assert np.array_equal(x, y, equal_nan=True)
+
+
 def test_write_dataset_stops_at_a_bad_trial_behind_a_row_group_being_written(tmp_path,
                                                                             raw_study):
     # the row groups are written by a thread while the next trial is read: a trial that

@@ -104,7 +104,7 @@ EXPECTED: dict[str, str] = {
     "run/trial_params.csv":
         "84f536709d0747e263c043c3b0b636daa5cacb528009bad9f78a833ba99b3e24",
     "run/trials.parquet":
-        "34eb582f5fec86f6d7c0d27c62e2eb917c898821d3fbf387c5b22af4ba5c9bea",
+        "86eea6cfca8478c12ba69859084db095c2471f59e547fdcc41e8605e0b3bd474",
     "run/wu.csv":
         "bde604c7b102c6e9c3db382a45ffeb81e46666fbfebe9bbdab2bd27c6844ca84",
     "run/wu.tex":
