@@ -1,19 +1,19 @@
-"""The scipy functions of the uncertainty fits and the statistics, imported at their
-first call.
+"""scipy's compiled modules loaded without their packages, and the Wu fits' fallback
+optimiser, imported at its first call.
 
-Importing :mod:`scipy.optimize` takes about half a second and :mod:`scipy.special` a
-quarter (they import :mod:`scipy.linalg`, :mod:`scipy.sparse` and the array-API layer);
-the modules that use these functions are imported by commands that may never call them
-(``diagnose`` takes no interval of a single-trial fit, ``--help`` calls nothing), so
-each is imported here when first called. The functions are scipy's, unchanged. (The
-fits' least-squares solver is :mod:`armfit._trf`, which needs no scipy, and the Wu
-fits' SLSQP calls scipy's compiled kernel without :mod:`scipy.optimize`:
-:mod:`armfit._slsqp`, whose fallback :func:`minimize` is.)
+Importing :mod:`scipy.optimize` takes about half a second (it imports
+:mod:`scipy.linalg`, :mod:`scipy.sparse` and the array-API layer); the modules that use
+it are imported by commands that may never call it (``--help`` calls nothing), so it is
+imported here when first called. The functions are scipy's, unchanged. (The fits'
+least-squares solver is :mod:`armfit._trf`, which needs no scipy, their intervals' t
+quantiles are :func:`armfit._student.t_quantile`, and the Wu fits' SLSQP calls scipy's
+compiled kernel without :mod:`scipy.optimize`: :mod:`armfit._slsqp`, whose fallback
+:func:`minimize` is.)
 """
 
 from __future__ import annotations
 
-__all__ = ["compiled_module", "minimize", "stdtrit"]
+__all__ = ["compiled_module", "minimize"]
 
 
 def compiled_module(name: str):
@@ -53,10 +53,4 @@ def minimize(*args, **kwargs):
     from scipy.optimize import minimize as fn
     return fn(*args, **kwargs)
 
-
-def stdtrit(df, p):
-    """:func:`scipy.special.stdtrit`: Student's t quantile ``p`` with ``df`` degrees of
-    freedom."""
-    from scipy.special import stdtrit as fn
-    return fn(df, p)
 

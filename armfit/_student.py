@@ -2,8 +2,8 @@
 
 The intervals of the fits take t quantiles (t₀.₉₇₅ with m − p, G − 1 or subjects − 1
 degrees of freedom). ``scipy.special.stdtrit`` would cost the process that needs one a
-quarter of a second of imports; the diagnosis's workers, which need one for every
-per-subject parameter, would import scipy for nothing else.
+seventh of a second of imports: the fits' and the diagnosis's workers, and their fork
+server, would import scipy for nothing else.
 
 The distribution function of t with ν whole degrees of freedom is a finite sum
 (Abramowitz & Stegun 26.7.3 and 26.7.4): with θ = arctan(t/√ν) and c = cos²θ,
@@ -30,9 +30,9 @@ import numpy as np
 
 __all__ = ["t_quantile"]
 
-#: Degrees of freedom above which the quantile is scipy's (``scipy.special.stdtrit``): the
-#: sums here grow with ν and lose accuracy beyond (the fits of the tables, whose m − p
-#: run to thousands, import scipy's optimiser, and scipy.special with it, anyway).
+#: Degrees of freedom above which the quantile is scipy's (``scipy.special.stdtrit``,
+#: imported then): the sums here grow with ν and lose accuracy beyond (a fit of more
+#: than a thousand residuals, its magnitudes and phases counted).
 MAX_SERIES_DOF = 1000
 
 

@@ -81,8 +81,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from armfit import _scipy, _trf, multilsq, noise
+from armfit import _trf, multilsq, noise
 from armfit._order import median, percentile, unique
+from armfit._student import t_quantile
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.data import sobol_points
 from armfit.errors import BadInputError, ConvergenceError, EffectDefinitionError, UsageError
@@ -872,10 +873,10 @@ def _jacobian_ci(space: ParamSpace, z: np.ndarray, jac: np.ndarray, blocks: np.n
     inv = np.where(ok, 1.0 / np.where(ok, sv, 1.0) ** 2, 0.0)
     var = s2 * np.einsum("ki,k,ki->i", vt, inv, vt)
     undetermined = np.any(np.abs(vt[~ok]) > 1e-8, axis=0)
-    half = _scipy.stdtrit(dof, 0.5 + level / 2) * np.sqrt(var)
+    half = t_quantile(dof, 0.5 + level / 2) * np.sqrt(var)
     if jackknife is not None and jackknife[1] >= 3:
         sd_j, g = jackknife
-        half_j = _scipy.stdtrit(g - 1, 0.5 + level / 2) * sd_j
+        half_j = t_quantile(g - 1, 0.5 + level / 2) * sd_j
         half = np.where(np.isfinite(half_j), np.maximum(half, half_j), half)
     lo = space.to_theta(np.clip(z - half, space.zlo, space.zhi))
     hi = space.to_theta(np.clip(z + half, space.zlo, space.zhi))

@@ -101,19 +101,18 @@ __all__ = ["BLAS_ONE_THREAD", "CHILD_ENVIRONMENT", "POOL_PRELOAD", "PRELOAD",
 #: :func:`preload_own_only` for a process that starts one pool).
 PRELOAD: tuple[str, ...] = ("armfit.io.trials", "armfit.spectra", "armfit.fitting",
                             "armfit.uncertainty", "armfit.diagnosis.search",
-                            "armfit.diagnosis.driver", "scipy.special")
+                            "armfit.diagnosis.driver")
 #: The modules the tasks of each kind of pool run, the ``preload`` of its pools: what
 #: the fork server imports first for a command line's one pool (:func:`preload_own_only`,
-#: :func:`start_fork_server`). Each is in :data:`PRELOAD`. The fits' workers take t
-#: quantiles from :mod:`scipy.special` (their solver, :mod:`armfit._trf`, needs no
-#: scipy), imported once by the server, not by each worker in the middle of a task.
-#: The uncertainty's workers need no scipy module (their solvers are :mod:`armfit._trf`
-#: and scipy's SLSQP kernel, which :mod:`armfit._slsqp` loads in milliseconds), nor do
-#: the diagnosis's (their per-subject intervals' t quantiles are
-#: :func:`armfit._student.t_quantile`).
+#: :func:`start_fork_server`). Each is in :data:`PRELOAD`. No worker needs a scipy
+#: package: the fits' solver is :mod:`armfit._trf` and their intervals' t quantiles are
+#: :func:`armfit._student.t_quantile` (:mod:`scipy.special` cost the server 0.13 s of
+#: CPU while the run read its first trials), the uncertainty's solvers are
+#: :mod:`armfit._trf` and scipy's SLSQP kernel, which :mod:`armfit._slsqp` loads in
+#: milliseconds, and the diagnosis's are armfit's own.
 POOL_PRELOAD: dict[str, tuple[str, ...]] = {
     "estimate": ("armfit.spectra", "armfit.io.trials"),
-    "fit": ("armfit.fitting", "scipy.special"),
+    "fit": ("armfit.fitting",),
     "uncertainty": ("armfit.uncertainty",),
     "diagnosis": ("armfit.diagnosis.search", "armfit.diagnosis.driver"),
 }

@@ -462,16 +462,31 @@ def test_ingest_loads_no_pandas_and_writes_what_pyarrow_array_would(tmp_path):
             theirs.to_numpy(zero_copy_only=False).tobytes()
 
 
-def test_fit_nominal_loads_no_figures_no_scipy_optimize_and_no_pandas(spectra, tmp_path):
+def test_fit_nominal_loads_no_figures_no_scipy_package_and_no_pandas(spectra, tmp_path,
+                                                                    monkeypatch):
     # reading the medians, fitting them and writing the params file: no pandas (its
-    # import is a third of the command), no pyarrow.compute, and no scipy.optimize (the
-    # fits' solver is armfit._trf; importing scipy.optimize took half the command)
+    # import is a third of the command), no pyarrow.compute, no scipy.optimize (the
+    # fits' solver is armfit._trf; importing scipy.optimize took half the command) and
+    # no scipy.special (the intervals' t quantiles are armfit._student's: 0.13 s)
     out = tmp_path / "n.csv"
     loaded = modules_after(["-q", "fit-nominal", str(spectra), "-o", str(out)])
     assert "armfit.fitting" in loaded and "armfit._trf" in loaded
     assert not loaded & {"matplotlib", "scipy.stats", "scipy.signal", "armfit.figures",
                          "armfit.diagnosis.search", "armfit.loop", "pandas",
-                         "pyarrow.compute", "scipy.optimize", "scipy.linalg"}
+                         "pyarrow.compute", "scipy.optimize", "scipy.linalg",
+                         "scipy.special"}
+    # the intervals are those of scipy's t quantiles (an independent computation:
+    # scipy.special.stdtrit, cephes) to within the last bits of a float
+    from scipy.special import stdtrit
+
+    import armfit.fitting
+    ours = armfit.fit_nominal(spectra).table
+    monkeypatch.setattr(armfit.fitting, "t_quantile", stdtrit)
+    theirs = armfit.fit_nominal(spectra).table
+    ends = [c for c in ours.columns if c.endswith(("_lo", "_hi"))]
+    assert ends and np.isfinite(ours[ends].to_numpy(float)).any()
+    np.testing.assert_allclose(ours[ends].to_numpy(float), theirs[ends].to_numpy(float),
+                               rtol=1e-12, atol=0)
     # the reference: the same fits' DataFrame written by pandas, as the file was written
     # before; and the model's table is that DataFrame
     model = armfit.fit_nominal(spectra)

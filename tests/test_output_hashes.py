@@ -60,9 +60,9 @@ EXPECTED: dict[str, str] = {
     "run.stdout":
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
     "fit-grip.stdout":
-        "65c98de42aab0ec652d34dec0e70855323c016e270fa384aa0f0ee866c47a7b9",
+        "7bf5688b17f1438bf4cbaabc6fc48cd305ddf438d063603a78b7b59eb6f6c1e7",
     "fit-nominal.stdout":
-        "2724105eef96d99dc5068166ebc5fafc7763d8f24dd2a3a74c5fb679096b431f",
+        "c6d919b50a286afaaedace1c0832d2a97f66742b1a06559fc7137ce940c868ac",
     "fit-uncertainty.stdout":
         "8f475d7ea5c090bdc7b37b1d8322fbc4b34332aa94c9ad221da7872497bb5422",
     "compare.stdout":

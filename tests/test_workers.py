@@ -212,7 +212,7 @@ def test_every_preloaded_module_exists():
                     and isinstance(node.targets[0], ast.Name)
                     and node.targets[0].id == "preload"):
                 names |= literal(node.value)
-    assert {"armfit.spectra", "armfit.fitting", "scipy.special"} <= names
+    assert {"armfit.spectra", "armfit.fitting", "armfit.uncertainty"} <= names
     assert sorted(m for m in names if importlib.util.find_spec(m) is None) == []
 
 
@@ -285,13 +285,13 @@ def test_a_command_process_preloads_only_what_its_pool_runs(tmp_path):
     # preloads armfit.spectra: by default every engine module too (any later pool of a
     # script starts loaded); after preload_own_only(), as the command line sets it, only
     # what that pool named (estimate's workers then start about 1 s sooner). No pool
-    # needs scipy.optimize (the Wu fits' solvers are armfit._trf and armfit._slsqp)
+    # needs scipy.optimize (the Wu fits' solvers are armfit._trf and armfit._slsqp) or
+    # scipy.special (the intervals' t quantiles are armfit._student's)
     def worker_modules(mode: str) -> list[str]:
         return _script_json(tmp_path, _FIRST_TASK, mode)
 
     assert worker_modules("all") == ["armfit.spectra", "armfit.fitting",
-                                     "armfit.diagnosis.search",
-                                     "scipy.special", "armfit._server_exit"]
+                                     "armfit.diagnosis.search", "armfit._server_exit"]
     assert worker_modules("own") == ["armfit.spectra", "armfit._server_exit"]
 
 
