@@ -478,21 +478,31 @@ class Ingested(StageResult):
 
 @dataclass(frozen=True)
 class Estimated(StageResult):
-    """estimate: the trials estimated, the aggregates of spectra.parquet (levels mean and
-    median, the rows the file holds: the trial rows stay in the file, read by the stages
-    that use them), every trial left out (ingest's, then the estimate's), and the file
-    being written (a future: :meth:`written` waits for it)."""
+    """estimate: the trials estimated, the aggregates of the measured responses (what
+    the fits of Tables I and II use), every trial left out (ingest's, then the
+    estimate's), and the aggregates of every kind made and spectra.parquet written (a
+    future: :meth:`written` waits for it)."""
 
     n_trials: int
-    spectra: Spectra
+    measured: Spectra
     skipped: tuple[tuple[str, str], ...]
-    writing: Background[None]
+    writing: Background[Spectra]
+    _held: dict = field(default_factory=dict, repr=False, compare=False)
 
-    def written(self) -> None:
+    def written(self) -> Spectra:
         """Wait until spectra.parquet is written (its error if the write failed); the
-        estimate's trial responses are let go then."""
-        self.writing.result()
-        release_memory()
+        estimate's trial responses are let go then. Returns the aggregates of
+        spectra.parquet (levels mean and median, every kind: the rows the file holds;
+        the trial rows stay in the file, read by the stages that use them)."""
+        if "spectra" not in self._held:
+            self._held["spectra"] = self.writing.result()
+            release_memory()
+        return self._held["spectra"]
+
+    @property
+    def spectra(self) -> Spectra:
+        """The aggregates of spectra.parquet, once it is written (:meth:`written`)."""
+        return self.written()
 
 
 @dataclass(frozen=True)
@@ -659,16 +669,14 @@ def _estimate(config: RunConfig, workers: _Workers, ingested: Ingested) -> Estim
             config.warn(line)
     seen = {f for f, _ in ingested.skipped}
     skipped = ingested.skipped + tuple((f, r) for f, r in est.skipped if f not in seen)
-    spectra = est.aggregates()
-    # the per-trial records of the metadata are the file's (no stage uses them): the
-    # aggregates the run holds to its end go without them (3 MB at 4,050 trials)
-    spectra = replace(spectra, meta={k: v for k, v in spectra.meta.items()
-                                     if k != "estimators"})
+    # the fits' rows first: they start from these while the other kinds' aggregates are
+    # made, and the file written, in a thread (the workers waited about 0.1 s for all)
+    measured = _without_records(est.aggregates(kinds=("measured",)))
     n_trials = len(est.trials)
-    writing = workers.start(est.write, config.path("spectra.parquet"))
+    writing = workers.start(_aggregate_and_write, est, config.path("spectra.parquet"))
     del est   # held by the write until the file is written
     c = config.estimate
-    return Estimated(n_trials, spectra, skipped, writing, files=("spectra.parquet",),
+    return Estimated(n_trials, measured, skipped, writing, files=("spectra.parquet",),
                      started=started,
                      summary=f"{n_trials} trial(s), method {c.method}, "
                              f"{len(c.grid())} frequencies {c.fmin:g}-{c.fmax:g} Hz")
@@ -729,6 +737,23 @@ def _import_meanwhile(name: str) -> threading.Thread:
     return thread
 
 
+def _without_records(spectra: Spectra) -> Spectra:
+    """``spectra`` without the per-trial records of its metadata: they are the file's (no
+    stage uses them), and the aggregates the run holds to its end go without them (3 MB
+    at 4,050 trials)."""
+    return replace(spectra, meta={k: v for k, v in spectra.meta.items()
+                                  if k != "estimators"})
+
+
+def _aggregate_and_write(est: StudySpectra, path: Path) -> Spectra:
+    """The aggregates of every kind (:meth:`StudySpectra.aggregates`; those made before
+    are not made again), then spectra.parquet written: in one thread, which alone reads
+    the trials' responses meanwhile."""
+    spectra = _without_records(est.aggregates())
+    est.write(path)
+    return spectra
+
+
 def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> GripFits:
     """Table I of the base model; the diagnosis starts from it at once, from
     spectra.parquet written. Table II's fits start as soon as Table I's are done, while
@@ -737,20 +762,20 @@ def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> Gri
     own, as ``armfit diagnose`` starts, adds two processes to the run's and gains no time
     on two cores: with one, a run of 81 trials took 3.04 s and peaked at 528 MB summed
     over its processes; without, 2.87 s and 422 MB."""
-    spectra = estimated.spectra
+    measured = estimated.measured
     if workers.executor is not None:
         # Table I's DataFrame below needs pandas (about 0.4 s to import): loaded while
         # this process waits for the grip fits, not after them while the workers wait
         # (a run of 81 trials: 3 % shorter)
         _import_meanwhile("pandas")
-    fitted = _fit_base("grip", config, workers, spectra)
-    nominal = workers.start(_fit_base, "nominal", config, workers, spectra)
+    fitted = _fit_base("grip", config, workers, measured)
+    nominal = workers.start(_fit_base, "nominal", config, workers, measured)
     # grip_params.csv first, and the diagnosis starts from it as read back (its base
     # parameters, read without pandas); Table I's warnings, LaTeX table and DataFrame
     # are made meanwhile. Made before the diagnosis started, they left the workers idle
     # once Table II's fits were done
     starts = api.ModelFit.read_starts(_params_csv("grip", config, fitted)).start_rows
-    estimated.written()     # every later stage reads the file
+    spectra = estimated.written()     # every later stage reads the file
     diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), starts,
                                workers.executor)
     grip = _table("grip", config, fitted, spectra)
@@ -1224,8 +1249,8 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
     figures = config.options.figures
     ingested = clock.done("ingest", _ingest(config, workers))
     estimated = clock.done("estimate", _estimate(config, workers, ingested))
-    spectra = estimated.spectra
     grip = clock.done("fit-grip", _fit_grip(config, workers, estimated))
+    spectra = estimated.spectra
     nominal = clock.done("fit-nominal", _fit_nominal(config, grip, spectra))
     diagnosed = clock.done("diagnose", _diagnose(config, grip))
     adoption = diagnosed.adoption

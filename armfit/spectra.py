@@ -1710,44 +1710,67 @@ def _trial_blocks(trials: Sequence[TrialResponses], batch: int = 64):
                          r.se_deg, 1, r.flags, phase_rad=phase[k], mag_db=db[k])
 
 
-def _aggregate_blocks(trials: Sequence[TrialResponses]) -> list[dict[str, object]]:
-    """The aggregate blocks of :func:`spectra_table`, in the file's order.
+def _aggregate_blocks(trials: Sequence[TrialResponses], kinds: Sequence[str] | None = None,
+                      made: dict[tuple, list[dict[str, object]]] | None = None
+                      ) -> list[dict[str, object]]:
+    """The aggregate blocks of :func:`spectra_table`, in the file's order: of the
+    responses of ``kinds`` only (None: all).
 
     One group (axis, kind, position axis) at a time: its members' responses are taken
     from ``trials`` when the group is made and let go after, so that a study held in a
     :class:`SpooledTrials` is never in memory whole (the members, their order and the
-    numbers are those of all trials at once).
+    numbers are those of all trials at once). ``made`` {group: its blocks}: the groups
+    made before, taken from there, and those made here added (a group's blocks are the
+    same whichever others are made with it).
     """
     blocks: list[dict[str, object]] = []
     groups: dict[tuple, list[int]] = {}
-    for i, (axis, kinds) in enumerate(_outlines(trials)):
-        for kind, out_axis in dict.fromkeys(kinds):
-            if kind != "alternative":       # the alternative estimates are not aggregated
+    for i, (axis, kinds_i) in enumerate(_outlines(trials)):
+        for kind, out_axis in dict.fromkeys(kinds_i):
+            # the alternative estimates are not aggregated
+            if kind != "alternative" and (kinds is None or kind in kinds):
                 groups.setdefault((axis, kind, out_axis), []).append(i)
-    for (axis, kind, out_axis), rows in sorted(groups.items()):
-        members: list[tuple[float, str, Response]] = []
-        freq = None
-        for i in rows:
-            tr = trials[i]
-            if freq is None:
-                freq = tr.freq_hz
-            members += [(tr.grip_N, tr.subject, r) for r in tr.responses
-                        if r.kind == kind and r.out_axis == out_axis]
-        # trials estimated through their reference and others: both names
-        method = "+".join(sorted({r.method for _, _, r in members}))
-        by_grip: dict[float, dict[str, list[Response]]] = {}
-        for grip, subject, r in members:
-            by_grip.setdefault(grip, {}).setdefault(subject, []).append(r)
-        for grip in sorted(by_grip):
-            subjects = by_grip[grip]
-            per_subject = _subject_means([np.array([r.h for r in rs])
-                                          for rs in subjects.values()])
-            rs_all = [r for rs in subjects.values() for r in rs]
-            blocks.append(_aggregate_block("mean", axis, grip, kind, out_axis, method, freq,
-                                           per_subject, rs_all, len(subjects)))
-        rs_all = [r for _, _, r in members]
-        blocks.append(_aggregate_block("median", axis, np.nan, kind, out_axis, method, freq,
-                                       np.array([r.h for r in rs_all]), rs_all, len(rs_all)))
+    for key, rows in sorted(groups.items()):
+        if made is not None and key in made:
+            blocks += made[key]
+            continue
+        group = _group_blocks(trials, key, rows)
+        if made is not None:
+            made[key] = group
+        blocks += group
+    return blocks
+
+
+def _group_blocks(trials: Sequence[TrialResponses], key: tuple[str, str, str],
+                  rows: Sequence[int]) -> list[dict[str, object]]:
+    """The aggregate blocks of one group (axis, kind, position axis) of
+    :func:`_aggregate_blocks`, whose members are the responses of the trials ``rows``:
+    the mean of each grip, then the median of all."""
+    axis, kind, out_axis = key
+    blocks: list[dict[str, object]] = []
+    members: list[tuple[float, str, Response]] = []
+    freq = None
+    for i in rows:
+        tr = trials[i]
+        if freq is None:
+            freq = tr.freq_hz
+        members += [(tr.grip_N, tr.subject, r) for r in tr.responses
+                    if r.kind == kind and r.out_axis == out_axis]
+    # trials estimated through their reference and others: both names
+    method = "+".join(sorted({r.method for _, _, r in members}))
+    by_grip: dict[float, dict[str, list[Response]]] = {}
+    for grip, subject, r in members:
+        by_grip.setdefault(grip, {}).setdefault(subject, []).append(r)
+    for grip in sorted(by_grip):
+        subjects = by_grip[grip]
+        per_subject = _subject_means([np.array([r.h for r in rs])
+                                      for rs in subjects.values()])
+        rs_all = [r for rs in subjects.values() for r in rs]
+        blocks.append(_aggregate_block("mean", axis, grip, kind, out_axis, method, freq,
+                                       per_subject, rs_all, len(subjects)))
+    rs_all = [r for _, _, r in members]
+    blocks.append(_aggregate_block("median", axis, np.nan, kind, out_axis, method, freq,
+                                   np.array([r.h for r in rs_all]), rs_all, len(rs_all)))
     return blocks
 
 
@@ -3113,7 +3136,12 @@ class StudySpectra:
 
     @functools.cached_property
     def _aggregates(self) -> list[dict[str, object]]:
-        return _aggregate_blocks(self.trials)
+        return _aggregate_blocks(self.trials, made=self._made)
+
+    @functools.cached_property
+    def _made(self) -> dict[tuple, list[dict[str, object]]]:
+        """The aggregate groups made so far (:func:`_aggregate_blocks`)."""
+        return {}
 
     def parts(self, rows: int | None = None):
         """The rows of :attr:`spectra` in order, ``rows`` (default :data:`WRITE_ROWS`)
@@ -3127,17 +3155,28 @@ class StudySpectra:
         while chunk := list(itertools.islice(blocks, rows)):
             yield _stack_blocks(chunk, self.meta)
 
-    def aggregates(self) -> Spectra:
+    def aggregates(self, kinds: Sequence[str] | None = None) -> Spectra:
         """The aggregate rows of the spectra file (levels mean and median), with
         :attr:`meta`, made without the trial rows.
+
+        Parameters
+        ----------
+        kinds : sequence of str, optional
+            Only the responses of these kinds (e.g. ``("measured",)``, what the fits of
+            Tables I and II use); default all. The rows made here are not made again by
+            a later call or by :meth:`write`.
 
         Returns
         -------
         Spectra
-            What ``Spectra.read(path, level=("mean", "median"))`` reads back from the
-            file :meth:`write` writes: the same rows in the same order, bit for bit.
+            What ``Spectra.read(path, level=("mean", "median"), kind=kinds)`` reads back
+            from the file :meth:`write` writes: the same rows in the same order, bit for
+            bit.
         """
-        return _stack_blocks(self._aggregates, self.meta)
+        if kinds is None:
+            return _stack_blocks(self._aggregates, self.meta)
+        return _stack_blocks(_aggregate_blocks(self.trials, kinds, made=self._made),
+                             self.meta)
 
     def write(self, path, *, overwrite: bool = False):
         """Write the spectra file without making the whole :attr:`spectra`.

@@ -533,16 +533,28 @@ def test_a_group_not_laid_out_as_armfit_writes_it_is_read_by_from_frame(sample, 
 
 @pytest.mark.parametrize("study", ["study", "hidden"])
 def test_a_studys_aggregates_are_the_rows_its_file_reads_back(study, tmp_path):
-    # `armfit run` starts the grip fits from StudySpectra.aggregates() while the file is
-    # written: they must be the rows Spectra.read gives of the levels mean and median
+    # `armfit run` starts the grip fits from StudySpectra.aggregates(kinds=("measured",))
+    # and makes the other kinds' while the file is written: they must be the rows
+    # Spectra.read gives of the levels mean and median (of that kind), whichever were
+    # made first
+    def same(made, read):
+        assert len(made) == len(read) > 0
+        pd.testing.assert_frame_equal(made.to_frame(), read.to_frame(), check_exact=True)
+        assert made.meta == read.meta
+        assert np.array_equal(made.present, read.present)
+
     est = S.estimate_study([STUDY.parent / study], S.EstimateConfig())
+    measured = est.aggregates(kinds=("measured",))
     path = est.write(tmp_path / "spectra.parquet")
+    same(measured, S.Spectra.read(path, level=("mean", "median"), kind="measured"))
     read = S.Spectra.read(path, level=("mean", "median"))
     made = est.aggregates()
-    assert set(made.keys["level"]) == {"mean", "median"} and len(made) == len(read)
-    pd.testing.assert_frame_equal(made.to_frame(), read.to_frame(), check_exact=True)
-    assert made.meta == read.meta
-    assert np.array_equal(made.present, read.present)
+    assert set(made.keys["level"]) == {"mean", "median"}
+    assert set(made.keys["kind"]) > {"measured"}
+    same(made, read)
+    # and the file is the one written when every kind is made at once
+    other = S.estimate_study([STUDY.parent / study], S.EstimateConfig())
+    assert other.write(tmp_path / "whole.parquet").read_bytes() == path.read_bytes()
 
 
 # ---------------------------------------------------------------------------
