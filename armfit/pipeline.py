@@ -487,32 +487,28 @@ class Estimated(StageResult):
     measured: Spectra
     skipped: tuple[tuple[str, str], ...]
     writing: Background[Spectra]
-    _held: dict = field(default_factory=dict, repr=False, compare=False)
 
     def written(self) -> Spectra:
         """Wait until spectra.parquet is written (its error if the write failed); the
         estimate's trial responses are let go then. Returns the aggregates of
         spectra.parquet (levels mean and median, every kind: the rows the file holds;
-        the trial rows stay in the file, read by the stages that use them)."""
-        if "spectra" not in self._held:
-            self._held["spectra"] = self.writing.result()
-            release_memory()
-        return self._held["spectra"]
-
-    @property
-    def spectra(self) -> Spectra:
-        """The aggregates of spectra.parquet, once it is written (:meth:`written`)."""
-        return self.written()
+        the trial rows stay in the file, read by the stages that use them). Called
+        once: the fit-grip stage hands them on (:attr:`GripFits.spectra`)."""
+        spectra = self.writing.result()
+        release_memory()
+        return spectra
 
 
 @dataclass(frozen=True)
 class GripFits(StageResult):
     """fit-grip: Table I of the base model (as read back from grip_params.csv), the
-    diagnosis started from it and the fits of Table II (futures)."""
+    diagnosis started from it and the fits of Table II (futures), and the aggregates of
+    spectra.parquet, written meanwhile (:meth:`Estimated.written`)."""
 
     grip: api.ModelFit
     diagnosing: Background[tuple]
     nominal: Background[api.ModelFit]
+    spectra: Spectra
 
 
 @dataclass(frozen=True)
@@ -779,7 +775,8 @@ def _fit_grip(config: RunConfig, workers: _Workers, estimated: Estimated) -> Gri
     diagnosing = workers.start(_diagnosis, config.path("spectra.parquet"), starts,
                                workers.executor)
     grip = _table("grip", config, fitted, spectra)
-    return GripFits(grip, diagnosing, nominal, files=("grip_params.csv", "grip_params.tex"),
+    return GripFits(grip, diagnosing, nominal, spectra,
+                    files=("grip_params.csv", "grip_params.tex"),
                     summary=_fit_summary(grip, config.options.cost))
 
 
@@ -1250,7 +1247,7 @@ def _stages(config: RunConfig, workers: _Workers, clock: _Clock) -> RunResult:
     ingested = clock.done("ingest", _ingest(config, workers))
     estimated = clock.done("estimate", _estimate(config, workers, ingested))
     grip = clock.done("fit-grip", _fit_grip(config, workers, estimated))
-    spectra = estimated.spectra
+    spectra = grip.spectra
     nominal = clock.done("fit-nominal", _fit_nominal(config, grip, spectra))
     diagnosed = clock.done("diagnose", _diagnose(config, grip))
     adoption = diagnosed.adoption

@@ -1730,14 +1730,11 @@ def _aggregate_blocks(trials: Sequence[TrialResponses], kinds: Sequence[str] | N
             # the alternative estimates are not aggregated
             if kind != "alternative" and (kinds is None or kind in kinds):
                 groups.setdefault((axis, kind, out_axis), []).append(i)
+    made = {} if made is None else made
     for key, rows in sorted(groups.items()):
-        if made is not None and key in made:
-            blocks += made[key]
-            continue
-        group = _group_blocks(trials, key, rows)
-        if made is not None:
-            made[key] = group
-        blocks += group
+        if key not in made:
+            made[key] = _group_blocks(trials, key, rows)
+        blocks += made[key]
     return blocks
 
 
@@ -3127,16 +3124,17 @@ class StudySpectra:
     @functools.cached_property
     def spectra(self) -> Spectra:
         """The study's :class:`Spectra` (:func:`spectra_table`), with :attr:`meta`."""
-        return _stack_blocks([*_trial_blocks(self.trials), *self._aggregates], self.meta)
+        return _stack_blocks([*_trial_blocks(self.trials), *self._aggregates()], self.meta)
 
     @functools.cached_property
     def table(self) -> pd.DataFrame:
         """The long table of the spectra file (:meth:`Spectra.to_frame`)."""
         return self.spectra.to_frame()
 
-    @functools.cached_property
-    def _aggregates(self) -> list[dict[str, object]]:
-        return _aggregate_blocks(self.trials, made=self._made)
+    def _aggregates(self, kinds: Sequence[str] | None = None) -> list[dict[str, object]]:
+        """The aggregate blocks of ``kinds`` (None: all), in the file's order; each group
+        made once, at its first call, and kept (:attr:`_made`)."""
+        return _aggregate_blocks(self.trials, kinds, made=self._made)
 
     @functools.cached_property
     def _made(self) -> dict[tuple, list[dict[str, object]]]:
@@ -3151,7 +3149,7 @@ class StudySpectra:
         if "spectra" in self.__dict__:
             yield from self.spectra.parts(rows)
             return
-        blocks = itertools.chain(_trial_blocks(self.trials), self._aggregates)
+        blocks = itertools.chain(_trial_blocks(self.trials), self._aggregates())
         while chunk := list(itertools.islice(blocks, rows)):
             yield _stack_blocks(chunk, self.meta)
 
@@ -3173,10 +3171,7 @@ class StudySpectra:
             from the file :meth:`write` writes: the same rows in the same order, bit for
             bit.
         """
-        if kinds is None:
-            return _stack_blocks(self._aggregates, self.meta)
-        return _stack_blocks(_aggregate_blocks(self.trials, kinds, made=self._made),
-                             self.meta)
+        return _stack_blocks(self._aggregates(kinds), self.meta)
 
     def write(self, path, *, overwrite: bool = False):
         """Write the spectra file without making the whole :attr:`spectra`.
