@@ -3021,22 +3021,28 @@ def _stack_blocks(blocks: list[dict[str, object]], meta: Mapping | None = None) 
 # ---------------------------------------------------------------------------
 
 class SpooledTrials(Sequence):
-    """The trials' responses of a study (:class:`TrialResponses`, in order), held in an
-    unnamed temporary file rather than in memory: a sequence whose items are read back
-    one at a time, when asked for.
+    """The trials' responses of a study (:class:`TrialResponses`, in order), all but the
+    first few hundred held in an unnamed temporary file rather than in memory: a
+    sequence whose items are read back one at a time, when asked for.
 
     What a study's estimate keeps grows with its trials (about 24 kB a trial, five
     responses on a 100-point grid); the spectra file and the aggregates take the trials
-    one (or one group) at a time, so memory stays flat in the number of trials. The file
-    lies in the folder of :func:`tempfile.gettempdir` (``TMPDIR``); the system removes
-    it when the sequence is let go or the process ends, also when it is killed. Each
-    trial is stored pickled: what is read back is the trial appended, bit for bit. Safe
-    to read from several threads at once. Pickled, it becomes a tuple.
+    one (or one group) at a time, so memory stays flat in the number of trials. The
+    first :data:`HELD_TRIALS` trials are held as they are (about 6 MB at most: a
+    paper-size study's trials are neither pickled nor read back); the others go to the
+    file, which lies in the folder of :func:`tempfile.gettempdir` (``TMPDIR``); the
+    system removes it when the sequence is let go or the process ends, also when it is
+    killed. Each of those is stored pickled: what is read back is the trial appended,
+    bit for bit. Safe to read from several threads at once. Pickled, it becomes a tuple.
     """
+
+    #: Trials held in memory before the rest go to the temporary file.
+    HELD_TRIALS = 256
 
     def __init__(self):
         self._file = None
-        self._spans: list[tuple[int, int]] = []
+        # a held trial, or the (start, size) of a pickled one in the file
+        self._spans: list[TrialResponses | tuple[int, int]] = []
         self._outlines: list[tuple[str, tuple[tuple[str, str], ...]]] = []
         # each distinct outline held once: the trials of a study share a few (4,050
         # trials held 28,000 tuples, 1.7 MB, otherwise)
@@ -3053,6 +3059,13 @@ class SpooledTrials(Sequence):
             The temporary file cannot be made or written (the folder and the system's
             reason named).
         """
+        outline = _outline(trial)
+        outline = self._distinct.setdefault(outline, outline)
+        if len(self._spans) < self.HELD_TRIALS:
+            with self._lock:
+                self._spans.append(trial)
+                self._outlines.append(outline)
+            return
         data = pickle.dumps(trial, protocol=pickle.HIGHEST_PROTOCOL)
         with self._lock:
             try:
@@ -3067,8 +3080,7 @@ class SpooledTrials(Sequence):
                     "folder with room") from None
             self._spans.append((self._end, len(data)))
             self._end += len(data)
-        outline = _outline(trial)
-        self._outlines.append(self._distinct.setdefault(outline, outline))
+            self._outlines.append(outline)
 
     def outlines(self) -> list[tuple[str, tuple[tuple[str, str], ...]]]:
         """Each trial's axis and the (kind, out_axis) of its responses, in order, without
@@ -3081,7 +3093,10 @@ class SpooledTrials(Sequence):
     def __getitem__(self, index):
         if isinstance(index, slice):
             return [self[i] for i in range(*index.indices(len(self)))]
-        start, size = self._spans[index]
+        span = self._spans[index]
+        if isinstance(span, TrialResponses):     # one of the trials held
+            return span
+        start, size = span
         with self._lock:
             self._file.flush()
             self._file.seek(start)
@@ -3213,15 +3228,21 @@ def _estimate_source(source, config: EstimateConfig):
 def _read_source(source, config: EstimateConfig):
     """The reading half of :func:`_estimate_source`: ("read", Trial, warnings, drift
     flags) or its ("bad", ...) result. The drift flags (:func:`drift_flags`) are found
-    here: they need the samples only, and in a serial estimate this half runs in the
-    reading thread while the trial before is estimated."""
+    here, and the Hamming window of the trial's derived spectra (its length follows the
+    record's, :func:`derived_spectra`) is made and cached (:func:`_cached_window`): they
+    need the samples' number or the samples only, and in a serial estimate this half
+    runs in the reading thread while the trial before is estimated."""
     warnings: list[str] = []
     try:
         trial = read_trial(source, f_min_hz=config.fmin, force_limit_N=config.force_limit_N,
                            warn=warnings.append, grip=False)  # estimate needs no grip
     except BadInputError as exc:
         return ("bad", source.label, exc.template, exc.detail)
-    return ("read", trial, warnings, drift_flags(trial.pos, trial.meta.fs, config))
+    drift = drift_flags(trial.pos, trial.meta.fs, config)
+    if trial.force.shape[0] > 2:    # the derived spectra's window, made here (see above)
+        _cached_window("hamming", tfestimate_segment(trial.force.shape[0] - 2,
+                                                     config.derived_segments)[0], False)
+    return ("read", trial, warnings, drift)
 
 
 def drift_flags(pos: np.ndarray, fs: float, config: EstimateConfig) -> dict[int, bool]:

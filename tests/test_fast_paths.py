@@ -842,6 +842,37 @@ def test_serial_estimate_reads_ahead_and_gives_each_trials_own_estimate(csv_stud
             assert np.array_equal(ra.se_db, rb.se_db, equal_nan=True)
 
 
+def test_the_reading_half_makes_the_derived_window(csv_study, monkeypatch):
+    # the Hamming window of the derived spectra (its length follows the record's) is
+    # made while the trial is read, in the reading thread of a serial estimate; the
+    # estimate is the one of a cold cache (the reference: _estimate_source per trial)
+    import threading
+
+    from armfit import spectra as sp
+    from armfit.io import trials as io_trials
+    config = sp.EstimateConfig()
+    sources = list(io_trials.open_trials([csv_study]).sources)
+    _cached_window.cache_clear()
+    expected = [sp._estimate_source(s, config)[1] for s in sources]
+    _cached_window.cache_clear()
+    made = []
+    real = sp._cosine_window
+
+    def spy(coefficients, n, periodic):
+        made.append((threading.current_thread().name, n, periodic))
+        return real(coefficients, n, periodic)
+
+    monkeypatch.setattr(sp, "_cosine_window", spy)
+    got = sp.estimate_study([csv_study], config, jobs=1)
+    n_samples = 26 * 1000                   # 26 s at 1 kHz, first and last dropped
+    nperseg = sp.tfestimate_segment(n_samples - 2, config.derived_segments)[0]
+    derived = [m for m in made if m[1:] == (nperseg, False)]
+    assert len(derived) == 1 and derived[0][0].startswith("armfit-read")
+    for a, b in zip(got.trials, expected, strict=True):
+        for ra, rb in zip(a.responses, b.responses, strict=True):
+            assert np.array_equal(ra.h, rb.h, equal_nan=True)
+
+
 def test_serial_estimate_stops_at_a_bad_trial_or_skips_it(csv_study, tmp_path):
     # the third trial (in file order) has a word in a force cell: without skip_bad its
     # error is raised, naming the file, column and row, and no reading thread is left;

@@ -593,6 +593,32 @@ def test_an_estimated_studys_trials_read_back_bit_for_bit(spooled):
     assert type(back) is tuple and [t.source for t in back] == [t.source for t in held]
 
 
+def test_the_first_trials_are_held_and_the_rest_read_back_from_the_file(spooled,
+                                                                        monkeypatch):
+    # the reference: the trials appended; the first HELD_TRIALS are those very objects,
+    # the others pickled to the file and read back equal, in their order
+    import pickle
+    monkeypatch.setattr(S.SpooledTrials, "HELD_TRIALS", 2)
+    trials = tuple(spooled.trials)
+    spool = S.SpooledTrials()
+    for t in trials:
+        spool.append(t)
+    assert len(spool) == 4 and spool._file is not None
+    assert spool[0] is trials[0] and spool[1] is trials[1]
+    for k in (2, 3):
+        assert spool[k] is not trials[k]
+        assert pickle.dumps(spool[k]) == pickle.dumps(trials[k])    # bit for bit
+    assert [t.source for t in spool[1:4]] == [t.source for t in trials[1:4]]
+    assert spool.outlines() == [S._outline(t) for t in trials]
+    # none held: every trial in the file, nothing held in memory
+    monkeypatch.setattr(S.SpooledTrials, "HELD_TRIALS", 0)
+    spool = S.SpooledTrials()
+    for t in trials:
+        spool.append(t)
+    assert all(spool[k] is not trials[k] for k in range(4))
+    assert [pickle.dumps(t) for t in spool] == [pickle.dumps(t) for t in trials]
+
+
 def test_a_spooled_study_writes_the_file_a_held_one_writes(spooled, tmp_path):
     # the same study with its trials in memory (the former route) writes the reference
     spooled.write(tmp_path / "spooled.parquet")
@@ -605,7 +631,9 @@ def test_a_spooled_study_writes_the_file_a_held_one_writes(spooled, tmp_path):
 
 class _Watched(S.SpooledTrials):
     """A SpooledTrials that records, at each read, how many trials it handed out are
-    still alive."""
+    still alive; it holds none in memory (every trial goes to its file)."""
+
+    HELD_TRIALS = 0
 
     def __init__(self, trials):
         super().__init__()
@@ -659,6 +687,7 @@ def test_a_temporary_file_that_cannot_be_written_is_an_output_error(small_study,
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(tempfile, "TemporaryFile", full)
+    monkeypatch.setattr(S.SpooledTrials, "HELD_TRIALS", 0)   # the first trial goes there
     with pytest.raises(OutputError, match=r"cannot keep the trials' responses in a "
                                           r"temporary file in .*No space left on device; "
                                           r"set TMPDIR"):
