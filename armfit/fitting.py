@@ -78,6 +78,7 @@ import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -87,12 +88,14 @@ from armfit._student import t_quantile
 from armfit.constants import DB_PER_NEPER, PAPER_BANDS, PARAM_NAMES, UNIT_SE_DEG
 from armfit.data import sobol_points
 from armfit.errors import BadInputError, ConvergenceError, EffectDefinitionError, UsageError
-from armfit.io.artifacts import RowTable, params_rows
 from armfit.io.schema import params_columns
 from armfit.models.arm import ClosedLoopModel, at_bound, laplace, union_param_names
 from armfit.models.effects import effects_by_axis, resolve_effects
-from armfit.spectra import Spectra, aggregate
 from armfit.workers import POOL_PRELOAD, iter_tasks
+
+if TYPE_CHECKING:   # imported where used: a fit's worker needs neither (see armfit.workers)
+    from armfit.io.artifacts import RowTable
+    from armfit.spectra import Spectra
 
 COSTS: tuple[str, ...] = ("complex", "paper")
 
@@ -983,6 +986,7 @@ class StudyFit:
             if self.which == "grip":
                 row["grip_N"] = grip
             rows.append(row)
+        from armfit.io.artifacts import params_rows
         names = union_param_names([f.model for f in self.fits])
         return params_rows(rows, names, grip=self.which == "grip")
 
@@ -1090,6 +1094,7 @@ def fit_studies(spectra, whiches: Sequence[str], *, cost: str = "complex",
             raise UsageError(f"which must be one of {', '.join(STUDY_FITS)}, "
                              f"got {which!r}")
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
+    from armfit.spectra import Spectra
     specs = effects_by_axis(effects)
     sp = Spectra.of(spectra)
     source = source if source is not None else sp.source
@@ -1189,6 +1194,7 @@ def _fit_group(task) -> FitResult:
 
 
 def _aggregator(how: str) -> Aggregator:
+    from armfit.spectra import aggregate
     return lambda H: aggregate(H, how)
 
 
@@ -1212,6 +1218,7 @@ def _trial_matrix(trials: Spectra, f: np.ndarray, source: str | None, where: str
         hs.append(ht)
         subjects.append((str(subj[i]), float(grips[i])))
     if how == "mean":
+        from armfit.spectra import aggregate
         keys = list(dict.fromkeys(subjects))
         hs = [aggregate(np.array([h for h, k in zip(hs, subjects, strict=True) if k == key]),
                         "mean") for key in keys]
@@ -1451,6 +1458,7 @@ def _read_or_of(spectra, *, level: str, kind: str,
     (a path; with ``values`` only those of the values, and without the metadata's
     per-trial records), or ``spectra`` itself (a Spectra or a long table) as a
     Spectra."""
+    from armfit.spectra import Spectra
     if isinstance(spectra, str | os.PathLike):
         return Spectra.read(spectra, level=level, kind=kind, values=values,
                             estimators=False)

@@ -571,6 +571,20 @@ def test_the_workers_modules_load_no_pandas(pool):
     assert set(names) <= loaded and "pandas" not in loaded
 
 
+@pytest.mark.parametrize("pool", ["diagnosis", "fit"])
+def test_the_fitting_workers_load_no_reader_of_files(pool):
+    # the fits' and the diagnosis's tasks take arrays: their workers import neither the
+    # spectra file's reader (armfit.spectra) nor pyarrow, which the fork server would
+    # otherwise import (about 70 ms of CPU) while the command starts
+    from armfit.workers import POOL_PRELOAD
+    names = list(POOL_PRELOAD[pool])
+    loaded = set(fresh_json(f"import sys, json\nimport {', '.join(names)}\n"
+                            "print(json.dumps(sorted(sys.modules)))"))
+    assert set(names) <= loaded
+    assert not loaded & {"armfit.spectra", "armfit.io.trials", "armfit.io.artifacts",
+                         "pyarrow"}
+
+
 def test_the_global_search_reads_the_papers_rows_without_pandas():
     # every fit's global search starts from the arm parameters of the paper's Tables I
     # and II (armfit.fitting._paper_rows): read in a worker with the csv module, they

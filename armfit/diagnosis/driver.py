@@ -20,11 +20,11 @@ from armfit.diagnosis.responses import AxisData, axis_data, cross_coupling, has_
 from armfit.diagnosis.schedule import task_queue
 from armfit.diagnosis.tuning import MAX_STEPS, MIN_EFFECT_DB, MIN_EFFECT_DEG, SHARED_EFFECTS
 from armfit.memory import release_memory, release_memory_after_task
-from armfit.spectra import Spectra
 
 if TYPE_CHECKING:
     from armfit.diagnosis.results import AxisDiagnosis
     from armfit.models.effects import Effect
+    from armfit.spectra import Spectra
 
 __all__ = ["LARGE_TASK_BYTES", "diagnose_axes"]
 
@@ -180,6 +180,7 @@ def _trial_rows(spectra) -> Callable[[str, str], Spectra]:
     of 0.6 s, while the axis's base fit runs in the workers (the measured rows are read
     first, and the base fit starts on them); on 81 trials the run's time did not change
     (16 alternated pairs)."""
+    from armfit.spectra import Spectra
     if isinstance(spectra, str | os.PathLike):
         def read(axis: str, kind: str) -> Spectra:
             return Spectra.read(spectra, level="trial", kind=kind, axis=axis,

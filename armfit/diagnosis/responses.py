@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -12,7 +13,9 @@ from armfit import noise
 from armfit._order import nanmedian
 from armfit.constants import AXES, PARAM_NAMES
 from armfit.models.params import FitStarts
-from armfit.spectra import Spectra
+
+if TYPE_CHECKING:   # imported where used: the diagnosis's workers need only AxisData
+    from armfit.spectra import Spectra
 
 __all__ = ["AxisData", "axis_data", "axis_grips", "comparison_notes", "cross_coupling",
            "has_axis",
@@ -80,6 +83,7 @@ class AxisData:
 
 def select_rows(spectra, *, level: str, kind: str, axis: str, grip: float | None = None,
           out_axis: str | None = None) -> Spectra:
+    from armfit.spectra import Spectra
     return Spectra.of(spectra).select(level=level, kind=kind, axis=axis, grip=grip,
                                       out_axis=out_axis)
 
@@ -207,6 +211,7 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
     out = {}
     axis, H_on = data.axis, data.h
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
+    from armfit.spectra import Spectra
     lean = replace(Spectra.of(spectra), values={})   # the responses are all it uses
     for other in AXES:
         if other == axis:
@@ -252,6 +257,7 @@ def comparison_notes(spectra, params, level: str, *, spectra_label: str | None =
     """
     sl = spectra_label or "the spectra"
     pl = params_label or "the params table"
+    from armfit.spectra import Spectra
     spectra = Spectra.of(spectra)
     out = []
     for axis in AXES:
