@@ -65,3 +65,15 @@ def test_no_scipy_is_imported():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout.strip()
     assert out == "False"
+
+
+def test_a_quantile_asked_again_is_the_one_computed():
+    # the quantiles are kept between calls (a study's fits share a few degrees of
+    # freedom); the reference: the same Newton solve run afresh, to the bit
+    from armfit._student import _upper
+    for nu, p in ((195, 0.975), (155, 0.975), (5, 0.975), (195, 0.9)):
+        first = t_quantile(nu, p)
+        assert t_quantile(nu, p) == first == _upper.__wrapped__(p, nu)
+        assert t_quantile(nu, 1 - p) == -first
+    assert t_quantile([195, 155], 0.975).tolist() == [_upper.__wrapped__(0.975, 195),
+                                                     _upper.__wrapped__(0.975, 155)]
