@@ -1089,12 +1089,12 @@ def fit_studies(spectra, whiches: Sequence[str], *, cost: str = "complex",
     StudyFit
         One per set, in the order of ``whiches``.
     """
+    from armfit.spectra import Spectra
     for which in whiches:
         if which not in STUDY_FITS:
             raise UsageError(f"which must be one of {', '.join(STUDY_FITS)}, "
                              f"got {which!r}")
     bands = dict(PAPER_BANDS) if bands is None else dict(bands)
-    from armfit.spectra import Spectra
     specs = effects_by_axis(effects)
     sp = Spectra.of(spectra)
     source = source if source is not None else sp.source

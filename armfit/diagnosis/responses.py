@@ -208,10 +208,10 @@ def cross_coupling(spectra, data: AxisData, band: tuple[float, float]) -> dict[s
     20 log10(|X_other/F| / |X_axis/F|), the on-axis responses those of ``data``. Absent
     cross responses give no entry.
     """
+    from armfit.spectra import Spectra
     out = {}
     axis, H_on = data.axis, data.h
     sel = (data.f_hz >= band[0]) & (data.f_hz <= band[1])
-    from armfit.spectra import Spectra
     lean = replace(Spectra.of(spectra), values={})   # the responses are all it uses
     for other in AXES:
         if other == axis:
@@ -255,9 +255,9 @@ def comparison_notes(spectra, params, level: str, *, spectra_label: str | None =
     list of str
         In x, y, z order (empty when every axis and grip is compared with its own row).
     """
+    from armfit.spectra import Spectra
     sl = spectra_label or "the spectra"
     pl = params_label or "the params table"
-    from armfit.spectra import Spectra
     spectra = Spectra.of(spectra)
     out = []
     for axis in AXES:
