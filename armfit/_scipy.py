@@ -52,5 +52,3 @@ def minimize(*args, **kwargs):
     """:func:`scipy.optimize.minimize`."""
     from scipy.optimize import minimize as fn
     return fn(*args, **kwargs)
-
-

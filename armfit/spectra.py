@@ -368,10 +368,17 @@ def derived_spectra(force, pos, fs: float, mp: float, *, segments: int = 4,
     nfft of tfestimate puts most bins far above the common grid).
     """
     fa, xa = derived_arm_signals(force, pos, fs, mp)
-    nperseg, noverlap, nfft = tfestimate_segment(fa.size, segments)
-    win = _cached_window("hamming", nperseg, False)
+    nperseg, noverlap, nfft, win = _derived_segments(fa.size, segments)
     return welch_spectra(fa, xa, fs, nperseg=nperseg, noverlap=noverlap, window=win,
                          nfft=nfft, detrend=detrend, method="tfestimate", fmax_hz=fmax_hz)
+
+
+def _derived_segments(n: int, segments: int) -> tuple[int, int, int, np.ndarray]:
+    """The segmentation of :func:`derived_spectra` for derived signals of ``n`` samples
+    (the record's less its first and last): nperseg, noverlap, nfft
+    (:func:`tfestimate_segment`) and the symmetric Hamming window, cached."""
+    nperseg, noverlap, nfft = tfestimate_segment(n, segments)
+    return nperseg, noverlap, nfft, _cached_window("hamming", nperseg, False)
 
 
 # ---------------------------------------------------------------------------
@@ -1347,8 +1354,7 @@ def _derived_reference(f: np.ndarray, x: np.ndarray, ref: np.ndarray, fs: float,
     """Xa/Fa through the reference: :func:`reference_to_grid` of r against (Fa, xa) on
     the derived dynamics' own segments (:func:`derived_spectra`)."""
     fa, xa = derived_arm_signals(f, x, fs, mp)
-    nperseg, noverlap, nfft = tfestimate_segment(fa.size, config.derived_segments)
-    win = _cached_window("hamming", nperseg, False)
+    nperseg, noverlap, nfft, win = _derived_segments(fa.size, config.derived_segments)
     rsp = welch_spectra(ref[1:-1], [fa, xa], fs, nperseg=nperseg,
                         noverlap=noverlap, window=win, nfft=nfft, method="tfestimate-ref",
                         fmax_hz=grid[-1])
@@ -3229,7 +3235,7 @@ def _read_source(source, config: EstimateConfig):
     """The reading half of :func:`_estimate_source`: ("read", Trial, warnings, drift
     flags) or its ("bad", ...) result. The drift flags (:func:`drift_flags`) are found
     here, and the Hamming window of the trial's derived spectra (its length follows the
-    record's, :func:`derived_spectra`) is made and cached (:func:`_cached_window`): they
+    record's, :func:`derived_spectra`) is made and cached (:func:`_derived_segments`): they
     need the samples' number or the samples only, and in a serial estimate this half
     runs in the reading thread while the trial before is estimated."""
     warnings: list[str] = []
@@ -3240,8 +3246,7 @@ def _read_source(source, config: EstimateConfig):
         return ("bad", source.label, exc.template, exc.detail)
     drift = drift_flags(trial.pos, trial.meta.fs, config)
     if trial.force.shape[0] > 2:    # the derived spectra's window, made here (see above)
-        _cached_window("hamming", tfestimate_segment(trial.force.shape[0] - 2,
-                                                     config.derived_segments)[0], False)
+        _derived_segments(trial.force.shape[0] - 2, config.derived_segments)
     return ("read", trial, warnings, drift)
 
 
