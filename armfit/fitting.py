@@ -450,15 +450,58 @@ def levy_rows(f_hz: np.ndarray, h: np.ndarray, mp: float) -> tuple[np.ndarray, n
 def levy_candidates(a_w: np.ndarray, b_w: np.ndarray) -> list[dict[str, float]]:
     """:func:`analytic_guess`'s candidates from its weighted rows (:func:`levy_rows`,
     (n, 6) and (n,)): the least-squares solution of the real and imaginary parts."""
+    coef = _levy_solution(a_w, b_w)
+    if coef is None or not coef[0] > 0:
+        return []
+    return _levy_from_roots(coef, np.roots(list(coef[:4])))
+
+
+def levy_candidates_many(systems: Sequence[tuple[np.ndarray, np.ndarray]]
+                         ) -> list[list[dict[str, float]]]:
+    """:func:`levy_candidates` of each of several systems (``(a_w, b_w)`` pairs), the
+    same numbers: each system's least-squares solution on its own, then the roots of
+    all their numerators N (cubics) at once, as :func:`numpy.roots` finds them (the
+    eigenvalues of the companion matrix; one :func:`numpy.linalg.eigvals` of the stack
+    instead of one call a cubic, each matrix solved alone by LAPACK). A cubic whose
+    constant term is zero or whose coefficients are not all finite is left to
+    :func:`numpy.roots` itself. The Levy starts of the diagnosis
+    (:func:`armfit.diagnosis.starts.levy_starts`) take three band cuts of every trial:
+    the per-cubic calls cost as much as the least-squares solutions."""
+    coefs = [_levy_solution(a_w, b_w) for a_w, b_w in systems]
+    roots: dict[int, np.ndarray] = {}
+    many = [i for i, c in enumerate(coefs)
+            if c is not None and c[0] > 0 and c[3] != 0 and np.all(np.isfinite(c[:4]))]
+    if many:
+        p = np.array([coefs[i][:4] for i in many])
+        companion = np.zeros((len(many), 3, 3))
+        companion[:, 1, 0] = companion[:, 2, 1] = 1.0
+        companion[:, 0, :] = -p[:, 1:] / p[:, :1]
+        roots = dict(zip(many, np.linalg.eigvals(companion), strict=True))
+    out = []
+    for i, c in enumerate(coefs):
+        if c is None or not c[0] > 0:
+            out.append([])
+            continue
+        r = roots.get(i)
+        out.append(_levy_from_roots(c, np.roots(list(c[:4])) if r is None else r))
+    return out
+
+
+def _levy_solution(a_w: np.ndarray, b_w: np.ndarray) -> np.ndarray | None:
+    """The coefficients (n3, n2, n1, n0, d1, d0) of :func:`levy_candidates`' system, or
+    None when its rows are not all finite."""
     a_ri = np.concatenate([a_w.real, a_w.imag])
     b_ri = np.concatenate([b_w.real, b_w.imag])
     if not (np.all(np.isfinite(a_ri)) and np.all(np.isfinite(b_ri))):
-        return []
+        return None
     coef, *_ = np.linalg.lstsq(a_ri, b_ri, rcond=None)
+    return coef
+
+
+def _levy_from_roots(coef: np.ndarray, roots: np.ndarray) -> list[dict[str, float]]:
+    """The physical candidates of :func:`levy_candidates` from its coefficients and the
+    roots of its numerator (n3 > 0): each real negative root taken as −k1/b1."""
     n3, n2, n1, n0, d1, d0 = coef
-    if not n3 > 0:
-        return []
-    roots = np.roots([n3, n2, n1, n0])
     out = []
     for i, r in enumerate(roots):
         if abs(r.imag) > 1e-6 * max(abs(r), 1e-12) or not r.real < 0:

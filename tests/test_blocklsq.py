@@ -296,6 +296,48 @@ def test_the_model_of_the_cost_along_a_step_is_that_of_the_dense_jacobian():
     np.testing.assert_allclose(sub.value(s), want[0] + gh @ s, rtol=1e-10)
 
 
+@pytest.mark.parametrize("shared", ["none", "one", "grouped"])
+def test_a_second_solve_at_the_same_alpha_is_that_of_a_fresh_subproblem(shared):
+    # the subproblem keeps its blocks at α for the next solve at the same α (Moré's
+    # iteration asks twice at each α): that solve is, bit for bit, the one a fresh
+    # subproblem makes from scratch, and both are (H_h + αI)⁻¹ r of the dense scaled
+    # Jacobian J_h = J·diag(d), H_h = J_hᵀJ_h + diag(c) (independent computation); so is
+    # a solve at another α, and one back at the first. Shared parameters: none (the
+    # base model's joint fit), one for all trials, or grouped
+    if shared == "grouped":
+        fun, jac, dense, cols, x = _grouped_at_truth()
+        groups = blocklsq.Groups(cols, 4)
+    else:
+        a = np.array([1.0, 2.5, 0.7, 4.0])
+        fun, jac, dense = _problem(a, a / 10, 0.9, noise=0.05, seed=3)
+        x, cols, groups = _start(a.size, 0.7), None, None
+    n = jac(x)[0].shape[0]
+    A, B, C, gb, gs = blocklsq._normal(*jac(x), fun(x).reshape(n, -1), groups)
+    J = dense(x)
+    if shared == "none":       # the per-trial columns alone
+        A, B, C, gs, J = A, B[..., :0], C[:0, :0], gs[:0], J[:, : 2 * n]
+    rng = np.random.default_rng(8)
+    d, c = rng.uniform(0.5, 2.0, J.shape[1]), rng.uniform(0.0, 1.0, J.shape[1])
+
+    def fresh():
+        return blocklsq._Scaled(A, B, C, gb, gs, d[: 2 * n].reshape(n, 2), d[2 * n:],
+                                c[: 2 * n].reshape(n, 2), c[2 * n:], groups)
+
+    Jh = J * d
+    H = Jh.T @ Jh + np.diag(c)
+    sub = fresh()
+    rs = rng.standard_normal((3, J.shape[1]))
+    for alpha, r in ((0.3, rs[0]), (0.3, rs[1]), (0.3, rs[2]), (0.05, rs[0]), (0.05, rs[2]),
+                     (0.3, rs[1])):
+        rb, rsh = r[: 2 * n].reshape(n, 2), r[2 * n:]
+        got, want = sub.solve(alpha, rb, rsh), fresh().solve(alpha, rb, rsh)
+        for p, q in zip(got, want, strict=True):
+            np.testing.assert_array_equal(p, q)
+        np.testing.assert_allclose(np.concatenate([got[0].ravel(), got[1]]),
+                                   np.linalg.solve(H + alpha * np.eye(H.shape[0]), r),
+                                   rtol=1e-9, atol=1e-12)
+
+
 def _same(a: blocklsq.BlockResult, b: blocklsq.BlockResult) -> None:
     """Bit for bit: the solution, its cost, residuals, blocks, status and evaluations."""
     np.testing.assert_array_equal(a.x, b.x)

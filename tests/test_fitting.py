@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from armfit import fitting
 from armfit.data import paper_table
 from armfit.errors import ConvergenceError, UsageError
 from armfit.fitting import (
@@ -13,6 +14,9 @@ from armfit.fitting import (
     analytic_guess,
     bootstrap_fit,
     fit_response,
+    levy_candidates,
+    levy_candidates_many,
+    levy_rows,
     log_errors,
 )
 from armfit.models.arm import PARAM_NAMES, ClosedLoopModel, h_cl
@@ -60,6 +64,40 @@ def test_analytic_guess_is_exact_on_noise_free_data():
     f = np.geomspace(0.1, 30, 80)
     cands = analytic_guess(f, h_cl(f, mp=0.09, **X1), 0.09)
     assert any(all(abs(c[n] / X1[n] - 1) < 1e-6 for n in PARAM_NAMES) for c in cands)
+
+
+def test_levy_candidates_of_many_systems_at_once_are_those_one_by_one(monkeypatch):
+    # levy_candidates_many finds the roots of all the numerators at once (one eigvals of
+    # the stacked companion matrices); levy_candidates, numpy.roots one cubic at a time:
+    # the candidates are the same bit for bit (independent computation of the roots).
+    # Noisy responses of eq. 4 in the three band cuts of the diagnosis's starts, and a
+    # system whose rows are not finite (no candidate)
+    f = np.geomspace(0.1, 30, 120)
+    rng = np.random.default_rng(11)
+    systems = []
+    for k in range(12):
+        noise = 0.003 * k * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
+        a_w, b_w = levy_rows(f, h_cl(f, mp=0.09, **X1) * (1 + noise), 0.09)
+        systems += [(a_w[f >= lo_f], b_w[f >= lo_f]) for lo_f in (0.0, 0.3, 1.0)]
+    systems.append((a_w * np.nan, b_w))
+    want = [levy_candidates(a, b) for a, b in systems]
+    assert sum(map(len, want)) > 10 and [] in want
+    assert levy_candidates_many(systems) == want
+    # the edge cases, by their coefficients (n3, n2, n1, n0, d1, d0): the numerator
+    # (s+1)(s+2)(s+3), three physical candidates; s(s²+6s+11), a root at 0 (the cubic
+    # left to numpy.roots; no candidate: k1 or k2 would be 0); (s+1)(s²+s+4), complex
+    # roots beside a real one; no positive leading term
+    coefs = {1: [1.0, 6.0, 11.0, 6.0, 20.0, 5.0], 2: [1.0, 6.0, 11.0, 0.0, 20.0, 5.0],
+             3: [1.0, 2.0, 5.0, 4.0, 10.0, 1.0], 4: [-1.0, 6.0, 11.0, 6.0, 20.0, 5.0]}
+    monkeypatch.setattr(fitting, "_levy_solution", lambda a, b: np.array(coefs[a]))
+    want = [levy_candidates(i, None) for i in coefs]
+    assert [len(w) for w in want] == [3, 0, 1, 0]
+    assert levy_candidates_many([(i, None) for i in coefs]) == want
+    # a coefficient that is not finite: both raise numpy.roots' error
+    coefs[5] = [1.0, np.nan, 11.0, 6.0, 20.0, 5.0]
+    for find in (lambda: levy_candidates(5, None), lambda: levy_candidates_many([(5, None)])):
+        with pytest.raises(np.linalg.LinAlgError):
+            find()
 
 
 def test_same_answer_whatever_the_global_random_state():

@@ -12,7 +12,7 @@ from armfit.constants import PARAM_NAMES
 from armfit.diagnosis.bands import residuals
 from armfit.diagnosis.responses import AxisData
 from armfit.diagnosis.tuning import CHUNK_TRIALS, UNIT_DEG
-from armfit.fitting import levy_candidates, levy_rows
+from armfit.fitting import levy_candidates_many, levy_rows
 from armfit.models.arm import ClosedLoopModel
 
 __all__ = ["best_rows", "levy_starts", "start_rows"]
@@ -43,23 +43,26 @@ def levy_starts(model: ClosedLoopModel, data: AxisData, band: tuple[float, float
             hbs = model.remove_effects(f, data.h[chunk, sel], effect_values) \
                 if effect_values else data.h[chunk, sel]
             a_w, b_w = levy_rows(f, hbs, model.mp)
-        for i, hb in enumerate(hbs):
-            best = _levy_best(base_model, f, hb, a_w[i], b_w[i], cuts, lower, upper)
+            # the candidates of every band cut of every trial of the chunk at once
+            # (:func:`levy_candidates_many`: each system's own, the same numbers)
+            finite = [i for i, hb in enumerate(hbs) if np.all(np.isfinite(hb))]
+            found = iter(levy_candidates_many([(a_w[i][cut], b_w[i][cut])
+                                               for i in finite for cut in cuts]))
+        for i in finite:
+            cands = [c for _ in cuts for c in next(found)]
+            best = _levy_best(base_model, f, hbs[i], cands, lower, upper)
             if best is not None:
                 out[a + i] = best
     return out
 
 
-def _levy_best(base_model: ClosedLoopModel, f: np.ndarray, hb: np.ndarray, a_w: np.ndarray,
-               b_w: np.ndarray, cuts: Sequence[np.ndarray], lower: np.ndarray,
+def _levy_best(base_model: ClosedLoopModel, f: np.ndarray, hb: np.ndarray,
+               cands: Sequence[Mapping[str, float]], lower: np.ndarray,
                upper: np.ndarray) -> np.ndarray | None:
-    """One trial's row of :func:`levy_starts` (None: no physical candidate): the Levy
-    candidates of each band cut (rows ``a_w``, ``b_w`` of :func:`levy_rows`), clipped to
-    the bounds, judged at once on the whole band; the first of the closest."""
+    """One trial's row of :func:`levy_starts` (None: no physical candidate): its Levy
+    candidates ``cands`` (those of each band cut, in turn), clipped to the bounds, judged
+    at once on the whole band; the first of the closest."""
     with np.errstate(all="ignore"):
-        if not np.all(np.isfinite(hb)):
-            return None
-        cands = [c for cut in cuts for c in levy_candidates(a_w[cut], b_w[cut])]
         if not cands:
             return None
         rows = np.clip([[c[n] for n in PARAM_NAMES] for c in cands], lower, upper)
