@@ -210,7 +210,9 @@ class _Scaled(_Quadratic):
         self.gb, self.gs = gb * db, gs * ds
         self.T, self.nb = gb.shape
         self.k = gs.size
-        self._kept = None      # (α, A + αI, its solve of B, Schur complement): solve's
+        # (α, A + αI, its solve of B, the Schur complement) of the last solve, for the
+        # next solve at the same α
+        self._kept = None
 
     def _local(self, vs: np.ndarray) -> np.ndarray:
         """The shared part ``vs`` (K,) as each trial's local columns see it, (T, kl)."""
