@@ -37,10 +37,17 @@ the residuals times the parameters of a trial; its memory is that of the residua
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+try:    # the LAPACK kernels of numpy.linalg.solve (numpy 1.8 and later)
+    from numpy.linalg import _umath_linalg
+    _LAPACK_SOLVE = (_umath_linalg.solve, _umath_linalg.solve1)
+except (ImportError, AttributeError):  # pragma: no cover - another numpy layout
+    _LAPACK_SOLVE = None
 
 __all__ = ["BlockResult", "Groups", "Normal", "Resume", "normal_blocks", "normal_covariance",
            "solve"]
@@ -54,6 +61,36 @@ Jac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 Normal = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 #: The blocks at x whose residuals are r (T, m): (x, r) -> Normal.
 NormalFun = Callable[[np.ndarray, np.ndarray], Normal]
+
+
+def _singular(err: str, flag: int) -> None:
+    raise np.linalg.LinAlgError("Singular matrix")
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``numpy.linalg.solve(a, b)`` of float64 arrays, the same numbers, without its
+    Python wrapper: its checks and conversions cost 6 µs of a call's 10 on the small
+    systems of a trust-region step, about 7 % of a diagnosis's fits. The caller holds
+    :func:`_solving`'s error state, as ``numpy.linalg.solve`` holds it around its LAPACK
+    call: a singular matrix raises LinAlgError. ``b`` 1-D is one right-hand side
+    (LAPACK's ``solve1``), else a stack of matrices."""
+    if _LAPACK_SOLVE is None:   # pragma: no cover - another numpy layout
+        return np.linalg.solve(a, b)
+    return _LAPACK_SOLVE[b.ndim == 1](a, b, signature="dd->d")
+
+
+def _norm(v: np.ndarray) -> float:
+    """‖v‖ of a 1-D float64 array, as ``numpy.linalg.norm(v)`` computes it (the square
+    root of ``v.dot(v)``), without its Python wrapper."""
+    return math.sqrt(v.dot(v))
+
+
+def _solving() -> np.errstate:
+    """The error state of ``numpy.linalg.solve`` around its LAPACK call, for
+    :func:`_solve`: a singular matrix raises LinAlgError; overflow, division and
+    underflow inside LAPACK are not reported."""
+    return np.errstate(call=_singular, invalid="call", over="ignore", divide="ignore",
+                       under="ignore")
 
 
 @dataclass(frozen=True)
@@ -221,13 +258,15 @@ class _Scaled(_Quadratic):
         return self.groups.take(vs)
 
     def hdot(self, p: np.ndarray, q: np.ndarray) -> float:
-        """pᵀ(J_hᵀJ_h)q from the blocks."""
+        """pᵀ(J_hᵀJ_h)q from the blocks (pᵀBq and qᵀBp made once when q is p)."""
         pb, ps = self._split(p)
-        qb, qs = self._split(q)
+        qb, qs = (pb, ps) if q is p else self._split(q)
         out = float((pb * np.einsum("tpq,tq->tp", self.A, qb)).sum())
         if self.k:
-            out += float((pb * np.einsum("tpk,tk->tp", self.B, self._local(qs))).sum())
-            out += float((qb * np.einsum("tpk,tk->tp", self.B, self._local(ps))).sum())
+            cross = float((pb * np.einsum("tpk,tk->tp", self.B, self._local(qs))).sum())
+            out += cross
+            out += cross if q is p else float(
+                (qb * np.einsum("tpk,tk->tp", self.B, self._local(ps))).sum())
             out += float(ps @ self.C @ qs)
         return out
 
@@ -262,20 +301,20 @@ class _Scaled(_Quadratic):
             if self.k:
                 Cl = self.C + np.diag(self.cs + alpha)
                 kl = self.B.shape[2]
-                sol = np.linalg.solve(Al, np.concatenate([self.B, rb[..., None]], axis=2))
+                sol = _solve(Al, np.concatenate([self.B, rb[..., None]], axis=2))
                 AiB, Air = sol[..., :kl], sol[..., kl]
                 S = Cl - (np.einsum("tpk,tpl->kl", self.B, AiB) if self.groups is None else
                           self.groups.add_matrices(np.einsum("tpk,tpl->tkl", self.B, AiB)))
             self._kept = (alpha, Al, AiB, S)
         if self.k == 0:
-            return np.linalg.solve(Al, rb[..., None])[..., 0], np.zeros(0)
+            return _solve(Al, rb[..., None])[..., 0], np.zeros(0)
         if Air is None:     # the blocks were kept: this right-hand side beside a copy
-            Air = np.linalg.solve(Al, np.stack([rb, rb], axis=2))[..., 0]
+            Air = _solve(Al, np.stack([rb, rb], axis=2))[..., 0]
         g = self.groups
         if g is None:
-            ys = np.linalg.solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))
+            ys = _solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))
             return Air - AiB @ ys, ys
-        ys = np.linalg.solve(S, rs - g.add_vectors(np.einsum("tpk,tp->tk", self.B, Air)))
+        ys = _solve(S, rs - g.add_vectors(np.einsum("tpk,tp->tk", self.B, Air)))
         return Air - np.einsum("tpk,tk->tp", AiB, g.take(ys)), ys
 
     @property
@@ -294,7 +333,15 @@ class _Scaled(_Quadratic):
         fits, else p(α) = −(H_h + αI)⁻¹g_h with ‖p(α)‖ = ``delta`` to 1 %, α by Moré's
         Newton iteration on ‖p(α)‖ (as :func:`scipy.optimize.least_squares`'s exact
         solver, with a solve in place of the SVD). ``alpha``: the previous α, the
-        first guess. Returns (p_h, α)."""
+        first guess. Returns (p_h, α).
+
+        Its solves hold ``numpy.linalg.solve``'s error state (:func:`_solving`): the
+        systems, A + αI with α > 0 and their Schur complement, are positive definite,
+        and one found singular raises LinAlgError as ``numpy.linalg.solve`` would."""
+        with _solving():
+            return self._trust_region(delta, alpha)
+
+    def _trust_region(self, delta: float, alpha: float) -> tuple[np.ndarray, float]:
         gb, gs = -self.gb, -self.gs
         g_norm = float(np.sqrt((gb * gb).sum() + gs @ gs))
         if g_norm == 0.0:
@@ -325,7 +372,7 @@ class _Scaled(_Quadratic):
             if abs(phi) < 0.01 * delta:
                 break
         p = np.concatenate([pb.ravel(), ps])
-        return p * (delta / np.linalg.norm(p)), alpha
+        return p * (delta / _norm(p)), alpha
 
 
 def _to_bound(x, s, lower, upper) -> tuple[float, np.ndarray]:
@@ -389,7 +436,7 @@ def _select_step(x, sub: _Quadratic, d, p_h, delta, lower, upper, theta):
     p_value = sub.value(p_h)
     ag_h = -sub.g_h
     ag = d * ag_h
-    to_tr = delta / np.linalg.norm(ag_h)
+    to_tr = delta / _norm(ag_h)
     to_bound, _ = _to_bound(x, ag, lower, upper)
     ag_stride = theta * to_bound if to_bound < to_tr else to_tr
     a, b, _ = sub.quadratic_1d(ag_h)
@@ -512,16 +559,16 @@ def _iterate(fun: Fun, normal: NormalFun, state: tuple, lower, upper, T: int, nb
             x_new = _strictly_inside(x + step, lower, upper)
             r_new = fun(x_new)
             nfev += 1
-            step_h_norm = float(np.linalg.norm(step_h))
+            step_h_norm = _norm(step_h)
             cost_new = 0.5 * float(r_new @ r_new)
             if not np.isfinite(cost_new):
                 delta = 0.25 * step_h_norm
                 continue
             actual = cost - cost_new
             ratio, new_delta = _radius(actual, predicted, step_h_norm, delta)
-            step_norm = float(np.linalg.norm(step))
+            step_norm = _norm(step)
             small_f = actual < ftol * cost and ratio > 0.25
-            small_x = step_norm < xtol * (xtol + float(np.linalg.norm(x)))
+            small_x = step_norm < xtol * (xtol + _norm(x))
             if watch_ftol is not None and watched is None and not watch_status:
                 watch_status = _stop_status(actual < watch_ftol * cost and ratio > 0.25,
                                             small_x)
@@ -554,7 +601,7 @@ def _first_state(fun: Fun, normal: NormalFun, x0, lower, upper, T: int) -> tuple
     r = fun(x)
     blocks = normal(x, r.reshape(T, -1))
     v, _ = _cl_scaling(x, np.concatenate([blocks[3].ravel(), blocks[4]]), lower, upper)
-    return (x, r, 0.5 * float(r @ r), blocks, float(np.linalg.norm(x / np.sqrt(v))) or 1.0,
+    return (x, r, 0.5 * float(r @ r), blocks, _norm(x / np.sqrt(v)) or 1.0,
             0.0, 1)
 
 

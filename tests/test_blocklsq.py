@@ -338,6 +338,57 @@ def test_a_second_solve_at_the_same_alpha_is_that_of_a_fresh_subproblem(shared):
                                    rtol=1e-9, atol=1e-12)
 
 
+def test_the_direct_lapack_solve_is_numpy_linalg_solve_bit_for_bit():
+    # the trust-region step calls numpy.linalg.solve's LAPACK kernels without its Python
+    # wrapper: the same numbers as numpy.linalg.solve (the reference), for a stack of
+    # systems with several right-hand sides, one with a single right-hand side column,
+    # and a single system with a vector; positive definite (A + αI, as in a step) and
+    # badly conditioned ones
+    rng = np.random.default_rng(21)
+    for T, n, k, cond in ((1, 5, 3, 1e2), (9, 5, 2, 1e8), (64, 5, 1, 1e12), (3, 7, 4, 1.0)):
+        q = np.linalg.qr(rng.standard_normal((T, n, n)))[0]
+        a = q @ (np.logspace(0, np.log10(cond), n)[:, None] * np.swapaxes(q, 1, 2))
+        a = a + 1e-3 * np.eye(n)
+        b = rng.standard_normal((T, n, k))
+        with blocklsq._solving():
+            got = blocklsq._solve(a, b)
+            one = blocklsq._solve(a[0], b[0, :, 0])
+        np.testing.assert_array_equal(got, np.linalg.solve(a, b))
+        np.testing.assert_array_equal(one, np.linalg.solve(a[0], b[0, :, 0]))
+    # a singular system raises as numpy.linalg.solve does
+    with pytest.raises(np.linalg.LinAlgError), blocklsq._solving():
+        blocklsq._solve(np.zeros((2, 3, 3)), np.ones((2, 3, 2)))
+
+
+def test_the_norms_of_the_iteration_are_numpy_linalg_norm_bit_for_bit():
+    rng = np.random.default_rng(22)
+    for v in (rng.standard_normal(7), rng.standard_normal(451) * 1e-9, np.zeros(3),
+              np.array([3.0, 4.0])):
+        assert blocklsq._norm(v) == float(np.linalg.norm(v))
+
+
+def test_the_cost_model_of_a_step_with_itself_is_that_of_a_step_with_its_copy():
+    # q's curvature term sᵀHs takes the cross term of the shared block once when both
+    # vectors are the same array: the same bits as for two equal arrays (the general
+    # path, each cross term made on its own), whatever the grouping of the shared columns
+    fun, jac, dense, cols, x = _grouped_at_truth()
+    n = cols.shape[0]
+    rng = np.random.default_rng(23)
+    for groups in (blocklsq.Groups(cols, 4), None):
+        jb, js = jac(x)
+        if groups is None:
+            js = js[..., :1]
+        A, B, C, gb, gs = blocklsq._normal(jb, js, fun(x).reshape(n, -1), groups)
+        k = gs.size
+        d, c = rng.uniform(0.5, 2.0, 2 * n + k), rng.uniform(0.0, 1.0, 2 * n + k)
+        sub = blocklsq._Scaled(A, B, C, gb, gs, d[: 2 * n].reshape(n, 2), d[2 * n:],
+                               c[: 2 * n].reshape(n, 2), c[2 * n:], groups)
+        s = rng.standard_normal(2 * n + k)
+        assert sub.hdot(s, s) == sub.hdot(s, s.copy())
+        Jh = (dense(x)[:, : 2 * n + k] if groups is None else dense(x)) * d
+        np.testing.assert_allclose(sub.hdot(s, s), np.sum((Jh @ s) ** 2), rtol=1e-10)
+
+
 def _same(a: blocklsq.BlockResult, b: blocklsq.BlockResult) -> None:
     """Bit for bit: the solution, its cost, residuals, blocks, status and evaluations."""
     np.testing.assert_array_equal(a.x, b.x)

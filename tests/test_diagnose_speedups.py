@@ -1213,3 +1213,38 @@ def _former_adequacy_and_adequacy(fb, r_db, r_deg, se_db, se_deg, sel, cols, ban
     ref = Adequacy(not fails and not over, overall, bands, over, tuple(fails),
                    float(np.nansum(z * z)), float(nu), float(np.sqrt(2.0 * nu)))
     return ref, got
+
+
+def test_the_noise_model_of_an_axis_is_made_once_and_every_caller_gets_its_own_arrays():
+    # AxisData.noise_se keeps the noise model's standard errors of the whole grid (made
+    # once: each joint problem and each choice of start rows asks for them): each call
+    # is what armfit.noise.standard_errors gives afresh (independent computation), NaN
+    # at the excluded points, restricted to the band after; a caller may change what it
+    # got; and the kept errors are not pickled with the trials (a task's payload)
+    import pickle
+
+    from armfit import noise
+    from armfit.diagnosis.responses import AxisData
+    rng = np.random.default_rng(5)
+    T, n = 4, 60
+    se_db = rng.uniform(0.01, 2.0, (T, n))
+    se_db[1, 7] = np.nan
+    se_deg = rng.uniform(0.1, 20.0, (T, n))
+    excluded = np.zeros((T, n), bool)
+    excluded[2, 40:45] = True
+    data = AxisData("x", np.geomspace(0.1, 30.0, n), np.ones((T, n), complex), se_db,
+                    se_deg, ({},) * T, excluded=excluded)
+    want_db, want_deg = noise.standard_errors(se_db, se_deg)
+    want_db[excluded], want_deg[excluded] = np.nan, np.nan
+    sel = (data.f_hz >= 1.0) & (data.f_hz <= 10.0)
+    for s in (slice(None), sel, slice(5, 50)):
+        got_db, got_deg = data.noise_se(s)
+        np.testing.assert_array_equal(got_db, want_db[:, s])
+        np.testing.assert_array_equal(got_deg, want_deg[:, s])
+        got_db[:] = -1.0
+        got_deg[:] = -1.0
+    np.testing.assert_array_equal(data.noise_se()[0], want_db)
+    back = pickle.loads(pickle.dumps(data))
+    assert "_noise_se" not in back.__dict__
+    assert len(pickle.dumps(data)) == len(pickle.dumps(back))
+    np.testing.assert_array_equal(back.noise_se()[1], want_deg)
