@@ -250,6 +250,7 @@ class _Scaled(_Quadratic):
         # (α, A + αI, its solve of B, the Schur complement) of the last solve, for the
         # next solve at the same α
         self._kept = None
+        self._eye = np.eye(self.nb)
 
     def _local(self, vs: np.ndarray) -> np.ndarray:
         """The shared part ``vs`` (K,) as each trial's local columns see it, (T, kl)."""
@@ -296,7 +297,7 @@ class _Scaled(_Quadratic):
         if self._kept is not None and self._kept[0] == alpha:
             _, Al, AiB, S = self._kept
         else:
-            Al = self.A + np.eye(self.nb) * (self.cb + alpha)[:, None, :]
+            Al = self.A + self._eye * (self.cb + alpha)[:, None, :]
             AiB = S = None
             if self.k:
                 Cl = self.C + np.diag(self.cs + alpha)

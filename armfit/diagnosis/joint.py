@@ -159,10 +159,11 @@ class JointProblem:
 
     def unpack(self, x: np.ndarray) -> np.ndarray:
         """x (T·5 + K) → z (T, P) in the transformed space."""
-        zb = x[: self.T * self.nb].reshape(self.T, self.nb)
-        tail = x[self.T * self.nb:]
-        ze = np.broadcast_to(tail, (self.T, self.k)) if self.cols is None else tail[self.cols]
-        return np.concatenate([zb, ze], axis=1)
+        n = self.T * self.nb
+        z = np.empty((self.T, self.nb + self.k))
+        z[:, : self.nb] = x[:n].reshape(self.T, self.nb)
+        z[:, self.nb:] = x[n:] if self.cols is None else x[n:][self.cols]
+        return z
 
     def effect_values(self, x: np.ndarray) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
         """The effect parameters at ``x`` (their units): ({name: value} of the shared
