@@ -43,11 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-try:    # the LAPACK kernels of numpy.linalg.solve (numpy 1.8 and later)
-    from numpy.linalg import _umath_linalg
-    _LAPACK_SOLVE = (_umath_linalg.solve, _umath_linalg.solve1)
-except (ImportError, AttributeError):  # pragma: no cover - another numpy layout
-    _LAPACK_SOLVE = None
+from armfit import _lapack
 
 __all__ = ["BlockResult", "Groups", "Normal", "Resume", "normal_blocks", "normal_covariance",
            "solve"]
@@ -63,34 +59,10 @@ Normal = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 NormalFun = Callable[[np.ndarray, np.ndarray], Normal]
 
 
-def _singular(err: str, flag: int) -> None:
-    raise np.linalg.LinAlgError("Singular matrix")
-
-
-def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``numpy.linalg.solve(a, b)`` of float64 arrays, the same numbers, without its
-    Python wrapper: its checks and conversions cost 6 µs of a call's 10 on the small
-    systems of a trust-region step, about 7 % of a diagnosis's fits. The caller holds
-    :func:`_solving`'s error state, as ``numpy.linalg.solve`` holds it around its LAPACK
-    call: a singular matrix raises LinAlgError. ``b`` 1-D is one right-hand side
-    (LAPACK's ``solve1``), else a stack of matrices."""
-    if _LAPACK_SOLVE is None:   # pragma: no cover - another numpy layout
-        return np.linalg.solve(a, b)
-    return _LAPACK_SOLVE[b.ndim == 1](a, b, signature="dd->d")
-
-
 def _norm(v: np.ndarray) -> float:
     """‖v‖ of a 1-D float64 array, as ``numpy.linalg.norm(v)`` computes it (the square
     root of ``v.dot(v)``), without its Python wrapper."""
     return math.sqrt(v.dot(v))
-
-
-def _solving() -> np.errstate:
-    """The error state of ``numpy.linalg.solve`` around its LAPACK call, for
-    :func:`_solve`: a singular matrix raises LinAlgError; overflow, division and
-    underflow inside LAPACK are not reported."""
-    return np.errstate(call=_singular, invalid="call", over="ignore", divide="ignore",
-                       under="ignore")
 
 
 @dataclass(frozen=True)
@@ -302,20 +274,20 @@ class _Scaled(_Quadratic):
             if self.k:
                 Cl = self.C + np.diag(self.cs + alpha)
                 kl = self.B.shape[2]
-                sol = _solve(Al, np.concatenate([self.B, rb[..., None]], axis=2))
+                sol = _lapack.linalg_solve(Al, np.concatenate([self.B, rb[..., None]], axis=2))
                 AiB, Air = sol[..., :kl], sol[..., kl]
                 S = Cl - (np.einsum("tpk,tpl->kl", self.B, AiB) if self.groups is None else
                           self.groups.add_matrices(np.einsum("tpk,tpl->tkl", self.B, AiB)))
             self._kept = (alpha, Al, AiB, S)
         if self.k == 0:
-            return _solve(Al, rb[..., None])[..., 0], np.zeros(0)
+            return _lapack.linalg_solve(Al, rb[..., None])[..., 0], np.zeros(0)
         if Air is None:     # the blocks were kept: this right-hand side beside a copy
-            Air = _solve(Al, np.stack([rb, rb], axis=2))[..., 0]
+            Air = _lapack.linalg_solve(Al, np.stack([rb, rb], axis=2))[..., 0]
         g = self.groups
         if g is None:
-            ys = _solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))
+            ys = _lapack.linalg_solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))
             return Air - AiB @ ys, ys
-        ys = _solve(S, rs - g.add_vectors(np.einsum("tpk,tp->tk", self.B, Air)))
+        ys = _lapack.linalg_solve(S, rs - g.add_vectors(np.einsum("tpk,tp->tk", self.B, Air)))
         return Air - np.einsum("tpk,tk->tp", AiB, g.take(ys)), ys
 
     @property
@@ -336,10 +308,11 @@ class _Scaled(_Quadratic):
         solver, with a solve in place of the SVD). ``alpha``: the previous α, the
         first guess. Returns (p_h, α).
 
-        Its solves hold ``numpy.linalg.solve``'s error state (:func:`_solving`): the
-        systems, A + αI with α > 0 and their Schur complement, are positive definite,
-        and one found singular raises LinAlgError as ``numpy.linalg.solve`` would."""
-        with _solving():
+        Its solves (:func:`armfit._lapack.linalg_solve`) hold ``numpy.linalg.solve``'s error
+        state (:func:`armfit._lapack.solving`): the systems, A + αI with α > 0 and
+        their Schur complement, are positive definite, and one found singular raises
+        LinAlgError as ``numpy.linalg.solve`` would."""
+        with _lapack.solving():
             return self._trust_region(delta, alpha)
 
     def _trust_region(self, delta: float, alpha: float) -> tuple[np.ndarray, float]:

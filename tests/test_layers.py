@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1] / "armfit"
 LAYERS: dict[str, float] = {
     "_version": 0, "_lazy": 0, "constants": 0, "errors": 0, "data": 0, "workers": 0, "noise": 0,
     "memory": 0, "_scipy": 0, "_slsqp": 0, "_trf": 0, "_order": 0, "_pool": 0,
-    "_server_exit": 0, "_student": 0, "_shared": 0,
+    "_server_exit": 0, "_student": 0, "_shared": 0, "_lapack": 0,
     "io": 1,
     "spectra": 2, "feedback": 2,
     "models": 3,

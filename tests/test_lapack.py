@@ -1,0 +1,39 @@
+"""armfit._lapack: numpy.linalg.solve's kernels called directly give numpy's numbers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from armfit import _lapack
+
+
+def test_the_direct_solve_is_numpy_linalg_solve_bit_for_bit():
+    # the trust-region step calls numpy.linalg.solve's LAPACK kernels without its
+    # Python wrapper: the same numbers as numpy.linalg.solve (the reference), for a
+    # stack of systems with several right-hand sides, one with a single right-hand side
+    # column, and a single system with a vector; positive definite (A + αI, as in a
+    # step) and badly conditioned ones
+    rng = np.random.default_rng(21)
+    for T, n, k, cond in ((1, 5, 3, 1e2), (9, 5, 2, 1e8), (64, 5, 1, 1e12), (3, 7, 4, 1.0)):
+        q = np.linalg.qr(rng.standard_normal((T, n, n)))[0]
+        a = q @ (np.logspace(0, np.log10(cond), n)[:, None] * np.swapaxes(q, 1, 2))
+        a = a + 1e-3 * np.eye(n)
+        b = rng.standard_normal((T, n, k))
+        with _lapack.solving():
+            got = _lapack.linalg_solve(a, b)
+            one = _lapack.linalg_solve(a[0], b[0, :, 0])
+        np.testing.assert_array_equal(got, np.linalg.solve(a, b))
+        np.testing.assert_array_equal(one, np.linalg.solve(a[0], b[0, :, 0]))
+    # a singular system raises as numpy.linalg.solve does
+    with pytest.raises(np.linalg.LinAlgError), _lapack.solving():
+        _lapack.linalg_solve(np.zeros((2, 3, 3)), np.ones((2, 3, 2)))
+
+
+def test_without_numpys_kernels_module_the_solve_is_numpy_linalg_solve(monkeypatch):
+    # another numpy layout (no numpy.linalg._umath_linalg): numpy.linalg.solve itself
+    rng = np.random.default_rng(22)
+    a = rng.standard_normal((4, 5, 5)) + 5 * np.eye(5)
+    b = rng.standard_normal((4, 5, 2))
+    monkeypatch.setattr(_lapack, "_SOLVE", None)
+    np.testing.assert_array_equal(_lapack.linalg_solve(a, b), np.linalg.solve(a, b))
