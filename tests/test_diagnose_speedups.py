@@ -325,6 +325,20 @@ def test_task_queue_lets_go_of_a_large_task_it_handed_over_last(monkeypatch):
     assert asked == [pool, pool]
 
 
+def test_task_queue_gives_memory_back_after_large_tasks_only(monkeypatch):
+    # once a large task's result is in (an axis's trials sent, its fit received) the
+    # process gives the memory it freed back (release_memory); after small tasks alone
+    # (a screening fit's three trials) it does not ask: there is little to give back
+    released = []
+    monkeypatch.setattr(schedule, "release_memory", lambda: released.append(True))
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        tasks = TaskQueue(pool, capacity=1)
+        assert tasks.map(str, ["a", "b", "c"]) == ["a", "b", "c"]
+        assert released == []
+        assert tasks.map(str, ["d"], large=True) == ["d"]
+        assert released == [True]
+
+
 def test_an_axis_of_large_data_gives_memory_back_before_its_evidence(monkeypatch):
     # an axis whose trials take 1 MiB or more (search.LARGE_TASK_BYTES: 400 trials of
     # 100 frequencies take 400 * 100 * 32 bytes, 1.28 MB) gives the memory freed so far

@@ -43,7 +43,8 @@ class TaskQueue:
     last one a :meth:`_submit` hands to the pool is followed by
     :func:`armfit.workers.let_go_sent`: a pool of armfit's own would otherwise keep
     its pickled bytes while this process awaits and judges the results (on 4,050
-    trials, 5 MB during the evidence of the last axis's base fit).
+    trials, 5 MB during the evidence of the last axis's base fit); once a large task's
+    result is in, the memory freed is given back (:func:`armfit.memory.release_memory`).
     """
 
     def __init__(self, pool: Executor | None = None, capacity: int | None = None,
@@ -94,7 +95,7 @@ class TaskQueue:
             except BaseException:
                 heapq.heappush(self._ready, item)
                 raise
-            self._running[fut] = (item[1], item[4])
+            self._running[fut] = (item[1], item[4], item[5])
             large = item[5]
         if large:
             let_go_sent(self.pool)
@@ -118,16 +119,20 @@ class TaskQueue:
                     continue
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
                 with self._lock:
-                    ended = [(self._running.pop(f)[1], f) for f in
+                    ended = [self._running.pop(f)[1:] + (f,) for f in
                              sorted(done, key=lambda f: self._running[f][0])]
-                for then, fut in ended:
+                for then, _, fut in ended:
                     then(fut.result())
                 self.start_ready()     # the workers' next tasks first, then the memory
-                # the tasks' arguments sent and results received are let go by now: a
-                # process that keeps what it frees (armfit.workers.tune_allocator) gives
-                # it back (`armfit run` of 4,050 trials: its main process peaked at
-                # 237-246 MB in the diagnosis, against 255 MB without)
-                release_memory()
+                # the arguments sent and results received of a large task are let go by
+                # now: a process that keeps what it frees (armfit.workers.tune_allocator)
+                # gives them back (`armfit run` of 4,050 trials: its main process peaked
+                # at 237-246 MB in the diagnosis, against 255 MB without); after small
+                # tasks alone there is little to give back, and asking costs the C
+                # library's walk of this process's heap (20 ms over sample_data/hidden's
+                # 27 tasks, while the workers fit)
+                if any(large for _, large, _ in ended):
+                    release_memory()
         except BaseException:
             with self._lock:
                 for fut in self._running:
