@@ -5,8 +5,8 @@ The diagnosis's joint fits solve thousands of small systems: each trust-region s
 5 × 5 blocks and its Schur complement, several times a step. On such systems
 ``numpy.linalg.solve`` spends 6 µs of a call's 10 in Python (checks, type conversions,
 an error state set up anew each call): about 7 % of the fits' CPU time.
-:func:`linalg_solve` calls the same LAPACK kernels (``numpy.linalg._umath_linalg``, there since numpy 1.8)
-with the same arguments, so the numbers are the same to the bit
+:func:`linalg_solve` calls the same LAPACK kernels (``numpy.linalg._umath_linalg``,
+there since numpy 1.8) with the same arguments, so the numbers are the same to the bit
 (``tests/test_lapack.py``); where numpy has no such module it calls
 ``numpy.linalg.solve`` instead. (``numpy.linalg.lstsq``'s wrapper costs 6 µs of 33 on
 a Levy start's system: not worth a second private call.)
