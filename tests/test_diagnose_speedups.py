@@ -1230,14 +1230,16 @@ def _former_adequacy_and_adequacy(fb, r_db, r_deg, se_db, se_deg, sel, cols, ban
 
 
 def test_the_noise_model_of_an_axis_is_made_once_and_every_caller_gets_its_own_arrays():
-    # AxisData.noise_se keeps the noise model's standard errors of the whole grid (made
-    # once: each joint problem and each choice of start rows asks for them): each call
+    # AxisData.noise_se keeps the noise model's standard errors of the whole grid of a
+    # small axis (made once: each joint problem and each choice of start rows asks for
+    # them), not those of a large one (held for the search's length): each call
     # is what armfit.noise.standard_errors gives afresh (independent computation), NaN
     # at the excluded points, restricted to the band after; a caller may change what it
     # got; and the kept errors are not pickled with the trials (a task's payload)
     import pickle
 
     from armfit import noise
+    from armfit.diagnosis import responses
     from armfit.diagnosis.responses import AxisData
     rng = np.random.default_rng(5)
     T, n = 4, 60
@@ -1258,7 +1260,16 @@ def test_the_noise_model_of_an_axis_is_made_once_and_every_caller_gets_its_own_a
         got_db[:] = -1.0
         got_deg[:] = -1.0
     np.testing.assert_array_equal(data.noise_se()[0], want_db)
+    assert "_noise_kept" in data.__dict__
     back = pickle.loads(pickle.dumps(data))
-    assert "_noise_se" not in back.__dict__
+    assert "_noise_kept" not in back.__dict__
     assert len(pickle.dumps(data)) == len(pickle.dumps(back))
     np.testing.assert_array_equal(back.noise_se()[1], want_deg)
+    # an axis of more than NOISE_KEPT_BYTES of standard errors: made at each call, the
+    # same numbers, nothing held
+    big_T = responses.NOISE_KEPT_BYTES // (16 * n) + 1
+    rows = np.arange(big_T) % T
+    big = AxisData("x", data.f_hz, data.h[rows], se_db[rows], se_deg[rows],
+                   ({},) * big_T, excluded=excluded[rows])
+    np.testing.assert_array_equal(big.noise_se(sel)[0], want_db[rows][:, sel])
+    assert "_noise_kept" not in big.__dict__

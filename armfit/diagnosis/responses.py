@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,10 +17,16 @@ from armfit.models.params import FitStarts
 if TYPE_CHECKING:   # imported where used: the diagnosis's workers need only AxisData
     from armfit.spectra import Spectra
 
-__all__ = ["AxisData", "axis_data", "axis_grips", "comparison_notes", "cross_coupling",
+__all__ = ["NOISE_KEPT_BYTES", "AxisData", "axis_data", "axis_grips", "comparison_notes",
+           "cross_coupling",
            "has_axis",
            "not_excitation", "param_row",
            "select_rows", "trial_responses"]
+
+
+#: Bytes of standard errors (dB and deg together) up to which an axis's noise model is
+#: kept once made (:meth:`AxisData.noise_se`): 655 trials of 100 frequencies.
+NOISE_KEPT_BYTES = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -75,24 +80,30 @@ class AxisData:
         grid points ``sel`` (computed on the whole grid, then restricted); NaN at the
         points :attr:`excluded` (no evidence: a NaN normalised residual is left out of
         every statistic, and a joint fit gives such a point no weight). Arrays of the
-        caller's own."""
-        sdb, sdeg = self._noise_se
+        caller's own.
+
+        Those of up to :data:`NOISE_KEPT_BYTES` are made once and kept (a fit asks for
+        them with each joint problem and each choice of starting rows, 0.2 ms a time on
+        a few trials); larger ones are made at each call, not held for the data's
+        lifetime (2.2 MB an axis of 1,350 trials of 100 frequencies). The kept ones are
+        not pickled with the data."""
+        kept = self.__dict__.get("_noise_kept")
+        if kept is None:
+            sdb, sdeg = noise.standard_errors(self.se_db, self.se_deg)   # arrays of its own
+            if self.excluded is not None:
+                sdb[self.excluded] = np.nan
+                sdeg[self.excluded] = np.nan
+            if sdb.nbytes + sdeg.nbytes > NOISE_KEPT_BYTES:
+                return sdb[:, sel], sdeg[:, sel]
+            # frozen: set as functools.cached_property sets its value
+            kept = self.__dict__["_noise_kept"] = (sdb, sdeg)
+        sdb, sdeg = kept
         if isinstance(sel, slice):
             return sdb[:, sel].copy(), sdeg[:, sel].copy()
         return sdb[:, sel], sdeg[:, sel]
 
-    @cached_property
-    def _noise_se(self) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`noise_se` on the whole grid, made once (a fit asks for it with each
-        joint problem and each choice of starting rows: 0.2 ms a time). Not pickled."""
-        sdb, sdeg = noise.standard_errors(self.se_db, self.se_deg)   # arrays of its own
-        if self.excluded is not None:
-            sdb[self.excluded] = np.nan
-            sdeg[self.excluded] = np.nan
-        return sdb, sdeg
-
     def __getstate__(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "_noise_se"}
+        return {k: v for k, v in self.__dict__.items() if k != "_noise_kept"}
 
 
 def select_rows(spectra, *, level: str, kind: str, axis: str, grip: float | None = None,
