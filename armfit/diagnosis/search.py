@@ -130,10 +130,13 @@ class _Search:
         self.winner: tuple | None = None
 
     def noise(self) -> tuple[np.ndarray, np.ndarray]:
-        """The noise model's standard errors (dB, deg) of every trial on the band, (T, n):
-        made from :attr:`data` when needed, not held for the search's length (on 1,350
-        trials of 100 frequencies, 2.2 MB an axis besides the data's own); views of the
-        band, not copies of it (every statistic is taken of arrays computed from them)."""
+        """The noise model's standard errors (dB, deg) of every trial on the band, (T, n),
+        from :meth:`AxisData.noise_se`: an axis of more than
+        :data:`~armfit.diagnosis.responses.NOISE_KEPT_BYTES` of them has them made when
+        needed, not held for the search's length (on 1,350 trials of 100 frequencies,
+        2.2 MB an axis besides the data's own), and gets views of the band, not copies of
+        it (every statistic is taken of arrays computed from them); a smaller axis's are
+        kept by its data, and each call gets copies of the band."""
         return self.data.noise_se(self.cols)
 
     def n_params(self, fit: JointFit) -> int:
