@@ -994,7 +994,8 @@ def fit_uncertainty(spectra, nominal, *, cost: str = "envelope", order: int | No
     check : dict, optional
         {label: {axis: WuWeight}} further weights to evaluate on the same data.
     jobs : int
-        Worker processes (one axis each); the result does not depend on it.
+        Worker processes (each order of an axis's Wu fit a task, the axes side by
+        side); the result does not depend on it.
     executor : concurrent.futures.Executor, optional
         Runs the tasks instead of ``jobs`` worker processes: a process pool of yours, or
         a ``dask.distributed`` client's ``client.get_executor()`` (used as is, never shut

@@ -33,7 +33,7 @@ from __future__ import annotations
 import contextlib
 import threading
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -51,7 +51,7 @@ from armfit.io.ranges import FREQUENCY_RANGE, check_in_range
 from armfit.io.schema import WU_POINTS_COLUMNS, WU_SUMMARY_COLUMNS, wu_sidecar_paths
 from armfit.models.params import model_from_params
 from armfit.spectra import Spectra
-from armfit.workers import POOL_PRELOAD, map_tasks
+from armfit.workers import POOL_PRELOAD, executor_for
 
 #: The paper's band for Wu: 0.01–30 Hz (Sec. II-F).
 PAPER_BAND_HZ: tuple[float, float] = (0.01, 30.0)
@@ -683,53 +683,88 @@ def fit_wu(f_hz, wmax, *, n_pairs: int | None = None, cost: str = "envelope",
     the grid points with unit weights (eq. 7 fit with Wt = 1); no envelope guarantee.
     Order: the smallest whose RMS error is within ``order_tol_db`` of the best.
     """
+    return _fit_here(_plan(f_hz, wmax, n_pairs=n_pairs, cost=cost, band=band,
+                           max_pairs=max_pairs, order_tol_db=order_tol_db, n_bins=n_bins,
+                           n_sub=n_sub))
+
+
+@dataclass(frozen=True, eq=False)
+class _WuPlan:
+    """One Wu fit's settings and data (:func:`_plan`): the target prepared, the orders
+    whose scores choose (``orders``), and the highest order fitted (``last``; orders are
+    fitted from 0 up to it, each from the one before)."""
+
+    tgt: _Target
+    orders: tuple[int, ...]
+    cost: str
+    order_tol_db: float
+    n_sub: int
+
+    @property
+    def last(self) -> int:
+        return max(self.orders)
+
+
+@dataclass(frozen=True, eq=False)
+class _OrderFit:
+    """The fit of one order (:func:`_fit_order`): θ, the DC level (dB), whether the
+    optimiser converged, and the order's score (mean gap or RMS error, dB)."""
+
+    theta: np.ndarray
+    dc_db: float
+    converged: bool
+    score: float
+
+
+def _plan(f_hz, wmax, *, n_pairs: int | None = None, cost: str = "envelope",
+          band: tuple[float, float] | None = None, max_pairs: int = MAX_PAIRS,
+          order_tol_db: float = 0.1, n_bins: int = 160, n_sub: int = 8) -> _WuPlan:
+    """:func:`fit_wu`'s arguments checked and its target prepared (no fit yet)."""
     if cost not in ("envelope", "paper"):
         raise UsageError(f"cost must be 'envelope' or 'paper', got {cost!r}")
     if n_pairs is not None and not (0 <= n_pairs <= max_pairs):
         raise UsageError(f"order must be 0..{max_pairs} pairs, got {n_pairs}")
     if not 0 <= max_pairs <= MAX_PAIRS:
         raise UsageError(f"max_pairs must be 0..{MAX_PAIRS}, got {max_pairs}")
-    # thousands of tiny dense problems (SLSQP, trust-region SVDs of ~160 x 21 matrices):
-    # BLAS worker threads cost far more than they save there (a fit runs tens of times
-    # slower on a busy 2-core machine), whichever BLAS numpy and scipy load
-    with _one_blas_thread():
-        return _fit_wu(f_hz, wmax, n_pairs, cost, band, max_pairs, order_tol_db, n_bins, n_sub)
-
-
-def _fit_wu(f_hz, wmax, n_pairs, cost, band, max_pairs, order_tol_db, n_bins, n_sub
-            ) -> WuResult:
     tgt = _prepare(f_hz, wmax, band, n_bins, n_sub)
-    orders = [n_pairs] if n_pairs is not None else list(range(max_pairs + 1))
-    fits: dict[int, tuple[np.ndarray, float, bool]] = {}
-    score: dict[int, float] = {}
-    prev = None
-    for n in range(max(orders) + 1):
-        if cost == "envelope":
-            th, dc, ok = _fit_order_envelope(n, tgt, prev)
-            prev = th
-            g, _ = _Sections(2 * np.pi * tgt.f, n).value_jac(th, jac=False)
-            score[n] = float(tgt.w_log @ (dc + g - tgt.wdb))
-        else:
-            th, dc, ok, rms = _fit_order_paper(n, tgt, prev)
-            prev = th
-            score[n] = rms
-        fits[n] = (th, dc, ok)
-    scored = {n: score[n] for n in orders}
+    orders = (n_pairs,) if n_pairs is not None else tuple(range(max_pairs + 1))
+    return _WuPlan(tgt, orders, cost, order_tol_db, n_sub)
+
+
+def _fit_order(plan: _WuPlan, n: int, prev: np.ndarray | None) -> _OrderFit:
+    """Order ``n`` of ``plan`` fitted, from the fit of order n − 1 (``prev``, its θ;
+    None for order 0), and scored."""
+    tgt = plan.tgt
+    if plan.cost == "envelope":
+        th, dc, ok = _fit_order_envelope(n, tgt, prev)
+        g, _ = _Sections(2 * np.pi * tgt.f, n).value_jac(th, jac=False)
+        return _OrderFit(th, dc, ok, float(tgt.w_log @ (dc + g - tgt.wdb)))
+    th, dc, ok, rms = _fit_order_paper(n, tgt, prev)
+    return _OrderFit(th, dc, ok, rms)
+
+
+def _wu_result(plan: _WuPlan, fits: Sequence[_OrderFit]) -> WuResult:
+    """The weight of the chosen order, from the fits of orders 0 to ``plan.last`` (in
+    order): the smallest order of ``plan.orders`` whose score is within
+    ``order_tol_db`` of the best, and its checks against the target."""
+    tgt = plan.tgt
+    scored = {n: fits[n].score for n in plan.orders}
     best = min(scored.values())
-    chosen = min(n for n, v in scored.items() if v <= best + order_tol_db)
-    th, dc, ok = fits[chosen]
-    weight = _theta_to_weight(th, chosen, dc)
+    chosen = min(n for n, v in scored.items() if v <= best + plan.order_tol_db)
+    fit = fits[chosen]
+    weight = _theta_to_weight(fit.theta, chosen, fit.dc_db)
     if not (weight.is_stable and weight.is_minimum_phase):  # guaranteed by the bounds
         raise ConvergenceError("Wu fit left the left half plane (internal bound failure)")
     chk = check_envelope(tgt.f, 10 ** (tgt.wdb / 20), weight, band=(tgt.f[0], tgt.f[-1]),
-                         n_sub=n_sub)
+                         n_sub=plan.n_sub)
     err = weight.magnitude_db(tgt.f) - tgt.wdb
     return WuResult(
-        gain=weight.gain, zeros=weight.zeros, poles=weight.poles, order=chosen, cost=cost,
-        coverage_pct=chk.coverage_pct, coverage_between_pct=chk.coverage_between_pct,
+        gain=weight.gain, zeros=weight.zeros, poles=weight.poles, order=chosen,
+        cost=plan.cost, coverage_pct=chk.coverage_pct,
+        coverage_between_pct=chk.coverage_between_pct,
         tightness_median_db=chk.tightness_median_db, tightness_max_db=chk.tightness_max_db,
         mean_gap_db=chk.mean_gap_db, rms_db=float(np.sqrt(np.mean(err ** 2))),
-        converged=ok, band_hz=chk.band_hz, orders_tried=scored)
+        converged=fit.converged, band_hz=chk.band_hz, orders_tried=scored)
 
 
 # ---------------------------------------------------------------------------
@@ -843,26 +878,72 @@ class AxisUncertainty:
     checks: Mapping[tuple[str, str], EnvelopeCheck]
 
 
-def _fit_wu_task(args) -> WuResult:
-    f, target, kw = args
-    return fit_wu(f, target, **kw)
+def _fit_here(plan: _WuPlan) -> WuResult:
+    """The Wu fit of ``plan`` in this thread, its orders in turn (BLAS on one thread)."""
+    # thousands of tiny dense problems (SLSQP, trust-region SVDs of ~160 x 21 matrices):
+    # BLAS worker threads cost far more than they save there (a fit runs tens of times
+    # slower on a busy 2-core machine), whichever BLAS numpy and scipy load
+    with _one_blas_thread():
+        fits: list[_OrderFit] = []
+        for n in range(plan.last + 1):
+            fits.append(_fit_order(plan, n, fits[-1].theta if fits else None))
+        return _wu_result(plan, fits)
+
+
+def _order_task(args: tuple[_WuPlan, int, np.ndarray | None]) -> _OrderFit:
+    """Worker: one order of a Wu fit (:func:`_fit_order`), BLAS on one thread."""
+    plan, n, prev = args
+    with _one_blas_thread():
+        return _fit_order(plan, n, prev)
+
+
+def _fit_chains(plans: Sequence[_WuPlan], executor: Executor) -> list[WuResult]:
+    """The Wu fits of ``plans`` on ``executor``, an order a task: each order is handed
+    over as soon as the order before it is done (it starts from that fit), so that the
+    axes' chains of orders run side by side and the workers share them whatever their
+    lengths. Each order is the same computation as in :func:`_fit_here`, so are the
+    results. The first error of a task is raised; the tasks not yet done are then
+    cancelled."""
+    fits: list[list[_OrderFit]] = [[] for _ in plans]
+    running: dict[Future, int] = {}
+
+    def hand(i: int) -> None:
+        prev = fits[i][-1].theta if fits[i] else None
+        running[executor.submit(_order_task, (plans[i], len(fits[i]), prev))] = i
+
+    try:
+        for i in range(len(plans)):
+            hand(i)
+        while running:
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in sorted(done, key=running.__getitem__):
+                i = running.pop(fut)
+                fits[i].append(fut.result())
+                if len(fits[i]) <= plans[i].last:
+                    hand(i)
+    finally:
+        for fut in running:
+            fut.cancel()
+    return [_wu_result(plan, f) for plan, f in zip(plans, fits, strict=True)]
 
 
 def _fit_wu_axes(tasks, jobs: int, executor) -> list[WuResult]:
-    """:func:`fit_wu` of each task ``(f_hz, wmax, options)``, an axis a task, in ``jobs``
-    worker processes or on ``executor``. On an executor other than a pool of processes,
-    BLAS is held on one thread from this thread too: a fit handed to a pool of threads
-    would otherwise run with BLAS's threads (its own limit ignored, see
+    """:func:`fit_wu` of each task ``(f_hz, wmax, options)`` (an axis each), here in turn,
+    or in ``jobs`` worker processes or on ``executor`` an order a task
+    (:func:`_fit_chains`). On an executor other than a pool of processes, BLAS is held
+    on one thread from this thread too: a fit handed to a pool of threads would
+    otherwise run with BLAS's threads (its own limit ignored, see
     :func:`_one_blas_thread`), and differ from the fit in a process. Fits here, in turn,
     or in processes hold it themselves, and this process then needs no optimiser."""
-    def fit():
-        return map_tasks(_fit_wu_task, tasks, jobs, preload=POOL_PRELOAD["uncertainty"],
-                         executor=executor)
-
-    if executor is None or isinstance(executor, ProcessPoolExecutor):
-        return fit()
-    with _one_blas_thread():
-        return fit()
+    plans = [_plan(f, target, **kw) for f, target, kw in tasks]
+    with executor_for(executor, jobs, tasks=len(plans),
+                      preload=POOL_PRELOAD["uncertainty"]) as ex:
+        if ex is None:
+            return [_fit_here(plan) for plan in plans]
+        if isinstance(ex, ProcessPoolExecutor):
+            return _fit_chains(plans, ex)
+        with _one_blas_thread():
+            return _fit_chains(plans, ex)
 
 
 @dataclass(frozen=True, eq=False)

@@ -445,3 +445,94 @@ def test_the_axes_wu_fits_on_a_pool_of_threads_are_fit_wus():
                                                          b.converged)
         assert a.gain == b.gain
         assert np.array_equal(a.zeros, b.zeros) and np.array_equal(a.poles, b.poles)
+
+
+def _three_wu_tasks():
+    """Table III's weights as W_max on the log grid (a fit must recover each), one task
+    per axis as fit_weights makes them: the envelope fit choosing its order, the paper's
+    cost, and a given order (its chain stops there)."""
+    targets = [np.abs(table3_weight(a).response(F_LOG)) for a in ("x", "y", "z")]
+    options = [{"cost": "envelope", "band": BAND}, {"cost": "paper", "band": BAND},
+               {"cost": "envelope", "band": BAND, "n_pairs": 2}]
+    return [(F_LOG, w, kw) for w, kw in zip(targets, options, strict=True)]
+
+
+def test_the_axes_wu_fits_on_worker_processes_are_fit_wus():
+    # the reference: fit_wu of each task here, its orders in turn; on two worker
+    # processes each order is a task of its own, handed over once the order before it
+    # is done. Every number must be the same, bit for bit
+    from armfit import uncertainty as U
+    tasks = _three_wu_tasks()
+    got = U._fit_wu_axes(tasks, 2, None)
+    for a, (f, w, kw) in zip(got, tasks, strict=True):
+        b = fit_wu(f, w, **kw)
+        assert (a.order, a.cost, a.orders_tried, a.converged) == (
+            b.order, b.cost, b.orders_tried, b.converged)
+        assert (a.gain, a.mean_gap_db, a.rms_db, a.tightness_max_db) == (
+            b.gain, b.mean_gap_db, b.rms_db, b.tightness_max_db)
+        assert np.array_equal(a.zeros, b.zeros) and np.array_equal(a.poles, b.poles)
+    assert [r.order for r in got][2] == 2 and set(got[2].orders_tried) == {2}
+
+
+def test_wu_chains_hand_an_order_over_once_the_one_before_is_done():
+    # an executor that records what it is given: each axis's orders 0..last, in turn,
+    # each started from the order before's θ (None for order 0), and the three axes'
+    # chains side by side (the first three tasks are their orders 0)
+    from concurrent.futures import ThreadPoolExecutor
+
+    from armfit import uncertainty as U
+    log = []
+
+    class Recording(ThreadPoolExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            plan, n, prev = args[0]
+            fut = super().submit(fn, *args, **kwargs)
+            log.append((plan, n, prev, fut))
+            return fut
+
+    tasks = _three_wu_tasks()
+    with Recording(2) as pool:
+        got = U._fit_wu_axes(tasks, 2, pool)
+    plans = list(dict.fromkeys(p for p, *_ in log))
+    assert len(plans) == 3 and [n for _, n, _, _ in log[:3]] == [0, 0, 0]
+    for plan, res in zip(plans, got, strict=True):
+        mine = [(n, prev, fut) for p, n, prev, fut in log if p is plan]
+        assert [n for n, _, _ in mine] == list(range(plan.last + 1))
+        assert mine[0][1] is None
+        for (_, _, before), (_, prev, _) in zip(mine, mine[1:]):
+            assert np.array_equal(prev, before.result().theta)
+        assert res.orders_tried == {n: mine[n][2].result().score for n in plan.orders}
+    assert [p.last for p in plans] == [U.MAX_PAIRS, U.MAX_PAIRS, 2]
+
+
+def test_a_failing_wu_order_is_raised_and_its_chain_stops(monkeypatch):
+    # order 1 of the y axis fails, on an executor that runs each task as it is handed
+    # over (so the order of events is fixed): its error reaches the caller and no later
+    # order of y is fitted. The other chains went on meanwhile as far as the orders done
+    # allowed: x0, y0, z0 done -> x1, y1, z1 handed over; then x1 done -> x2; y1's error
+    from concurrent.futures import Executor, Future
+
+    from armfit import uncertainty as U
+    real = U._fit_order
+    seen = []
+
+    def failing(plan, n, prev):
+        seen.append((plan.cost, plan.last, n))
+        if plan.cost == "paper" and n == 1:
+            raise RuntimeError("order 1 of y failed")
+        return real(plan, n, prev)
+
+    class AtOnce(Executor):
+        def submit(self, fn, /, *args, **kwargs):
+            fut = Future()
+            try:
+                fut.set_result(fn(*args, **kwargs))
+            except Exception as exc:
+                fut.set_exception(exc)
+            return fut
+
+    monkeypatch.setattr(U, "_fit_order", failing)
+    with pytest.raises(RuntimeError, match="order 1 of y"):
+        U._fit_wu_axes(_three_wu_tasks(), 2, AtOnce())
+    x, y, z = ("envelope", U.MAX_PAIRS), ("paper", U.MAX_PAIRS), ("envelope", 2)
+    assert seen == [(*x, 0), (*y, 0), (*z, 0), (*x, 1), (*y, 1), (*z, 1), (*x, 2)]

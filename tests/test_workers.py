@@ -233,7 +233,7 @@ def test_each_pool_preloads_the_module_of_its_tasks():
                            search._subject_task),
              "estimate": (spectra._estimate_source,),
              "fit": (fitting._fit_group, fitting._fit_trial_task),
-             "uncertainty": (uncertainty._fit_wu_task,)}
+             "uncertainty": (uncertainty._order_task,)}
     assert set(tasks) == set(workers.POOL_PRELOAD)
     for kind, fns in tasks.items():
         for fn in fns:
