@@ -5,13 +5,18 @@ from __future__ import annotations
 import csv
 import functools
 from collections.abc import Sequence
-from importlib import resources
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 if TYPE_CHECKING:
     import pandas as pd
+
+#: The folder of the data files: this package's own (installed as files, as pip installs
+#: it). Not ``importlib.resources``, whose import (with ``tempfile``) cost every process
+#: that loads the fits, the diagnosis's fork server among them, about 6 ms.
+_FOLDER = Path(__file__).parent
 
 TABLES = {
     "grip": "table1_grip_dependent.csv",
@@ -25,7 +30,7 @@ def paper_table(name: str) -> pd.DataFrame:
     """Return one of the paper's tables: 'grip' (I), 'nominal' (II), 'uncertainty' (III),
     'literature' (IV), as printed (SI units)."""
     import pandas as pd
-    with resources.files(__name__).joinpath(TABLES[name]).open() as fh:
+    with _FOLDER.joinpath(TABLES[name]).open() as fh:
         return pd.read_csv(fh)
 
 
@@ -34,7 +39,7 @@ def paper_values(name: str, columns: Sequence[str]) -> np.ndarray:
     shape (rows, len(columns)), in the file's row order: the numbers
     ``paper_table(name)[columns].to_numpy(float)`` gives (an empty cell is NaN), read
     without pandas (the fits' worker processes need the numbers only)."""
-    with resources.files(__name__).joinpath(TABLES[name]).open(newline="") as fh:
+    with _FOLDER.joinpath(TABLES[name]).open(newline="") as fh:
         header, *rows = list(csv.reader(fh))
     idx = [header.index(c) for c in columns]
     return np.array([[float(row[i]) if row[i].strip() else np.nan for i in idx]
@@ -48,7 +53,7 @@ SOBOL_DIRECTIONS = "sobol_directions.csv"
 
 @functools.lru_cache(maxsize=1)
 def _sobol_directions() -> np.ndarray:
-    with resources.files(__name__).joinpath(SOBOL_DIRECTIONS).open() as fh:
+    with _FOLDER.joinpath(SOBOL_DIRECTIONS).open() as fh:
         m = np.loadtxt(fh, delimiter=",", comments="#", dtype=np.int64, ndmin=2)
     m.setflags(write=False)
     return m
