@@ -1268,7 +1268,7 @@ def loop_model(model: ClosedLoopModel, theta: Mapping[str, float],
 def stability_table(params, settings: WallSettings, *, weights=None,
                     weights_band_hz: Mapping[str, tuple[float, float]] | None = None,
                     source: str | None = None, outside_loop: Sequence[str] = (),
-                    members=None):
+                    members=None, members_k_max=None):
     """K_max for every row of a parameters table, in row order, and with ``weights``
     the robust certificate of each row.
 
@@ -1292,6 +1292,10 @@ def stability_table(params, settings: WallSettings, *, weights=None,
         The models each weight was built from (the per-trial fits), rows like
         ``params``: each row's certificate is capped at the smallest K_max of its axis's
         members and checked against their models above the band.
+    members_k_max : sequence of float, optional
+        K_max (N/m) of each row of ``members``, as this function gave them for
+        ``members`` with the same ``settings`` and ``outside_loop`` (its
+        ``k_max_N_per_m`` column): not computed again.
 
     Returns
     -------
@@ -1303,13 +1307,19 @@ def stability_table(params, settings: WallSettings, *, weights=None,
     models, res = _k_max_rows(params, settings, outside_loop)
     by_axis: dict[str, list] = {}
     if weights is not None and members is not None and len(members):
-        m_models, m_res = _k_max_rows(members, settings, outside_loop)
-        for i, ((mm, th), r) in enumerate(zip(m_models, m_res, strict=True)):
+        if members_k_max is None:
+            m_models, m_res = _k_max_rows(members, settings, outside_loop)
+            m_k = [r.k_max_N_per_m for r in m_res]
+        else:
+            m_models, m_k = _loop_models(members, outside_loop), list(members_k_max)
+            if len(m_k) != len(m_models):
+                raise ValueError(f"members_k_max has {len(m_k)} values for "
+                                 f"{len(m_models)} members")
+        for i, ((mm, th), k) in enumerate(zip(m_models, m_k, strict=True)):
             row = members.iloc[i]
             rec = {"axis": str(row["axis"]), "grip_N": _num(row.get("grip_N")),
                    "subject": _text(row.get("subject")), "run": _num(row.get("run"))}
-            by_axis.setdefault(rec["axis"], []).append((describe(rec), mm, th,
-                                                        r.k_max_N_per_m))
+            by_axis.setdefault(rec["axis"], []).append((describe(rec), mm, th, float(k)))
     recs = []
     for i, ((model, theta), r) in enumerate(zip(models, res, strict=True)):
         row = params.iloc[i]
@@ -1342,10 +1352,15 @@ def stability_table(params, settings: WallSettings, *, weights=None,
     return pd.DataFrame(recs, columns=cols)
 
 
+def _loop_models(params, outside_loop: Sequence[str]) -> list:
+    """[(loop model, values)], one per row (:func:`loop_model`)."""
+    return [loop_model(*model_from_params(row), outside_loop)
+            for _, row in params.iterrows()]
+
+
 def _k_max_rows(params, settings: WallSettings, outside_loop: Sequence[str]):
     """[(loop model, values)] and their :class:`WallStability`, one per row."""
-    models = [loop_model(*model_from_params(row), outside_loop)
-              for _, row in params.iterrows()]
+    models = _loop_models(params, outside_loop)
     return models, wall_stability([plant_from_model(m, th) for m, th in models], settings)
 
 

@@ -1035,7 +1035,8 @@ def _stability(config: RunConfig, workers: _Workers, models: Models, adoption: A
         warnings.simplefilter("ignore", RuntimeWarning)
         cert = stability_table(models.nominal.table, settings, weights=uncertainty.weights,
                                weights_band_hz=bands, outside_loop=loop,
-                               members=rows.table)
+                               members=rows.table,
+                               members_k_max=table["k_max_N_per_m"].to_numpy(float))
         base = None
         if models.base_nominal is not None:
             base = stability_table(models.base_nominal.table, settings)

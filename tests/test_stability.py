@@ -396,3 +396,38 @@ def test_plant_products_are_numpys_polymul_to_the_bit():
         assert got.shape == want.shape and got.tobytes() == want.tobytes()
     assert trimmed > 100
     assert _polymul([0.5, 2.0], [3.0]).tolist() == np.polymul([0.5, 2.0], [3.0]).tolist()
+
+
+def test_certificate_with_the_members_k_max_given_is_the_same_table():
+    """The run computes the members' K_max once (stability.csv) and hands them to the
+    certificate (``members_k_max``): the table must be the one the certificate makes
+    computing them itself, to the bit (Table II around Table III's weights scaled to
+    0.3x, so that certificates hold; Table I's fits as the members). A value given is the
+    value used: a member said to reach 1 N/m caps its axis's certificate there."""
+    import pandas as pd
+    weights, bands, _ = read_weights_and_bands("paper")
+    weights = {a: _scaled(w, 0.3) for a, w in weights.items()}
+    nominal = paper_params("nominal").assign(row=[1, 2, 3])
+    members = paper_params("grip").reset_index(drop=True)
+    st = WallSettings()
+    k_members = stability_table(members, st)["k_max_N_per_m"].to_numpy(float)
+    full = stability_table(nominal, st, weights=weights, weights_band_hz=bands,
+                           members=members)
+    given = stability_table(nominal, st, weights=weights, weights_band_hz=bands,
+                            members=members, members_k_max=k_members)
+    pd.testing.assert_frame_equal(given, full, check_exact=True)
+    assert (full["limited_by"] != "").all() and full["member_k_max_N_per_m"].notna().all()
+    first_z = int(np.flatnonzero(members["axis"] == "z")[0])
+    low = k_members.copy()
+    low[first_z] = 1.0
+    capped = stability_table(nominal, st, weights=weights, weights_band_hz=bands,
+                             members=members, members_k_max=low).set_index("axis")
+    # Z's certificate holds (17.1 kN/m, limited by the weight beyond its band); the
+    # member said to reach 1 N/m now limits it
+    assert full.set_index("axis").loc["z", "k_robust_N_per_m"] > 1e4
+    assert capped.loc["z", "member_k_max_N_per_m"] == 1.0
+    assert capped.loc["z", "k_robust_N_per_m"] == 1.0
+    assert capped.loc["z", "limited_by"] == "member"
+    with pytest.raises(ValueError, match="members_k_max has 2 values"):
+        stability_table(nominal, st, weights=weights, members=members,
+                        members_k_max=k_members[:2])

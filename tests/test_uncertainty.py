@@ -499,7 +499,7 @@ def test_wu_chains_hand_an_order_over_once_the_one_before_is_done():
         mine = [(n, prev, fut) for p, n, prev, fut in log if p is plan]
         assert [n for n, _, _ in mine] == list(range(plan.last + 1))
         assert mine[0][1] is None
-        for (_, _, before), (_, prev, _) in zip(mine, mine[1:]):
+        for (_, _, before), (_, prev, _) in zip(mine[:-1], mine[1:], strict=True):
             assert np.array_equal(prev, before.result().theta)
         assert res.orders_tried == {n: mine[n][2].result().score for n in plan.orders}
     assert [p.last for p in plans] == [U.MAX_PAIRS, U.MAX_PAIRS, 2]
