@@ -182,7 +182,7 @@ def minimize_slsqp(fun: Callable[[np.ndarray], tuple[float, np.ndarray]], x0,
     counts = [0, 0]
 
     def value(z):
-        if cache[0] is None or not np.all(z == cache[0]):
+        if cache[0] is None or not (z == cache[0]).all():
             f, g = fun(z.copy())
             cache[:] = [z.copy(), f, g]
             counts[0] += 1

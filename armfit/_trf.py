@@ -388,7 +388,7 @@ def _trf_bounds(fun, jac, x0, f0, J0, lb, ub, ftol, xtol, gtol, max_nfev, x_scal
 def _jac_scale(J, scale_inv_old=None):
     """scipy's ``compute_jac_scale``: the variables' scale from the norms of the
     Jacobian's columns (1 for a zero column at the start; never below the last)."""
-    scale_inv = np.sum(J**2, axis=0)**0.5
+    scale_inv = (J**2).sum(axis=0)**0.5
     if scale_inv_old is None:
         scale_inv[scale_inv == 0] = 1
     else:
@@ -480,7 +480,7 @@ def _solve_lsq_trust_region(n, m, uf, s, V, Delta, initial_alpha=None, rtol=0.01
         denom = s**2 + alpha
         p_norm = norm(suf / denom)
         phi = p_norm - Delta
-        phi_prime = -np.sum(suf ** 2 / denom**3) / p_norm
+        phi_prime = -(suf ** 2 / denom**3).sum() / p_norm
         return phi, phi_prime
 
     suf = s * uf
@@ -590,7 +590,7 @@ def _step_size_to_bound(x, s, lb, ub):
     with np.errstate(over='ignore'):
         steps[non_zero] = np.maximum((lb - x)[non_zero] / s_non_zero,
                                      (ub - x)[non_zero] / s_non_zero)
-    min_step = np.min(steps)
+    min_step = steps.min()
     return min_step, np.equal(steps, min_step) * np.sign(s).astype(int)
 
 

@@ -225,7 +225,9 @@ def log_errors(model_h: np.ndarray, data_h: np.ndarray) -> tuple[np.ndarray, np.
     against data: 20 log10|Hm/Hd| and angle(Hm/Hd) — the terms of eq. 5 and its phase
     counterpart."""
     ratio = model_h / data_h
-    return DB_PER_NEPER * np.log(np.abs(ratio)), np.degrees(np.angle(ratio))
+    # np.angle's own arctan2 of (imag, real), without its argument handling
+    return (DB_PER_NEPER * np.log(np.abs(ratio)),
+            np.degrees(np.arctan2(ratio.imag, ratio.real)))
 
 
 @dataclass(frozen=True)

@@ -84,7 +84,7 @@ def _tr_steps(uf, s, V, delta, alpha, m: int, rtol: float = 0.01, max_iter: int 
     def phi_and_derivative(a):
         denom = s ** 2 + a[:, None]
         p_norm = np.linalg.norm(suf / denom, axis=1)
-        return p_norm - delta, -np.sum(suf ** 2 / denom ** 3, axis=1) / p_norm
+        return p_norm - delta, -(suf ** 2 / denom ** 3).sum(axis=1) / p_norm
 
     with np.errstate(divide="ignore", invalid="ignore"):
         a_hi = np.linalg.norm(suf, axis=1) / delta
@@ -219,7 +219,7 @@ class _Fits:
             return
         self.fresh[new] = False
         v, dv = _cl_scaling(self.x[new], self.g[new], self.lb, self.ub)
-        g_norm = np.max(np.abs(self.g[new] * v), axis=1)
+        g_norm = np.abs(self.g[new] * v).max(axis=1)
         small_g = g_norm < gtol
         self.status[new[small_g]] = 1
         stop = small_g | (self.nfev[new] >= max_nfev)
@@ -255,7 +255,7 @@ class _Fits:
                              + np.einsum("kn,kn->k", p_h * diag_h, p_h))
                       + np.einsum("kn,kn->k", g_h, p_h))
         xp = self.x + p
-        for j in np.flatnonzero(~np.all((xp >= lb) & (xp <= ub), axis=1)):
+        for j in np.flatnonzero(~((xp >= lb) & (xp <= ub)).all(axis=1)):
             p[j], p_h[j], predicted[j] = _select_step(
                 self.x[j], _Dense(J_h[j], g_h[j], diag_h[j]), d[j], p_h[j],
                 self.delta[j], lb, ub, self.theta[j])
@@ -270,7 +270,7 @@ class _Fits:
         f_new = np.asarray(self.fun(x_new, self.ids), float)
         self.nfev += 1
         step_h_norm = np.linalg.norm(step_h, axis=1)
-        finite = np.all(np.isfinite(f_new), axis=1)
+        finite = np.isfinite(f_new).all(axis=1)
         cost_new = 0.5 * np.einsum("km,km->k", f_new, f_new)
         actual = self.cost - cost_new
         with np.errstate(divide="ignore", invalid="ignore"):
