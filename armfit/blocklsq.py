@@ -282,7 +282,10 @@ class _Scaled(_Quadratic):
         if self.k == 0:
             return _lapack.linalg_solve(Al, rb[..., None])[..., 0], np.zeros(0)
         if Air is None:     # the blocks were kept: this right-hand side beside a copy
-            Air = _lapack.linalg_solve(Al, np.stack([rb, rb], axis=2))[..., 0]
+            pair = np.empty((*rb.shape, 2))    # np.stack([rb, rb], axis=2), made directly
+            pair[..., 0] = rb
+            pair[..., 1] = rb
+            Air = _lapack.linalg_solve(Al, pair)[..., 0]
         g = self.groups
         if g is None:
             ys = _lapack.linalg_solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))

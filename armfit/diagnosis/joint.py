@@ -286,7 +286,7 @@ class JointProblem:
         Db = np.where(ok & np.isfinite(Db), Db, 0.0)                   # (5, t, m)
         R = np.where(np.isfinite(R), R, fill)
         De = (R[1:] - R[:1]) / h.T[:, :, None]                         # (k, t, m)
-        return np.moveaxis(np.concatenate([Db, De]), 0, -1)            # (t, m, P)
+        return np.concatenate([Db, De]).transpose(1, 2, 0)             # (t, m, P)
 
     def solve(self, x0: np.ndarray, max_nfev: int, **opts) -> blocklsq.BlockResult:
         """The joint least-squares fit from ``x0`` (:func:`armfit.blocklsq.solve`, given

@@ -403,7 +403,7 @@ class ClosedLoopModel:
         d_k2 = (c1 - z_arm) * scale              # the same for k2
         # ∂/∂Ma = s² ∂/∂k2, ∂/∂b1 = s ∂/∂k1, ∂/∂b2 = s ∂/∂k2 (all five of the shape of
         # scale, which has s and every base value in it)
-        out = (factor / z, np.stack([s * s * d_k2, d_k1, d_k2, s * d_k1, s * d_k2]))
+        out = (factor / z, np.array([s * s * d_k2, d_k1, d_k2, s * d_k1, s * d_k2]))
         return (*out, z_base) if with_base else out
 
     def _effect_terms(self, s, eff: Sequence[Mapping[str, float]], stages: Sequence[str],
