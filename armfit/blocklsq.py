@@ -37,7 +37,6 @@ the residuals times the parameters of a trial; its memory is that of the residua
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -57,12 +56,6 @@ Jac = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 Normal = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 #: The blocks at x whose residuals are r (T, m): (x, r) -> Normal.
 NormalFun = Callable[[np.ndarray, np.ndarray], Normal]
-
-
-def _norm(v: np.ndarray) -> float:
-    """‖v‖ of a 1-D float64 array, as ``numpy.linalg.norm(v)`` computes it (the square
-    root of ``v.dot(v)``), without its Python wrapper."""
-    return math.sqrt(v.dot(v))
 
 
 @dataclass(frozen=True)
@@ -349,7 +342,7 @@ class _Scaled(_Quadratic):
             if abs(phi) < 0.01 * delta:
                 break
         p = np.concatenate([pb.ravel(), ps])
-        return p * (delta / _norm(p)), alpha
+        return p * (delta / _lapack.norm(p)), alpha
 
 
 def _to_bound(x, s, lower, upper) -> tuple[float, np.ndarray]:
@@ -413,7 +406,7 @@ def _select_step(x, sub: _Quadratic, d, p_h, delta, lower, upper, theta):
     p_value = sub.value(p_h)
     ag_h = -sub.g_h
     ag = d * ag_h
-    to_tr = delta / _norm(ag_h)
+    to_tr = delta / _lapack.norm(ag_h)
     to_bound, _ = _to_bound(x, ag, lower, upper)
     ag_stride = theta * to_bound if to_bound < to_tr else to_tr
     a, b, _ = sub.quadratic_1d(ag_h)
@@ -536,16 +529,16 @@ def _iterate(fun: Fun, normal: NormalFun, state: tuple, lower, upper, T: int, nb
             x_new = _strictly_inside(x + step, lower, upper)
             r_new = fun(x_new)
             nfev += 1
-            step_h_norm = _norm(step_h)
+            step_h_norm = _lapack.norm(step_h)
             cost_new = 0.5 * float(r_new @ r_new)
             if not np.isfinite(cost_new):
                 delta = 0.25 * step_h_norm
                 continue
             actual = cost - cost_new
             ratio, new_delta = _radius(actual, predicted, step_h_norm, delta)
-            step_norm = _norm(step)
+            step_norm = _lapack.norm(step)
             small_f = actual < ftol * cost and ratio > 0.25
-            small_x = step_norm < xtol * (xtol + _norm(x))
+            small_x = step_norm < xtol * (xtol + _lapack.norm(x))
             if watch_ftol is not None and watched is None and not watch_status:
                 watch_status = _stop_status(actual < watch_ftol * cost and ratio > 0.25,
                                             small_x)
@@ -578,7 +571,7 @@ def _first_state(fun: Fun, normal: NormalFun, x0, lower, upper, T: int) -> tuple
     r = fun(x)
     blocks = normal(x, r.reshape(T, -1))
     v, _ = _cl_scaling(x, np.concatenate([blocks[3].ravel(), blocks[4]]), lower, upper)
-    return (x, r, 0.5 * float(r @ r), blocks, _norm(x / np.sqrt(v)) or 1.0,
+    return (x, r, 0.5 * float(r @ r), blocks, _lapack.norm(x / np.sqrt(v)) or 1.0,
             0.0, 1)
 
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 import contextlib
 import threading
 from collections.abc import Mapping, Sequence
-from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -899,31 +899,29 @@ def _order_task(args: tuple[_WuPlan, int, np.ndarray | None]) -> _OrderFit:
 
 def _fit_chains(plans: Sequence[_WuPlan], executor: Executor) -> list[WuResult]:
     """The Wu fits of ``plans`` on ``executor``, an order a task: each order is handed
-    over as soon as the order before it is done (it starts from that fit), so that the
-    axes' chains of orders run side by side and the workers share them whatever their
-    lengths. Each order is the same computation as in :func:`_fit_here`, so are the
-    results. The first error of a task is raised; the tasks not yet done are then
-    cancelled."""
+    over as soon as the order before it is done (it starts from that fit; the
+    diagnosis's :class:`~armfit.diagnosis.schedule.TaskQueue` calls the continuation),
+    so that the axes' chains of orders run side by side and the workers share them
+    whatever their lengths. Each order is the same computation as in :func:`_fit_here`,
+    so are the results. The first error of a task is raised; the tasks not yet done are
+    then cancelled."""
+    from armfit.diagnosis.schedule import TaskQueue
     fits: list[list[_OrderFit]] = [[] for _ in plans]
-    running: dict[Future, int] = {}
+    queue = TaskQueue(executor)
 
     def hand(i: int) -> None:
         prev = fits[i][-1].theta if fits[i] else None
-        running[executor.submit(_order_task, (plans[i], len(fits[i]), prev))] = i
+        queue.add(0, _order_task, (plans[i], len(fits[i]), prev),
+                  lambda fit: took(i, fit))
 
-    try:
-        for i in range(len(plans)):
+    def took(i: int, fit: _OrderFit) -> None:
+        fits[i].append(fit)
+        if len(fits[i]) <= plans[i].last:
             hand(i)
-        while running:
-            done, _ = wait(running, return_when=FIRST_COMPLETED)
-            for fut in sorted(done, key=running.__getitem__):
-                i = running.pop(fut)
-                fits[i].append(fut.result())
-                if len(fits[i]) <= plans[i].last:
-                    hand(i)
-    finally:
-        for fut in running:
-            fut.cancel()
+
+    for i in range(len(plans)):
+        hand(i)
+    queue.run()
     return [_wu_result(plan, f) for plan, f in zip(plans, fits, strict=True)]
 
 

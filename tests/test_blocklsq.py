@@ -338,13 +338,6 @@ def test_a_second_solve_at_the_same_alpha_is_that_of_a_fresh_subproblem(shared):
                                    rtol=1e-9, atol=1e-12)
 
 
-def test_the_norms_of_the_iteration_are_numpy_linalg_norm_bit_for_bit():
-    rng = np.random.default_rng(22)
-    for v in (rng.standard_normal(7), rng.standard_normal(451) * 1e-9, np.zeros(3),
-              np.array([3.0, 4.0])):
-        assert blocklsq._norm(v) == float(np.linalg.norm(v))
-
-
 def test_the_cost_model_of_a_step_with_itself_is_that_of_a_step_with_its_copy():
     # q's curvature term sᵀHs takes the cross term of the shared block once when both
     # vectors are the same array: the same bits as for two equal arrays (the general

@@ -37,3 +37,22 @@ def test_without_numpys_kernels_module_the_solve_is_numpy_linalg_solve(monkeypat
     b = rng.standard_normal((4, 5, 2))
     monkeypatch.setattr(_lapack, "_SOLVE", None)
     np.testing.assert_array_equal(_lapack.linalg_solve(a, b), np.linalg.solve(a, b))
+
+
+def test_norm_is_numpys_to_the_bit():
+    """``norm`` (the trust-region and block solvers' norms) is numpy.linalg.norm's own
+    operations without its argument handling: the same bits for the vectors it takes
+    (contiguous, strided, with a zero, tiny and huge components, the empty vector) for
+    the 2-norm and the largest magnitude."""
+    norm = _lapack.norm
+    rng = np.random.default_rng(3)
+    vectors = [rng.normal(size=n) * 10.0 ** rng.integers(-150, 150, size=n)
+               for n in (1, 2, 5, 21, 160, 1001)]
+    vectors += [rng.normal(size=40)[::3], np.zeros(7), np.array([0.0, -0.0, 3.0]),
+                rng.normal(size=(6, 5)).T[1], np.zeros(0), rng.normal(size=451) * 1e-9,
+                np.array([3.0, 4.0])]
+    for v in vectors:
+        assert norm(v) == np.linalg.norm(v)
+        assert type(norm(v)) is type(np.linalg.norm(v))
+        if v.size:
+            assert norm(v, ord=np.inf) == np.linalg.norm(v, ord=np.inf)
