@@ -17,6 +17,13 @@ a caller's several solves in a row.
 
 :func:`norm` is ``numpy.linalg.norm`` of a vector by numpy's own operations, without its
 argument handling (3 µs a call): the solvers' iterations take tens of thousands.
+:func:`row_norms` is the same for the rows of a matrix (``axis=1``), :func:`svd` the
+reduced SVD's LAPACK kernel (``gesdd``) without ``numpy.linalg.svd``'s checks and
+conversions (8 µs of a 20–30 µs call on a fit's Jacobian), and :func:`einsum` numpy's
+compiled ``einsum``, which ``numpy.einsum`` calls when not asked to optimise (2 µs of its
+4): the lock-step fits of :mod:`armfit.multilsq` make each of them several times an
+iteration, tens of thousands of times in a run. Each gives the same numbers as the
+numpy function (``tests/test_lapack.py``).
 """
 
 from __future__ import annotations
@@ -26,10 +33,19 @@ import numpy as np
 try:    # numpy 1.8 and later; private, hence the fallbacks below
     from numpy.linalg import _umath_linalg
     _SOLVE = (_umath_linalg.solve, _umath_linalg.solve1)
+    _SVD = _umath_linalg.svd_s
 except (ImportError, AttributeError):  # pragma: no cover - another numpy layout
-    _SOLVE = None
+    _SOLVE = _SVD = None
 
-__all__ = ["linalg_solve", "norm", "solving"]
+try:    # what numpy.einsum calls without optimize (numpy 2: _core; 1.x: core)
+    from numpy._core.multiarray import c_einsum as _C_EINSUM
+except ImportError:  # pragma: no cover - numpy 1.x
+    try:
+        from numpy.core.multiarray import c_einsum as _C_EINSUM
+    except ImportError:
+        _C_EINSUM = None
+
+__all__ = ["einsum", "linalg_solve", "norm", "row_norms", "solving", "svd"]
 
 
 def _singular(err: str, flag: int) -> None:
@@ -90,3 +106,62 @@ def norm(x: np.ndarray, ord=None) -> np.floating:
         x = x.ravel(order="K")
         return np.sqrt(x.dot(x))
     return abs(x).max()
+
+
+def row_norms(x: np.ndarray) -> np.ndarray:
+    """``numpy.linalg.norm(x, axis=1)`` of a real matrix, the same numbers: the square
+    root of the sum of each row's squares.
+
+    Parameters
+    ----------
+    x : ndarray, shape (k, n)
+        Float64.
+
+    Returns
+    -------
+    ndarray, shape (k,)
+    """
+    return np.sqrt(np.add.reduce(x * x, axis=1))
+
+
+def _no_convergence(err: str, flag: int) -> None:
+    raise np.linalg.LinAlgError("SVD did not converge")
+
+
+def svd(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``numpy.linalg.svd(a, full_matrices=False)`` of float64 matrices, the same numbers.
+
+    Parameters
+    ----------
+    a : ndarray, shape (..., m, n)
+        Float64.
+
+    Returns
+    -------
+    (U, s, Vh) : ndarrays, shapes (..., m, k), (..., k), (..., k, n), k = min(m, n)
+        As numpy returns them; LinAlgError when LAPACK does not converge.
+    """
+    if _SVD is None:   # pragma: no cover - another numpy layout
+        return tuple(np.linalg.svd(a, full_matrices=False))
+    with np.errstate(call=_no_convergence, invalid="call", over="ignore", divide="ignore",
+                     under="ignore"):
+        return _SVD(a, signature="d->ddd")
+
+
+def einsum(subscripts: str, *operands: np.ndarray) -> np.ndarray:
+    """``numpy.einsum(subscripts, *operands)`` (not optimised, numpy's default), the same
+    numbers: the compiled function numpy's wrapper calls.
+
+    Parameters
+    ----------
+    subscripts : str
+        As numpy's.
+    *operands : ndarray
+
+    Returns
+    -------
+    ndarray
+    """
+    if _C_EINSUM is None:   # pragma: no cover - another numpy layout
+        return np.einsum(subscripts, *operands)
+    return _C_EINSUM(subscripts, *operands)

@@ -57,7 +57,7 @@ from math import copysign
 
 import numpy as np
 
-from armfit._lapack import norm
+from armfit._lapack import norm, svd
 
 __all__ = ["TrfResult", "bounded_least_squares"]
 
@@ -202,7 +202,7 @@ def _svd(A):
     """``scipy.linalg.svd(A, full_matrices=False)`` as (U, s, V) with V = (Vᵀ)ᵀ: LAPACK's
     ``gesdd`` through numpy, U and Vᵀ in Fortran order as scipy returns them, so that the
     products with them take BLAS's same path (and rounding) as scipy's."""
-    U, s, V = np.linalg.svd(A, full_matrices=False)
+    U, s, V = svd(A)
     U, V = np.asfortranarray(U), np.asfortranarray(V)
     return U, s, V.T
 

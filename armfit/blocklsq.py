@@ -148,11 +148,11 @@ def normal_blocks(chunks, n_trials: int, groups: Groups | None = None) -> Normal
             A, B = np.empty((n_trials, nb, nb)), np.empty((n_trials, nb, kl))
             gb = np.empty((n_trials, nb))
             Ct, gst = np.empty((n_trials, kl, kl)), np.empty((n_trials, kl))
-        A[rows] = np.einsum("tmp,tmq->tpq", jb, jb)
-        B[rows] = np.einsum("tmp,tmk->tpk", jb, js)
-        gb[rows] = np.einsum("tmp,tm->tp", jb, r)
-        Ct[rows] = np.einsum("tmk,tml->tkl", js, js)
-        gst[rows] = np.einsum("tmk,tm->tk", js, r)
+        A[rows] = _lapack.einsum("tmp,tmq->tpq", jb, jb)
+        B[rows] = _lapack.einsum("tmp,tmk->tpk", jb, js)
+        gb[rows] = _lapack.einsum("tmp,tm->tp", jb, r)
+        Ct[rows] = _lapack.einsum("tmk,tml->tkl", js, js)
+        gst[rows] = _lapack.einsum("tmk,tm->tk", js, r)
     if groups is None:
         return A, B, Ct.sum(axis=0), gb, gst.sum(axis=0)
     return A, B, groups.add_matrices(Ct), gb, groups.add_vectors(gst)
@@ -227,12 +227,12 @@ class _Scaled(_Quadratic):
         """pᵀ(J_hᵀJ_h)q from the blocks (pᵀBq and qᵀBp made once when q is p)."""
         pb, ps = self._split(p)
         qb, qs = (pb, ps) if q is p else self._split(q)
-        out = float((pb * np.einsum("tpq,tq->tp", self.A, qb)).sum())
+        out = float((pb * _lapack.einsum("tpq,tq->tp", self.A, qb)).sum())
         if self.k:
-            cross = float((pb * np.einsum("tpk,tk->tp", self.B, self._local(qs))).sum())
+            cross = float((pb * _lapack.einsum("tpk,tk->tp", self.B, self._local(qs))).sum())
             out += cross
             out += cross if q is p else float(
-                (qb * np.einsum("tpk,tk->tp", self.B, self._local(ps))).sum())
+                (qb * _lapack.einsum("tpk,tk->tp", self.B, self._local(ps))).sum())
             out += float(ps @ self.C @ qs)
         return out
 
@@ -269,8 +269,8 @@ class _Scaled(_Quadratic):
                 kl = self.B.shape[2]
                 sol = _lapack.linalg_solve(Al, np.concatenate([self.B, rb[..., None]], axis=2))
                 AiB, Air = sol[..., :kl], sol[..., kl]
-                S = Cl - (np.einsum("tpk,tpl->kl", self.B, AiB) if self.groups is None else
-                          self.groups.add_matrices(np.einsum("tpk,tpl->tkl", self.B, AiB)))
+                S = Cl - (_lapack.einsum("tpk,tpl->kl", self.B, AiB) if self.groups is None else
+                          self.groups.add_matrices(_lapack.einsum("tpk,tpl->tkl", self.B, AiB)))
             self._kept = (alpha, Al, AiB, S)
         if self.k == 0:
             return _lapack.linalg_solve(Al, rb[..., None])[..., 0], np.zeros(0)
@@ -281,10 +281,10 @@ class _Scaled(_Quadratic):
             Air = _lapack.linalg_solve(Al, pair)[..., 0]
         g = self.groups
         if g is None:
-            ys = _lapack.linalg_solve(S, rs - np.einsum("tpk,tp->k", self.B, Air))
+            ys = _lapack.linalg_solve(S, rs - _lapack.einsum("tpk,tp->k", self.B, Air))
             return Air - AiB @ ys, ys
-        ys = _lapack.linalg_solve(S, rs - g.add_vectors(np.einsum("tpk,tp->tk", self.B, Air)))
-        return Air - np.einsum("tpk,tk->tp", AiB, g.take(ys)), ys
+        ys = _lapack.linalg_solve(S, rs - g.add_vectors(_lapack.einsum("tpk,tp->tk", self.B, Air)))
+        return Air - _lapack.einsum("tpk,tk->tp", AiB, g.take(ys)), ys
 
     @property
     def g_h(self) -> np.ndarray:
@@ -632,7 +632,7 @@ def normal_covariance(A: np.ndarray, B: np.ndarray, C: np.ndarray,
     groups = None if cols is None else Groups(cols, C.shape[0])
     Ai = np.linalg.pinv(A, rcond=1e-12)
     if groups is None:
-        S = C - np.einsum("tpk,tpq,tql->kl", B, Ai, B)
+        S = C - _lapack.einsum("tpk,tpq,tql->kl", B, Ai, B)
     else:
-        S = C - groups.add_matrices(np.einsum("tpk,tpq,tql->tkl", B, Ai, B))
+        S = C - groups.add_matrices(_lapack.einsum("tpk,tpq,tql->tkl", B, Ai, B))
     return np.linalg.pinv(S, rcond=1e-12)

@@ -312,7 +312,7 @@ class _Problem:
             size = np.abs(hm / h)         # the residuals are finite where ln|Hm/Hd| is
             finite = np.isfinite(size) & (size > 0)
         ok = finite if self.cost == "paper" else np.concatenate([finite, finite], axis=-1)
-        jb = np.moveaxis(np.where(ok & np.isfinite(db), db, 0.0), 0, -1)    # (k, m, 5)
+        jb = np.where(ok & np.isfinite(db), db, 0.0).transpose(1, 2, 0)    # (k, m, 5)
         if p == nb:
             return jb
         return np.concatenate([jb, self.jacobian_batch(z, idx, first=nb, z_base=z_base)],

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from armfit._lapack import einsum, row_norms, svd
 from armfit.blocklsq import _cl_scaling, _Quadratic, _select_step, _strictly_inside
 
 __all__ = ["ManyResult", "solve_many"]
@@ -71,41 +72,41 @@ def _tr_steps(uf, s, V, delta, alpha, m: int, rtol: float = 0.01, max_iter: int 
     problems from the SVDs of their scaled augmented Jacobians (``uf`` = Uᵀf (k, n),
     singular values ``s`` (k, n), right singular vectors ``V`` (k, n, n)): the
     Gauss-Newton step when it fits in the radius ``delta``, else Moré's iteration on
-    ‖p(α)‖ = delta to ``rtol`` (scipy's ``solve_lsq_trust_region``, row by row)."""
+    ‖p(α)‖ = delta to ``rtol`` (scipy's ``solve_lsq_trust_region``, row by row).
+    Called under :func:`solve_many`'s error state (division by zero and invalid
+    operations not reported: a rank-deficient row's NaN is not chosen)."""
     n = s.shape[1]
     suf = s * uf
     full_rank = (s[:, -1] > _EPS * m * s[:, 0]) if m >= n else np.zeros(len(s), bool)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        p_gn = -np.einsum("kij,kj->ki", V, np.where(full_rank[:, None], uf / s, 0.0))
-    gn = full_rank & (np.linalg.norm(p_gn, axis=1) <= delta)
+    p_gn = -einsum("kij,kj->ki", V, np.where(full_rank[:, None], uf / s, 0.0))
+    gn = full_rank & (row_norms(p_gn) <= delta)
     if gn.all():
         return p_gn, np.zeros(len(s))
 
     def phi_and_derivative(a):
         denom = s ** 2 + a[:, None]
-        p_norm = np.linalg.norm(suf / denom, axis=1)
+        p_norm = row_norms(suf / denom)
         return p_norm - delta, -(suf ** 2 / denom ** 3).sum(axis=1) / p_norm
 
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a_hi = np.linalg.norm(suf, axis=1) / delta
-        phi0, dphi0 = phi_and_derivative(np.zeros(len(s)))
-        a_lo = np.where(full_rank, -phi0 / dphi0, 0.0)
-        reset = ~full_rank & (alpha == 0)
-        a = np.where(reset, np.maximum(0.001 * a_hi, np.sqrt(a_lo * a_hi)), alpha)
-        live = ~gn
-        for _ in range(max_iter):
-            if not live.any():
-                break
-            out = (a < a_lo) | (a > a_hi)
-            a = np.where(live & out, np.maximum(0.001 * a_hi, np.sqrt(a_lo * a_hi)), a)
-            phi, dphi = phi_and_derivative(a)
-            a_hi = np.where(live & (phi < 0), a, a_hi)
-            ratio = phi / dphi
-            a_lo = np.where(live, np.maximum(a_lo, a - ratio), a_lo)
-            a = np.where(live, a - (phi + delta) * ratio / delta, a)
-            live = live & ~(np.abs(phi) < rtol * delta)
-        p = -np.einsum("kij,kj->ki", V, suf / (s ** 2 + a[:, None]))
-        p *= (delta / np.linalg.norm(p, axis=1))[:, None]
+    a_hi = row_norms(suf) / delta
+    phi0, dphi0 = phi_and_derivative(np.zeros(len(s)))
+    a_lo = np.where(full_rank, -phi0 / dphi0, 0.0)
+    reset = ~full_rank & (alpha == 0)
+    a = np.where(reset, np.maximum(0.001 * a_hi, np.sqrt(a_lo * a_hi)), alpha)
+    live = ~gn
+    for _ in range(max_iter):
+        if not live.any():
+            break
+        out = (a < a_lo) | (a > a_hi)
+        a = np.where(live & out, np.maximum(0.001 * a_hi, np.sqrt(a_lo * a_hi)), a)
+        phi, dphi = phi_and_derivative(a)
+        a_hi = np.where(live & (phi < 0), a, a_hi)
+        ratio = phi / dphi
+        a_lo = np.where(live, np.maximum(a_lo, a - ratio), a_lo)
+        a = np.where(live, a - (phi + delta) * ratio / delta, a)
+        live = live & ~(np.abs(phi) < rtol * delta)
+    p = -einsum("kij,kj->ki", V, suf / (s ** 2 + a[:, None]))
+    p *= (delta / row_norms(p))[:, None]
     return np.where(gn[:, None], p_gn, p), np.where(gn, 0.0, a)
 
 
@@ -154,12 +155,15 @@ def solve_many(fun: FunMany, jac: JacMany, x0: np.ndarray, lb: np.ndarray,
     """
     lb, ub = np.asarray(lb, float), np.asarray(ub, float)
     st = _Fits(fun, jac, _inside_start(np.asarray(x0, float), lb, ub), lb, ub)
-    while st.ids.size:
-        st.begin_iterations(gtol, max_nfev)
-        # a fit whose budget ran out inside an outer iteration stops (status 0)
-        st.retire(st.nfev >= max_nfev)
-        if st.ids.size:
-            st.try_steps(ftol, xtol)
+    # one error state for every iteration (a step's ratios divide by zero where a fit
+    # predicts no reduction; the where()s choose the other branch there)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        while st.ids.size:
+            st.begin_iterations(gtol, max_nfev)
+            # a fit whose budget ran out inside an outer iteration stops (status 0)
+            st.retire(st.nfev >= max_nfev)
+            if st.ids.size:
+                st.try_steps(ftol, xtol)
     return st.out
 
 
@@ -180,10 +184,10 @@ class _Fits:
         self.m = self.f.shape[1]
         self.J = np.asarray(jac(x, self.ids), float)
         self.nfev = np.ones(N, int)
-        self.cost = 0.5 * np.einsum("km,km->k", self.f, self.f)
-        self.g = np.einsum("kmn,km->kn", self.J, self.f)
+        self.cost = 0.5 * einsum("km,km->k", self.f, self.f)
+        self.g = einsum("kmn,km->kn", self.J, self.f)
         v, _ = _cl_scaling(x, self.g, lb, ub)
-        self.delta = np.linalg.norm(x / np.sqrt(v), axis=1)
+        self.delta = row_norms(x / np.sqrt(v))
         self.delta[self.delta == 0] = 1.0
         self.alpha = np.zeros(N)
         self.status = np.zeros(N, int)
@@ -237,10 +241,10 @@ class _Fits:
         self.d[new], self.diag_h[new], self.g_h[new] = d, g * dv, d * g
         aug = np.concatenate([self.J[new] * d[:, None, :],
                               np.sqrt(g * dv)[:, None, :] * np.eye(n)], axis=1)
-        U, s, VT = np.linalg.svd(aug, full_matrices=False)
+        U, s, VT = svd(aug)
         self.V[new] = np.swapaxes(VT, 1, 2)
         self.sv[new] = s
-        self.uf[new] = np.einsum("kmi,km->ki", U[:, : self.m], self.f[new])
+        self.uf[new] = einsum("kmi,km->ki", U[:, : self.m], self.f[new])
         self.theta[new] = np.maximum(0.995, 1 - g_norm)
 
     def _select(self):
@@ -250,10 +254,10 @@ class _Fits:
         p_h, self.alpha = _tr_steps(self.uf, self.sv, self.V, self.delta, self.alpha, self.m)
         p = d * p_h
         J_h = self.J * d[:, None, :]
-        js = np.einsum("kmn,kn->km", J_h, p_h)
-        predicted = -(0.5 * (np.einsum("km,km->k", js, js)
-                             + np.einsum("kn,kn->k", p_h * diag_h, p_h))
-                      + np.einsum("kn,kn->k", g_h, p_h))
+        js = einsum("kmn,kn->km", J_h, p_h)
+        predicted = -(0.5 * (einsum("km,km->k", js, js)
+                             + einsum("kn,kn->k", p_h * diag_h, p_h))
+                      + einsum("kn,kn->k", g_h, p_h))
         xp = self.x + p
         for j in np.flatnonzero(~((xp >= lb) & (xp <= ub)).all(axis=1)):
             p[j], p_h[j], predicted[j] = _select_step(
@@ -269,25 +273,23 @@ class _Fits:
         x_new = _strictly_inside(self.x + step, self.lb, self.ub)
         f_new = np.asarray(self.fun(x_new, self.ids), float)
         self.nfev += 1
-        step_h_norm = np.linalg.norm(step_h, axis=1)
+        step_h_norm = row_norms(step_h)
         finite = np.isfinite(f_new).all(axis=1)
-        cost_new = 0.5 * np.einsum("km,km->k", f_new, f_new)
+        cost_new = 0.5 * einsum("km,km->k", f_new, f_new)
         actual = self.cost - cost_new
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(predicted > 0, actual / predicted,
-                             np.where((predicted == 0) & (actual == 0), 1.0, 0.0))
+        ratio = np.where(predicted > 0, actual / predicted,
+                         np.where((predicted == 0) & (actual == 0), 1.0, 0.0))
         dl = self.delta
         dl_new = np.where(ratio < 0.25, 0.25 * step_h_norm,
                           np.where((ratio > 0.75) & (step_h_norm > 0.95 * dl), 2.0 * dl, dl))
         small_f = (actual < ftol * self.cost) & (ratio > 0.25)
-        small_x = (np.linalg.norm(step, axis=1)
-                   < xtol * (xtol + np.linalg.norm(self.x, axis=1)))
+        small_x = (row_norms(step)
+                   < xtol * (xtol + row_norms(self.x)))
         term = finite & (small_f | small_x)
         self.status = np.where(term, np.where(small_f & small_x, 4, np.where(small_f, 2, 3)),
                                self.status)
         go = finite & ~term
-        with np.errstate(divide="ignore", invalid="ignore"):
-            self.alpha = np.where(go, self.alpha * dl / dl_new, self.alpha)
+        self.alpha = np.where(go, self.alpha * dl / dl_new, self.alpha)
         # not finite: a quarter of the step as radius, and try again
         self.delta = np.where(go, dl_new, np.where(finite, dl, 0.25 * step_h_norm))
         accept = finite & (actual > 0)
@@ -297,6 +299,6 @@ class _Fits:
             todo = np.flatnonzero(accept & ~term)   # a fit that stopped needs no Jacobian
             if todo.size:
                 self.J[todo] = self.jac(self.x[todo], self.ids[todo])
-                self.g[todo] = np.einsum("kmn,km->kn", self.J[todo], self.f[todo])
+                self.g[todo] = einsum("kmn,km->kn", self.J[todo], self.f[todo])
                 self.fresh[todo] = True
         self.retire(term)

@@ -56,3 +56,44 @@ def test_norm_is_numpys_to_the_bit():
         assert type(norm(v)) is type(np.linalg.norm(v))
         if v.size:
             assert norm(v, ord=np.inf) == np.linalg.norm(v, ord=np.inf)
+
+
+def test_row_norms_svd_and_einsum_are_numpys_to_the_bit():
+    """The lock-step fits' row norms, reduced SVD and einsum (``armfit.multilsq``, the
+    block solver, the trust-region solver) give numpy's own numbers: numpy.linalg.norm
+    with axis=1, numpy.linalg.svd(full_matrices=False) and numpy.einsum are the
+    references, on the shapes the fits use (a stack of augmented Jacobians, strided and
+    badly scaled rows, a single fit) and on a rank-deficient matrix."""
+    rng = np.random.default_rng(5)
+    rows = [rng.normal(size=(14, 5)) * 10.0 ** rng.integers(-150, 150, size=(14, 5)),
+            rng.normal(size=(1, 5)), rng.normal(size=(9, 12))[:, ::2], np.zeros((3, 5)),
+            np.zeros((0, 5))]
+    for x in rows:
+        np.testing.assert_array_equal(_lapack.row_norms(x), np.linalg.norm(x, axis=1))
+    stacks = [rng.normal(size=(14, 205, 5)), rng.normal(size=(1, 105, 6)) * 1e-8,
+              rng.normal(size=(30, 5)), np.zeros((2, 10, 5))]
+    stacks.append(np.repeat(rng.normal(size=(1, 40, 1)), 3, axis=2))   # rank one
+    stacks.append(rng.normal(size=(4, 5, 40)).transpose(0, 2, 1))       # strided
+    for a in stacks:
+        got, ref = _lapack.svd(a), np.linalg.svd(a, full_matrices=False)
+        for g, r in zip(got, ref, strict=True):
+            np.testing.assert_array_equal(g, r)
+    with pytest.raises(np.linalg.LinAlgError):
+        _lapack.svd(np.full((1, 6, 3), np.nan))
+    V, u = rng.normal(size=(14, 5, 5)), rng.normal(size=(14, 5))
+    J, f = rng.normal(size=(14, 200, 5)), rng.normal(size=(14, 200))
+    for sub, ops in (("kij,kj->ki", (V, u)), ("kmn,km->kn", (J, f)), ("km,km->k", (f, f)),
+                     ("tpk,tpq,tql->kl", (J[:, :5], V, J[:, :5]))):
+        np.testing.assert_array_equal(_lapack.einsum(sub, *ops), np.einsum(sub, *ops))
+
+
+def test_without_numpys_private_functions_svd_and_einsum_are_numpys(monkeypatch):
+    # another numpy layout: numpy.linalg.svd and numpy.einsum themselves
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=(3, 20, 4))
+    monkeypatch.setattr(_lapack, "_SVD", None)
+    monkeypatch.setattr(_lapack, "_C_EINSUM", None)
+    for g, r in zip(_lapack.svd(a), np.linalg.svd(a, full_matrices=False), strict=True):
+        np.testing.assert_array_equal(g, r)
+    np.testing.assert_array_equal(_lapack.einsum("kmn,km->kn", a, a[:, :, 0]),
+                                  np.einsum("kmn,km->kn", a, a[:, :, 0]))
