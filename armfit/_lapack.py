@@ -1,5 +1,6 @@
-"""numpy.linalg.solve's LAPACK kernels called directly, for the many small systems of a
-fit.
+"""numpy's linear-algebra kernels called directly, for the many small systems of a fit:
+numpy.linalg.solve's and svd's LAPACK kernels, numpy.linalg.norm's operations and the
+compiled einsum, each without numpy's wrapper and with numpy's numbers.
 
 The diagnosis's joint fits solve thousands of small systems: each trust-region step's
 5 × 5 blocks and its Schur complement, several times a step. On such systems
