@@ -523,11 +523,15 @@ def _levy_from_roots(coef: np.ndarray, roots: np.ndarray) -> list[dict[str, floa
 
 
 def _candidates(prob: _Problem, x0: Mapping[str, float] | None, n_sobol: int) -> np.ndarray:
+    """The starts of :func:`_search`, in search coordinates: ``x0`` (when given), the
+    typical values, and with a global search (``n_sobol`` > 0) the analytic guesses and
+    ``n_sobol`` Sobol points. A local fit starts from the first only: its analytic
+    guesses (a Levy fit, about 0.5 ms) are not made."""
     sp = prob.space
     typical = np.array([p.typical for p in prob.model.params])
     starts = [sp.to_z(typical)]
     base_idx = [sp.names.index(n) for n in PARAM_NAMES]
-    for cand in analytic_guess(prob.f, prob.h, prob.model.mp):
+    for cand in analytic_guess(prob.f, prob.h, prob.model.mp) if n_sobol else ():
         theta = typical.copy()
         theta[base_idx] = [cand[n] for n in PARAM_NAMES]
         starts.append(sp.to_z(theta))
