@@ -35,7 +35,6 @@ import threading
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +43,7 @@ from threadpoolctl import threadpool_limits
 from armfit import _slsqp, _trf
 from armfit._order import median
 from armfit.constants import AXES, axis_band
+from armfit.data import paper_file
 from armfit.errors import BadInputError, ConvergenceError, UsageError, cell
 from armfit.io.artifacts import read_wu_rows
 from armfit.io.numbers import parse_number, parse_numbers
@@ -1197,9 +1197,7 @@ def read_weights_and_bands(path_or_name: str | Path):
     """
     p = Path(path_or_name)
     if not p.exists() and str(path_or_name).lower() in PAPER_WEIGHTS:
-        ref = resources.files("armfit.data").joinpath("table3_uncertainty_weights.csv")
-        with resources.as_file(ref) as f:
-            w = read_wu(f)
+        w = read_wu(paper_file("uncertainty"))
         return w, {a: PAPER_BAND_HZ for a in w}, "Table III of the paper"
     w = read_wu(p)
     bands = {a: PAPER_BAND_HZ for a in w}

@@ -9,8 +9,6 @@ With ``--cost paper`` a fit that does not converge writes nothing (exit 3).
 from __future__ import annotations
 
 import math
-from contextlib import ExitStack
-from importlib import resources
 from pathlib import Path
 
 import click
@@ -19,6 +17,7 @@ from armfit.api import ModelFit
 from armfit.api import fit_uncertainty as api_fit_uncertainty
 from armfit.cli.grammar import CSV, LATEX, file_output_option
 from armfit.cli.options import Whole
+from armfit.data import paper_file
 from armfit.errors import UsageError
 from armfit.io.atomic import check_output
 from armfit.io.numbers import parse_number
@@ -54,14 +53,12 @@ def _parse_octaves(value: str | None) -> float | None:
     return width
 
 
-def _check_path(value: str) -> tuple[str, Path, ExitStack | None]:
+def _check_path(value: str) -> tuple[str, Path]:
     """(label, path) of a --check-weights value; "paper" is the shipped Table III."""
     p = Path(value)
     if value == "paper" and not p.exists():
-        ref = resources.files("armfit.data").joinpath("table3_uncertainty_weights.csv")
-        stack = ExitStack()
-        return "paper", stack.enter_context(resources.as_file(ref)), stack
-    return p.name, p, None
+        return "paper", paper_file("uncertainty")
+    return p.name, p
 
 
 def _pairs(reps) -> list[list[float]]:
@@ -125,12 +122,8 @@ def command(spectra: str, nominal: str, output: str, cost: str, order: int | Non
     params = ModelFit.read(nominal)
     given = {}
     if check_weights:
-        label, path, stack = _check_path(check_weights)
-        try:
-            given[label] = read_wu(path)
-        finally:
-            if stack is not None:
-                stack.close()
+        label, path = _check_path(check_weights)
+        given[label] = read_wu(path)
 
     with cluster_executor(scheduler) as executor:
         unc = api_fit_uncertainty(data, params, cost=cost, order=order, band=band_hz,

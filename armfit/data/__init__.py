@@ -26,11 +26,17 @@ TABLES = {
 }
 
 
+def paper_file(name: str) -> Path:
+    """The file of one of the paper's tables (a name of :data:`TABLES`): every reader of
+    the shipped tables opens it from here."""
+    return _FOLDER / TABLES[name]
+
+
 def paper_table(name: str) -> pd.DataFrame:
     """Return one of the paper's tables: 'grip' (I), 'nominal' (II), 'uncertainty' (III),
     'literature' (IV), as printed (SI units)."""
     import pandas as pd
-    with _FOLDER.joinpath(TABLES[name]).open() as fh:
+    with paper_file(name).open() as fh:
         return pd.read_csv(fh)
 
 
@@ -39,7 +45,7 @@ def paper_values(name: str, columns: Sequence[str]) -> np.ndarray:
     shape (rows, len(columns)), in the file's row order: the numbers
     ``paper_table(name)[columns].to_numpy(float)`` gives (an empty cell is NaN), read
     without pandas (the fits' worker processes need the numbers only)."""
-    with _FOLDER.joinpath(TABLES[name]).open(newline="") as fh:
+    with paper_file(name).open(newline="") as fh:
         header, *rows = list(csv.reader(fh))
     idx = [header.index(c) for c in columns]
     return np.array([[float(row[i]) if row[i].strip() else np.nan for i in idx]
@@ -89,5 +95,5 @@ def sobol_points(n: int, d: int) -> np.ndarray | None:
 
 
 __all__ = [
-    "TABLES", "paper_table", "paper_values", "SOBOL_DIRECTIONS", "sobol_points",
+    "TABLES", "paper_file", "paper_table", "paper_values", "SOBOL_DIRECTIONS", "sobol_points",
 ]

@@ -7,11 +7,11 @@ are X/F = 1/(m s² + b s + k) with m = Ma, k = k1, b = b1.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from importlib import resources
 
 import numpy as np
 import pandas as pd
 
+from armfit.data import paper_table
 from armfit.models.arm import h_arm, laplace
 
 #: The work each row of Table IV comes from, by model name: (authors as cited, the
@@ -64,8 +64,7 @@ class LiteratureModel:
 
 def literature_models() -> list[LiteratureModel]:
     """The rows of Table IV as models."""
-    with resources.files("armfit.data").joinpath("table4_literature.csv").open() as fh:
-        df = pd.read_csv(fh)
+    df = paper_table("literature")
     out = []
     for r in df.itertuples(index=False):
         k2 = None if pd.isna(r.k2_N_per_m) else float(r.k2_N_per_m)
